@@ -1,0 +1,1 @@
+"""trueaxis.diagnose (see DESIGN.md §2)."""

@@ -1,0 +1,1 @@
+"""trueaxis.inspect (see DESIGN.md §2)."""

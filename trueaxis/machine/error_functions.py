@@ -1,0 +1,157 @@
+"""Component errors as functions of their axis' position: tables, Legendre series, Fourier series.
+
+Every form is linear in its parameters (table values, series coefficients), so each can give its *basis*:
+``basis(q) @ values == value(q)``. The basis is what makes the twin's parameter Jacobian exact and cheap, and what the
+identifier solves for. Positions ``q`` are in internal units (mm for linear axes, rad for rotary axes); values are in
+the machine file's units (um or urad).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.polynomial import legendre as npleg
+from scipy.interpolate import CubicSpline
+
+TWO_PI = 2.0 * np.pi
+
+
+@dataclass(frozen=True)
+class ErrorFunction:
+    """One component error (e.g. EXX) of one axis, linear in ``values``.
+
+    kind : "linear" | "cubic" (tables over ``at``), "legendre" (series over ``domain`` mapped to [-1, 1]),
+           "fourier" (series in the rotary angle: ``harmonics`` k per revolution, values [a1, b1, a2, b2, ...] for
+           a_k cos(k q) + b_k sin(k q)).
+    at : (n,) table positions in internal units (tables only).
+    values : (n,) float, um or urad.
+    periodic : table repeats every 2 pi (rotary tables spanning exactly 360 deg).
+    """
+
+    kind: str
+    values: np.ndarray
+    at: np.ndarray | None = None
+    domain: tuple[float, float] | None = None
+    harmonics: np.ndarray | None = None
+    periodic: bool = False
+    labels: tuple[str, ...] = field(default=())
+
+    # --- evaluation -------------------------------------------------------------------------------------------
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        """Value at positions q (N,): (N,) in um or urad."""
+        q = np.asarray(q, dtype=float)
+        if self.kind == "linear":
+            return np.interp(self._wrap(q), self.at, self.values)
+        return self.basis(q) @ self.values
+
+    def derivative(self, q: np.ndarray) -> np.ndarray:
+        """d value / d q at q (N,): um per mm, or urad per rad, ..."""
+        return self.basis_derivative(q) @ self.values
+
+    def _wrap(self, q):
+        if self.periodic:
+            return self.at[0] + np.mod(q - self.at[0], TWO_PI)
+        return q
+
+    def basis(self, q: np.ndarray) -> np.ndarray:
+        """(N, n) weights: value(q) = basis(q) @ values."""
+        return self._basis(np.asarray(q, dtype=float), derivative=False)
+
+    def basis_derivative(self, q: np.ndarray) -> np.ndarray:
+        """(N, n): d basis / d q."""
+        return self._basis(np.asarray(q, dtype=float), derivative=True)
+
+    def _basis(self, q, derivative):
+        B = self._basis_raw(q, derivative)
+        if self.periodic and self.kind in ("linear", "cubic"):
+            # The last node is the first one a turn later: its weight belongs to the first value.
+            B[..., 0] += B[..., -1]
+            B[..., -1] = 0.0
+        return B
+
+    def _basis_raw(self, q, derivative):
+        n = self.values.size
+        if self.kind == "linear":
+            at = self.at
+            x = self._wrap(q)
+            inside = (x >= at[0]) & (x <= at[-1])
+            xc = np.clip(x, at[0], at[-1])
+            i = np.clip(np.searchsorted(at, xc, side="right") - 1, 0, n - 2)
+            h = at[i + 1] - at[i]
+            w = (xc - at[i]) / h
+            B = np.zeros(q.shape + (n,))
+            rows = np.arange(q.size).reshape(q.shape)
+            if derivative:
+                # Outside the table the value is held, so the slope is zero there.
+                B[rows, i] = np.where(inside, -1.0 / h, 0.0)
+                B[rows, i + 1] = np.where(inside, 1.0 / h, 0.0)
+            else:
+                B[rows, i] = 1.0 - w
+                B[rows, i + 1] = w
+            return B
+        if self.kind == "cubic":
+            x = self._wrap(q)
+            spline = _unit_spline(self.at.tobytes(), self.periodic)
+            inside = (x >= self.at[0]) & (x <= self.at[-1])
+            xc = np.clip(x, self.at[0], self.at[-1])
+            if derivative:
+                return spline(xc, 1) * inside[..., None]
+            return spline(xc)
+        if self.kind == "legendre":
+            lo, hi = self.domain
+            x = np.clip((2.0 * q - (lo + hi)) / (hi - lo), -1.0, 1.0)
+            if not derivative:
+                return npleg.legvander(x, n - 1)
+            inside = np.abs((2.0 * q - (lo + hi)) / (hi - lo)) <= 1.0
+            cols = [npleg.legval(x, npleg.legder(np.eye(n)[k])) if k else np.zeros_like(x) for k in range(n)]
+            return np.stack(cols, axis=-1) * (2.0 / (hi - lo)) * inside[..., None]
+        if self.kind == "fourier":
+            kq = q[..., None] * self.harmonics
+            if derivative:
+                cos_part, sin_part = -self.harmonics * np.sin(kq), self.harmonics * np.cos(kq)
+            else:
+                cos_part, sin_part = np.cos(kq), np.sin(kq)
+            return np.stack([cos_part, sin_part], axis=-1).reshape(q.shape + (n,))
+        raise ValueError(f"unknown error-function kind {self.kind!r}")
+
+
+_SPLINES: dict = {}
+
+
+def _unit_spline(at_bytes: bytes, periodic: bool) -> CubicSpline:
+    """A vector-valued cubic spline through the identity: its value at x is the cubic basis row at x (cached)."""
+    key = (at_bytes, periodic)
+    if key not in _SPLINES:
+        at = np.frombuffer(at_bytes, dtype=float)
+        unit = np.eye(at.size)
+        if periodic:
+            unit[-1] = unit[0]
+        _SPLINES[key] = CubicSpline(at, unit, bc_type="periodic" if periodic else "not-a-knot")
+    return _SPLINES[key]
+
+
+def table(at, values, interpolation: str = "linear", periodic: bool = False, label_unit: str = "mm") -> ErrorFunction:
+    """A tabulated component error; ``at`` in internal units, ``values`` in um/urad."""
+    at = np.asarray(at, dtype=float)
+    values = np.asarray(values, dtype=float)
+    scale = np.degrees(1.0) if label_unit == "deg" else 1.0
+    labels = tuple(f"@{a * scale:g}" for a in at)
+    if periodic:
+        # The last node repeats the first one turn later: one free value less.
+        return ErrorFunction(interpolation, values, at=at, periodic=True, labels=labels)
+    return ErrorFunction(interpolation, values, at=at, labels=labels)
+
+
+def legendre_series(coefficients, domain: tuple[float, float]) -> ErrorFunction:
+    c = np.asarray(coefficients, dtype=float)
+    return ErrorFunction("legendre", c, domain=domain, labels=tuple(f".P{k}" for k in range(c.size)))
+
+
+def fourier_series(rows) -> ErrorFunction:
+    """rows: [[k, a_k, b_k], ...] with k harmonics per revolution, amplitudes in um/urad."""
+    rows = np.asarray(rows, dtype=float).reshape(-1, 3)
+    k = rows[:, 0]
+    values = rows[:, 1:].reshape(-1)
+    labels = tuple(lab for kk in k for lab in (f".cos{kk:g}", f".sin{kk:g}"))
+    return ErrorFunction("fourier", values, harmonics=k, labels=labels)

@@ -1,0 +1,432 @@
+"""Read and strictly validate a machine file (TOML, format 1; DESIGN §4, docs/machine_file.md).
+
+Every problem is collected with its key path, and all of them are reported together by ``MachineFileError``: one line
+per problem, so a user fixes a file in one go.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from .error_functions import fourier_series, legendre_series, table
+from .model import (
+    AXIS_ORDER,
+    DIRECTION_LETTER,
+    ERROR_DIRECTIONS,
+    SQUARENESS,
+    Axis,
+    ErrorSet,
+    Machine,
+    ResponseSurface,
+    Tool,
+    rotary_location_names,
+)
+from .transforms import UNIT
+
+DEFAULT_ABOUT = {"A": "X", "B": "Y", "C": "Z"}
+CUTTING_KEYS = ("Ktc", "Krc", "Kac", "Kte", "Kre", "Kae")
+
+
+class MachineFileError(ValueError):
+    """A machine file that cannot be used; ``problems`` holds one "key.path: message" line per problem."""
+
+    def __init__(self, source: str, problems: list[str]):
+        self.source = source
+        self.problems = list(problems)
+        super().__init__("\n".join(f"{source}: {p}" for p in self.problems))
+
+
+class _Checker:
+    """Collects problems while reading; each ``get_*`` returns a usable default so reading can go on."""
+
+    def __init__(self):
+        self.problems: list[str] = []
+
+    def fail(self, path: str, message: str):
+        self.problems.append(f"{path}: {message}")
+
+    def table(self, data, path, allowed, required=()):
+        if not isinstance(data, dict):
+            self.fail(path, f"expected a table, got {type(data).__name__}")
+            return {}
+        for key in data:
+            if key not in allowed:
+                self.fail(f"{path}.{key}" if path else key, "unknown key")
+        for key in required:
+            if key not in data:
+                self.fail(f"{path}.{key}" if path else key, "missing")
+        return data
+
+    def number(self, value, path, positive=False, nonnegative=False, default=None):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            self.fail(path, f"expected a number, got {type(value).__name__} {value!r}")
+            return default
+        if not math.isfinite(value):
+            self.fail(path, f"must be finite, got {value}")
+            return default
+        if positive and value <= 0:
+            self.fail(path, f"must be positive, got {value}")
+            return default
+        if nonnegative and value < 0:
+            self.fail(path, f"must not be negative, got {value}")
+            return default
+        return float(value)
+
+    def numbers(self, value, path, length=None):
+        if not isinstance(value, list):
+            self.fail(path, f"expected an array of numbers, got {type(value).__name__}")
+            return None
+        if length is not None and len(value) != length:
+            self.fail(path, f"expected {length} numbers, got {len(value)}")
+            return None
+        out = [self.number(v, f"{path}[{i}]") for i, v in enumerate(value)]
+        return None if any(v is None for v in out) else np.asarray(out, dtype=float)
+
+    def string(self, value, path, choices=None):
+        if not isinstance(value, str):
+            self.fail(path, f"expected a string, got {type(value).__name__}")
+            return None
+        if choices is not None and value not in choices:
+            self.fail(path, f"must be one of {', '.join(choices)}; got {value!r}")
+            return None
+        return value
+
+
+def load_machine(path: str | Path) -> Machine:
+    """Read a machine file; raise MachineFileError listing every problem (key path in each line)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise MachineFileError(str(path), ["file not found"]) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MachineFileError(str(path), [f"cannot read: {exc}"]) from None
+    return parse_machine(text, source=str(path))
+
+
+def parse_machine(text: str, source: str = "<string>") -> Machine:
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise MachineFileError(source, [f"not valid TOML: {exc}"]) from None
+    ck = _Checker()
+    machine = _read(data, ck, source)
+    if ck.problems:
+        raise MachineFileError(source, ck.problems)
+    return machine
+
+
+def _read(data, ck: _Checker, source: str) -> Machine | None:
+    ck.table(
+        data,
+        "",
+        {"machine", "kinematics", "axes", "tool", "workpiece", "location", "component", "force", "loaded", "cutting"},
+        required=("machine", "kinematics", "axes", "tool"),
+    )
+    head = ck.table(data.get("machine", {}), "machine", {"name", "kind", "format", "note"}, ("name", "kind", "format"))
+    name = ck.string(head.get("name", ""), "machine.name") or ""
+    kind = ck.string(head.get("kind", "mill"), "machine.kind", ("mill", "lathe")) or "mill"
+    if "format" in head and head["format"] != 1:
+        ck.fail("machine.format", f"this trueaxis reads format 1, the file says {head['format']!r}")
+    note = ck.string(head.get("note", ""), "machine.note") or ""
+
+    axes = _read_axes(data.get("axes", {}), ck)
+    wp, tl = _read_kinematics(data.get("kinematics", {}), axes, ck)
+    axes = {a: Axis(**{**ax.__dict__, "branch": "workpiece" if a in wp else "tool"}) for a, ax in axes.items()}
+
+    t = ck.table(
+        data.get("tool", {}), "tool", {"length", "radius", "flutes", "flute_length", "helix_deg"}, ("length", "radius")
+    )
+    flutes = t.get("flutes", 4)
+    if isinstance(flutes, bool) or not isinstance(flutes, int) or flutes < 1:
+        ck.fail("tool.flutes", f"expected a positive whole number, got {flutes!r}")
+        flutes = 4
+    tool = Tool(
+        length=ck.number(t.get("length", 100.0), "tool.length", positive=True, default=100.0),
+        radius=ck.number(t.get("radius", 5.0), "tool.radius", positive=True, default=5.0),
+        flutes=flutes,
+        flute_length=ck.number(t.get("flute_length", 30.0), "tool.flute_length", positive=True, default=30.0),
+        helix_deg=ck.number(t.get("helix_deg", 30.0), "tool.helix_deg", nonnegative=True, default=30.0),
+    )
+    w = ck.table(data.get("workpiece", {}), "workpiece", {"origin"})
+    origin = ck.numbers(w.get("origin", [0.0, 0.0, 0.0]), "workpiece.origin", 3)
+    origin = np.zeros(3) if origin is None else origin
+
+    layout = Machine(name, kind, axes, wp, tl, tool, origin, ErrorSet(), source=source)
+    errors = _read_error_set(data, "", layout, ck)
+
+    loaded = loaded_force = None
+    if "loaded" in data:
+        ld = ck.table(data["loaded"], "loaded", {"force_n", "location", "component"}, ("force_n",))
+        loaded_force = ck.numbers(ld.get("force_n", [0.0, 0.0, 0.0]), "loaded.force_n", 3)
+        loaded = _read_error_set(ld, "loaded.", layout, ck)
+
+    compliance, surfaces = None, ()
+    if "force" in data:
+        f = ck.table(data["force"], "force", {"compliance_um_per_n", "surface"})
+        if "compliance_um_per_n" in f:
+            rows = f["compliance_um_per_n"]
+            if not isinstance(rows, list) or len(rows) != 3:
+                ck.fail("force.compliance_um_per_n", "expected a 3x3 array (rows of 3 numbers)")
+            else:
+                got = [ck.numbers(r, f"force.compliance_um_per_n[{i}]", 3) for i, r in enumerate(rows)]
+                if all(g is not None for g in got):
+                    compliance = np.vstack(got)
+        surfaces = tuple(_read_surfaces(f.get("surface", []), axes, ck))
+
+    cutting = None
+    if "cutting" in data:
+        c = ck.table(data["cutting"], "cutting", {"material", *CUTTING_KEYS}, CUTTING_KEYS)
+        cutting = {"material": ck.string(c.get("material", ""), "cutting.material") or ""}
+        for key in CUTTING_KEYS:
+            if key in c:
+                cutting[key] = ck.number(c[key], f"cutting.{key}", nonnegative=True, default=0.0)
+
+    return Machine(
+        name=name,
+        kind=kind,
+        axes=axes,
+        bed_to_workpiece=wp,
+        bed_to_tool=tl,
+        tool=tool,
+        workpiece_origin=origin,
+        errors=errors,
+        loaded=loaded,
+        loaded_force_n=loaded_force,
+        compliance_um_per_n=compliance,
+        surfaces=surfaces,
+        cutting=cutting,
+        note=note,
+        source=source,
+    )
+
+
+def _read_axes(data, ck: _Checker) -> dict[str, Axis]:
+    ck.table(data, "axes", set(AXIS_ORDER))
+    axes = {}
+    for name in AXIS_ORDER:
+        if name not in data:
+            continue
+        path = f"axes.{name}"
+        spec = ck.table(data[name], path, {"type", "travel", "about", "pivot"}, ("type",))
+        kind = ck.string(spec.get("type", "linear"), f"{path}.type", ("linear", "rotary")) or "linear"
+        if kind == "linear" and name not in "XYZ":
+            ck.fail(f"{path}.type", f"axis {name} is a rotary axis letter; linear axes are X, Y, Z")
+        if kind == "rotary" and name not in "ABC":
+            ck.fail(f"{path}.type", f"axis {name} is a linear axis letter; rotary axes are A, B, C")
+        travel = None
+        if "travel" in spec:
+            tr = ck.numbers(spec["travel"], f"{path}.travel", 2)
+            if tr is not None:
+                if tr[0] >= tr[1]:
+                    ck.fail(f"{path}.travel", f"must be [low, high] with low < high, got {list(tr)}")
+                else:
+                    travel = tuple(np.radians(tr)) if kind == "rotary" else (float(tr[0]), float(tr[1]))
+        pivot = np.zeros(3)
+        about = None
+        if kind == "rotary":
+            about = ck.string(spec.get("about", DEFAULT_ABOUT.get(name, "Z")), f"{path}.about", ("X", "Y", "Z")) or "Z"
+            if "pivot" in spec:
+                p = ck.numbers(spec["pivot"], f"{path}.pivot", 3)
+                pivot = p if p is not None else pivot
+            direction = UNIT[about]
+        else:
+            for key in ("about", "pivot"):
+                if key in spec:
+                    ck.fail(f"{path}.{key}", "only rotary axes have this key")
+            direction = UNIT.get(name, UNIT["X"])
+        axes[name] = Axis(name, kind, direction, pivot, travel, branch="", about=about)
+    if not axes:
+        ck.fail("axes", "no axes")
+    return axes
+
+
+def _read_kinematics(data, axes, ck: _Checker):
+    k = ck.table(data, "kinematics", {"bed_to_workpiece", "bed_to_tool"}, ("bed_to_workpiece", "bed_to_tool"))
+    branches = []
+    for key in ("bed_to_workpiece", "bed_to_tool"):
+        value = k.get(key, [])
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            ck.fail(f"kinematics.{key}", "expected an array of axis letters")
+            value = []
+        for v in value:
+            if v not in axes:
+                ck.fail(f"kinematics.{key}", f"axis {v!r} is not defined in [axes]")
+        branches.append(tuple(v for v in value if v in axes))
+    listed = branches[0] + branches[1]
+    for a in sorted(set(listed)):
+        if listed.count(a) > 1:
+            ck.fail("kinematics", f"axis {a} appears more than once")
+    for a in axes:
+        if a not in listed:
+            ck.fail("kinematics", f"axis {a} is defined in [axes] but is on neither branch")
+    return branches[0], branches[1]
+
+
+def _read_error_set(data, prefix: str, layout: Machine, ck: _Checker) -> ErrorSet:
+    location = {}
+    valid = layout.location_names()
+    if "location" in data:
+        loc = ck.table(data["location"], f"{prefix}location", set(valid) | _all_location_names())
+        for key, value in loc.items():
+            if key not in valid:
+                if key in _all_location_names():
+                    ck.fail(f"{prefix}location.{key}", f"{key} does not exist for this machine's axes ({_layout_word(layout)})")
+                continue
+            v = ck.number(value, f"{prefix}location.{key}")
+            if v is not None and v != 0.0:
+                location[key] = v
+    components = {}
+    comp_data = data.get("component", {})
+    if not isinstance(comp_data, dict):
+        ck.fail(f"{prefix}component", "expected tables [component.AXIS]")
+        comp_data = {}
+    for axis_name, spec in comp_data.items():
+        path = f"{prefix}component.{axis_name}"
+        if axis_name not in layout.axes:
+            ck.fail(path, f"axis {axis_name!r} is not defined in [axes]")
+            continue
+        components[axis_name] = _read_components(spec, path, layout.axes[axis_name], ck)
+    return ErrorSet(location=location, components=components)
+
+
+def _all_location_names() -> set[str]:
+    names = set(SQUARENESS)
+    for axis, about in (("A", "X"), ("B", "Y"), ("C", "Z")):
+        for about_dir in "XYZ":
+            names |= set(rotary_location_names(axis, about_dir))
+    return names
+
+
+def _layout_word(layout: Machine) -> str:
+    return " ".join(layout.axis_names)
+
+
+def _read_components(spec, path: str, axis: Axis, ck: _Checker):
+    names = [f"E{d}{axis.name}" for d in ERROR_DIRECTIONS]
+    allowed = {"at", "interpolation", "legendre", "fourier", *names}
+    ck.table(spec, path, allowed)
+    out = {}
+    to_internal = np.radians if axis.is_rotary else (lambda v: np.asarray(v, dtype=float))
+    travel_deg = None if axis.travel is None else (np.degrees(axis.travel) if axis.is_rotary else axis.travel)
+    table_names = [n for n in names if n in spec]
+    if table_names:
+        interp = ck.string(spec.get("interpolation", "linear"), f"{path}.interpolation", ("linear", "cubic")) or "linear"
+        at = ck.numbers(spec.get("at"), f"{path}.at") if "at" in spec else None
+        if "at" not in spec:
+            ck.fail(f"{path}.at", f"missing: the tables {', '.join(table_names)} need their positions")
+        if at is not None:
+            ok = True
+            if at.size < 2:
+                ck.fail(f"{path}.at", "needs at least 2 positions")
+                ok = False
+            elif np.any(np.diff(at) <= 0):
+                i = int(np.argmax(np.diff(at) <= 0))
+                ck.fail(f"{path}.at", f"positions must increase strictly: at[{i}] = {at[i]:g}, at[{i + 1}] = {at[i + 1]:g}")
+                ok = False
+            if ok and travel_deg is not None:
+                lo, hi = travel_deg
+                eps = 1e-9 * max(1.0, abs(lo), abs(hi))
+                if at[0] < lo - eps or at[-1] > hi + eps:
+                    unit = "deg" if axis.is_rotary else "mm"
+                    ck.fail(
+                        f"{path}.at",
+                        f"table [{at[0]:g}, {at[-1]:g}] {unit} lies outside the travel [{lo:g}, {hi:g}] {unit}",
+                    )
+                    ok = False
+            periodic = bool(axis.is_rotary and ok and abs((at[-1] - at[0]) - 360.0) < 1e-9)
+            if axis.is_rotary and ok and at[-1] - at[0] > 360.0 + 1e-9:
+                ck.fail(f"{path}.at", "a rotary table spans at most 360 deg")
+                ok = False
+            if interp == "cubic" and ok and at.size < 3:
+                ck.fail(f"{path}.interpolation", "cubic interpolation needs at least 3 positions")
+                ok = False
+            for n in table_names:
+                vals = ck.numbers(spec[n], f"{path}.{n}")
+                if vals is None or not ok:
+                    continue
+                if vals.size != at.size:
+                    ck.fail(f"{path}.{n}", f"has {vals.size} values for {at.size} positions in {path}.at")
+                    continue
+                if periodic and vals[0] != vals[-1]:
+                    ck.fail(f"{path}.{n}", "a table over a full turn must end where it starts (first value = last value)")
+                    continue
+                unit = "deg" if axis.is_rotary else "mm"
+                out[n] = table(to_internal(at), vals, interp, periodic=periodic, label_unit=unit)
+    elif "at" in spec:
+        ck.fail(f"{path}.at", "positions given but no component table")
+    for form in ("legendre", "fourier"):
+        if form not in spec:
+            continue
+        series = ck.table(spec[form], f"{path}.{form}", set(names))
+        if form == "fourier" and not axis.is_rotary:
+            ck.fail(f"{path}.fourier", "Fourier series are for rotary axes")
+            continue
+        for n, coeffs in series.items():
+            p = f"{path}.{form}.{n}"
+            if n not in names:
+                continue
+            if n in out:
+                ck.fail(p, f"{n} is given twice (as a table and as a series)")
+                continue
+            if form == "legendre":
+                c = ck.numbers(coeffs, p)
+                if c is None or c.size == 0:
+                    continue
+                if axis.travel is None and not axis.is_rotary:
+                    ck.fail(p, "a Legendre series needs the axis' travel (its domain)")
+                    continue
+                domain = axis.travel if axis.travel is not None else (-np.pi, np.pi)
+                out[n] = legendre_series(c, domain)
+            else:
+                if not isinstance(coeffs, list) or not coeffs:
+                    ck.fail(p, "expected rows [k, cos amplitude, sin amplitude]")
+                    continue
+                rows = [ck.numbers(r, f"{p}[{i}]", 3) for i, r in enumerate(coeffs)]
+                if any(r is None for r in rows):
+                    continue
+                k = np.array([r[0] for r in rows])
+                if np.any(k < 1) or np.any(k != np.round(k)):
+                    ck.fail(p, "harmonic numbers k must be whole numbers >= 1")
+                    continue
+                out[n] = fourier_series(rows)
+    return out
+
+
+def _read_surfaces(data, axes, ck: _Checker):
+    if not isinstance(data, list):
+        ck.fail("force.surface", "expected an array of tables [[force.surface]]")
+        return
+    for i, s in enumerate(data):
+        path = f"force.surface[{i}]"
+        s = ck.table(s, path, {"axis", "inputs", "load_sign", "motion", "coeffs", "note"},
+                     ("axis", "inputs", "load_sign", "motion", "coeffs"))
+        axis = ck.string(s.get("axis", "Z"), f"{path}.axis", ("X", "Y", "Z"))
+        inputs = s.get("inputs", [])
+        pos_axis = force_dir = None
+        if not (isinstance(inputs, list) and len(inputs) == 2 and all(isinstance(v, str) for v in inputs)):
+            ck.fail(f"{path}.inputs", "expected [axis position, force component], e.g. [\"X\", \"Pz\"]")
+        else:
+            if inputs[0] not in axes or axes[inputs[0]].is_rotary:
+                ck.fail(f"{path}.inputs[0]", f"{inputs[0]!r} is not a linear axis of this machine")
+            else:
+                pos_axis = inputs[0]
+            f = inputs[1]
+            if len(f) == 2 and f[0] in "PF" and f[1].upper() in "XYZ":
+                force_dir = f[1].upper()
+            else:
+                ck.fail(f"{path}.inputs[1]", f"{f!r} is not a force component (Px Py Pz or Fx Fy Fz)")
+        sign = ck.string(s.get("load_sign", "+"), f"{path}.load_sign", ("+", "-"))
+        motion = ck.string(s.get("motion", "forward"), f"{path}.motion", ("forward", "backward"))
+        coeffs = ck.numbers(s.get("coeffs", []), f"{path}.coeffs", 6)
+        note = s.get("note", "")
+        if None not in (axis, pos_axis, force_dir, sign, motion) and coeffs is not None:
+            yield ResponseSurface(axis, pos_axis, force_dir, 1 if sign == "+" else -1,
+                                  1 if motion == "forward" else -1, coeffs, str(note))
+
+
+__all__ = ["MachineFileError", "load_machine", "parse_machine", "DIRECTION_LETTER"]

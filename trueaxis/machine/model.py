@@ -1,0 +1,195 @@
+"""What a machine is: its axes, kinematic branches, reference tool, part placement and error parameters.
+
+Plain data. Geometry in internal units (mm, rad); error values in the machine file's units (um, urad), named by
+ISO 230-1 / ISO 230-7 (DESIGN §3). ``machine_file.load_machine`` builds these from TOML; ``twin`` evaluates them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .error_functions import ErrorFunction
+
+AXIS_ORDER = "XYZABC"
+ROTATION_LETTER = {"X": "A", "Y": "B", "Z": "C"}
+DIRECTION_LETTER = {v: k for k, v in ROTATION_LETTER.items()}
+ERROR_DIRECTIONS = "XYZABC"  # E<dir><axis>: X Y Z are translations (um), A B C rotations (urad)
+
+# Squareness of linear axes (DESIGN §3): name -> (axis it tilts, rotation direction it tilts about)
+SQUARENESS = {"C0Y": ("Y", "Z"), "B0Z": ("Z", "Y"), "A0Z": ("Z", "X")}
+
+
+def is_angle_name(name: str) -> bool:
+    """True for parameters in urad (angles), False for um (lengths). Works for location and component names."""
+    base = name.split("@")[0].split(".")[0]
+    if base.startswith("E") and len(base) == 3:
+        return base[1] in "ABC"
+    if base in SQUARENESS:
+        return True
+    return base[0] in "ABC"  # XOC/YOC/ZOB... are offsets; AOC/BOC/COC... are angles
+
+
+def unit_of(name: str) -> str:
+    return "urad" if is_angle_name(name) else "um"
+
+
+@dataclass(frozen=True)
+class Axis:
+    """One machine axis.
+
+    kind : "linear" | "rotary".  direction : (3,) unit vector, the line of motion (linear) or of rotation (rotary),
+    in M with all axes at zero.  pivot : (3,) mm, a point on a rotary axis' nominal line.  travel : (lo, hi) in mm or
+    rad, or None (unlimited).  branch : "workpiece" | "tool".
+    """
+
+    name: str
+    kind: str
+    direction: np.ndarray
+    pivot: np.ndarray
+    travel: tuple[float, float] | None
+    branch: str
+    about: str | None = None
+
+    @property
+    def is_rotary(self) -> bool:
+        return self.kind == "rotary"
+
+
+@dataclass(frozen=True)
+class Tool:
+    """The reference tool: a flat end mill unless said otherwise (mm, deg)."""
+
+    length: float
+    radius: float
+    flutes: int = 4
+    flute_length: float = 30.0
+    helix_deg: float = 30.0
+
+
+@dataclass
+class ErrorSet:
+    """Position-independent (location) errors and component error functions.
+
+    location : name -> value (um or urad); absent names are zero.
+    components : axis name -> component name (e.g. "EXX") -> ErrorFunction.
+    """
+
+    location: dict[str, float] = field(default_factory=dict)
+    components: dict[str, dict[str, ErrorFunction]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ResponseSurface:
+    """A second-degree response surface of the lathe paper: an error of ``axis`` in um.
+
+    d = c0 + c1 x + c2 P + c3 x^2 + c4 x P + c5 P^2, with x the position of ``position_axis`` (mm) and P the signed
+    force component on the tool along ``force_direction`` (kN). Chosen when the force's sign is ``load_sign`` and the
+    position axis moves in direction ``motion`` (+1 forward, -1 backward).
+    """
+
+    axis: str
+    position_axis: str
+    force_direction: str
+    load_sign: int
+    motion: int
+    coeffs: np.ndarray
+    note: str = ""
+
+
+@dataclass
+class Machine:
+    """A machine and its error twin parameters (see DESIGN §3-4)."""
+
+    name: str
+    kind: str
+    axes: dict[str, Axis]
+    bed_to_workpiece: tuple[str, ...]
+    bed_to_tool: tuple[str, ...]
+    tool: Tool
+    workpiece_origin: np.ndarray
+    errors: ErrorSet
+    loaded: ErrorSet | None = None
+    loaded_force_n: np.ndarray | None = None
+    compliance_um_per_n: np.ndarray | None = None
+    surfaces: tuple[ResponseSurface, ...] = ()
+    cutting: dict | None = None
+    note: str = ""
+    source: str = "<memory>"
+
+    # --- names ---------------------------------------------------------------------------------------------------
+    @property
+    def axis_names(self) -> tuple[str, ...]:
+        """Axis letters in canonical order (X Y Z A B C): the column order of every pose array."""
+        return tuple(a for a in AXIS_ORDER if a in self.axes)
+
+    @property
+    def rotary_axes(self) -> tuple[str, ...]:
+        return tuple(a for a in self.axis_names if self.axes[a].is_rotary)
+
+    @property
+    def is_five_axis(self) -> bool:
+        return len(self.rotary_axes) == 2
+
+    def location_names(self) -> list[str]:
+        """Every location parameter this layout has, in a fixed order."""
+        names = [n for n, (ax, _) in SQUARENESS.items() if ax in self.axes]
+        for a in self.rotary_axes:
+            names += rotary_location_names(a, self.axes[a].about)
+        return names
+
+    def component_names(self, axis: str) -> list[str]:
+        return [f"E{d}{axis}" for d in ERROR_DIRECTIONS]
+
+    # --- parameter vector ----------------------------------------------------------------------------------------
+    def parameter_names(self) -> list[str]:
+        """Names of the geometric parameter vector: every location name, then each component function's values."""
+        names = list(self.location_names())
+        for axis, comps in self._component_items():
+            for comp, fn in comps:
+                names += [f"{comp}{label}" for label in fn.labels]
+        return names
+
+    def parameter_values(self) -> np.ndarray:
+        vals = [self.errors.location.get(n, 0.0) for n in self.location_names()]
+        for _, comps in self._component_items():
+            for _, fn in comps:
+                vals += list(fn.values)
+        return np.asarray(vals, dtype=float)
+
+    def parameter_units(self) -> list[str]:
+        return [unit_of(n) for n in self.parameter_names()]
+
+    def with_parameters(self, values: np.ndarray) -> "Machine":
+        """A copy whose geometric parameters are ``values`` (same order as ``parameter_names``)."""
+        values = np.asarray(values, dtype=float)
+        if values.shape != (len(self.parameter_names()),):
+            raise ValueError(f"expected {len(self.parameter_names())} parameter values, got shape {values.shape}")
+        names = self.location_names()
+        location = {n: float(v) for n, v in zip(names, values[: len(names)]) if v != 0.0}
+        i = len(names)
+        components: dict[str, dict[str, ErrorFunction]] = {}
+        for axis, comps in self._component_items():
+            components[axis] = {}
+            for comp, fn in comps:
+                n = fn.values.size
+                components[axis][comp] = replace(fn, values=values[i : i + n].copy())
+                i += n
+        return replace(self, errors=ErrorSet(location=location, components=components))
+
+    def _component_items(self):
+        for axis in self.axis_names:
+            comps = self.errors.components.get(axis, {})
+            yield axis, [(c, comps[c]) for c in self.component_names(axis) if c in comps]
+
+
+def rotary_location_names(axis: str, about: str) -> list[str]:
+    """ISO 230-7 location errors of a rotary axis: two offsets, two tilts, the zero-angle offset.
+
+    For C about Z: XOC YOC (um), AOC BOC (urad), COC (urad).
+    """
+    perpendicular = [d for d in "XYZ" if d != about]
+    offsets = [f"{d}O{axis}" for d in perpendicular]
+    tilts = [f"{ROTATION_LETTER[d]}O{axis}" for d in perpendicular]
+    return offsets + tilts + [f"{ROTATION_LETTER[about]}O{axis}"]

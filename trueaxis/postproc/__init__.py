@@ -1,0 +1,1 @@
+"""trueaxis.postproc (see DESIGN.md §2)."""

@@ -1,0 +1,1 @@
+"""trueaxis.sim (see DESIGN.md §2)."""
