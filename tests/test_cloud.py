@@ -1,0 +1,246 @@
+"""Cloud I/O: round trips, files written by hand in each PLY flavour, CSV/XYZ, an independent reader (open3d), and
+refusal of every kind of bad input with a one-line message naming the file."""
+
+import numpy as np
+import pytest
+
+from trueaxis.inspect.cloud import Cloud, CloudError, check_extent, read_cloud, write_cloud_ply
+
+
+@pytest.fixture
+def cloud():
+    rng = np.random.default_rng(11)
+    points = rng.uniform(-40.0, 40.0, (257, 3))
+    normals = rng.normal(size=(257, 3))
+    return points, normals
+
+
+def refused(path, match=None):
+    """read_cloud(path) must raise CloudError, on one line, naming the file; returns the message."""
+    with pytest.raises(CloudError) as info:
+        read_cloud(path)
+    message = str(info.value)
+    assert str(path) in message and "\n" not in message, message
+    if match is not None:
+        assert match in message, message
+    return message
+
+
+def ply_header(fmt, count, properties, extra_elements=""):
+    lines = ["ply", f"format {fmt} 1.0", "comment written by hand", f"element vertex {count}"]
+    lines += [f"property {t} {n}" for t, n in properties]
+    return ("\n".join(lines) + "\n" + extra_elements + "end_header\n").encode("ascii")
+
+
+# ------------------------------------------------------------------------------------------------------- round trips
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_ply_round_trip_is_exact(tmp_path, cloud, binary):
+    points, normals = cloud
+    path = tmp_path / "part.ply"
+    write_cloud_ply(path, points, normals, binary=binary, comments=["part nas979", "units mm"])
+    back = read_cloud(path)
+    assert isinstance(back, Cloud) and back.source == str(path) and len(back) == len(points)
+    # doubles in binary, 17 significant digits in ascii: both read back bit for bit
+    np.testing.assert_array_equal(back.points, points)
+    np.testing.assert_allclose(back.normals, normals / np.linalg.norm(normals, axis=1)[:, None], rtol=0, atol=1e-15)
+    assert b"comment part nas979" in path.read_bytes()[:400]
+    write_cloud_ply(path, points, binary=binary)  # over an existing file, and without normals
+    assert read_cloud(path).normals is None
+
+
+@pytest.mark.parametrize("fmt, order", [("binary_big_endian", ">"), ("binary_little_endian", "<")])
+def test_binary_ply_written_by_hand_with_other_properties_and_faces(tmp_path, cloud, fmt, order):
+    # float x y z (as most scanners write), extra properties in between, a face element after the vertices
+    points, normals = cloud
+    dtype = np.dtype([("x", order + "f4"), ("red", "u1"), ("y", order + "f4"), ("z", order + "f4"),
+                      ("nx", order + "f8"), ("ny", order + "f8"), ("nz", order + "f8"), ("quality", order + "i2")])
+    table = np.zeros(len(points), dtype=dtype)
+    for i, name in enumerate("xyz"):
+        table[name] = points[:, i]
+    for i, name in enumerate(("nx", "ny", "nz")):
+        table[name] = normals[:, i]
+    table["red"], table["quality"] = 200, -7
+    face = np.array([(3, 0, 1, 2)], dtype=[("n", "u1"), ("a", order + "i4"), ("b", order + "i4"), ("c", order + "i4")])
+    header = ply_header(fmt, len(points), [("float", "x"), ("uchar", "red"), ("float", "y"), ("float", "z"),
+                                            ("double", "nx"), ("double", "ny"), ("double", "nz"), ("short", "quality")],
+                        "element face 1\nproperty list uchar int vertex_indices\n")
+    path = tmp_path / f"{fmt}.ply"
+    path.write_bytes(header + table.tobytes() + face.tobytes())
+    back = read_cloud(path)
+    # the reader returns float64 of the float32 values stored: exactly the float32 rounding of the inputs
+    np.testing.assert_array_equal(back.points, points.astype(np.float32).astype(np.float64))
+    np.testing.assert_allclose(back.normals, normals / np.linalg.norm(normals, axis=1)[:, None], atol=1e-15)
+
+
+def test_ascii_ply_written_by_hand_with_other_properties_and_faces(tmp_path):
+    body = "1.5 2 3 7 0 0 2\n-4 5e-1 6.25 8 0 3 0\n0 0 0 9 1 0 0\n3 0 1 2\n"
+    header = ply_header("ascii", 3, [("double", "x"), ("float", "y"), ("float", "z"), ("uchar", "intensity"),
+                                     ("float", "nx"), ("float", "ny"), ("float", "nz")],
+                        "element face 1\nproperty list uchar int vertex_indices\n")
+    path = tmp_path / "hand.ply"
+    path.write_bytes(header + body.encode())
+    back = read_cloud(path)
+    np.testing.assert_array_equal(back.points, [[1.5, 2, 3], [-4, 0.5, 6.25], [0, 0, 0]])
+    np.testing.assert_array_equal(back.normals, [[0, 0, 1], [0, 1, 0], [1, 0, 0]])
+
+
+def test_open3d_reads_the_same_points_from_our_binary_ply(tmp_path, cloud):
+    o3d = pytest.importorskip("open3d")
+    points, normals = cloud
+    path = tmp_path / "o3d.ply"
+    write_cloud_ply(path, points, normals)
+    theirs = o3d.io.read_point_cloud(str(path))
+    np.testing.assert_array_equal(np.asarray(theirs.points), points)
+    # open3d keeps the normals as written; ours are normalised
+    np.testing.assert_allclose(np.asarray(theirs.normals), normals, rtol=0, atol=1e-15)
+    # and the other way round: a binary PLY written by open3d reads back the same
+    theirs_path = tmp_path / "by_o3d.ply"
+    o3d.io.write_point_cloud(str(theirs_path), theirs, write_ascii=False)
+    np.testing.assert_array_equal(read_cloud(theirs_path).points, points)
+
+
+def test_csv_with_and_without_header_and_xyz(tmp_path):
+    points = np.array([[1.0, 2.0, 3.0], [-4.5, 0.25, 1e-3], [7.0, 8.0, 9.0]])
+    normals = np.array([[0.0, 0.0, 2.0], [0.0, -1.0, 0.0], [3.0, 4.0, 0.0]])
+    unit = normals / np.linalg.norm(normals, axis=1)[:, None]
+    rows6 = np.hstack([points, normals]).tolist()
+    points_rows = points.tolist()
+
+    (tmp_path / "plain.csv").write_text("\n".join(",".join(map(repr, row)) for row in points_rows) + "\n")
+    (tmp_path / "header.csv").write_text("x,y,z,nx,ny,nz\n" + "\n".join(",".join(map(repr, r)) for r in rows6))
+    # header in another order, with an extra column and a comment line, spaces after the commas
+    (tmp_path / "shuffled.csv").write_text("# probe 2 mm\nZ, id, X, Y\n" +
+                                           "\n".join(f"{z!r}, {i}, {x!r}, {y!r}" for i, (x, y, z) in enumerate(points_rows)))
+    (tmp_path / "spaces.csv").write_text("\n".join(" ".join(map(repr, r)) for r in rows6) + "\n")
+    (tmp_path / "points.xyz").write_text("\n".join("\t".join(map(repr, r)) for r in points_rows) + "\n")
+    (tmp_path / "normals.XYZ").write_text("\n".join("  ".join(map(repr, r)) for r in rows6))
+
+    for name, has_normals in [("plain.csv", False), ("header.csv", True), ("shuffled.csv", False),
+                              ("spaces.csv", True), ("points.xyz", False), ("normals.XYZ", True)]:
+        back = read_cloud(tmp_path / name)
+        np.testing.assert_array_equal(back.points, points, err_msg=name)
+        if has_normals:
+            np.testing.assert_allclose(back.normals, unit, atol=1e-15, err_msg=name)
+        else:
+            assert back.normals is None, name
+
+
+# ---------------------------------------------------------------------------------------------------------- refusals
+
+def test_empty_and_header_only_files_are_refused(tmp_path):
+    for name in ("empty.ply", "empty.csv", "empty.xyz"):
+        (tmp_path / name).write_bytes(b"")
+        refused(tmp_path / name, "empty")
+    (tmp_path / "blank.xyz").write_text("\n  \n")
+    refused(tmp_path / "blank.xyz", "empty")
+    (tmp_path / "header_only.ply").write_bytes(ply_header("binary_little_endian", 0, [("float", c) for c in "xyz"]))
+    refused(tmp_path / "header_only.ply", "no points")
+    (tmp_path / "header_only.csv").write_text("x,y,z\n")
+    refused(tmp_path / "header_only.csv", "no points")
+
+
+def test_nan_and_inf_are_refused_saying_how_many_and_where(tmp_path, cloud):
+    points = cloud[0].copy()
+    points[[5, 9, 100], [0, 2, 1]] = [np.nan, np.inf, -np.inf]
+    path = tmp_path / "nan.ply"
+    header = ply_header("binary_little_endian", len(points), [("double", c) for c in "xyz"])
+    path.write_bytes(header + points.astype("<f8").tobytes())
+    message = refused(path, "3 of 257 points have NaN or infinite coordinates")
+    assert "point 5" in message and "nan" in message
+    (tmp_path / "nan.csv").write_text("x,y,z\n1,2,3\n4,nan,6\n")
+    refused(tmp_path / "nan.csv", "1 of 2 points")
+    (tmp_path / "inf.xyz").write_text("1 2 3\n4 5 inf\n7 8 9\n")
+    refused(tmp_path / "inf.xyz", "point 1")
+    (tmp_path / "inf.ply").write_bytes(ply_header("ascii", 2, [("float", c) for c in "xyz"]) + b"1 2 3\n-inf 0 0\n")
+    refused(tmp_path / "inf.ply", "1 of 2 points")
+
+
+def test_truncated_files_are_refused(tmp_path, cloud):
+    path = tmp_path / "whole.ply"
+    write_cloud_ply(path, *cloud)
+    data = path.read_bytes()
+    (tmp_path / "cut.ply").write_bytes(data[:-7])
+    refused(tmp_path / "cut.ply", "truncated")
+    (tmp_path / "cut_header.ply").write_bytes(data[:60])
+    refused(tmp_path / "cut_header.ply", "end_header")
+    write_cloud_ply(path, *cloud, binary=False)
+    lines = path.read_bytes().splitlines(keepends=True)
+    (tmp_path / "cut_ascii.ply").write_bytes(b"".join(lines[:-10]))
+    refused(tmp_path / "cut_ascii.ply", "truncated")
+    (tmp_path / "cut_line.ply").write_bytes(b"".join(lines[:-1]) + lines[-1][:20])  # last row half written
+    refused(tmp_path / "cut_line.ply")
+    # more data than the header declares: a wrong count, not silently dropped
+    (tmp_path / "long.ply").write_bytes(data + b"\x00" * 24)
+    refused(tmp_path / "long.ply", "after its")
+
+
+def test_unknown_extension_garbage_and_missing_files_are_refused(tmp_path, cloud):
+    (tmp_path / "cloud.stl").write_bytes(b"solid x\nendsolid x\n")
+    refused(tmp_path / "cloud.stl", "unknown cloud extension")
+    refused(tmp_path / "missing.ply", "cannot read")
+    garbage = np.random.default_rng(3).integers(0, 256, 4096, dtype=np.uint8).tobytes()
+    for name in ("garbage.ply", "garbage.csv", "garbage.xyz"):
+        (tmp_path / name).write_bytes(garbage)
+        refused(tmp_path / name)
+    # a PLY header with garbage where the vertices should be (ascii) and a non-numeric CSV row
+    (tmp_path / "garbage_body.ply").write_bytes(ply_header("ascii", 2, [("float", c) for c in "xyz"]) + garbage[:50])
+    refused(tmp_path / "garbage_body.ply")
+    (tmp_path / "words.csv").write_text("x,y,z\n1,2,3\n4,five,6\n")
+    refused(tmp_path / "words.csv", "cannot read CSV data row 2 (not a number)")
+    (tmp_path / "ragged.xyz").write_text("1 2 3\n4 5\n")
+    refused(tmp_path / "ragged.xyz")
+    (tmp_path / "four.xyz").write_text("1 2 3 4\n5 6 7 8\n")
+    refused(tmp_path / "four.xyz", "expected 3")
+    # a PLY without z, and one with only some normal components
+    (tmp_path / "noz.ply").write_bytes(ply_header("ascii", 1, [("float", "x"), ("float", "y")]) + b"1 2\n")
+    refused(tmp_path / "noz.ply", "no property z")
+    props = [("float", c) for c in ("x", "y", "z", "nx", "ny")]
+    (tmp_path / "nxny.ply").write_bytes(ply_header("ascii", 1, props) + b"1 2 3 0 1\n")
+    refused(tmp_path / "nxny.ply", "not all of nx ny nz")
+
+
+def test_zero_length_normals_are_refused(tmp_path):
+    (tmp_path / "zero.xyz").write_text("1 2 3 0 0 1\n4 5 6 0 0 0\n")
+    refused(tmp_path / "zero.xyz", "1 of 2 normals have zero length")
+
+
+def test_nothing_is_written_for_a_cloud_we_would_refuse(tmp_path, cloud):
+    points, normals = cloud
+    bad = points.copy()
+    bad[17, 1] = np.nan
+    target = tmp_path / "out.ply"
+    with pytest.raises(CloudError, match="NaN"):
+        write_cloud_ply(target, bad)
+    assert list(tmp_path.iterdir()) == []
+    zero = normals.copy()
+    zero[3] = 0.0
+    with pytest.raises(CloudError, match="zero length"):
+        write_cloud_ply(target, points, zero, binary=False)
+    with pytest.raises(CloudError, match="no points"):
+        write_cloud_ply(target, np.zeros((0, 3)))
+    assert list(tmp_path.iterdir()) == []
+    # an existing file is left as it was, and no temporary file stays behind
+    write_cloud_ply(target, points)
+    before = target.read_bytes()
+    with pytest.raises(CloudError):
+        write_cloud_ply(target, bad)
+    assert target.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["out.ply"]
+    with pytest.raises(ValueError, match="shape"):
+        write_cloud_ply(target, points[:, :2])
+    with pytest.raises(ValueError, match="single lines"):
+        write_cloud_ply(target, points, comments=["two\nlines"])
+
+
+def test_check_extent_names_the_part_the_axis_and_the_distance():
+    box_min, box_max = np.array([-45.0, -45.0, 0.0]), np.array([45.0, 45.0, 25.0])
+    inside = np.array([[-40.0, 0.0, 0.0], [40.0, 39.0, 20.0], [45.4, 0.0, 25.4]])
+    check_extent(inside, box_min, box_max, tolerance_mm=0.5, part="nas979")  # within the 0.5 mm allowance
+    # a cloud left in the machine frame: shifted 153.2 mm in X (and 12 mm in Z)
+    shifted = inside + [153.2, 0.0, -12.0]
+    with pytest.raises(CloudError) as info:
+        check_extent(shifted, box_min, box_max, tolerance_mm=0.5, part="nas979")
+    message = str(info.value)
+    assert "nas979" in message and "153.6 mm in X" in message and "12.0 mm in Z" in message and "in mm?" in message
+    with pytest.raises(ValueError):
+        check_extent(inside, box_max, box_min, tolerance_mm=0.5)

@@ -1,0 +1,612 @@
+"""Form evaluation of measured features: circles, roundness, cones, planes, lines, straightness, parallelism.
+
+Pure numpy/scipy, vectorised over the points; lengths in mm, angles in rad. Each function names the reference
+feature it computes (ISO 12181 for roundness, ISO 12780 for straightness, ISO 1101 for parallelism) and the method.
+Inputs are checked once at the door (shape, finiteness, enough points) with a ``ValueError``.
+
+Sign conventions: radial and surface deviations are positive outward (material side away from the axis/centre);
+plane normals and line directions are unit vectors, oriented so that their largest-magnitude component is positive
+(a deterministic choice; fits carry no physical sign).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares, linprog
+from scipy.spatial import ConvexHull
+
+__all__ = [
+    "CircleFit", "ZoneCircle", "ConeFit", "PlaneFit", "LineFit",
+    "fit_circle_least_squares", "minimum_zone_circle", "roundness",
+    "fit_cone", "section_ring", "fit_plane", "fit_line", "straightness", "parallelism",
+]
+
+
+# ------------------------------------------------------------------------------------------------------------ checks
+
+def _points(points, dims: tuple[int, ...], minimum: int, name: str = "points") -> np.ndarray:
+    """The door: an (n, d) finite float64 array with d in dims and n >= minimum, or a clear ValueError."""
+    array = np.asarray(points, dtype=np.float64)
+    if array.ndim != 2 or array.shape[1] not in dims:
+        shapes = " or ".join(f"(n, {d})" for d in dims)
+        raise ValueError(f"{name} must have shape {shapes}, got {array.shape}")
+    if len(array) < minimum:
+        raise ValueError(f"{name} needs at least {minimum} points, got {len(array)}")
+    if not np.isfinite(array).all():
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return array
+
+
+def _unit(vector, name: str) -> np.ndarray:
+    vector = np.asarray(vector, dtype=np.float64).reshape(-1)
+    norm = np.linalg.norm(vector)
+    if not np.isfinite(norm) or norm == 0.0:
+        raise ValueError(f"{name} must be a finite, non-zero vector, got {vector}")
+    return vector / norm
+
+
+def _orient(vector: np.ndarray) -> np.ndarray:
+    """Flip a direction so that its largest-magnitude component is positive (deterministic sign for fits)."""
+    return vector if vector[np.argmax(np.abs(vector))] >= 0 else -vector
+
+
+def _perpendicular_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors e1, e2 with (e1, e2, axis) right-handed and orthonormal."""
+    helper = np.eye(3)[np.argmin(np.abs(axis))]  # the world axis least parallel to `axis`: well conditioned
+    e1 = np.cross(helper, axis)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(axis, e1)
+
+
+# ----------------------------------------------------------------------------------------------------------- circles
+
+@dataclass(frozen=True)
+class CircleFit:
+    """Least-squares reference circle (ISO 12181-2 LSCI).
+
+    center : (2,) float, mm
+    radius : float, mm
+    residuals : (n,) float, mm, radial deviation |p - center| - radius of each point, positive outward
+    """
+
+    center: np.ndarray
+    radius: float
+    residuals: np.ndarray
+
+
+@dataclass(frozen=True)
+class ZoneCircle:
+    """Minimum-zone reference circles (ISO 12181-2 MZCI): two concentric circles enclosing the profile, of least
+    radial separation.
+
+    center : (2,) float, mm
+    radius_inner, radius_outer : float, mm
+    width : float, mm, radius_outer - radius_inner = the minimum-zone roundness
+    residuals : (n,) float, mm, |p - center| - (radius_inner + radius_outer) / 2
+    """
+
+    center: np.ndarray
+    radius_inner: float
+    radius_outer: float
+    width: float
+    residuals: np.ndarray
+
+
+def fit_circle_least_squares(points2d) -> CircleFit:
+    """Least-squares circle: minimise the sum of squared radial (geometric) distances.
+
+    Method: the algebraic fit of Kasa (1976, IEEE Trans. Instrum. Meas. IM-25, "A circle fitting procedure and its
+    error analysis"), x^2 + y^2 = 2 a x + 2 b y + c solved as a linear least-squares problem, gives the start; a
+    Levenberg-Marquardt refinement (scipy ``least_squares``) of the geometric residuals |p - c| - R with their exact
+    Jacobian gives the ISO 12181-2 least-squares reference circle (Gauss-Newton on the geometric distance, as in
+    ISO/TS 12181-2 and Forbes, NPL DITC 140/89).
+
+    Parameters
+    ----------
+    points2d : (n, 2) float, mm, n >= 3, not all on one line
+
+    Returns
+    -------
+    CircleFit
+    """
+    points2d = _points(points2d, (2,), 3, "points2d")
+    # work about the centroid, scaled to unit size, so the normal equations are well conditioned
+    origin = points2d.mean(axis=0)
+    local = points2d - origin
+    scale = np.sqrt((local ** 2).sum(axis=1).mean())
+    if scale == 0.0:
+        raise ValueError("points2d are all the same point")
+    local = local / scale
+    design = np.column_stack([2.0 * local, np.ones(len(local))])
+    solution, _, rank, singular = np.linalg.lstsq(design, (local ** 2).sum(axis=1), rcond=None)
+    if rank < 3 or singular[-1] < 1e-9 * singular[0]:
+        raise ValueError("points2d lie on a line: no circle through them")
+    center0 = solution[:2]
+    radius0 = np.sqrt(solution[2] + center0 @ center0)
+
+    def residuals(params):
+        return np.hypot(*(local - params[:2]).T) - params[2]
+
+    def jacobian(params):
+        # d(|p - c| - R)/dc = -(p - c)/|p - c|, d/dR = -1
+        delta = local - params[:2]
+        distance = np.hypot(*delta.T)[:, None]
+        return np.column_stack([-delta / distance, -np.ones(len(delta))])
+
+    fit = least_squares(residuals, np.r_[center0, radius0], jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15,
+                        gtol=1e-15)
+    center = origin + fit.x[:2] * scale
+    radius = float(fit.x[2] * scale)
+    return CircleFit(center=center, radius=radius, residuals=np.hypot(*(points2d - center).T) - radius)
+
+
+def minimum_zone_circle(points2d, start: np.ndarray | None = None, max_iterations: int = 100) -> ZoneCircle:
+    """Minimum-zone circles: the centre c minimising max_i |p_i - c| - min_i |p_i - c| (ISO 12181-2 MZCI).
+
+    Method: sequential linear programming with a trust region (the linearised Chebyshev problem of Dhanish & Shunmugam,
+    Precision Engineering 13 (1991), "An algorithm for form error evaluation using the theory of discrete and linear
+    Chebyshev approximation"). About the current centre c the radii are r_i(c + d) ~ r_i - u_i . d, u_i the unit
+    vector from c to p_i; the linear program
+
+        minimise  a - b   over (d, a, b)   subject to   b <= r_i - u_i . d <= a,   |d|_inf <= trust radius
+
+    gives a step; it is accepted when the exact zone width decreases, and the trust radius grows or shrinks with the
+    ratio of actual to predicted decrease. The linearisation error is |d|^2 / (2 r), so near the solution the steps
+    converge like Newton steps (the optimum is a vertex: 2 outer and 2 inner contact points, generically). Starts
+    from the least-squares centre, which is within a zone width of the minimum-zone centre for a roundness profile.
+    The problem is not convex in general: for a profile far from a circle (a partial arc of a few degrees, a random
+    scatter) this is a local minimum near the least-squares centre.
+
+    Parameters
+    ----------
+    points2d : (n, 2) float, mm, n >= 4 spread around a centre
+    start : (2,) float, mm, optional start centre (default: the least-squares centre)
+    max_iterations : int, linear programs solved at most
+
+    Returns
+    -------
+    ZoneCircle
+    """
+    points2d = _points(points2d, (2,), 4, "points2d")
+    if start is None:
+        start = fit_circle_least_squares(points2d).center
+    center = np.asarray(start, dtype=np.float64).reshape(2)
+
+    def width_at(c):
+        radii = np.hypot(*(points2d - c).T)
+        return radii.max() - radii.min(), radii
+
+    width, radii = width_at(center)
+    size = radii.mean()
+    # scale of the linear program: the zone width, so HiGHS' absolute tolerances (1e-7) are relative to it
+    scale = max(width, 1e-12 * size)
+    trust = 1.0  # in units of `scale`
+    options = dict(primal_feasibility_tolerance=1e-10, dual_feasibility_tolerance=1e-10)
+    for _ in range(max_iterations):
+        if width <= 1e-14 * size:
+            break  # a perfect circle to machine precision
+        directions = (points2d - center) / radii[:, None]
+        deviations = (radii - radii.mean()) / scale
+        n = len(points2d)
+        # variables (dx, dy, a, b); rows: r_i - u_i.d <= a  and  b <= r_i - u_i.d
+        upper = np.column_stack([-directions, -np.ones(n), np.zeros(n)])
+        lower = np.column_stack([directions, np.zeros(n), np.ones(n)])
+        result = linprog(c=[0.0, 0.0, 1.0, -1.0], A_ub=np.vstack([upper, lower]),
+                         b_ub=np.r_[-deviations, deviations],
+                         bounds=[(-trust, trust), (-trust, trust), (None, None), (None, None)],
+                         method="highs", options=options)
+        if result.status != 0:
+            raise RuntimeError(f"minimum-zone linear program failed: {result.message}")
+        step = result.x[:2] * scale
+        predicted = width - result.fun * scale
+        if predicted <= 1e-13 * max(width, 1e-300) or np.abs(result.x[:2]).max() < 1e-15 * size / scale:
+            break  # the linear model sees no further decrease: first-order optimal
+        new_width, new_radii = width_at(center + step)
+        ratio = (width - new_width) / predicted
+        if ratio > 0:
+            center, width, radii = center + step, new_width, new_radii
+        if ratio > 0.75 and np.abs(result.x[:2]).max() > 0.99 * trust:
+            trust *= 2.0
+        elif ratio < 0.25:
+            trust *= 0.25
+        if trust * scale < 1e-15 * size:
+            break
+    mean = (radii.max() + radii.min()) / 2.0
+    return ZoneCircle(center=center, radius_inner=float(radii.min()), radius_outer=float(radii.max()),
+                      width=float(radii.max() - radii.min()), residuals=radii - mean)
+
+
+def roundness(points2d, method: str = "least_squares") -> float:
+    """Roundness deviation: peak-to-valley of the radial deviations about a reference circle (ISO 12181-1), mm.
+
+    Parameters
+    ----------
+    points2d : (n, 2) float, mm, a profile in the plane of the section
+    method : "least_squares" (RONt about the LSCI, :func:`fit_circle_least_squares`) or
+        "minimum_zone" (RONt about the MZCI, :func:`minimum_zone_circle`); minimum zone <= least squares always.
+
+    Returns
+    -------
+    float, mm
+    """
+    if method == "least_squares":
+        residuals = fit_circle_least_squares(points2d).residuals
+        return float(residuals.max() - residuals.min())
+    if method == "minimum_zone":
+        return minimum_zone_circle(points2d).width
+    raise ValueError(f"method must be 'least_squares' or 'minimum_zone', got {method!r}")
+
+
+# ------------------------------------------------------------------------------------------------------------- cones
+
+@dataclass(frozen=True)
+class ConeFit:
+    """Least-squares cone (orthogonal distances).
+
+    apex : (3,) float, mm (far away, or inf, for a nearly cylindrical fit)
+    axis : (3,) float, unit, from the apex into the cone: the radius grows along +axis
+    half_angle_rad : float, > 0, angle between the axis and a generator
+    axis_point : (3,) float, mm, the axis' point on the reference plane (see :func:`fit_cone`)
+    radius_at_axis_point : float, mm, the cone's radius there (measured perpendicular to the axis)
+    residuals : (n,) float, mm, signed orthogonal distance of each point to the cone surface, positive outward
+    rms : float, mm, root mean square of the residuals
+    half_angle_std_rad : float, standard error of the half angle (from the Jacobian and the residual variance)
+    axis_std_rad : float, standard error of the axis direction (root sum of the two tilt variances)
+    axis_point_std_mm : float, standard error of the axis position in the reference plane (root sum of two variances)
+    """
+
+    apex: np.ndarray
+    axis: np.ndarray
+    half_angle_rad: float
+    axis_point: np.ndarray
+    radius_at_axis_point: float
+    residuals: np.ndarray
+    rms: float
+    half_angle_std_rad: float
+    axis_std_rad: float
+    axis_point_std_mm: float
+
+
+def _cone_distance(points, base, axis, radius, half_angle):
+    """Signed orthogonal distance of points (n, 3) to a cone given by a point `base` on its axis, its unit `axis`,
+    its radius at `base` and its half angle: in the half plane through the axis and a point, with h along the axis and
+    r from it, the generator is r = radius + h tan(half_angle), so the distance is (r - radius) cos - h sin.
+    Exact for points whose nearest surface point is not beyond the apex. Returns distances and (w, h, r, q_hat)."""
+    w = points - base
+    h = w @ axis
+    radial = w - h[:, None] * axis
+    r = np.linalg.norm(radial, axis=1)
+    distance = (r - radius) * np.cos(half_angle) - h * np.sin(half_angle)
+    return distance, w, h, r, radial / np.maximum(r, 1e-300)[:, None]
+
+
+def _fit_cone_from(points, axis0, base0, start=None):
+    """One Levenberg-Marquardt fit from a start axis (and, optionally, start parameters); returns (scipy result,
+    unpack function)."""
+    e1, e2 = _perpendicular_basis(axis0)
+    # algebraic start for this axis: in the frame (e1, e2, axis0) about base0 the cone is
+    # x^2 + y^2 = 2 cx x + 2 cy y + (rho^2 - cx^2 - cy^2) + 2 rho k z + k^2 z^2  (k = tan half angle), linear in
+    # (2cx, 2cy, rho^2 - |c|^2, 2 rho k, k^2): a Kasa-like fit that also works on a partial cone
+    if start is None:
+        local = points - base0
+        x, y, z = local @ e1, local @ e2, local @ axis0
+        design = np.column_stack([x, y, np.ones_like(x), z, z * z])
+        coef = np.linalg.lstsq(design, x * x + y * y, rcond=None)[0]
+        cx, cy = coef[0] / 2.0, coef[1] / 2.0
+        rho = np.sqrt(max(coef[2] + cx * cx + cy * cy, 1e-12))
+        half_angle = np.arctan(coef[3] / (2.0 * rho))
+        start = np.array([0.0, 0.0, cx, cy, rho, half_angle])
+
+    # parameters (u, v, s, t, rho, alpha): axis = normalise(axis0 + u e1 + v e2) has no singularity near axis0;
+    # the axis point base0 + s e1 + t e2 stays in the plane through base0 normal to axis0; rho is the radius there.
+    # Neither the apex nor 1/tan(alpha) appears, so a nearly cylindrical cone is as well posed as a steep one.
+    def unpack(params):
+        n = axis0 + params[0] * e1 + params[1] * e2
+        return n / np.linalg.norm(n), base0 + params[2] * e1 + params[3] * e2, params[4], params[5], np.linalg.norm(n)
+
+    def residuals(params):
+        axis, base, radius, alpha, _ = unpack(params)
+        return _cone_distance(points, base, axis, radius, alpha)[0]
+
+    def jacobian(params):
+        axis, base, radius, alpha, norm = unpack(params)
+        _, w, h, r, q_hat = _cone_distance(points, base, axis, radius, alpha)
+        cos, sin = np.cos(alpha), np.sin(alpha)
+        # d(distance)/d(base) = -cos q_hat + sin axis  (dh/dbase = -axis, dr/dbase = -q_hat)
+        d_base = -cos * q_hat + sin * axis
+        # d(distance)/d(axis) = -cos h q_hat - sin w  (dh/daxis = w, dr/daxis = -h q_hat), then through the normalisation
+        d_axis = -cos * h[:, None] * q_hat - sin * w
+        project = (np.eye(3) - np.outer(axis, axis)) / norm
+        return np.column_stack([d_axis @ (project @ e1), d_axis @ (project @ e2), d_base @ e1, d_base @ e2,
+                                np.full(len(points), -cos), -(r - radius) * sin - h * cos])
+
+    result = least_squares(residuals, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
+                           max_nfev=2000)
+    return result, unpack
+
+
+def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None) -> ConeFit:
+    """Least-squares cone: minimise the sum of squared orthogonal distances of the points to the cone surface.
+
+    Method: geometric (orthogonal-distance) least squares as in Forbes, "Least-squares best-fit geometric elements",
+    NPL DITC 140/89 (1989), and Shakarji, "Least-squares fitting algorithms of the NIST algorithm testing system",
+    J. Res. NIST 103 (1998): Levenberg-Marquardt with the exact Jacobian. The axis is parameterised as
+    normalise(a0 + u e1 + v e2) about the start axis a0 and the axis point moves in the plane normal to a0, so the
+    parameterisation has no singularity near the start; the cone's size is its radius on that plane, not its apex, so
+    a small half angle (far apex) is well posed. The start comes from an algebraic (linear) cone fit for the start
+    axis; with no start axis, the three principal directions of the points are tried and the best fit is kept.
+
+    Parameters
+    ----------
+    points : (n, 3) float, mm, n >= 6, on the cone's surface
+    initial_axis : (3,) float, optional start direction of the axis (either sign)
+    initial_apex : (3,) float, mm, optional point on the start axis (default: the points' centroid)
+    reference_plane : optional (point (3,), normal (3,)) pair: ``axis_point`` is where the fitted axis crosses this
+        plane (e.g. the part's base plane). Default: the foot of the points' centroid on the fitted axis.
+
+    Returns
+    -------
+    ConeFit, with the axis pointing from the apex into the cone and a positive half angle.
+
+    Standard errors are sigma * sqrt(diag((J^T J)^-1)) with sigma^2 = sum(residuals^2) / (n - 6), the usual linearised
+    estimate: meaningful for independent noise, not for systematic form error.
+    """
+    points = _points(points, (3,), 6)
+    centroid = points.mean(axis=0)
+    if initial_axis is None:
+        if initial_apex is not None:
+            raise ValueError("initial_apex needs initial_axis")
+        # principal directions: the axis is the least-spread one for a flat frustum, the most-spread for a tall cone
+        starts = list(np.linalg.svd(points - centroid, full_matrices=False)[2])
+    else:
+        starts = [_unit(initial_axis, "initial_axis")]
+    base0 = centroid
+    best = None
+    for axis0 in starts:
+        if initial_apex is not None:
+            apex = np.asarray(initial_apex, dtype=np.float64).reshape(3)
+            base0 = apex + ((centroid - apex) @ axis0) * axis0  # the centroid's foot on the start axis
+        result, unpack = _fit_cone_from(points, axis0, base0)
+        if best is None or result.cost < best[0].cost:
+            best = (result, unpack)
+    result, unpack = best
+    axis, base, radius, alpha, _ = unpack(result.x)
+    # polish in the parameterisation centred on the solution: the start axis may be far from the fitted one (a
+    # principal direction), where the axis point's plane nearly contains the axis and the covariance is degenerate;
+    # about the solution the Jacobian is well conditioned and the standard errors mean what they say
+    shift = (centroid - base) @ axis  # move the axis point to the centroid's foot, the radius along the generator
+    base, radius = base + shift * axis, radius + shift * np.tan(alpha)
+    result, unpack = _fit_cone_from(points, axis, base, start=np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]))
+    axis, base, radius, alpha, _ = unpack(result.x)
+    if alpha < 0:  # radius grows along -axis: turn the axis round so that the half angle is positive
+        axis, alpha = -axis, -alpha
+    residuals = _cone_distance(points, base, axis, radius, alpha)[0]
+    apex = base - (radius / np.tan(alpha)) * axis if alpha != 0 else np.full(3, np.inf)
+
+    if reference_plane is None:
+        axis_point = base + ((centroid - base) @ axis) * axis
+    else:
+        plane_point = np.asarray(reference_plane[0], dtype=np.float64).reshape(3)
+        plane_normal = _unit(reference_plane[1], "reference_plane normal")
+        along = axis @ plane_normal
+        if abs(along) < 1e-12:
+            raise ValueError("the fitted cone axis is parallel to the reference plane")
+        axis_point = base + (((plane_point - base) @ plane_normal) / along) * axis
+    radius_at_point = radius + ((axis_point - base) @ axis) * np.tan(alpha)
+
+    n = len(points)
+    dof = max(n - 6, 1)
+    sigma2 = float(residuals @ residuals) / dof
+    try:
+        covariance = sigma2 * np.linalg.inv(result.jac.T @ result.jac)
+        std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    except np.linalg.LinAlgError:
+        std = np.full(6, np.nan)
+    norm = unpack(result.x)[4]
+    return ConeFit(apex=apex, axis=axis, half_angle_rad=float(alpha), axis_point=axis_point,
+                   radius_at_axis_point=float(radius_at_point), residuals=residuals,
+                   rms=float(np.sqrt(np.mean(residuals ** 2))), half_angle_std_rad=float(std[5]),
+                   axis_std_rad=float(np.hypot(std[0], std[1]) / norm), axis_point_std_mm=float(np.hypot(std[2], std[3])))
+
+
+def section_ring(points, axis_point, axis_dir, height: float, tolerance: float, half_angle_rad: float | None = None,
+                 return_index: bool = False):
+    """Points of a surface of revolution near a height along its axis, in 2D coordinates of the section plane.
+
+    Parameters
+    ----------
+    points : (n, 3) float, mm
+    axis_point : (3,) float, mm, origin of the heights and of the 2D coordinates
+    axis_dir : (3,) float, the axis' direction (normalised here)
+    height : float, mm, the section's height along axis_dir from axis_point
+    tolerance : float > 0, mm, half thickness of the slab of points taken
+    half_angle_rad : optional float: for a cone (radius growing along +axis_dir), move each point along the generator
+        to the section plane, removing the radial spread of the slab, (h - height) tan(half_angle) (up to
+        tolerance * tan(half_angle)), which would otherwise add to the roundness.
+    return_index : also return the indices of the points taken
+
+    Returns
+    -------
+    points2d : (m, 2) float, mm, coordinates along (e1, e2), a right-handed basis of the section plane with
+        (e1, e2, axis_dir) right-handed; e1 is the unit vector of world X, Y or Z least parallel to the axis, crossed.
+    index : (m,) int, only with return_index
+    """
+    points = _points(points, (3,), 0)
+    axis = _unit(axis_dir, "axis_dir")
+    origin = np.asarray(axis_point, dtype=np.float64).reshape(3)
+    if not (np.isfinite(tolerance) and tolerance > 0):
+        raise ValueError(f"tolerance must be > 0, got {tolerance}")
+    local = points - origin
+    h = local @ axis
+    index = np.flatnonzero(np.abs(h - height) <= tolerance)
+    e1, e2 = _perpendicular_basis(axis)
+    planar = np.column_stack([local[index] @ e1, local[index] @ e2])
+    if half_angle_rad is not None and len(index):
+        radii = np.hypot(*planar.T)
+        shift = (h[index] - height) * np.tan(half_angle_rad)
+        planar *= ((radii - shift) / np.maximum(radii, 1e-300))[:, None]
+    return (planar, index) if return_index else planar
+
+
+# --------------------------------------------------------------------------------------------------- planes and lines
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """Least-squares plane (orthogonal distances).
+
+    point : (3,) float, mm, the centroid of the points (on the plane)
+    normal : (3,) float, unit, largest-magnitude component positive
+    residuals : (n,) float, mm, signed distance (p - point) . normal
+    """
+
+    point: np.ndarray
+    normal: np.ndarray
+    residuals: np.ndarray
+
+
+@dataclass(frozen=True)
+class LineFit:
+    """Least-squares line (orthogonal distances).
+
+    point : (d,) float, mm, the centroid of the points (on the line), d = 2 or 3
+    direction : (d,) float, unit, largest-magnitude component positive
+    residuals : (n,) float, mm: in 2D the signed distance along the left normal (-dy, dx); in 3D the distance (>= 0)
+    """
+
+    point: np.ndarray
+    direction: np.ndarray
+    residuals: np.ndarray
+
+
+def fit_plane(points) -> PlaneFit:
+    """Least-squares plane: minimise the sum of squared orthogonal distances (total least squares).
+
+    Method: the plane passes through the centroid; its normal is the right singular vector of the centred points with
+    the least singular value (Forbes, NPL DITC 140/89, §3; Shakarji, J. Res. NIST 103 (1998)).
+
+    Parameters
+    ----------
+    points : (n, 3) float, mm, n >= 3, not all on one line
+
+    Returns
+    -------
+    PlaneFit
+    """
+    points = _points(points, (3,), 3)
+    centroid = points.mean(axis=0)
+    _, singular, vt = np.linalg.svd(points - centroid, full_matrices=False)
+    if singular[1] <= 1e-12 * max(singular[0], 1e-300):
+        raise ValueError("points lie on a line (or a point): no unique plane")
+    normal = _orient(vt[2])
+    return PlaneFit(point=centroid, normal=normal, residuals=(points - centroid) @ normal)
+
+
+def fit_line(points) -> LineFit:
+    """Least-squares line in 2D or 3D: minimise the sum of squared orthogonal distances (total least squares).
+
+    Method: the line passes through the centroid along the right singular vector of the centred points with the
+    largest singular value (Forbes, NPL DITC 140/89, §3).
+
+    Parameters
+    ----------
+    points : (n, 2) or (n, 3) float, mm, n >= 2, not all the same point
+
+    Returns
+    -------
+    LineFit
+    """
+    points = _points(points, (2, 3), 2)
+    centroid = points.mean(axis=0)
+    _, singular, vt = np.linalg.svd(points - centroid, full_matrices=False)
+    if singular[0] == 0.0:
+        raise ValueError("points are all the same point: no line")
+    direction = _orient(vt[0])
+    return LineFit(point=centroid, direction=direction, residuals=_line_deviation(points, centroid, direction))
+
+
+def _line_deviation(points, point, direction):
+    local = points - point
+    if points.shape[1] == 2:
+        return local @ np.array([-direction[1], direction[0]])
+    return np.linalg.norm(local - np.outer(local @ direction, direction), axis=1)
+
+
+def straightness(points, line=None, method: str = "least_squares") -> float:
+    """Straightness deviation of a profile, mm (ISO 12780-1).
+
+    Parameters
+    ----------
+    points : (n, 2) float, mm, a profile in its plane (a line in a plane); or (n, 3) with method "least_squares"
+    line : optional reference (LineFit, or a (point, direction) pair) for "least_squares"; default: fit_line(points)
+    method :
+        "least_squares": peak-to-valley of the deviations from the least-squares reference line (LSLI, STRt). In 2D
+        the signed deviations; in 3D the diameter of the cylinder about the line that holds all points
+        (2 max distance).
+        "minimum_zone": width of the narrowest pair of parallel lines enclosing the 2D profile (MZLI). Exact: the
+        minimum width of a point set is attained with one side flush with an edge of its convex hull (Houle &
+        Toussaint, IEEE PAMI 10 (1988), "Computing the width of a set"), so every hull edge is tried.
+        Always <= the least-squares value.
+
+    Returns
+    -------
+    float, mm
+    """
+    if method == "least_squares":
+        points = _points(points, (2, 3), 2)
+        if line is None:
+            line = fit_line(points)
+        point, direction = (line.point, line.direction) if isinstance(line, LineFit) else line
+        point = np.asarray(point, dtype=np.float64).reshape(points.shape[1])
+        direction = _unit(direction, "line direction")
+        if direction.shape != (points.shape[1],):
+            raise ValueError("line and points must have the same dimension")
+        deviation = _line_deviation(points, point, direction)
+        return float(deviation.max() - deviation.min()) if points.shape[1] == 2 else float(2.0 * deviation.max())
+    if method == "minimum_zone":
+        if line is not None:
+            raise ValueError("the minimum-zone line is found, not given: pass line=None")
+        points = _points(points, (2,), 2)
+        return _minimum_width(points)
+    raise ValueError(f"method must be 'least_squares' or 'minimum_zone', got {method!r}")
+
+
+def _minimum_width(points2d: np.ndarray) -> float:
+    """Minimum width of a planar point set over all directions (edges of the convex hull, Houle & Toussaint 1988)."""
+    centred = points2d - points2d.mean(axis=0)
+    scale = np.abs(centred).max()
+    if scale == 0.0:
+        return 0.0
+    try:
+        hull = ConvexHull(centred / scale)
+    except Exception:  # Qhull refuses a degenerate (collinear) set: its width is 0 to machine precision
+        return float(straightness(points2d, method="least_squares"))
+    vertices = centred[hull.vertices]
+    # edges between consecutive hull vertices (counter-clockwise); the width for an edge is the farthest vertex from it
+    edges = np.roll(vertices, -1, axis=0) - vertices
+    normals = np.column_stack([-edges[:, 1], edges[:, 0]]) / np.linalg.norm(edges, axis=1)[:, None]
+    # |(v_j - v_i) . n_i| for every edge i and vertex j, vectorised as a (h, h) table
+    offsets = vertices @ normals.T - np.einsum("ij,ij->i", vertices, normals)[None, :]
+    return float(np.abs(offsets).max(axis=0).min())
+
+
+def parallelism(plane_a_points, plane_b) -> float:
+    """Parallelism of a plane surface to a datum plane, mm (ISO 1101): the distance between the two planes parallel
+    to the datum that enclose the toleranced surface's points, i.e. the peak-to-valley of their distances to the datum.
+
+    Parameters
+    ----------
+    plane_a_points : (n, 3) float, mm, the toleranced surface's points
+    plane_b : the datum: a PlaneFit (e.g. fit_plane of the datum surface's points), or a (point (3,), normal (3,)) pair
+
+    Returns
+    -------
+    float, mm
+    """
+    points = _points(plane_a_points, (3,), 1, "plane_a_points")
+    point, normal = (plane_b.point, plane_b.normal) if isinstance(plane_b, PlaneFit) else plane_b
+    point = np.asarray(point, dtype=np.float64).reshape(3)
+    normal = _unit(normal, "plane_b normal")
+    distance = (points - point) @ normal
+    return float(distance.max() - distance.min())
