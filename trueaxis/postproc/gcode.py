@@ -1,0 +1,1223 @@
+"""The G-code reader: RS-274 / ISO 6983 text in, a table of motion rows out (DESIGN.md §5).
+
+This is the project's one tokenizer. It reads what FreeCAD CAM (linuxcnc post), LinuxCNC and Fanuc-style controls
+write, interprets it the way LinuxCNC's interpreter does, and returns a :class:`Program`: numpy arrays with one row per
+move that the control makes (canned cycles and G28/G30 expanded into their moves), plus the untouched text of every
+line so a writer can reproduce the non-motion lines byte for byte.
+
+Coordinates
+-----------
+``Program.end`` / ``Program.start`` are *program coordinates*: absolute positions in the work coordinate system that is
+active at that row (G54..G59.3, G92), in the units active at that row (G20 inch / G21 mm; rotary axes in degrees).
+That is exactly what LinuxCNC's ``rs274`` prints in its canonical ``STRAIGHT_FEED`` / ``ARC_FEED`` calls (checked: it
+reports positions *before* the G5x, G92 and tool length offsets, which it announces separately with
+``SET_G5X_OFFSET`` and ``USE_TOOL_LENGTH_OFFSET``). ``Program.offset`` holds the sum of those offsets at each row, so the
+controlled point in machine coordinates is ``end + offset`` (:attr:`Program.end_machine`).
+
+Decisions (documented here once)
+--------------------------------
+- G28/G30 are executed as LinuxCNC does: a rapid to the intermediate point (if axis words are given), then a rapid of
+  the named axes (all axes when none are named) to the stored reference point in *machine* coordinates (parameters
+  5161-5166 / 5181-5186, default all zero as in ``rs274`` without a parameter file; override with
+  ``reference_points``). Their rows have ``kind == ROW_REFERENCE`` so a compensating writer leaves those lines alone.
+- A block with G0/G1 and no axis words is a zero-length move (LinuxCNC reports one too).
+- Block delete ``/`` lines are executed (the block-delete switch is off, as in ``rs274``).
+- Numbered parameters with literal values (``#501 = 1``) are remembered and ``#501`` / ``[#501]`` in later words are
+  substituted. Anything else with ``#`` or ``[...]`` expressions is a macro: passed through (recorded in
+  ``unsupported``) where it cannot move an axis, refused with :class:`GcodeError` where it can.
+- Fanuc-only codes that do not move an axis (``G08 P1``, ``M29``, unknown M codes, ``G05.1``) pass through and are
+  recorded; subprogram calls and control flow (M98, M99, G65, G66, LinuxCNC o-words) are refused, since the moves they
+  make are not in the text. With ``passthrough_unsupported=True`` such a block is left as it is (no row) and recorded.
+- Cutter radius compensation (G41/G42): the rows are the programmed contour, not the tool centre path; the mode is in
+  ``cutter_comp`` and a warning says so.
+- Everything after M2/M30 or a closing ``%`` is kept as text and not interpreted.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Mapping, Sequence
+
+import numpy as np
+
+__all__ = [
+    "GcodeError",
+    "Program",
+    "FormatInfo",
+    "parse_program",
+    "parse_file",
+    "parse_tool_table",
+    "write_number",
+    "output_decimals",
+    "tokenize_line",
+    "word_spans",
+    "AXES",
+    "RAPID",
+    "FEED",
+    "ARC_CW",
+    "ARC_CCW",
+    "ROW_PROGRAMMED",
+    "ROW_CYCLE",
+    "ROW_REFERENCE",
+    "ROW_MACHINE",
+]
+
+AXES = "XYZABC"
+MM_PER_INCH = 25.4
+
+# motion codes (Program.motion)
+RAPID, FEED, ARC_CW, ARC_CCW = 0, 1, 2, 3
+# why a row exists (Program.kind)
+ROW_PROGRAMMED = 0  # the block's own move
+ROW_CYCLE = 1  # a move of an expanded canned cycle (G73, G81-G89)
+ROW_REFERENCE = 2  # a move of G28/G30 (intermediate point or reference point)
+ROW_MACHINE = 3  # a G53 move in machine coordinates
+
+# Program.words bit mask: which words the source block had (bit i for letter WORD_BITS[i])
+WORD_BITS = "XYZABCIJKRPF"
+_WORD_BIT = {c: 1 << i for i, c in enumerate(WORD_BITS)}
+
+# One tokenizer for the whole project. Alternatives, in order:
+#   1 a () comment (an unclosed one runs to the end of the line), 2 a ; comment,
+#   3 a letter and 4 its value: a number, #n, or a bracketed expression (may be empty: "word with no number"),
+#   5 any other non-blank character.
+_TOKEN = re.compile(
+    r"(\([^)\n]*\)?)|(;[^\n]*)"
+    r"|([A-Za-z])[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)|#[0-9]+|\[[^\n(;]*?\](?:[^\n(;\[]*\])*)?"
+    r"|([^\s])"
+)
+_ASSIGN = re.compile(r"^[ \t]*(?:[Nn][0-9]+[ \t]*)?#([0-9]+)[ \t]*=[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))[ \t]*(?:\(.*\)|;.*)?[ \t]*$")
+_PARAM_REF = re.compile(r"^(?:#([0-9]+)|\[[ \t]*#([0-9]+)[ \t]*\])$")
+# the fast path's plain G0/G1 block, and its words (upper case, no comments, no other codes)
+_FAST = re.compile(
+    r"[ \t]*(?:N[0-9]+[ \t]*)?(?:G0?([0-3])(?![0-9.])[ \t]*)?"
+    + "".join(rf"(?:{c}[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))[ \t]*)?" for c in "XYZABCIJKRF")
+    + r"\r?\n?\Z"
+)
+_FAST_WORD = re.compile(r"([XYZABCFIJKR])[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))")
+_DECIMALS = re.compile(r"([A-Za-z])[ \t]*[-+]?[0-9]*\.([0-9]*)")
+
+_AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2, "A": 3, "B": 4, "C": 5}
+_LINEAR = np.array([True, True, True, False, False, False])
+_LINEAR_T = (True, True, True, False, False, False)
+
+
+def _add(pos: list, delta) -> None:
+    """pos += delta, in place, for the 6-element position list."""
+    for i in range(6):
+        pos[i] += float(delta[i])
+# plane: (first, second, normal) axis indices as LinuxCNC orders them in ARC_FEED
+_PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}
+_CENTER_WORD = {0: "I", 1: "J", 2: "K"}
+_KNOWN_M = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 30, 48, 49, 50, 51, 52, 53, 60, 61, 62, 63, 64, 65, 66, 67, 68, 70, 71, 72, 73}
+_MOVING_M = {98: "subprogram call M98", 99: "subprogram return M99"}
+# G codes (x10) whose moves the reader cannot reproduce: refused (or passed through on request)
+_MOVING_G = {
+    650: "macro call G65", 660: "modal macro call G66", 661: "modal macro call G66.1",
+    330: "spindle-synchronised motion G33", 331: "rigid tapping G33.1", 760: "threading cycle G76",
+    382: "probing G38.2", 383: "probing G38.3", 384: "probing G38.4", 385: "probing G38.5",
+    50: "spline G5", 51: "spline G5.1", 52: "NURBS G5.2", 70: "lathe diameter mode G7",
+    171: "plane G17.1", 181: "plane G18.1", 191: "plane G19.1",
+}
+_MOTION_G = (0, 10, 20, 30, 730, 740, 810, 820, 830, 840, 850, 860, 870, 880, 890)
+_CYCLE_G = frozenset(_MOTION_G[4:])
+_OWORD = re.compile(
+    r"^\s*(?:[Nn]\s*[0-9]+\s*)?[Oo]\s*(?:<[^>]*>|[0-9]+)\s*(?:sub|endsub|call|if|elseif|else|endif|while|"
+    r"endwhile|do|repeat|endrepeat|return|break|continue)\b",
+    re.IGNORECASE,
+)
+
+
+class GcodeError(Exception):
+    """A program the reader refuses; ``str()`` is ``file:line: reason`` (line 1-based)."""
+
+    def __init__(self, source: str, line_no: int, reason: str):
+        self.source, self.line_no, self.reason = source, line_no, reason
+        super().__init__(f"{source}:{line_no}: {reason}")
+
+
+@dataclass
+class FormatInfo:
+    """How the input writes numbers, for a writer that keeps the program's dialect.
+
+    decimals : letter -> most digits after the decimal point seen in that word (e.g. {"X": 4, "F": 0})
+    leading_zero : True when numbers below 1 are written ``0.5`` (False: ``.5``), judged on the first such number
+    trailing_point : True when whole numbers are written with a point (``Z0.``, ``F120.``)
+    separator : text between words: " " or "" (judged on the first motion line)
+    """
+
+    decimals: dict
+    leading_zero: bool
+    trailing_point: bool
+    separator: str
+
+
+@dataclass
+class Program:
+    """An interpreted NC program: one row per move, plus every source line.
+
+    Row arrays (M = number of moves), positions in program units (see the module docstring):
+    start, end : (M, 6) float, X Y Z A B C at the start / end of the move, program coordinates (work system active
+        at the row); rotary axes in degrees
+    offset : (M, 6) float, G5x + G92 + tool length offset at the row; machine position = end + offset
+    motion : (M,) int8, RAPID 0, FEED 1, ARC_CW 2, ARC_CCW 3
+    kind : (M,) int8, ROW_PROGRAMMED 0, ROW_CYCLE 1, ROW_REFERENCE 2 (G28/G30), ROW_MACHINE 3 (G53)
+    arc_center : (M, 3) float, X Y Z of the arc centre (normal coordinate = the start's); NaN for straight moves
+    arc_plane : (M,) int8, 17 / 18 / 19 for arcs, 0 otherwise
+    arc_turns : (M,) int16, number of turns (P word, default 1) for arcs, 0 otherwise
+    feed : (M,) float, F in program units per minute, or 1/min under G93 (inverse time); 0 before any F
+    inverse_time : (M,) bool, G93 active
+    inch : (M,) bool, G20 active (the row's lengths are in inches)
+    cutter_comp : (M,) int8, 40 off, 41 left, 42 right
+    tool : (M,) int32, tool in the spindle (after M6); 0 when none
+    line_index : (M,) int32, 0-based index into ``lines`` of the block that made the row
+    words : (M,) uint16, bit mask of the words the block had (bit i for ``WORD_BITS[i]``, XYZABCIJKRPF); 0 for
+        rows of expanded cycles and G28/G30's second move
+
+    lines : list of str, the raw lines with their line endings (``"".join(lines) == text``)
+    units : "mm", "inch" or "mixed"
+    axes_present : the axis letters the program uses, in XYZABC order
+    warnings : list of str, ``file:line: message``
+    unsupported : list of (line_no, reason), 1-based, for blocks passed through uninterpreted
+    """
+
+    source: str
+    start: np.ndarray
+    end: np.ndarray
+    offset: np.ndarray
+    motion: np.ndarray
+    kind: np.ndarray
+    arc_center: np.ndarray
+    arc_plane: np.ndarray
+    arc_turns: np.ndarray
+    feed: np.ndarray
+    inverse_time: np.ndarray
+    inch: np.ndarray
+    cutter_comp: np.ndarray
+    tool: np.ndarray
+    line_index: np.ndarray
+    words: np.ndarray
+    lines: list
+    units: str
+    axes_present: str
+    warnings: list = field(default_factory=list)
+    unsupported: list = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return int(self.motion.shape[0])
+
+    @property
+    def line_no(self) -> np.ndarray:
+        """(M,) int32, 1-based source line of each row."""
+        return self.line_index + 1
+
+    @property
+    def end_machine(self) -> np.ndarray:
+        """(M, 6) float, end points in machine coordinates (work, G92 and tool length offsets applied)."""
+        return self.end + self.offset
+
+    @property
+    def end_mm(self) -> np.ndarray:
+        """(M, 6) float, end points in program coordinates with lengths in mm (rotary axes stay in degrees)."""
+        scale = np.where(self.inch[:, None] & _LINEAR[None, :], MM_PER_INCH, 1.0)
+        return self.end * scale
+
+    @cached_property
+    def format_info(self) -> FormatInfo:
+        """How the input writes numbers (decimals per word letter, leading zero, trailing point, separator)."""
+        decimals: dict = {}
+        leading_zero = None
+        trailing_point = None
+        for line in self.lines:
+            code = line.split("(", 1)[0].split(";", 1)[0]
+            for letter, frac in _DECIMALS.findall(code):
+                letter = letter.upper()
+                if len(frac) > decimals.get(letter, -1):
+                    decimals[letter] = len(frac)
+                if frac == "" and trailing_point is None and letter in "XYZABCF":
+                    trailing_point = True
+        for line in self.lines:
+            m = re.search(r"[XYZIJKR][-+]?(0?)\.[0-9]", line.split("(", 1)[0])
+            if m:
+                leading_zero = m.group(1) == "0"
+                break
+        separator = ""
+        for i in self.line_index[:50]:
+            if re.search(r"[0-9.][ \t]+[A-Za-z]", self.lines[int(i)].split("(", 1)[0]):
+                separator = " "
+                break
+        return FormatInfo(decimals, bool(leading_zero) if leading_zero is not None else True,
+                          bool(trailing_point), separator)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# number formatting for the writer
+
+
+def write_number(value: float, decimals: int, *, leading_zero: bool = True, trailing_point: bool = False) -> str:
+    """Format ``value`` with at most ``decimals`` digits after the point, trailing zeros dropped.
+
+    ``write_number(-0.00004, 4) == "0"``, ``write_number(1.5, 4) == "1.5"``, ``write_number(0.25, 3,
+    leading_zero=False) == ".25"``, ``write_number(120, 3, trailing_point=True) == "120."``. Never writes ``-0`` and
+    never uses exponent notation. Raises ValueError for NaN/inf or negative ``decimals``.
+    """
+    if not math.isfinite(value):
+        raise ValueError(f"cannot write a non-finite number ({value}) into G-code")
+    if decimals < 0:
+        raise ValueError(f"decimals must be >= 0, got {decimals}")
+    text = f"{value:.{decimals}f}"
+    if "." in text:
+        text = text.rstrip("0")
+    if text.startswith("-") and text.strip("-0.") == "":
+        text = text[1:]
+    if text.endswith("."):
+        if not trailing_point:
+            text = text[:-1]
+    elif trailing_point and "." not in text:
+        text += "."
+    if not leading_zero:
+        if text.startswith("0.") and len(text) > 2:
+            text = text[1:]
+        elif text.startswith("-0.") and len(text) > 3:
+            text = "-" + text[2:]
+    return text
+
+
+def output_decimals(info: FormatInfo, letter: str, units: str) -> int:
+    """Decimals to write for ``letter``: the input's precision, at least 4 in mm and 5 in inch (lengths only)."""
+    floor = 5 if units == "inch" else 4
+    if letter.upper() in "ABC":
+        floor = 4
+    return max(info.decimals.get(letter.upper(), 0), floor)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# tokenizer
+
+
+def tokenize_line(line: str) -> list:
+    """Tokens of one line: list of (kind, text, start, end) with kind in comment / word / other.
+
+    For a word, text is the letter and its value as written (``"X-.0531"``); start/end are column offsets in the
+    line. This is the same regular expression the parser uses.
+    """
+    out = []
+    for m in _TOKEN.finditer(line):
+        if m.group(1) or m.group(2):
+            out.append(("comment", m.group(0), m.start(), m.end()))
+        elif m.group(3):
+            out.append(("word", m.group(0), m.start(), m.end()))
+        else:
+            out.append(("other", m.group(0), m.start(), m.end()))
+    return out
+
+
+def word_spans(program: Program, row: int) -> dict:
+    """Column spans of the words of the block behind ``row``: letter -> (start, end) of its *value* in the raw line.
+
+    Cheap on demand (it re-tokenizes one line); letters that occur more than once (G, M) keep the last.
+    """
+    line = program.lines[int(program.line_index[row])]
+    spans = {}
+    for m in _TOKEN.finditer(line):
+        if m.group(3):
+            spans[m.group(3).upper()] = (m.start(4), m.end(4)) if m.group(4) is not None else (m.end(3), m.end(3))
+    return spans
+
+
+def parse_tool_table(text: str, units: str = "mm") -> dict:
+    """Read a LinuxCNC tool table (``T1 P1 D0.25 Z+0.0 ;comment``): tool number -> Z length in **mm**.
+
+    ``units`` is the unit the table is written in ("mm" or "inch"; a standalone ``rs274`` reads tables in inch).
+    Raises ValueError naming the line when a row has no T word or a malformed number.
+    """
+    if units not in ("mm", "inch"):
+        raise ValueError(f"units must be 'mm' or 'inch', got {units!r}")
+    scale = MM_PER_INCH if units == "inch" else 1.0
+    table = {}
+    for n, raw in enumerate(text.splitlines(), 1):
+        body = raw.split(";", 1)[0].strip()
+        if not body:
+            continue
+        words = dict(re.findall(r"([A-Za-z])\s*([-+]?[0-9.]+)", body))
+        words = {k.upper(): v for k, v in words.items()}
+        try:
+            tool = int(float(words["T"]))
+            table[tool] = float(words.get("Z", "0")) * scale
+        except (KeyError, ValueError) as exc:
+            raise ValueError(f"tool table line {n}: cannot read {raw!r} ({exc})") from None
+    return table
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the interpreter
+
+
+class _Refuse(Exception):
+    """Internal: a block that can move an axis and that the reader does not understand."""
+
+
+def _arc_center_r(start, end, radius, cw, tol):
+    """Centre of an R-format arc in its plane, as LinuxCNC's arc_data_r computes it. start/end: (2,) first/second."""
+    abs_r = abs(radius)
+    mid0, mid1 = (start[0] + end[0]) / 2.0, (start[1] + end[1]) / 2.0
+    half = math.hypot(mid0 - end[0], mid1 - end[1])
+    if half == 0.0:
+        raise ValueError("an R-format arc cannot be a full circle (start equals end): use I J K")
+    if half - abs_r > tol:
+        raise ValueError(f"arc radius R{radius:g} too small to reach the end point")
+    if half / abs_r > 1.0 - 1e-12:
+        half = abs_r
+    if (cw and radius > 0) or ((not cw) and radius < 0):
+        theta = math.atan2(end[1] - start[1], end[0] - start[0]) - math.pi / 2
+    else:
+        theta = math.atan2(end[1] - start[1], end[0] - start[0]) + math.pi / 2
+    offset = abs_r * math.cos(math.asin(half / abs_r))
+    return mid0 + offset * math.cos(theta), mid1 + offset * math.sin(theta)
+
+
+def parse_file(path, *, encoding: str | None = None, **kwargs) -> Program:
+    """Read ``path`` and parse it with :func:`parse_program` (UTF-8, falling back to ISO-8859-1 for old Fanuc files)."""
+    data = open(path, "rb").read()
+    if b"\x00" in data:
+        raise GcodeError(str(path), 1, "binary file (NUL bytes): not G-code")
+    if encoding is None:
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError:
+            text = data.decode("iso-8859-1")
+    else:
+        text = data.decode(encoding)
+    return parse_program(text, str(path), **kwargs)
+
+
+def parse_program(
+    text: str,
+    source: str = "<string>",
+    *,
+    passthrough_unsupported: bool = False,
+    tool_table: Mapping[int, float] | None = None,
+    reference_points: Mapping[str, Sequence[float]] | None = None,
+) -> Program:
+    """Interpret RS-274 text as LinuxCNC does and return its motion table.
+
+    text : the program; str (bytes are refused: decode first, or use :func:`parse_file`)
+    source : name used in messages (``file:line: reason``)
+    passthrough_unsupported : leave blocks that could move an axis but are not understood (macros, subprogram calls)
+        as they are, recorded in ``Program.unsupported``, instead of raising GcodeError
+    tool_table : tool number -> tool length (Z) in **mm**, for G43 (see :func:`parse_tool_table`)
+    reference_points : {"G28": (6,), "G30": (6,)} reference points in machine coordinates, mm / degrees (default zero)
+    """
+    if isinstance(text, (bytes, bytearray)):
+        raise GcodeError(source, 1, "got bytes, expected text: decode the file first (or use parse_file)")
+    if not isinstance(text, str):
+        raise GcodeError(source, 1, f"expected program text (str), got {type(text).__name__}")
+    if "\x00" in text:
+        raise GcodeError(source, text[: text.index("\x00")].count("\n") + 1, "binary data (NUL byte): not G-code")
+    if not text.strip():
+        raise GcodeError(source, 1, "empty program: no blocks")
+    return _Interpreter(text, source, passthrough_unsupported, tool_table, reference_points).run()
+
+
+class _Interpreter:
+    """One lean pass over the lines; state in current program units like LinuxCNC's interpreter."""
+
+    def __init__(self, text, source, passthrough, tool_table, reference_points):
+        self.text = text
+        self.source = source
+        self.passthrough = passthrough
+        self.tool_table_mm = {int(k): float(v) for k, v in (tool_table or {}).items()}
+        refs = reference_points or {}
+        self.ref_mm = {
+            "G28": np.array(refs.get("G28", np.zeros(6)), float),
+            "G30": np.array(refs.get("G30", np.zeros(6)), float),
+        }
+        for k, v in self.ref_mm.items():
+            if v.shape != (6,):
+                raise ValueError(f"reference point {k} must have 6 values (X Y Z A B C), got shape {v.shape}")
+        self.warnings: list = []
+        self.unsupported: list = []
+        self.params: dict = {}
+
+    # -- helpers ------------------------------------------------------------------------------------------------
+    def err(self, line_no, reason):
+        return GcodeError(self.source, line_no, reason)
+
+    def warn(self, line_no, message):
+        self.warnings.append(f"{self.source}:{line_no}: {message}")
+
+    def unsupported_block(self, line_no, reason):
+        self.unsupported.append((line_no, reason))
+        self.warn(line_no, f"passed through uninterpreted: {reason}")
+
+    def run(self) -> Program:
+        lines = self.text.splitlines(keepends=True)
+        # state, in current program units (lengths) and degrees
+        inch = False
+        self.inch = False
+        u_scale = np.array([1.0, 1, 1, 1, 1, 1])  # mm per program unit, per axis
+        g5x = np.zeros((10, 6))  # index 1..9: G54..G59.3
+        active = 1
+        g92 = np.zeros(6)
+        tlo = np.zeros(6)
+        arc_tol = 0.05  # arc end point off the circle by more than this (and 0.1 %): refused, like LinuxCNC
+        pos = [0.0] * 6  # program coordinates (a list: numpy is slow for 6 numbers at a time)
+        off_now = [[0.0] * 6]  # G5x + G92 + tool length offset, refreshed after every block that can change it
+        motion_mode = 0  # G code *10 of the modal motion (0, 10, 20, 30, 730, 810..890, 800)
+        plane = 17
+        absolute = True
+        arc_abs = False
+        inverse = False
+        feed = 0.0
+        retract_r = False  # G99
+        cutter = 40
+        tool = 0
+        next_tool = 0
+        cycle = {"r": 0.0, "cc": 0.0, "p": 0.0, "q": 0.0, "i": 0.0, "j": 0.0, "k": 0.0, "il": 0.0, "il_flag": False}
+        refs = {k: v.copy() for k, v in self.ref_mm.items()}  # machine coords, mm (converted on use)
+        used_axes = set()
+        units_seen = set()
+        percent_seen = 0
+
+        # row accumulators (flat lists; converted to arrays at the end)
+        # Row accumulators: flat lists, turned into arrays once at the end. What rarely changes between rows
+        # (feed, modes, tool, offsets) is stored once per distinct state and indexed per row.
+        r_start, r_end, r_line, r_motion, r_kind, r_words, r_state = [], [], [], [], [], [], []
+        r_arc = {}  # row -> (centre (3,), plane, turns)
+        states: dict = {}
+        cur_state = [0]
+
+        def offsets():
+            return g5x[active] + g92 + tlo
+
+        def refresh_state():
+            key = (feed, inverse, inch, cutter, tool, tuple(off_now[0]))
+            cur_state[0] = states.setdefault(key, len(states))
+
+        def emit(motion, kind, target, li, words=0, center=None, pl=0, turns=0):
+            if center is not None:
+                r_arc[len(r_line)] = (center, pl, turns)
+            r_start.extend(pos)
+            r_end.extend(target)
+            r_line.append(li)
+            r_motion.append(motion)
+            r_kind.append(kind)
+            r_words.append(words)
+            r_state.append(cur_state[0])
+            pos[:] = target
+
+        fast_match = _FAST.match
+        fast_words = _FAST_WORD.findall
+        word_bit = _WORD_BIT
+        pre_cycle_mode = 0
+        token_findall = _TOKEN.findall
+        axis_index = _AXIS_INDEX
+        ended = False
+
+        for li, raw in enumerate(lines):
+            if ended:
+                break
+            # Fast path: a plain G0/G1 block ("N300G1X4.6526Z-.0007", "X1 Y2 F300") in G0/G1 mode.
+            fm = fast_match(raw)
+            if fm is not None:
+                g, x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = fm.groups()
+                if g is None and x is None and y is None and z is None and a_ is None and b_ is None and c_ is None:
+                    fm = None  # no motion word and no axis word: not a move (general path)
+            if fm is not None:
+                mode = motion_mode if g is None else int(g) * 10
+                if f_ is not None:
+                    new_feed = float(f_)
+                    if new_feed != feed:
+                        feed = new_feed
+                        refresh_state()
+                if mode == 0 or (mode <= 30 and feed != 0.0 and (f_ is not None or not inverse)):
+                    target = pos[:]
+                    seen = 0
+                    if absolute:
+                        if x is not None:
+                            target[0] = float(x)
+                            seen = 1
+                        if y is not None:
+                            target[1] = float(y)
+                            seen |= 2
+                        if z is not None:
+                            target[2] = float(z)
+                            seen |= 4
+                    else:
+                        if x is not None:
+                            target[0] += float(x)
+                            seen = 1
+                        if y is not None:
+                            target[1] += float(y)
+                            seen |= 2
+                        if z is not None:
+                            target[2] += float(z)
+                            seen |= 4
+                    if a_ is not None or b_ is not None or c_ is not None:
+                        for n, v in ((3, a_), (4, b_), (5, c_)):
+                            if v is not None:
+                                target[n] = float(v) if absolute else target[n] + float(v)
+                                seen |= 1 << n
+                    if f_ is not None:
+                        seen |= 2048
+                    arcw = i_ is not None or j_ is not None or k_ is not None or r_ is not None
+                    if g is not None:
+                        cycle["il_flag"] = False
+                    if mode <= 10 and not arcw:
+                        motion_mode = mode
+                        # emit(), inlined: this line is the hot path
+                        r_start.extend(pos)
+                        r_end.extend(target)
+                        r_line.append(li)
+                        r_motion.append(mode // 10)
+                        r_kind.append(ROW_PROGRAMMED)
+                        r_words.append(seen)
+                        r_state.append(cur_state[0])
+                        pos = target
+                        continue
+                    if mode >= 20 and r_ is None:
+                        # I J K arc, inlined (the other hot path); R arcs and odd cases go through arc_to
+                        a0, a1, an = _PLANE_AXES[plane]
+                        ijk = (i_, j_, k_)
+                        w0, w1 = ijk[a0], ijk[a1]
+                        if w0 is not None or w1 is not None:
+                            o0 = float(w0) if w0 is not None else 0.0
+                            o1 = float(w1) if w1 is not None else 0.0
+                            if arc_abs:
+                                c0, c1 = o0, o1
+                            else:
+                                c0, c1 = pos[a0] + o0, pos[a1] + o1
+                            rad1 = math.hypot(pos[a0] - c0, pos[a1] - c1)
+                            rad2 = math.hypot(target[a0] - c0, target[a1] - c1)
+                            dr = abs(rad1 - rad2)
+                            if rad1 > 0.0 and (dr <= arc_tol or dr <= 0.001 * max(rad1, rad2)):
+                                for letter, v in (("I", i_), ("J", j_), ("K", k_)):
+                                    if v is not None:
+                                        seen |= word_bit[letter]
+                                center = [0.0, 0.0, 0.0]
+                                center[a0], center[a1], center[an] = c0, c1, pos[an]
+                                motion_mode = mode
+                                r_arc[len(r_line)] = (center, plane, 1)
+                                r_start.extend(pos)
+                                r_end.extend(target)
+                                r_line.append(li)
+                                r_motion.append(2 if mode == 20 else 3)
+                                r_kind.append(ROW_PROGRAMMED)
+                                r_words.append(seen)
+                                r_state.append(cur_state[0])
+                                pos = target
+                                continue
+                    if mode >= 20:
+                        motion_mode = mode
+                        extra = {}
+                        for letter, v in (("I", i_), ("J", j_), ("K", k_), ("R", r_)):
+                            if v is not None:
+                                extra[letter] = float(v)
+                                seen |= word_bit[letter]
+                        try:
+                            self.arc_to(li + 1, li, mode, extra, target, pos, plane, arc_abs, inch, emit, seen)
+                        except ValueError as exc:
+                            raise self.err(li + 1, str(exc)) from None
+                        continue
+                # anything else: the general path below handles (or reports) it
+            line_no = li + 1
+            stripped = raw.strip()
+            if not stripped:
+                continue
+            if stripped[0] == "%":
+                percent_seen += 1
+                if percent_seen >= 2:
+                    ended = True
+                continue
+            if (stripped[0] in "oO" or stripped[:1] in "nN") and _OWORD.match(raw):
+                if self.passthrough:
+                    self.unsupported_block(line_no, "o-word subroutine / control flow")
+                    continue
+                raise self.err(line_no, "o-word subroutine / control flow is not supported (the moves it makes "
+                               "are not in the text)")
+            if "#" in raw:
+                m = _ASSIGN.match(raw.rstrip("\r\n"))
+                if m:
+                    self.params[int(m.group(1))] = float(m.group(2))
+                    continue
+            toks = token_findall(raw)
+            # -- gather words -----------------------------------------------------------------------------------
+            gcodes = []
+            mcodes = []
+            vals = {}  # letter -> value text (non-G/M)
+            axis_words = None
+            refuse = None
+            macro_nonmoving = None
+            block_delete = False
+            for com1, com2, letter, num, other in toks:
+                if letter:
+                    if not num:
+                        raise self.err(line_no, f"word '{letter}' with no number")
+                    L = letter.upper()
+                    if num[0] in "#[":
+                        value = self.resolve(num)
+                        if value is None:
+                            if L in "XYZABCUVWIJKR":
+                                refuse = f"macro expression {L}{num} in a coordinate"
+                            elif L in "GM":
+                                refuse = f"macro expression {L}{num} as a G/M code"
+                            else:
+                                macro_nonmoving = f"macro expression {L}{num}"
+                            continue
+                        num = repr(value)
+                    if L == "G":
+                        gcodes.append(num)
+                    elif L == "M":
+                        mcodes.append(num)
+                    elif L == "O":
+                        # Fanuc program number "O0001" alone is a label; LinuxCNC o-word control flow is not text
+                        rest = raw.upper().split("(", 1)[0]
+                        if re.search(r"O\s*[0-9]+\s*[A-Z]", rest) or "<" in raw:
+                            refuse = "o-word subroutine / control flow"
+                        vals["O"] = num
+                    else:
+                        if L in vals and L != "N":
+                            raise self.err(line_no, f"more than one {L} word in the block")
+                        vals[L] = num
+                elif com1:
+                    if not com1.endswith(")"):
+                        raise self.err(line_no, "comment opened with '(' is not closed on its line")
+                elif com2:
+                    pass
+                else:
+                    if other == "/" and not gcodes and not mcodes and not vals:
+                        block_delete = True
+                    elif other == "<" or other == ">":
+                        refuse = "o-word subroutine / control flow"
+                    elif other in "#[]=+-*":
+                        macro_nonmoving = macro_nonmoving or f"macro syntax '{other}'"
+                    else:
+                        raise self.err(line_no, f"unexpected character {other!r}")
+            if block_delete:
+                pass  # executed: the block delete switch is off, as in rs274
+            if refuse is None and macro_nonmoving and any(k in vals for k in "XYZABC"):
+                refuse = macro_nonmoving + " in a block with axis words"
+            if not gcodes and not mcodes and not vals:
+                if macro_nonmoving:
+                    self.unsupported_block(line_no, macro_nonmoving)
+                continue
+
+            try:
+                gnums = []
+                for g in gcodes:
+                    gnums.append(int(round(float(g) * 10)))
+                mnums = [int(round(float(m))) for m in mcodes]
+                if refuse is None:
+                    for g in gnums:
+                        if g in _MOVING_G:
+                            refuse = _MOVING_G[g]
+                    for m in mnums:
+                        if m in _MOVING_M:
+                            refuse = _MOVING_M[m]
+                    if refuse is None and any(k in vals for k in "UVW"):
+                        refuse = "U V W axes are not supported"
+                if refuse is not None:
+                    if self.passthrough:
+                        self.unsupported_block(line_no, refuse)
+                        continue
+                    raise self.err(line_no, refuse + " (the moves it makes are not in the text; "
+                                   "pass passthrough_unsupported=True to leave the block as it is)")
+                if macro_nonmoving:
+                    self.unsupported_block(line_no, macro_nonmoving)
+
+                fvals = {}
+                for k, v in vals.items():
+                    fvals[k] = float(v)
+                words_mask = 0
+                for k in vals:
+                    words_mask |= _WORD_BIT.get(k, 0)
+                ax = [(axis_index[k], fvals[k]) for k in "XYZABC" if k in fvals]
+                for k in "XYZABC":
+                    if k in fvals:
+                        used_axes.add(k)
+
+                # -- modal and non-modal G codes, in LinuxCNC's order of execution ---------------------------
+                new_motion = None
+                nonmodal = None
+                g53 = False
+                for g in gnums:
+                    if g in _MOTION_G:
+                        new_motion = g
+                    elif g == 800:
+                        if new_motion is None:
+                            new_motion = 800
+                    elif g == 930:
+                        inverse = True
+                    elif g in (940, 950):
+                        if g == 950:
+                            self.warn(line_no, "G95 feed per revolution: feed values are per revolution")
+                        inverse = False
+                    elif g in (170, 180, 190):
+                        plane = g // 10
+                    elif g in (200, 210):
+                        want_inch = g == 200
+                        units_seen.add("inch" if want_inch else "mm")
+                        if want_inch != inch:
+                            f = (1 / MM_PER_INCH) if want_inch else MM_PER_INCH
+                            lin = _LINEAR
+                            for arr in (g92, tlo):
+                                arr[lin] *= f
+                            pos[:] = [p * f if lin_i else p for p, lin_i in zip(pos, _LINEAR_T)]
+                            g5x[:, lin] *= f
+                            cycle["r"] *= f
+                            cycle["cc"] *= f
+                            cycle["q"] *= f
+                            cycle["il"] *= f
+                            for key in "ijk":
+                                cycle[key] *= f
+                            feed *= f if not inverse else 1.0
+                            inch = want_inch
+                            arc_tol = 0.002 if inch else 0.05
+                            u_scale = np.where(_LINEAR, MM_PER_INCH if inch else 1.0, 1.0)
+                    elif g in (400, 410, 420, 411, 421):
+                        cutter = g // 10
+                        if cutter != 40:
+                            self.warn(line_no, f"G{cutter} cutter radius compensation: rows follow the programmed "
+                                      "contour, not the tool centre")
+                    elif g in (430, 431, 432, 490):
+                        pass  # handled after the tool change below
+                    elif 540 <= g <= 590 and g % 10 == 0:
+                        new_active = (g - 530) // 10
+                        if new_active != active:
+                            _add(pos, g5x[active] - g5x[new_active])
+                            active = new_active
+                    elif g in (591, 592, 593):
+                        new_active = 7 + (g - 591)
+                        if new_active != active:
+                            _add(pos, g5x[active] - g5x[new_active])
+                            active = new_active
+                    elif g == 900:
+                        absolute = True
+                    elif g == 910:
+                        absolute = False
+                    elif g == 901:
+                        arc_abs = True
+                    elif g == 911:
+                        arc_abs = False
+                    elif g == 980:
+                        retract_r = False
+                    elif g == 990:
+                        retract_r = True
+                    elif g in (40, 100, 280, 281, 300, 301, 920, 921, 922, 923):
+                        nonmodal = g
+                    elif g == 530:
+                        g53 = True
+                    elif g in (610, 611, 640, 960, 970):
+                        pass  # path control and spindle modes: no effect on positions
+                    elif g == 80:
+                        if "P" in vals:
+                            self.unsupported_block(line_no, "Fanuc G08 P (look-ahead) is not an RS-274 code")
+                        # else LinuxCNC's G8 (lathe radius mode), the default: nothing to do
+                    else:
+                        self.unsupported_block(line_no, f"G{g / 10:g} not understood (no axis moved)")
+
+                # feed, spindle, tool
+                if "F" in fvals:
+                    feed = fvals["F"]
+                if "T" in fvals:
+                    next_tool = int(fvals["T"])
+                for m in mnums:
+                    if m == 6:
+                        tool = next_tool
+                    elif m in (2, 30):
+                        ended = True
+                    elif m not in _KNOWN_M and not (100 <= m <= 199):
+                        self.unsupported_block(line_no, f"M{m} is not an RS-274 code (no axis moved)")
+                # tool length offset
+                for g in gnums:
+                    if g == 430:
+                        h = int(fvals["H"]) if "H" in fvals else tool
+                        length_mm = self.tool_table_mm.get(h)
+                        if length_mm is None:
+                            if h != 0:
+                                self.warn(line_no, f"G43 H{h}: tool {h} is not in the tool table; length 0 used")
+                            length_mm = 0.0
+                        new = np.zeros(6)
+                        new[2] = length_mm / u_scale[2]
+                        _add(pos, tlo - new)
+                        tlo = new
+                    elif g == 431:
+                        new = tlo.copy()
+                        for i, v in ax:
+                            new[i] = v
+                        ax = []
+                        _add(pos, tlo - new)
+                        tlo = new
+                    elif g == 432:
+                        h = int(fvals.get("H", 0))
+                        new = tlo.copy()
+                        new[2] += self.tool_table_mm.get(h, 0.0) / u_scale[2]
+                        _add(pos, tlo - new)
+                        tlo = new
+                    elif g == 490:
+                        _add(pos, tlo)
+                        tlo = np.zeros(6)
+
+                if new_motion is not None:
+                    if new_motion in (0, 10, 20, 30, 800):
+                        cycle["il_flag"] = False
+                    motion_here = new_motion
+                else:
+                    motion_here = None
+
+                if gnums or mnums or "F" in fvals:
+                    off_now[0] = offsets().tolist()
+                    refresh_state()
+                # -- non-modal: G10, G28, G30, G92, G4 -------------------------------------------------------
+                if nonmodal == 100:
+                    # the active system may change: the machine position stays, the program position moves
+                    self.g10(line_no, fvals, ax, g5x, active, g92, tlo, pos, u_scale)
+                    ax = []
+                elif nonmodal in (280, 300):
+                    key = "G28" if nonmodal == 280 else "G30"
+                    if ax:
+                        target = list(pos)
+                        for i, v in ax:
+                            target[i] = v if absolute else pos[i] + v
+                        emit(RAPID, ROW_REFERENCE, target, li, words_mask)
+                        moving = [i for i, _ in ax]
+                    else:
+                        moving = list(range(6))
+                    home = refs[key] / u_scale - offsets()
+                    target = list(pos)
+                    for i in moving:
+                        target[i] = float(home[i])
+                    emit(RAPID, ROW_REFERENCE, target, li, 0)
+                    ax = []
+                elif nonmodal in (281, 301):
+                    refs["G28" if nonmodal == 281 else "G30"] = (np.array(pos) + offsets()) * u_scale
+                elif nonmodal == 920:
+                    for i, v in ax:
+                        new = pos[i] + g92[i] - v
+                        g92[i] = new
+                        pos[i] = v
+                    ax = []
+                elif nonmodal in (921, 922):
+                    _add(pos, g92)
+                    g92[:] = 0.0
+                elif nonmodal == 923:
+                    self.unsupported_block(line_no, "G92.3 (restore G92 from parameters) not supported; G92 kept")
+
+                if ended and not ax and motion_here is None:
+                    break
+
+                # -- motion ---------------------------------------------------------------------------------
+                if nonmodal is not None:
+                    off_now[0] = offsets().tolist()
+                    refresh_state()
+                prior_mode = motion_mode
+                if motion_here is not None:
+                    motion_mode = motion_here
+                if motion_here is None and not ax:
+                    continue
+                mm = motion_mode
+                if motion_here in _CYCLE_G and prior_mode not in _CYCLE_G:
+                    pre_cycle_mode = prior_mode
+                if mm == 800:
+                    if not ax:
+                        continue
+                    if pre_cycle_mode not in (0, 10, 20, 30):
+                        raise self.err(line_no, "axis words with G80 and no motion mode to fall back to")
+                    # Fanuc: G80 ends the cycle and the G0/G1 modal from before the cycle moves on (LinuxCNC
+                    # refuses axis words here; a program LinuxCNC accepts never reaches this line)
+                    self.warn(line_no, f"axis words after G80: moved with G{pre_cycle_mode // 10}, the motion "
+                              "mode before the canned cycle (Fanuc behaviour; LinuxCNC refuses this)")
+                    mm = motion_mode = pre_cycle_mode
+                if g53:
+                    if mm not in (0, 10):
+                        raise self.err(line_no, "G53 needs G0 or G1")
+                    if not absolute:
+                        raise self.err(line_no, "G53 in incremental mode (G91)")
+                    target = list(pos)
+                    off = offsets()
+                    for i, v in ax:
+                        target[i] = v - off[i]
+                    if mm == 10 and feed == 0.0:
+                        raise self.err(line_no, "G1 with zero feed rate (no F word yet)")
+                    emit(RAPID if mm == 0 else FEED, ROW_MACHINE, target, li, words_mask)
+                    if ended:
+                        break
+                    continue
+                if mm in (0, 10):
+                    target = list(pos)
+                    if absolute:
+                        for i, v in ax:
+                            target[i] = v
+                    else:
+                        for i, v in ax:
+                            target[i] += v
+                    if mm == 10:
+                        if inverse and "F" not in fvals:
+                            raise self.err(line_no, "G93 inverse-time feed needs an F word on every feed block")
+                        if feed == 0.0:
+                            raise self.err(line_no, "G1 with zero feed rate (no F word yet)")
+                    emit(RAPID if mm == 0 else FEED, ROW_PROGRAMMED, target, li, words_mask)
+                elif mm in (20, 30):
+                    self.arc(line_no, li, mm, fvals, ax, pos, plane, absolute, arc_abs, inch, feed, inverse,
+                             emit, words_mask)
+                else:
+                    if inverse:
+                        raise self.err(line_no, "canned cycle in G93 inverse-time mode")
+                    if feed == 0.0:
+                        raise self.err(line_no, "canned cycle with zero feed rate (no F word yet)")
+                    if cutter != 40:
+                        raise self.err(line_no, "canned cycle with cutter radius compensation on")
+                    self.cycle(line_no, li, mm, motion_here, fvals, ax, pos, plane, absolute, retract_r, inch,
+                               cycle, emit, words_mask, prior_mode)
+                if ended:
+                    break
+            except GcodeError:
+                raise
+            except (ValueError, OverflowError, ZeroDivisionError, KeyError) as exc:
+                raise self.err(line_no, str(exc) or type(exc).__name__) from None
+
+        m = len(r_line)
+        state_rows = list(states)  # dicts keep insertion order: index == state id
+        sid = np.array(r_state, np.int64)
+        st_feed = np.array([k[0] for k in state_rows] or [0.0], float)
+        st_flags = np.array([k[1:5] for k in state_rows] or [(False, False, 40, 0)], np.int64).reshape(-1, 4)
+        st_off = np.array([k[5] for k in state_rows] or [(0.0,) * 6], float).reshape(-1, 6)
+        arc_center = np.full((m, 3), np.nan)
+        arc_plane = np.zeros(m, np.int8)
+        arc_turns = np.zeros(m, np.int16)
+        if r_arc:
+            idx = np.fromiter(r_arc.keys(), np.int64, len(r_arc))
+            arc_center[idx] = [v[0] for v in r_arc.values()]
+            arc_plane[idx] = [v[1] for v in r_arc.values()]
+            arc_turns[idx] = [v[2] for v in r_arc.values()]
+        words = np.array(r_words, np.uint16)
+        mask = int(np.bitwise_or.reduce(words)) if m else 0
+        used_axes.update(c for c in AXES if mask & _WORD_BIT[c])
+        units = "mixed" if len(units_seen) > 1 else ("inch" if units_seen == {"inch"} else "mm")
+        return Program(
+            source=self.source,
+            start=np.array(r_start, float).reshape(m, 6),
+            end=np.array(r_end, float).reshape(m, 6),
+            offset=st_off[sid].reshape(m, 6),
+            motion=np.array(r_motion, np.int8),
+            kind=np.array(r_kind, np.int8),
+            arc_center=arc_center,
+            arc_plane=arc_plane,
+            arc_turns=arc_turns,
+            feed=st_feed[sid].reshape(m),
+            inverse_time=st_flags[sid, 0].astype(bool).reshape(m),
+            inch=st_flags[sid, 1].astype(bool).reshape(m),
+            cutter_comp=st_flags[sid, 2].astype(np.int8).reshape(m),
+            tool=st_flags[sid, 3].astype(np.int32).reshape(m),
+            line_index=np.array(r_line, np.int32),
+            words=words,
+            lines=lines,
+            units=units,
+            axes_present="".join(a for a in AXES if a in used_axes),
+            warnings=self.warnings,
+            unsupported=self.unsupported,
+        )
+
+    def resolve(self, text):
+        """Value of ``#n`` / ``[#n]`` when #n was assigned a literal; None for anything else."""
+        m = _PARAM_REF.match(text.replace(" ", ""))
+        if not m:
+            return None
+        n = int(m.group(1) or m.group(2))
+        return self.params.get(n)
+
+    def g10(self, line_no, fvals, ax, g5x, active, g92, tlo, pos, u_scale):
+        """G10 L1 (tool length), L2 / L20 (work offsets); other L values are recorded and ignored."""
+        L = int(fvals.get("L", -1))
+        if "R" in fvals and L in (2, 20):
+            self.unsupported_block(line_no, "G10 rotation R is not supported; rotation ignored")
+        if L in (2, 20):
+            p = int(fvals.get("P", 0))
+            if not 0 <= p <= 9:
+                raise ValueError(f"G10 L{L} P{p}: coordinate system must be P0..P9")
+            idx = active if p == 0 else p
+            old = g5x[active].copy()
+            for i, v in ax:
+                if L == 2:
+                    g5x[idx, i] = v
+                else:  # L20: the current point gets coordinate v in system idx
+                    g5x[idx, i] = pos[i] + old[i] - v
+            if idx == active:
+                _add(pos, old - g5x[active])
+        elif L == 1:
+            t = int(fvals.get("P", 0))
+            if "Z" in fvals:
+                self.tool_table_mm[t] = fvals["Z"] * u_scale[2]
+        else:
+            self.unsupported_block(line_no, f"G10 L{L} not supported (no axis moved)")
+
+    def arc(self, line_no, li, mm, fvals, ax, pos, plane, absolute, arc_abs, inch, feed, inverse, emit, words_mask):
+        if inverse and "F" not in fvals:
+            raise self.err(line_no, "G93 inverse-time feed needs an F word on every feed block")
+        if feed == 0.0:
+            raise self.err(line_no, "arc with zero feed rate (no F word yet)")
+        target = list(pos)
+        for i, v in ax:
+            target[i] = v if absolute else pos[i] + v
+        self.arc_to(line_no, li, mm, fvals, target, pos, plane, arc_abs, inch, emit, words_mask)
+
+    def arc_to(self, line_no, li, mm, fvals, target, pos, plane, arc_abs, inch, emit, words_mask):
+        """Emit the arc from ``pos`` to ``target`` (program coordinates); centre from I J K (or R) in ``fvals``."""
+        a0, a1, an = _PLANE_AXES[plane]
+        cw = mm == 20
+        tol = 0.002 if inch else 0.05
+        if "R" in fvals:
+            c0, c1 = _arc_center_r((pos[a0], pos[a1]), (target[a0], target[a1]), fvals["R"], cw, tol)
+        else:
+            w0, w1 = _CENTER_WORD[a0], _CENTER_WORD[a1]
+            if w0 not in fvals and w1 not in fvals:
+                raise ValueError(f"G{mm // 10} arc in the G{plane} plane needs R or {w0}/{w1}")
+            o0, o1 = fvals.get(w0, 0.0), fvals.get(w1, 0.0)
+            if arc_abs:
+                c0, c1 = o0, o1
+            else:
+                c0, c1 = pos[a0] + o0, pos[a1] + o1
+            r1 = math.hypot(pos[a0] - c0, pos[a1] - c1)
+            r2 = math.hypot(target[a0] - c0, target[a1] - c1)
+            if abs(r1 - r2) > tol and abs(r1 - r2) > 0.001 * max(r1, r2):
+                raise ValueError(f"arc end point is not on the circle: radius {r1:.5g} at the start, "
+                                 f"{r2:.5g} at the end")
+            if r1 == 0.0:
+                raise ValueError("arc of zero radius")
+        turns = 1
+        if "P" in fvals:
+            turns = int(fvals["P"])
+            if turns < 1 or turns != fvals["P"]:
+                raise ValueError(f"arc P (turns) must be a positive integer, got {fvals['P']:g}")
+        center = [0.0, 0.0, 0.0]
+        center[a0], center[a1], center[an] = c0, c1, pos[an]
+        emit(ARC_CW if cw else ARC_CCW, ROW_PROGRAMMED, target, li, words_mask, tuple(center), plane, turns)
+
+    def cycle(self, line_no, li, mm, motion_here, fvals, ax, pos, plane, absolute, retract_r, inch, st, emit,
+              words_mask, prior_mode):
+        """Canned cycles G73, G81-G89 expanded into the moves LinuxCNC's interp_cycles.cc makes."""
+        a0, a1, an = _PLANE_AXES[plane]
+        letter = {0: "X", 1: "Y", 2: "Z"}
+        same_mode = prior_mode == mm
+        given = dict(ax)
+        if not same_mode and an not in given:
+            raise ValueError(f"{letter[an]} missing in the first canned cycle block (G{mm / 10:g})")
+        if "R" in fvals:
+            r_word = fvals["R"]
+        elif same_mode:
+            r_word = st["r"]
+        else:
+            raise ValueError(f"R clearance plane missing in the first G{mm / 10:g} block")
+        l_rep = int(fvals.get("L", 1))
+        if l_rep < 1:
+            raise ValueError("canned cycle repeat count L must be >= 1")
+        cc_word = given.get(an, st["cc"])
+        current_cc = pos[an]
+        if st["il_flag"]:
+            old_cc = st["il"]
+        else:
+            old_cc = st["il"] = current_cc
+            st["il_flag"] = True
+        if absolute:
+            inc0 = inc1 = 0.0
+            r = r_word
+            cc = cc_word
+            aa = given.get(a0, pos[a0])
+            bb = given.get(a1, pos[a1])
+        else:
+            inc0, inc1 = given.get(a0, 0.0), given.get(a1, 0.0)
+            r = r_word + old_cc
+            cc = r + cc_word
+            aa, bb = pos[a0], pos[a1]
+        if r < cc:
+            raise ValueError(f"R plane below the bottom of the cycle ({letter[an]})")
+        rapid_delta = 0.010 if inch else 0.254
+
+        def at(p0, p1, pn):
+            t = list(pos)
+            t[a0], t[a1], t[an] = p0, p1, pn
+            return t
+
+        def trav(p0, p1, pn, w=0):
+            emit(RAPID, ROW_CYCLE, at(p0, p1, pn), li, w)
+
+        def fd(p0, p1, pn):
+            emit(FEED, ROW_CYCLE, at(p0, p1, pn), li, 0)
+
+        if old_cc < r:
+            trav(pos[a0], pos[a1], r)
+            old_cc = r
+            current_cc = old_cc
+        clear_cc = r if retract_r else old_cc
+        if current_cc <= r:
+            # measured with rs274 (LinuxCNC 2.9): starting at or below the R plane, the first positioning move
+            # is made at the initial level, not at the current height
+            current_cc = old_cc
+
+        # sticky cycle words
+        if mm in (820, 860, 880, 890, 740, 840):
+            if "P" not in fvals and not same_mode and mm not in (740, 840):
+                raise ValueError(f"dwell P missing with G{mm // 10}")
+            st["p"] = fvals.get("P", st["p"])
+        if mm in (730, 830):
+            if "Q" not in fvals and not same_mode:
+                raise ValueError(f"Q missing with G{mm // 10}")
+            q = fvals.get("Q", st["q"])
+            if q <= 0:
+                raise ValueError("negative or zero Q in a peck cycle")
+            st["q"] = q
+        if mm == 870:
+            if not same_mode and not all(k in fvals for k in "IJK"):
+                raise ValueError("G87 needs I, J and K")
+            for k in "ijk":
+                st[k] = fvals.get(k.upper(), st[k])
+        first = True
+        for _ in range(l_rep):
+            aa += inc0
+            bb += inc1
+            trav(aa, bb, current_cc, words_mask if first else 0)
+            if old_cc != r:
+                trav(aa, bb, r)
+            first = False
+            if mm == 810 or mm == 820 or mm == 860:
+                fd(aa, bb, cc)
+                trav(aa, bb, clear_cc)
+            elif mm in (730, 830):
+                depth = r - st["q"]
+                while depth > cc:
+                    fd(aa, bb, depth)
+                    if mm == 830:
+                        trav(aa, bb, r)
+                    trav(aa, bb, depth + rapid_delta)
+                    depth = depth - st["q"]
+                fd(aa, bb, cc)
+                trav(aa, bb, clear_cc)
+            elif mm == 850:
+                fd(aa, bb, cc)
+                fd(aa, bb, r)
+                trav(aa, bb, clear_cc)  # rs274 makes this move even when clear_cc == r
+            elif mm in (740, 840, 890):
+                fd(aa, bb, cc)
+                fd(aa, bb, clear_cc)
+            elif mm == 880:
+                fd(aa, bb, cc)
+            elif mm == 870:
+                i_off, j_off, k = st["i"], st["j"], st["k"]
+                middle = (cc + k) if not absolute else k
+                ox, oy = aa + i_off, bb + j_off
+                trav(ox, oy, r)
+                trav(ox, oy, cc)
+                trav(aa, bb, cc)
+                fd(aa, bb, middle)
+                fd(aa, bb, cc)
+                trav(ox, oy, cc)
+                trav(ox, oy, clear_cc)
+                trav(aa, bb, clear_cc)
+            old_cc = current_cc = clear_cc
+        # LinuxCNC leaves the interpreter at (aa, bb, clear_cc) even after G88
+        pos[a0], pos[a1], pos[an] = aa, bb, clear_cc
+        st["r"] = r_word
+        st["cc"] = cc_word
