@@ -18,13 +18,14 @@ DEBS_TEST    := freecad linuxcnc-uspace cloudcompare
 demo: debs-runtime venv
 	$(VENV)/bin/trueaxis demo
 
+# Two pytest workers on two cores: one BLAS thread each, or OpenBLAS threads spin against each other.
 test: debs-runtime debs-test venv
-	@rc=0; $(PY) -m pytest -n 2 -q $(PYTEST_ARGS) || rc=$$?; \
+	@rc=0; OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -n 2 -q $(PYTEST_ARGS) || rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests: that is a failure"; exit 1; fi; \
 	exit $$rc
 
 test-fast: venv
-	$(PY) -m pytest -n 2 -q -m "not slow" $(PYTEST_ARGS)
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -n 2 -q -m "not slow" $(PYTEST_ARGS)
 
 bench: debs-runtime venv
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

@@ -1,0 +1,279 @@
+"""The FreeCAD host of the post: trueaxis_post.py posts a real FreeCAD CAM job as FreeCAD's linuxcnc post does, with
+the job's cutting conditions as structured comments, compensated by the trueaxis command.
+
+The FreeCAD tests run tests/freecad_scripts/make_job.py in the real ``freecadcmd`` (a block with a pocket, an outside
+profile and a pocket operation) and the real ``trueaxis`` console script. The other tests load the script in this
+Python (it imports FreeCAD only inside ``export``) and check its pure parts against stand-in objects and a stand-in
+trueaxis command.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from conftest import MACHINES, ROOT, require_program
+from rs274_helpers import run_rs274
+from trueaxis.postproc.hosts.freecad import default_macro_dir, install_post, post_script_path
+
+XH714 = MACHINES / "xh714.toml"
+TRUEAXIS = ROOT / ".venv" / "bin" / "trueaxis"
+DRIVER = Path(__file__).resolve().parent / "freecad_scripts" / "make_job.py"
+COMMENT_LINE = re.compile(r"^\(trueaxis: [^)]*\)\n", re.MULTILINE)
+
+
+def load_post_module():
+    spec = importlib.util.spec_from_file_location("trueaxis_post", post_script_path())
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def trueaxis_exe() -> str:
+    if TRUEAXIS.exists():
+        return str(TRUEAXIS)
+    return require_program("trueaxis")
+
+
+# --- the real thing: FreeCAD job -> trueaxis_post -> trueaxis post -> rs274 ----------------------------------------
+
+XDG = ("XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_CACHE_HOME")
+
+
+@pytest.fixture(scope="module")
+def freecad_job(tmp_path_factory):
+    """Outputs of make_job.py (see its docstring), as {name: text}, plus the job facts.
+
+    FreeCAD runs with a private HOME (its settings and macro folder), where install_post puts the script, so FreeCAD
+    loads it the way it loads any post processor and the user's own settings play no part.
+    """
+    freecadcmd = require_program("freecadcmd")
+    out = tmp_path_factory.mktemp("freecad_job")
+    home = tmp_path_factory.mktemp("home")
+    with pytest.MonkeyPatch.context() as mp:
+        for name in XDG:
+            mp.delenv(name, raising=False)
+        installed = install_post(default_macro_dir(home))
+    env = {k: v for k, v in os.environ.items() if k not in XDG}
+    env.update(HOME=str(home), TRUEAXIS_TEST_OUT=str(out), TRUEAXIS_MACHINE=str(XH714), TRUEAXIS_BIN=trueaxis_exe())
+    proc = subprocess.run([freecadcmd, str(DRIVER)], cwd=out, env=env, stdin=subprocess.DEVNULL,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, f"make_job.py failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
+    files = {p.name: p.read_text() for p in out.glob("*.ngc")}
+    facts = json.loads((out / "job.json").read_text())
+    assert Path(facts["post_script"]).resolve() == installed.resolve()
+    return SimpleNamespace(dir=out, files=files, facts=facts)
+
+
+@pytest.mark.external
+def test_post_equals_linuxcnc_post_compensated_by_trueaxis(freecad_job, tmp_path):
+    linuxcnc = freecad_job.dir / "linuxcnc.ngc"
+    direct = tmp_path / "direct.ngc"
+    subprocess.run([trueaxis_exe(), "post", str(linuxcnc), "-o", str(direct), "--machine", str(XH714),
+                    "--mode", "geometric", "--tol-um", "1"], check=True, capture_output=True, text=True)
+    posted = freecad_job.files["trueaxis.ngc"]
+    assert COMMENT_LINE.sub("", posted) == direct.read_text()
+    assert posted != freecad_job.files["linuxcnc.ngc"]  # the machine has errors: the program changed
+    assert freecad_job.files["trueaxis_return.ngc"] == posted
+
+
+@pytest.mark.external
+def test_without_correction_the_post_is_the_linuxcnc_post_plus_conditions(freecad_job):
+    assert COMMENT_LINE.sub("", freecad_job.files["trueaxis_none.ngc"]) == freecad_job.files["linuxcnc.ngc"]
+
+
+@pytest.mark.external
+def test_conditions_stand_before_the_tool_change_and_each_operation(freecad_job):
+    lines = freecad_job.files["trueaxis.ngc"].splitlines()
+    tool = freecad_job.facts["tool"]
+    fz = tool["horiz_feed_mm_min"] / (tool["spindle_rpm"] * tool["flutes"])
+    assert (tool["diameter"], tool["flutes"], tool["spindle_rpm"], fz) == (6.0, 3, 8000.0, 0.025)
+    expected = {
+        "(TC: Default Tool)": "(trueaxis: n=8000 d=6 z=3)",
+        "(Profile)": "(trueaxis: ap=4 fz=0.025 n=8000 d=6 z=3 mode=down)",
+        "(Pocket)": "(trueaxis: ap=2.5 ae=3 fz=0.025 n=8000 d=6 z=3 mode=down)",
+    }
+    comments = [i for i, line in enumerate(lines) if line.startswith("(trueaxis:")]
+    assert len(comments) == len(expected)
+    for label, comment in expected.items():
+        start = next(i for i, line in enumerate(lines) if line.strip() == label)  # the object's own path starts
+        assert lines[start - 1] == comment
+    tool_change = next(i for i, line in enumerate(lines) if line.strip().startswith("M6"))
+    assert comments[0] < tool_change
+
+
+@pytest.mark.external
+def test_profile_run_counter_clockwise_is_written_as_down_milling(freecad_job):
+    text = freecad_job.files["linuxcnc.ngc"]
+    profile = text[text.index("(begin operation: Profile)"):text.index("(finish operation: Profile)")]
+    arcs = re.findall(r"^(G[23]) ", profile, re.MULTILINE)
+    assert freecad_job.facts["profile"]["Direction"] == "CCW" and arcs and set(arcs) == {"G3"}
+    assert "mode=down" in freecad_job.facts["conditions"]["Profile"]
+
+
+@pytest.mark.external
+def test_rs274_reads_the_compensated_program(freecad_job, tmp_path):
+    nominal = run_rs274(freecad_job.dir / "linuxcnc.ngc", {1: 50.0}, tmp_path / "nominal")
+    moves = run_rs274(freecad_job.dir / "trueaxis.ngc", {1: 50.0}, tmp_path / "compensated")
+    assert moves.returncode == 0, moves.stderr
+    assert len(moves.kind) > len(nominal.kind)  # moves split where the error varies along them
+    # corrections are micrometres (xh714: tens of um at most): the path's extent moves by less than 0.1 mm
+    lo = np.abs(moves.end[:, :3].min(axis=0) - nominal.end[:, :3].min(axis=0))
+    hi = np.abs(moves.end[:, :3].max(axis=0) - nominal.end[:, :3].max(axis=0))
+    assert max(lo.max(), hi.max()) < 0.1
+
+
+@pytest.mark.external
+def test_a_refused_program_raises_with_the_block_and_writes_nothing(freecad_job):
+    message = freecad_job.facts["refused_message"]
+    assert message is not None and not freecad_job.facts["refused_file_written"]
+    assert re.search(r"refused\.ngc:\d+: block 'G0 [^']*': correction of [XYZ] is .* above the bound", message)
+
+
+# --- the script's pure parts, in this Python ----------------------------------------------------------------------
+
+class Quantity:
+    """FreeCAD quantity stand-in: Value in internal units (mm, mm/s)."""
+
+    def __init__(self, value, per_second=False):
+        self.Value, self.per_second = value, per_second
+
+    def getValueAs(self, unit):
+        assert unit == "mm/min" and self.per_second
+        return self.Value * 60.0
+
+
+def tool_controller(rpm=8000.0, diameter=6.0, flutes=3, feed_mm_min=600.0, spindle="Forward"):
+    tool = SimpleNamespace(Diameter=Quantity(diameter), Flutes=flutes)
+    return SimpleNamespace(Tool=tool, SpindleSpeed=rpm, ToolNumber=1, SpindleDir=spindle,
+                           HorizFeed=Quantity(feed_mm_min / 60.0, per_second=True), Path=None)
+
+
+def test_conditions_come_from_the_tool_controller_and_the_operation():
+    post = load_post_module()
+    tc = tool_controller()
+    pocket = SimpleNamespace(ToolController=tc, StepDown=Quantity(2.5), StartDepth=Quantity(10.0),
+                             FinalDepth=Quantity(5.0), StepOver=40, CutMode="Conventional", Path=None)
+    assert post.conditions_comment(post.cutting_conditions(tc)) == "(trueaxis: n=8000 d=6 z=3)"
+    assert (post.conditions_comment(post.cutting_conditions(pocket))
+            == "(trueaxis: ap=2.5 ae=2.4 fz=0.025 n=8000 d=6 z=3 mode=up)")
+    dressup = SimpleNamespace(Base=SimpleNamespace(Base=pocket, Path=None), Path=None)
+    assert post.cutting_conditions(dressup) == post.cutting_conditions(pocket)
+    assert post.cutting_conditions(SimpleNamespace(Label="G54", Path=None)) == []
+
+
+def test_unknown_flutes_leave_out_flutes_and_feed_per_tooth():
+    post = load_post_module()
+    profile = SimpleNamespace(ToolController=tool_controller(flutes=0), StepDown=Quantity(6.0),
+                              StartDepth=Quantity(3.0), FinalDepth=Quantity(0.0), Direction="CW", Side="Outside",
+                              UseComp=True, Path=None)
+    assert post.cutting_conditions(profile) == [("ap", "3"), ("n", "8000"), ("d", "6"), ("mode", "up")]
+
+
+@pytest.mark.parametrize("direction, side, spindle, mode", [
+    ("CCW", "Outside", "Forward", "down"), ("CW", "Outside", "Forward", "up"),
+    ("CW", "Inside", "Forward", "down"), ("CCW", "Outside", "Reverse", "up"), ("CCW", "Outside", "None", None)])
+def test_profile_direction_and_side_give_down_or_up_milling(direction, side, spindle, mode):
+    post = load_post_module()
+    op = SimpleNamespace(Direction=direction, Side=side, UseComp=True)
+    assert post._cut_mode(op, SimpleNamespace(SpindleDir=spindle)) == mode
+
+
+def test_our_arguments_are_taken_and_the_rest_go_to_linuxcnc():
+    post = load_post_module()
+    opts, rest = post.split_arguments("--no-header --machine 'my machine.toml' --mode comprehensive --tol-um 2 "
+                                      "--precision 4 --modal")
+    assert (opts.machine, opts.mode, opts.tol_um) == ("my machine.toml", "comprehensive", "2")
+    assert rest == "--no-header --precision 4 --modal --no-show-editor"
+    with pytest.raises(post.TrueaxisPostError, match="--machine FILE is required"):
+        post.split_arguments("--no-header")
+    with pytest.raises(ValueError, match="invalid choice"):
+        post.split_arguments("--machine m.toml --mode fast")
+
+
+def stand_in(tmp_path, body):
+    """An executable stand-in for the trueaxis command: `trueaxis post IN -o OUT ...`."""
+    exe = tmp_path / "trueaxis"
+    exe.write_text(f"#!{sys.executable}\nimport shutil, sys\nargs = sys.argv[1:]\n" + textwrap.dedent(body))
+    exe.chmod(0o755)
+    return exe
+
+
+def test_compensate_runs_the_command_and_returns_its_output(tmp_path, monkeypatch):
+    post = load_post_module()
+    exe = stand_in(tmp_path, """
+        assert args[0] == "post" and args[2] == "-o" and "--machine" in args
+        shutil.copyfile(args[1], args[3])
+        open(args[3], "a").write("(" + " ".join(args[4:]).replace("(", "") + ")\\n")
+    """)
+    monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+    opts, _ = post.split_arguments("--machine m.toml --mode none --tol-um 0.5 --max-correction-mm 0.2")
+    out = post.compensate("G0 X1\n", opts)
+    assert out == f"G0 X1\n(--machine {os.path.abspath('m.toml')} --mode none --tol-um 0.5 --max-correction-mm 0.2)\n"
+
+
+def test_a_refusal_names_the_block_and_the_reason(tmp_path, monkeypatch):
+    post = load_post_module()
+    exe = stand_in(tmp_path, """
+        sys.stderr.write(args[1] + ":2: corrected Z = 16.0000 lies outside its travel [-400, 0]\\n")
+        sys.exit(2)
+    """)
+    monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+    opts, _ = post.split_arguments("--machine m.toml")
+    with pytest.raises(post.TrueaxisPostError) as err:
+        post.compensate("G21\nG0 Z16.000 \nM2\n", opts, label="part.ngc")
+    assert "part.ngc:2: block 'G0 Z16.000': corrected Z = 16.0000 lies outside its travel" in str(err.value)
+    assert "exit 2" in str(err.value)
+
+
+def test_a_missing_command_says_how_to_point_at_it(monkeypatch):
+    post = load_post_module()
+    monkeypatch.delenv("TRUEAXIS_BIN", raising=False)
+    monkeypatch.setenv("PATH", "")
+    opts, _ = post.split_arguments("--machine m.toml")
+    with pytest.raises(post.TrueaxisPostError, match="TRUEAXIS_BIN"):
+        post.compensate("G0 X1\n", opts)
+
+
+def test_files_are_written_atomically(tmp_path):
+    post = load_post_module()
+    target = tmp_path / "part.ngc"
+    target.write_text("old\n")
+    post.write_atomically(str(target), "G0 X1\n")
+    assert target.read_text() == "G0 X1\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["part.ngc"]
+
+
+def test_install_copies_the_script_into_the_given_folder(tmp_path):
+    installed = install_post(tmp_path / "Macro")
+    assert installed == tmp_path / "Macro" / "trueaxis_post.py"
+    assert installed.read_bytes() == post_script_path().read_bytes()
+
+
+def test_macro_folder_follows_freecad_settings_then_its_data_folder(tmp_path, monkeypatch):
+    monkeypatch.delenv("XDG_CONFIG_HOME", raising=False)
+    monkeypatch.delenv("XDG_DATA_HOME", raising=False)
+    home = tmp_path / "home"
+    assert default_macro_dir(home) == home / ".local" / "share" / "FreeCAD" / "Macro"  # nothing yet: XDG default
+    (home / ".FreeCAD").mkdir(parents=True)
+    assert default_macro_dir(home) == home / ".FreeCAD" / "Macro"  # an older FreeCAD's user folder
+    custom = tmp_path / "my macros"
+    custom.mkdir()
+    cfg = home / ".config" / "FreeCAD" / "user.cfg"
+    cfg.parent.mkdir(parents=True)
+    cfg.write_text(f"""<?xml version="1.0" encoding="UTF-8" standalone="no" ?>
+<FCParameters><FCParamGroup Name="Root"><FCParamGroup Name="BaseApp"><FCParamGroup Name="Preferences">
+<FCParamGroup Name="Macro"><FCText Name="MacroPath">{custom}</FCText></FCParamGroup>
+</FCParamGroup></FCParamGroup></FCParamGroup></FCParameters>
+""")
+    assert default_macro_dir(home) == custom

@@ -1,0 +1,259 @@
+"""The three-axis post: compensated programs put the actual tool on the nominal path; dialect and safety rules."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import MACHINES, ROOT
+from post_checks import actual_points, distance_to_polyline, machine_rows, nominal_polyline
+from rs274_helpers import run_rs274
+from trueaxis.machine import ErrorTwin, load_machine, parse_machine
+from trueaxis.postproc import post as post_module
+from trueaxis.postproc.gcode import GcodeError, parse_program
+from trueaxis.postproc.post import PostError, compensate
+
+XH714 = MACHINES / "xh714.toml"
+
+PROGRAM = """%
+(test program: plunge, lines, arcs, incremental move, canned cycle)
+G21 G90 G17 G94
+N10 G0 X0 Y0 Z-10
+N20 G1 Z-105 F300 (plunge)
+N30 G1 X150 Y80
+N40 G2 X100 Y30 I-50 J0
+N50 X50 Y80 I0 J50
+N60 G91 G1 X-20 Y-10
+N70 G90 G0 Z-20
+N80 G98 G81 X10 Y10 Z-103 R-98
+N90 X20 Y15
+N100 G80
+M2
+%
+"""
+
+
+@pytest.fixture(scope="module")
+def xh714():
+    return load_machine(XH714)
+
+
+@pytest.fixture(scope="module")
+def posted(xh714):
+    report = {}
+    out = compensate(PROGRAM, xh714, "geometric", tol_um=1.0, report=report)
+    return out, report
+
+
+def test_every_output_end_point_lands_on_the_nominal_path(xh714, posted):
+    out, _ = posted
+    actual, _, _ = actual_points(out, xh714)
+    nominal = nominal_polyline(parse_program(PROGRAM), xh714)
+    d_um = distance_to_polyline(actual, nominal) * 1e3
+    # 0.1 um is the issue's bound; the written numbers (5 decimals, 0.005 um) and the solver (0.01 um) stay below it.
+    assert d_um.max() < 0.1, d_um.max()
+
+
+def test_programmed_end_points_land_exactly_where_the_nominal_program_goes(xh714, posted):
+    out, _ = posted
+    nominal = parse_program(PROGRAM)
+    q_nom, _ = machine_rows(nominal, xh714)
+    actual, prog_out, rows_out = actual_points(out, xh714)
+    # Lines with N words are the original blocks: compare their end points one to one.
+    def numbered_ends(prog, pts, rows):
+        lines = [prog.lines[prog.line_index[r]].split()[0] for r in rows]
+        return {ln: pts[k] for k, ln in enumerate(lines) if ln.startswith("N") and ln not in ("N40", "N50")}
+    twin = ErrorTwin(xh714)
+    want = numbered_ends(nominal, twin.nominal_pose(q_nom)[0], np.nonzero(nominal.kind == 0)[0])
+    got = numbered_ends(prog_out, actual, rows_out)
+    for key in ("N10", "N60", "N70"):
+        np.testing.assert_allclose(got[key], want[key], atol=1e-4 * 1e-3 * 1e3)
+
+
+def test_the_actual_path_between_output_points_stays_within_tolerance(xh714, posted):
+    out, report = posted
+    prog = parse_program(out)
+    q, rows = machine_rows(prog, xh714)
+    twin = ErrorTwin(xh714)
+    feed = prog.motion[rows] == 1
+    q_prev = np.vstack([q[:1], q[:-1]])
+    mid = 0.5 * (q + q_prev)[feed]
+    actual_mid = twin.actual_pose(mid)[0]
+    nominal = nominal_polyline(parse_program(PROGRAM), xh714)
+    d_um = distance_to_polyline(actual_mid, nominal) * 1e3
+    assert d_um.max() <= report["tol_um"] * 1.05
+    assert report["moves_split"] >= 1
+
+
+def test_rs274_reads_the_compensated_program(tmp_path, posted):
+    out, _ = posted
+    path = tmp_path / "out.ngc"
+    path.write_text(out)
+    moves = run_rs274(path, {}, tmp_path)
+    assert moves.returncode == 0, moves.stderr
+    ours = parse_program(out)
+    assert len(moves.kind) == len(ours)
+    np.testing.assert_allclose(moves.end, ours.end, atol=5e-5)
+
+
+def test_identical_input_gives_byte_identical_output(xh714, posted):
+    again = compensate(PROGRAM, xh714, "geometric", tol_um=1.0)
+    assert again == posted[0]
+
+
+def test_comments_line_numbers_and_non_motion_blocks_are_kept(posted):
+    out, _ = posted
+    for keep in ("%", "(test program: plunge, lines, arcs, incremental move, canned cycle)", "G21 G90 G17 G94",
+                 "N100 G80", "M2"):
+        assert keep + "\n" in out
+    assert "(plunge)" in out
+    for n in ("N10 ", "N20 ", "N30 ", "N60 ", "N80 ", "N90 "):
+        assert out.count(n) == 1
+
+
+def test_every_compensated_motion_block_carries_all_its_axis_words(posted):
+    out, _ = posted
+    prog = parse_program(out)
+    for r in np.nonzero(prog.kind == 0)[0]:
+        code = prog.lines[prog.line_index[r]].split("(")[0].upper()
+        letters = {w[0] for w in code.split()}
+        assert {"X", "Y", "Z"} <= letters, code
+
+
+def test_incremental_move_carries_the_corrected_increment(xh714, posted):
+    out, _ = posted
+    line = next(ln for ln in out.splitlines() if ln.startswith("N60"))
+    words = dict((w[0], float(w[1:])) for w in line.split()[3:])
+    assert abs(words["X"] + 20) < 0.02 and abs(words["Y"] + 10) < 0.02 and words["X"] != -20
+
+
+def test_canned_cycle_hole_position_and_depth_are_corrected(xh714, posted):
+    out, _ = posted
+    line = next(ln for ln in out.splitlines() if ln.startswith("N80"))
+    w = {t[0]: float(t[1:]) for t in line.split() if t[0] in "XYZR"}
+    twin = ErrorTwin(xh714)
+    # The twin works in the part frame: compare actual and nominal poses there (xh714's part origin is Z -300).
+    hole_nominal, _ = twin.nominal_pose(np.array([[10.0, 10.0, -103.0]]))
+    r_nominal, _ = twin.nominal_pose(np.array([[10.0, 10.0, -98.0]]))
+    np.testing.assert_allclose(twin.actual_pose(np.array([[w["X"], w["Y"], w["Z"]]]))[0], hole_nominal, atol=1e-5)
+    # R is corrected for its own level; X and Y are the hole's, so only the height is checked at R.
+    np.testing.assert_allclose(twin.actual_pose(np.array([[w["X"], w["Y"], w["R"]]]))[0][0, 2], r_nominal[0, 2],
+                               atol=2e-4)
+
+
+def test_arcs_stay_arcs_when_the_correction_is_constant():
+    text = (MACHINES / "xh714.toml").read_text()
+    # A machine whose only error is a constant offset of the X positioning: the correction is the same everywhere.
+    const = parse_machine(text.split("[location]")[0].replace("[loaded]", "[x]")
+                          + "[component.X]\nat = [-200.0, 200.0]\nEXX = [3.0, 3.0]\n", source="const")
+    report = {}
+    out = compensate(PROGRAM, const, "geometric", report=report)
+    assert report["arcs_kept"] == 2 and report["arcs_linearised"] == 0
+    n40 = next(ln for ln in out.splitlines() if ln.startswith("N40"))
+    assert "G2" in n40 and "I-50" in n40 and "X99.997" in n40
+
+
+def test_mode_none_returns_the_input_unchanged(xh714):
+    assert compensate(PROGRAM, xh714, "none") == PROGRAM
+
+
+def test_a_correction_above_the_bound_stops_with_the_block_named(xh714):
+    with pytest.raises(PostError) as info:
+        compensate(PROGRAM, xh714, "geometric", max_correction_mm=0.005)
+    assert str(info.value).startswith("<string>:") and "above the bound" in str(info.value)
+
+
+def test_a_position_outside_the_travel_stops_with_the_block_named(xh714):
+    with pytest.raises(PostError) as info:
+        compensate(PROGRAM.replace("N70 G90 G0 Z-20", "N70 G90 G0 X250 Z-20"), xh714, "geometric")
+    assert "<string>:10:" in str(info.value) and "outside its travel" in str(info.value)
+
+
+def test_a_program_for_axes_the_machine_lacks_is_refused(xh714):
+    with pytest.raises(PostError) as info:
+        compensate("G21 G90\nG1 X1 Y1 Z-10 A30 F100\nM2\n", xh714, "geometric")
+    assert "<string>:2:" in str(info.value) and "axis A" in str(info.value)
+
+
+@pytest.mark.parametrize("data, reason", [(b"", "empty"), (b"\x00\x01\x02G1 X1", "binary")])
+def test_cli_refuses_empty_and_binary_files_with_exit_2_and_writes_nothing(tmp_path, data, reason):
+    src = tmp_path / "in.ngc"
+    src.write_bytes(data)
+    out = tmp_path / "out.ngc"
+    r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", str(src), "-o", str(out), "--machine",
+                        str(XH714)], capture_output=True, text=True)
+    assert r.returncode == 2 and reason in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_cli_writes_program_and_report(tmp_path):
+    src = tmp_path / "in.ngc"
+    src.write_text(PROGRAM)
+    out, rep = tmp_path / "out.ngc", tmp_path / "r.json"
+    r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", str(src), "-o", str(out), "--machine",
+                        str(XH714), "--report", str(rep)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    report = json.loads(rep.read_text())
+    assert report["blocks_in"] == len(PROGRAM.splitlines())
+    assert report["blocks_out"] == len(out.read_text().splitlines())
+    assert set(report["correction"]) == {"X", "Y", "Z"}
+    assert report["max_residual_um"] < 0.01
+
+
+def test_comprehensive_mode_cancels_the_force_induced_error_too(xh714):
+    prog = PROGRAM.replace("N30 G1 X150 Y80", "(trueaxis: ap=0.6 ae=7 fz=0.2 n=1200 d=10 z=4 mode=down)\nN30 G1 X150 Y80")
+    report = {}
+    out = compensate(prog, xh714, "comprehensive", report=report)
+    geo = compensate(prog, xh714, "geometric")
+    assert out != geo
+    # The N30 end point, cut with the force of its own conditions, lands on the nominal point.
+    from trueaxis.machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
+
+    f_feed = mean_force(CuttingCoefficients.from_mapping(xh714.cutting),
+                        CuttingConditions.from_mapping({"ap": 0.6, "ae": 7, "fz": 0.2, "n": 1200, "d": 10, "z": 4}))
+    x = np.array([150.0, 80.0, 0.0]) / np.hypot(150.0, 80.0)
+    y = np.cross([0, 0, 1.0], x)
+    force = f_feed[0] * x + f_feed[1] * y + f_feed[2] * np.array([0, 0, 1.0])
+    line = next(ln for ln in out.splitlines() if ln.startswith("N30"))
+    w = {t[0]: float(t[1:]) for t in line.split() if t[0] in "XYZ"}
+    # N30 is split: its first piece; compare with the nominal point at the same fraction of the move.
+    q = np.array([[w["X"], w["Y"], w["Z"]]])
+    twin = ErrorTwin(xh714)
+    p_act = twin.actual_pose(q, force_n=force)[0][0]
+    start, end = twin.nominal_pose(np.array([[0, 0, -105.0], [150, 80, -105.0]]))[0]
+    t = np.dot(p_act - start, end - start) / np.dot(end - start, end - start)
+    np.testing.assert_allclose(p_act, start + t * (end - start), atol=1e-4)
+
+
+def test_comprehensive_mode_without_conditions_is_refused(xh714):
+    with pytest.raises(PostError) as info:
+        compensate(PROGRAM, xh714, "comprehensive")
+    assert "cutting conditions" in str(info.value)
+
+
+@pytest.mark.external
+@pytest.mark.parametrize("name", ["mtc_cover_rev_a.nc", "mtc_plate_1.nc"])
+def test_nist_inch_programs_post_and_rs274_reads_them(tmp_path, name):
+    # A three-axis machine with the xh714 errors and enough travel for the NIST parts (their work offsets are
+    # unknown, so program coordinates are machine coordinates here).
+    text = XH714.read_text().replace("[-200.0, 200.0]", "[-2000.0, 2000.0]").replace(
+        "[-150.0, 150.0]", "[-2000.0, 2000.0]").replace("[-400.0, 0.0]", "[-2000.0, 2000.0]")
+    m = parse_machine(text, source="xh714-wide")
+    src = (ROOT / "fixtures" / "programs" / "nist" / name).read_text(errors="replace")
+    report = {}
+    out = compensate(src, m, "geometric", report=report)
+    assert "inch" in report["units_note"]
+    path = tmp_path / name
+    path.write_text(out)
+    moves = run_rs274(path, {t: 0.0 for t in range(1, 40)}, tmp_path)
+    assert moves.returncode == 0, moves.stderr[-2000:]
+    actual, _, _ = actual_points(out, m)
+    nominal = nominal_polyline(parse_program(src), m, arc_points=400)
+    # arcs sampled at 400 points: sagitta of a 2-inch arc over 1/400 of a turn is about 0.3 um; check with that slack
+    d_um = distance_to_polyline(actual, nominal) * 1e3
+    assert np.percentile(d_um, 99) < 0.1 and d_um.max() < 0.5

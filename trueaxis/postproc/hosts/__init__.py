@@ -1,0 +1,1 @@
+"""Hosts of the post-processor: CAM systems that call trueaxis from inside (FreeCAD CAM)."""

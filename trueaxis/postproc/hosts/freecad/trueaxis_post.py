@@ -1,0 +1,396 @@
+# trueaxis post-processor for FreeCAD CAM (Path workbench): LinuxCNC G-code, compensated with a machine's error twin.
+#
+# Install: copy this file into FreeCAD's macro folder (`trueaxis freecad install` does it), then choose the post
+# processor "trueaxis" in the Job and give it arguments such as
+#     --machine /path/to/machine.toml --mode geometric --tol-um 1
+#
+# What it does, in order:
+# 1. writes the G-code exactly as FreeCAD's own `linuxcnc` post does (it runs a fresh copy of that module), with one
+#    addition: before each tool change and each operation a structured comment carrying the cutting conditions the
+#    job knows, e.g. `(trueaxis: ap=6 ae=3 fz=0.025 n=8000 d=6 z=3 mode=down)` (trueaxis DESIGN §5);
+# 2. runs `trueaxis post IN -o OUT --machine FILE --mode M --tol-um T` on it (the command is $TRUEAXIS_BIN, or
+#    --trueaxis-bin, or `trueaxis` on PATH: FreeCAD's Python does not import trueaxis itself);
+# 3. writes the compensated program at the output file atomically (temporary file in the same folder, then rename).
+# If trueaxis refuses the program, export raises TrueaxisPostError naming the block and the reason, and nothing is
+# written at the output file.
+#
+# Script API of FreeCAD 0.20/0.21 (TOOLTIP, TOOLTIP_ARGS, export(objectslist, filename, argstring)); FreeCAD 1.0
+# runs such scripts through its wrapper for legacy posts (it calls export(..., "-", args) and writes what it returns).
+# This module imports FreeCAD only inside export, so its pure parts can be tested with plain Python.
+
+import argparse
+import importlib.util
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import tempfile
+
+TOOLTIP = """
+trueaxis: LinuxCNC G-code from FreeCAD's linuxcnc post, with the job's cutting conditions as
+(trueaxis: ...) comments, compensated for the machine's geometric (and force-induced) errors by
+the trueaxis command line. Needs --machine FILE; the trueaxis command is taken from
+--trueaxis-bin, $TRUEAXIS_BIN or PATH.
+"""
+
+UNITS = "G21"  # read by FreeCAD to label the post processor's units (metric unless --inches is passed on)
+
+MODES = ("none", "geometric", "comprehensive")
+
+# FreeCAD's legacy LinuxCNC post: its module name across versions (0.20: PathScripts; 0.21 and 1.0: Path.Post;
+# later releases keep the script API under the "_legacy" name).
+LINUXCNC_MODULES = (
+    "Path.Post.scripts.linuxcnc_legacy_post",
+    "Path.Post.scripts.linuxcnc_post",
+    "PathScripts.post.linuxcnc_post",
+    "linuxcnc_post",
+)
+
+
+class TrueaxisPostError(RuntimeError):
+    """The trueaxis post could not produce a compensated program; the message says which block and why."""
+
+
+class _ArgumentError(ValueError):
+    pass
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that raises instead of exiting: an exit inside FreeCAD would take the application with it."""
+
+    def error(self, message):
+        raise _ArgumentError(message)
+
+
+def _build_parser():
+    p = _Parser(prog="trueaxis", add_help=False, allow_abbrev=False)
+    p.add_argument("--machine", help="machine file (TOML) of the machine that will run the program (required)")
+    p.add_argument("--mode", default="geometric", choices=MODES,
+                   help="none | geometric | comprehensive (default geometric)")
+    p.add_argument("--tol-um", default="1", help="path tolerance, um (default 1)")
+    p.add_argument("--max-correction-mm", default=None,
+                   help="largest correction allowed, mm (trueaxis' default 0.5)")
+    p.add_argument("--report", default=None, help="also write trueaxis' report (JSON) here")
+    p.add_argument("--trueaxis-bin", default=None,
+                   help="the trueaxis executable (default: $TRUEAXIS_BIN, else trueaxis on PATH)")
+    p.add_argument("--no-show-editor", action="store_true", help="don't pop up the editor before writing output")
+    return p
+
+
+parser = _build_parser()
+
+
+def split_arguments(argstring):
+    """(our options, argument string for the linuxcnc post) from the job's post-processor argument string.
+
+    Our options are parsed here; everything else (--no-header, --no-comments, --precision, ...) goes to linuxcnc
+    unchanged, always with --no-show-editor (the editor, if any, shows the compensated program).
+    """
+    ours, rest = parser.parse_known_args(shlex.split(argstring or ""))
+    if not ours.machine:
+        raise TrueaxisPostError("trueaxis post: --machine FILE is required (the machine file of the machine that "
+                                "will run this program)")
+    try:
+        float(ours.tol_um)
+        if ours.max_correction_mm is not None:
+            float(ours.max_correction_mm)
+    except ValueError:
+        raise TrueaxisPostError(f"trueaxis post: --tol-um and --max-correction-mm take numbers; got "
+                                f"{ours.tol_um!r}, {ours.max_correction_mm!r}") from None
+    return ours, " ".join(shlex.quote(a) for a in rest + ["--no-show-editor"])
+
+
+# --- cutting conditions: what the job knows ------------------------------------------------------------------------
+
+def _number(value):
+    """A quantity's value in FreeCAD's internal units (mm, mm/s), or a plain number; None when unset."""
+    if value is None:
+        return None
+    value = getattr(value, "Value", value)
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return None
+
+
+def _feed_mm_per_min(speed):
+    if speed is None:
+        return None
+    if hasattr(speed, "getValueAs"):
+        return float(speed.getValueAs("mm/min"))
+    value = _number(speed)  # internal unit mm/s
+    return None if value is None else value * 60.0
+
+
+def _format(value):
+    """Shortest plain decimal for a comment field: 8000, 6, 0.025 (no exponent)."""
+    text = format(value, ".6g")
+    if "e" in text:
+        text = f"{value:.6f}".rstrip("0").rstrip(".")
+    return text
+
+
+def _operation_of(obj):
+    """The operation under a chain of dressups (a dressup's Base is the path object it dresses)."""
+    seen = 0
+    while not hasattr(obj, "ToolController") and hasattr(getattr(obj, "Base", None), "Path") and seen < 50:
+        obj = obj.Base
+        seen += 1
+    return obj
+
+
+def _is_tool_controller(obj):
+    return hasattr(obj, "Tool") and hasattr(obj, "SpindleSpeed") and hasattr(obj, "ToolNumber")
+
+
+def _cut_mode(op, tc):
+    """'down' (climb) or 'up' (conventional) milling, when the operation says it and the spindle turns."""
+    spindle = getattr(tc, "SpindleDir", "Forward")
+    if spindle not in ("Forward", "Reverse"):
+        return None
+    climb = None
+    cut_mode = getattr(op, "CutMode", None)
+    if cut_mode in ("Climb", "Conventional"):  # pocket, face milling, adaptive, ...
+        climb = cut_mode == "Climb"
+    elif getattr(op, "Direction", None) in ("CW", "CCW") and getattr(op, "Side", None) in ("Outside", "Inside") \
+            and getattr(op, "UseComp", True):
+        # Profile (FreeCAD 0.20/0.21): Direction is the way round the outer boundary. With a spindle turning M3
+        # (clockwise seen from above) the teeth climb into material on the left of the feed: an outside profile
+        # run CCW, or an inside one run CW, is down milling.
+        climb = (op.Direction == "CCW") != (op.Side == "Inside")
+    if climb is None:
+        return None
+    if spindle == "Reverse":
+        climb = not climb
+    return "down" if climb else "up"
+
+
+def cutting_conditions(obj):
+    """Fields ``ap ae fz n d z mode`` (DESIGN §5) that FreeCAD knows for a tool controller or an operation.
+
+    Only what the job states is returned: spindle speed (ToolController.SpindleSpeed), tool diameter and flutes
+    (Tool.Diameter, Tool.Flutes when > 0), feed per tooth = HorizFeed / (n z), axial depth = StepDown (the deepest
+    pass; the last pass of a depth that is not a multiple of it is shallower), radial engagement = StepOver % x d for
+    operations that step over (pockets, facing), down/up milling from the operation's CutMode or Direction and Side.
+    Returns [(key, text)] in DESIGN §5's order; empty for other objects (fixtures, comments, ...).
+    """
+    if not hasattr(obj, "ToolController") and _is_tool_controller(obj):
+        tc, op = obj, None
+    else:
+        op = _operation_of(obj)
+        tc = getattr(op, "ToolController", None)
+        if tc is None:
+            return []
+    tool = getattr(tc, "Tool", None)
+    n = _number(getattr(tc, "SpindleSpeed", None))
+    d = _number(getattr(tool, "Diameter", None))
+    z = _number(getattr(tool, "Flutes", None))
+    n = n if n and n > 0 else None
+    d = d if d and d > 0 else None
+    z = int(z) if z and z >= 1 else None
+    fields = {}
+    if op is not None:
+        step_down = _number(getattr(op, "StepDown", None))
+        start, final = _number(getattr(op, "StartDepth", None)), _number(getattr(op, "FinalDepth", None))
+        if step_down and step_down > 0:
+            depth = start - final if start is not None and final is not None else None
+            fields["ap"] = min(step_down, depth) if depth and depth > 0 else step_down
+        step_over = _number(getattr(op, "StepOver", None))
+        if d and step_over and 0 < step_over <= 100:
+            fields["ae"] = step_over / 100.0 * d
+        feed = _feed_mm_per_min(getattr(tc, "HorizFeed", None))
+        if feed and n and z:
+            fields["fz"] = feed / (n * z)
+    if n:
+        fields["n"] = n
+    if d:
+        fields["d"] = d
+    if z:
+        fields["z"] = z
+    out = [(k, _format(v)) for k, v in fields.items()]
+    if op is not None:
+        mode = _cut_mode(op, tc)
+        if mode:
+            out.append(("mode", mode))
+    return out
+
+
+def conditions_comment(fields):
+    """``(trueaxis: n=8000 d=6 z=3)`` for the fields of cutting_conditions; '' when there are none."""
+    if not fields:
+        return ""
+    return "(trueaxis: " + " ".join(f"{k}={v}" for k, v in fields) + ")"
+
+
+# --- the LinuxCNC post, with the comments ---------------------------------------------------------------------------
+
+def _linuxcnc_origin():
+    for name in LINUXCNC_MODULES:
+        try:
+            spec = importlib.util.find_spec(name)
+        except (ImportError, ValueError, AttributeError):
+            continue
+        if spec is not None and spec.origin and spec.origin.endswith(".py"):
+            return spec.origin
+    return None
+
+
+def load_linuxcnc():
+    """A fresh copy of FreeCAD's linuxcnc post module.
+
+    Fresh on every export: that module keeps its options in globals that --no-header and friends only ever switch
+    off, and stamps its header with the time it was imported.
+    """
+    origin = _linuxcnc_origin()
+    if origin is None:
+        raise TrueaxisPostError("trueaxis post: FreeCAD's linuxcnc post was not found (looked for "
+                                + ", ".join(LINUXCNC_MODULES) + ")")
+    spec = importlib.util.spec_from_file_location("linuxcnc_post", origin)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    if not (callable(getattr(module, "export", None)) and callable(getattr(module, "parse", None))):
+        raise TrueaxisPostError(f"trueaxis post: {origin} is not the script-style linuxcnc post (no export/parse)")
+    return module
+
+
+def linuxcnc_gcode(objectslist, argstring):
+    """G-code of FreeCAD's linuxcnc post for the objects, with a conditions comment before each object's path."""
+    lc = load_linuxcnc()
+    parse = lc.parse
+
+    def parse_with_conditions(pathobj):
+        comment = conditions_comment(cutting_conditions(pathobj))
+        head = lc.linenumber() + comment + "\n" if comment else ""
+        return head + parse(pathobj)
+
+    lc.parse = parse_with_conditions
+    gcode = lc.export(objectslist, "-", argstring)
+    if gcode is None:
+        raise TrueaxisPostError(f"trueaxis post: FreeCAD's linuxcnc post refused the job (arguments {argstring!r}, "
+                                "or an object that is not a path: see the report view)")
+    return gcode, lc
+
+
+# --- compensation by the trueaxis command ---------------------------------------------------------------------------
+
+def trueaxis_command(opts):
+    """The trueaxis executable: --trueaxis-bin, else $TRUEAXIS_BIN, else `trueaxis` on PATH."""
+    exe = opts.trueaxis_bin or os.environ.get("TRUEAXIS_BIN") or shutil.which("trueaxis")
+    if not exe:
+        raise TrueaxisPostError("trueaxis post: the trueaxis command was not found: set TRUEAXIS_BIN to the trueaxis "
+                                "executable (e.g. /path/to/.venv/bin/trueaxis), pass --trueaxis-bin, or put it on PATH")
+    return os.path.expanduser(exe)
+
+
+_DIAGNOSTIC = re.compile(r"^(?P<file>.+?):(?P<line>\d+): (?P<reason>.*)$")
+
+
+def _explain(stderr, program_path, program_lines, label):
+    """trueaxis' `file:line: reason` lines, with the block itself quoted (the user never sees the temporary file)."""
+    out = []
+    for line in stderr.strip().splitlines():
+        m = _DIAGNOSTIC.match(line)
+        if m and os.path.basename(m.group("file")) == os.path.basename(program_path):
+            k = int(m.group("line"))
+            block = program_lines[k - 1].strip() if 0 < k <= len(program_lines) else "?"
+            out.append(f"{label}:{k}: block '{block}': {m.group('reason')}")
+        else:
+            out.append(line.replace(program_path, label))
+    return "\n".join(out)
+
+
+def compensate(gcode, opts, label="program.ngc"):
+    """The program compensated by `trueaxis post` (text); TrueaxisPostError with trueaxis' reasons on failure."""
+    exe = trueaxis_command(opts)
+    machine = os.path.abspath(os.path.expanduser(opts.machine))
+    with tempfile.TemporaryDirectory(prefix="trueaxis_post_") as work:
+        src = os.path.join(work, os.path.basename(label) or "program.ngc")
+        dst = os.path.join(work, "compensated.ngc")
+        with open(src, "w", encoding="utf-8", newline="") as f:
+            f.write(gcode)
+        cmd = [exe, "post", src, "-o", dst, "--machine", machine, "--mode", opts.mode, "--tol-um", str(opts.tol_um)]
+        if opts.max_correction_mm is not None:
+            cmd += ["--max-correction-mm", str(opts.max_correction_mm)]
+        if opts.report:
+            cmd += ["--report", os.path.abspath(os.path.expanduser(opts.report))]
+        try:
+            proc = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, text=True)
+        except OSError as exc:
+            raise TrueaxisPostError(f"trueaxis post: could not run {exe}: {exc}") from None
+        if proc.returncode != 0 or not os.path.exists(dst):
+            why = _explain(proc.stderr or proc.stdout, src, gcode.splitlines(), label)
+            raise TrueaxisPostError(f"trueaxis refused the program (exit {proc.returncode}); nothing was written.\n"
+                                    f"{why or '(no message)'}\n"
+                                    f"Line numbers refer to the uncompensated program of FreeCAD's linuxcnc post "
+                                    f"(post with the linuxcnc post processor to see it).")
+        with open(dst, "r", encoding="utf-8", newline="") as f:
+            return f.read()
+
+
+def write_atomically(filename, text):
+    """Write text at filename through a temporary file in the same folder and a rename."""
+    folder = os.path.dirname(os.path.abspath(filename))
+    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(filename) + ".", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, filename)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _show_editor(lc, gcode):
+    """FreeCAD's G-code editor on the compensated program, as the linuxcnc post shows it (GUI only)."""
+    post_utils = getattr(lc, "PostUtils", None)
+    if post_utils is None or len(gcode) > 100000:
+        return gcode
+    dia = post_utils.GCodeEditorDialog()
+    dia.editor.setText(gcode)
+    return dia.editor.toPlainText() if dia.exec_() else gcode
+
+
+def export(objectslist, filename, argstring):
+    """Post the objects (tool controllers, operations, fixtures) to `filename` ('-': return only); returns the G-code.
+
+    Raises TrueaxisPostError when the arguments are wrong or trueaxis refuses the program; then nothing is written.
+    """
+    import FreeCAD
+
+    try:
+        opts, linuxcnc_args = split_arguments(argstring)
+    except _ArgumentError as exc:
+        raise TrueaxisPostError(f"trueaxis post: {exc}\n{TOOLTIP_ARGS}") from None
+    gcode, lc = linuxcnc_gcode(objectslist, linuxcnc_args)
+    label = os.path.basename(filename) if filename and filename != "-" else "program.ngc"
+    try:
+        final = compensate(gcode, opts, label)
+    except TrueaxisPostError as exc:
+        FreeCAD.Console.PrintError(str(exc) + "\n")
+        raise
+    if FreeCAD.GuiUp and not opts.no_show_editor:
+        final = _show_editor(lc, final)
+    if filename and filename != "-":
+        write_atomically(filename, final)
+    return final
+
+
+def _tooltip_args():
+    text = parser.format_help()
+    try:
+        origin = _linuxcnc_origin()
+    except Exception:  # outside FreeCAD: our own options only
+        origin = None
+    if origin:
+        try:
+            text += "\nPassed on to FreeCAD's linuxcnc post:\n" + load_linuxcnc().TOOLTIP_ARGS
+        except Exception:
+            pass
+    return text
+
+
+TOOLTIP_ARGS = _tooltip_args()

@@ -1,0 +1,582 @@
+"""Effects of the virtual shop that the error twin may not have (DESIGN §8), each off by default.
+
+Two kinds, applied in this order by ``shop.simulate``:
+
+1. On the axes (commanded q -> actual q, before the twin's kinematics and geometric errors):
+   ``ServoLag`` (position-loop dynamics at the interpolation period), ``Backlash`` (lost motion at reversals),
+   ``RotaryPeriodic`` (harmonics of a rotary axis' own angle).
+2. On the tool pose in the part frame (after ``ErrorTwin.actual_pose``): ``ForceDeflection`` (machine compliance times
+   the cutting force), ``ToolDeflection`` (carbide cantilever), ``ThermalDrift`` (a measured series), ``Clamping``
+   (a smooth deformation field of the clamped part).
+
+EFFECTS.toml (every table optional; a table present switches its effect on unless ``enabled = false``; unknown keys
+are errors; lengths in um or mm as the key says, angles in urad)::
+
+    [servo]                                   # first-order position loop per axis
+    kv_per_s = { X = 30.0, Y = 30.0, Z = 30.0, B = 25.0, C = 25.0 }
+    accel = { X = 2000.0, Y = 2000.0, Z = 2000.0, B = 360.0, C = 720.0 }   # mm/s^2 (linear), deg/s^2 (rotary)
+
+    [backlash.X]                              # one table per axis
+    amplitude = 4.0                           # um (linear) or urad (rotary): total lost motion
+    transition = 0.02                         # mm or deg of travel after a reversal over which it is taken up (tanh)
+
+    [rotary_periodic.C]
+    harmonics_urad = [[1, 12.0, -5.0], [2, 3.0, 0.0]]   # [k per turn, cos, sin] of the axis' angle error
+
+    [force]                                   # deflection from the cutting force (needs cutting conditions)
+    compliance_um_per_n = [[0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.01]]  # extra, tool relative to workpiece, machine frame
+    use_machine_compliance = true             # also pass the force to the twin ([force] of the machine file)
+
+    [tool_deflection]
+    stick_out_mm = 40.0                       # clamp to tip
+    youngs_modulus_gpa = 600.0                # carbide
+    diameter_factor = 0.8                     # I = pi (factor d)^4 / 64
+
+    [thermal]
+    file = "fixtures/thermal/spindle_thermal_drift_part1.csv"   # relative to the EFFECTS file, or absolute
+    channels = { Z = "ch3_um", X = "ch1_um" } # machine direction -> column (um, tool relative to table)
+    time_scale = 60.0                         # series seconds per program second
+    time_offset_s = 3600.0                    # series time at program time 0
+    amplitude_scale = 1.0
+    relative_to_start = true                  # subtract the value at program time 0 (the part is set up then)
+
+    [clamping]                                # Gaussian bump d(x) = A e exp(-|x - c|^2 / (2 l^2)), part frame
+    amplitude_um = 5.0
+    center = [0.0, 0.0, 0.0]
+    length_mm = 30.0
+    direction = [0.0, 0.0, 1.0]
+
+Every effect works on arrays of samples (no per-sample Python loop), except the saturating part of the servo loop,
+which steps through the few samples where the acceleration limit is active (see ``ServoLag``).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.signal import lfilter
+
+from ..machine.kinematics import axis_motion, chain_links
+from ..machine.model import Machine
+
+UM = 1e-3
+URAD = 1e-6
+
+
+class EffectsFileError(ValueError):
+    """An EFFECTS.toml the loader refuses; the message lists every problem with its key path."""
+
+
+# ------------------------------------------------------------------------------------------------- axis effects ----
+@dataclass(frozen=True)
+class ServoLag:
+    """First-order position loop of each axis, v = Kv (q_cmd - q), with an acceleration limit.
+
+    kv_per_s : axis -> Kv, 1/s (axes not named follow the command exactly).
+    accel : axis -> acceleration limit, mm/s^2 (linear) or deg/s^2 (rotary); absent = unlimited.
+
+    Discretisation at the interpolation period dt (forward Euler, what a position loop closed at dt does):
+    q[k+1] = q[k] + v[k] dt, v[k] = sat(Kv (q_cmd[k] - q[k])) with |v[k] - v[k-1]| <= a dt. The linear part is
+    ``scipy.signal.lfilter``; where the limit is active (starts, stops, sharp corners) the loop is stepped sample by
+    sample until it is unsaturated again, and the linear solution after it is corrected by the decaying difference
+    (the loop is linear there, so the difference decays as (1 - Kv dt)^k). Exact for this model; Kv dt < 1 required.
+    """
+
+    kv_per_s: dict
+    accel: dict = field(default_factory=dict)
+
+    def apply(self, q, machine: Machine, dt: float):
+        out = q.copy()
+        for col, name in enumerate(machine.axis_names):
+            if name not in self.kv_per_s:
+                continue
+            kv = float(self.kv_per_s[name])
+            a = self.accel.get(name)
+            if a is not None and machine.axes[name].is_rotary:
+                a = math.radians(a)
+            out[:, col] = _servo_axis(q[:, col], kv, None if a is None else float(a), dt)
+        return out
+
+
+def _servo_axis(qc, kv, amax, dt):
+    alpha = kv * dt
+    if not 0 < alpha < 1:
+        raise ValueError(f"servo: Kv dt must be in (0, 1), got {alpha:g}")
+    n = qc.shape[0]
+    y = lfilter([alpha], [1.0, alpha - 1.0], qc, zi=[(1.0 - alpha) * qc[0]])[0]
+    q = np.empty(n)
+    q[0] = qc[0]
+    q[1:] = y[:-1]
+    if amax is None or n < 3:
+        return q
+    dv_max = amax * dt * (1 + 1e-9)
+    decay_len = int(min(n, math.ceil(math.log(1e-18) / math.log(1 - alpha)) + 1))
+    k = 1
+    while True:
+        v = kv * (qc[k - 1 :] - q[k - 1 :])
+        viol = np.nonzero(np.abs(np.diff(v)) > dv_max)[0]
+        if viol.size == 0:
+            return q
+        j = k + int(viol[0])  # v[j] - v[j-1] violates: step the saturated loop from sample j
+        v_prev = kv * (qc[j - 1] - q[j - 1])
+        qj = q[j]
+        while j < n - 1:
+            vc = kv * (qc[j] - qj)
+            vj = min(max(vc, v_prev - amax * dt), v_prev + amax * dt)
+            qj = qj + vj * dt
+            q_lin_next = q[j + 1]
+            j += 1
+            q[j] = qj
+            v_prev = vj
+            if vj == vc:
+                break
+        if j >= n - 1:
+            return q
+        # The linear solution from here on, corrected by the decaying difference.
+        delta = qj - q_lin_next
+        m = min(decay_len, n - j)
+        q[j + 1 : j + m] += delta * (1 - alpha) ** np.arange(1, m)
+        k = j
+
+
+@dataclass(frozen=True)
+class Backlash:
+    """Lost motion at direction reversals of one axis, taken up smoothly.
+
+    amplitude : total lost motion b, um (linear) or urad (rotary).  transition : travel after a reversal over which it
+    is taken up, mm or deg (tanh). Moving steadily in direction d the axis lags by b/2: e = -(b/2) d; after a reversal
+    to d at travel s from the turning point, e = (b/2) d (1 - 2 tanh(s / transition)). Before the first motion the
+    axis is taken as settled in its first direction.
+    """
+
+    axis: str
+    amplitude: float
+    transition: float = 0.01
+
+    def apply(self, q, machine: Machine):
+        col = machine.axis_names.index(self.axis)
+        rotary = machine.axes[self.axis].is_rotary
+        b = self.amplitude * (URAD if rotary else UM)
+        lam = math.radians(self.transition) if rotary else self.transition
+        x = q[:, col]
+        n = x.shape[0]
+        step = np.diff(x, prepend=x[0])
+        sgn = np.where(np.abs(step) > 1e-12, np.sign(step), 0.0)
+        idx = np.arange(n)
+        last = np.maximum.accumulate(np.where(sgn != 0, idx, 0))
+        d = sgn[last]
+        first = np.nonzero(sgn)[0]
+        d = np.where(d == 0, sgn[first[0]] if first.size else 1.0, d)
+        rev = np.zeros(n, bool)
+        rev[1:] = d[1:] != d[:-1]
+        r = np.maximum.accumulate(np.where(rev, idx, 0))
+        travel = np.where(r > 0, np.abs(x - x[np.maximum(r - 1, 0)]), np.inf)
+        e = 0.5 * b * d * (1.0 - 2.0 * np.tanh(travel / lam))
+        out = q.copy()
+        out[:, col] += e
+        return out
+
+
+@dataclass(frozen=True)
+class RotaryPeriodic:
+    """Angular positioning error of a rotary axis as harmonics of its own angle theta (commanded), urad:
+    e(theta) = sum_k c_k cos(k theta) + s_k sin(k theta); the axis turns to theta + e."""
+
+    axis: str
+    harmonics_urad: tuple
+
+    def apply(self, q, machine: Machine):
+        col = machine.axis_names.index(self.axis)
+        theta = q[:, col]
+        e = np.zeros_like(theta)
+        for k, c, s in self.harmonics_urad:
+            e += c * np.cos(k * theta) + s * np.sin(k * theta)
+        out = q.copy()
+        out[:, col] += e * URAD
+        return out
+
+
+# ------------------------------------------------------------------------------------------------- pose effects ----
+@dataclass(frozen=True)
+class ForceDeflection:
+    """Machine compliance under the cutting force: tool relative to workpiece, d = C F (um, machine frame), turned
+    into the part frame. ``use_machine_compliance`` also hands the force to the twin (its own [force] model)."""
+
+    compliance_um_per_n: np.ndarray | None = None
+    use_machine_compliance: bool = False
+
+
+@dataclass(frozen=True)
+class ToolDeflection:
+    """The tool as a carbide cantilever (clamped at ``stick_out_mm`` above the tip), bent by the force component
+    normal to its axis, applied at the centre of the flute contact (height z_c above the tip): with a = L - z_c from
+    the clamp and EI = E pi (f d)^4 / 64, the tip moves by F (a^3 / 3 + a^2 (L - a) / 2) / EI and the axis tilts by
+    F a^2 / (2 EI). Between the load and the tip the elastic line is straight, so the rigid tool tangent to it there
+    (this tip and tilt) is exact below the load point; above it, the tangent tool is slightly outside the bent one.
+    k at the tip for a = L: 3 EI / L^3 (5.7 N/um for d 10 mm, L 40 mm)."""
+
+    stick_out_mm: float = 40.0
+    youngs_modulus_gpa: float = 600.0
+    diameter_factor: float = 0.8
+
+    def displace(self, tip, axis, force_part, z_contact, diameter):
+        """Deflected tip (N,3) and unit axis (N,3); force_part (N,3) N on the tool, part frame; z_contact (N,) mm."""
+        E = self.youngs_modulus_gpa * 1e3  # N/mm^2
+        I = math.pi * (self.diameter_factor * diameter) ** 4 / 64.0
+        L = self.stick_out_mm
+        a = np.clip(L - np.asarray(z_contact, float), 0.0, L)
+        f_perp = force_part - np.einsum("ij,ij->i", force_part, axis)[:, None] * axis
+        tip_c = (a**3 / 3.0 + a**2 * (L - a) / 2.0) / (E * I)
+        slope_c = a**2 / (2.0 * E * I)
+        new_tip = tip + tip_c[:, None] * f_perp
+        new_axis = axis - slope_c[:, None] * f_perp
+        return new_tip, new_axis / np.linalg.norm(new_axis, axis=1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class ThermalDrift:
+    """Drift of the tool relative to the table from a measured series (um), per machine direction X/Y/Z.
+
+    The program clock t maps onto the series' time as time_offset_s + time_scale t (linear interpolation); the value
+    is scaled by amplitude_scale and, with relative_to_start, taken relative to program time 0.
+    """
+
+    file: str
+    channels: dict
+    time_scale: float = 1.0
+    time_offset_s: float = 0.0
+    amplitude_scale: float = 1.0
+    relative_to_start: bool = True
+
+    def drift_um(self, t):
+        """(T, 3) um, machine frame, at program times t (T,) s."""
+        times, cols = _read_series(self.file)
+        ts = self.time_offset_s + self.time_scale * np.asarray(t, float)
+        if ts.min() < times[0] or ts.max() > times[-1]:
+            raise ValueError(
+                f"thermal: the program maps onto series time {ts.min():.0f}-{ts.max():.0f} s, outside the series "
+                f"({times[0]:.0f}-{times[-1]:.0f} s); change time_scale or time_offset_s"
+            )
+        out = np.zeros((ts.size, 3))
+        for direction, name in self.channels.items():
+            if name not in cols:
+                raise ValueError(f"thermal: no column {name!r} in {self.file} (has {', '.join(cols)})")
+            v = np.interp(ts, times, cols[name])
+            if self.relative_to_start:
+                v = v - np.interp(self.time_offset_s, times, cols[name])
+            out[:, "XYZ".index(direction)] = v * self.amplitude_scale
+        return out
+
+
+_SERIES_CACHE: dict = {}
+
+
+def _read_series(path):
+    key = str(Path(path).resolve())
+    if key not in _SERIES_CACHE:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = [r for r in csv.reader(line for line in fh if not line.startswith("#"))]
+        header, data = rows[0], np.array(rows[1:], dtype=float)
+        if "time_s" not in header:
+            raise ValueError(f"thermal: {path} has no time_s column")
+        cols = {h: data[:, i] for i, h in enumerate(header)}
+        _SERIES_CACHE[key] = (cols.pop("time_s"), cols)
+    return _SERIES_CACHE[key]
+
+
+@dataclass(frozen=True)
+class Clamping:
+    """Clamping deformation of the part: while clamped, the material point x sits at x + d(x), with the smooth field
+    d(x) = A e exp(-|x - c|^2 / (2 l^2)) (um, part frame). The cut made at y ends, after unclamping, at y - d(y);
+    locally (to first order in the field's gradient) that is the tool moved to tip - d(tip) and its axis turned by
+    -(grad d) u."""
+
+    amplitude_um: float
+    center: np.ndarray
+    length_mm: float
+    direction: np.ndarray
+
+    def field(self, x):
+        """Displacement (N,3) mm and gradient (N,3,3) at points x (N,3) mm."""
+        r = x - self.center
+        g = np.exp(-np.einsum("ij,ij->i", r, r) / (2 * self.length_mm**2))
+        e = self.direction / np.linalg.norm(self.direction)
+        d = self.amplitude_um * UM * g[:, None] * e
+        grad = -self.amplitude_um * UM * (g / self.length_mm**2)[:, None, None] * e[None, :, None] * r[:, None, :]
+        return d, grad
+
+    def apply(self, tip, axis):
+        d, grad = self.field(tip)
+        new_axis = axis - np.einsum("nij,nj->ni", grad, axis)
+        return tip - d, new_axis / np.linalg.norm(new_axis, axis=1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class Effects:
+    """The effects of one run; None = off."""
+
+    servo: ServoLag | None = None
+    backlash: tuple = ()
+    rotary_periodic: tuple = ()
+    force: ForceDeflection | None = None
+    tool_deflection: ToolDeflection | None = None
+    thermal: ThermalDrift | None = None
+    clamping: Clamping | None = None
+    source: str = "<none>"
+
+    @property
+    def needs_force(self) -> bool:
+        return self.force is not None or self.tool_deflection is not None
+
+    def apply_axes(self, q, machine: Machine, dt: float):
+        """Commanded axes (T, n) -> actual axes (T, n): servo lag, then backlash, then rotary harmonics."""
+        out = np.asarray(q, float)
+        if self.servo is not None:
+            out = self.servo.apply(out, machine, dt)
+        for b in self.backlash:
+            out = b.apply(out, machine)
+        for r in self.rotary_periodic:
+            out = r.apply(out, machine)
+        return out
+
+    def as_dict(self) -> dict:
+        """Plain description for reports and the CMM truth file."""
+        import dataclasses
+
+        def plain(x):
+            if dataclasses.is_dataclass(x):
+                return {f.name: plain(getattr(x, f.name)) for f in dataclasses.fields(x)}
+            if isinstance(x, np.ndarray):
+                return x.tolist()
+            if isinstance(x, (tuple, list)):
+                return [plain(v) for v in x]
+            if isinstance(x, dict):
+                return {k: plain(v) for k, v in x.items()}
+            return x
+
+        return plain(self)
+
+
+def machine_to_part_rotation(machine: Machine, q) -> np.ndarray:
+    """(T, 3, 3): turns a vector given in the machine frame M (at the bed) into the part frame at poses q (T, n).
+
+    It is the rotation part of the workpiece branch of the relative chain (DESIGN §3): for a B-C table R_C(C) R_B(B).
+    """
+    q = np.asarray(q, float)
+    R = np.broadcast_to(np.eye(3), (q.shape[0], 3, 3))
+    for link in chain_links(machine):
+        if link.branch != "workpiece":
+            continue
+        (Rg, _), _ = axis_motion(link, q[:, link.column])
+        R = R @ Rg
+    return np.ascontiguousarray(R)
+
+
+# ----------------------------------------------------------------------------------------------------- the file ----
+_ALLOWED = {
+    "servo": {"kv_per_s", "accel", "enabled"},
+    "force": {"compliance_um_per_n", "use_machine_compliance", "enabled"},
+    "tool_deflection": {"stick_out_mm", "youngs_modulus_gpa", "diameter_factor", "enabled"},
+    "thermal": {"file", "channels", "time_scale", "time_offset_s", "amplitude_scale", "relative_to_start", "enabled"},
+    "clamping": {"amplitude_um", "center", "length_mm", "direction", "enabled"},
+}
+_PER_AXIS = {"backlash": {"amplitude", "transition", "enabled"}, "rotary_periodic": {"harmonics_urad", "enabled"}}
+
+
+def load_effects(path, machine: Machine | None = None) -> Effects:
+    """Read an EFFECTS.toml (see the module docstring); raise EffectsFileError listing every problem.
+
+    machine : when given, axis names are checked against it (and backlash/harmonics of rotary axes).
+    """
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise EffectsFileError(f"{path}: file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise EffectsFileError(f"{path}: not valid TOML: {exc}") from None
+    return parse_effects(data, source=str(path), base=path.parent, machine=machine)
+
+
+def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machine | None = None) -> Effects:
+    """Effects from the parsed TOML tables (see ``load_effects``)."""
+    problems: list[str] = []
+    base = Path(base) if base is not None else Path.cwd()
+    axes = machine.axis_names if machine is not None else tuple("XYZABC")
+
+    def num(where, v, positive=False, nonneg=False):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            problems.append(f"{where}: expected a finite number, got {v!r}")
+            return None
+        if positive and not v > 0:
+            problems.append(f"{where}: must be > 0, got {v!r}")
+            return None
+        if nonneg and v < 0:
+            problems.append(f"{where}: must be >= 0, got {v!r}")
+            return None
+        return float(v)
+
+    def vec3(where, v):
+        try:
+            a = np.asarray(v, dtype=float)
+        except (TypeError, ValueError):
+            a = None
+        if a is None or a.shape != (3,) or not np.all(np.isfinite(a)):
+            problems.append(f"{where}: expected 3 numbers, got {v!r}")
+            return None
+        return a
+
+    def boolean(where, v):
+        if not isinstance(v, bool):
+            problems.append(f"{where}: expected true or false, got {v!r}")
+            return False
+        return v
+
+    def enabled(where, table):
+        return boolean(f"{where}.enabled", table.get("enabled", True))
+
+    for key in data:
+        if key not in _ALLOWED and key not in _PER_AXIS:
+            problems.append(f"[{key}]: unknown table (known: {', '.join(sorted([*_ALLOWED, *_PER_AXIS]))})")
+    for key, allowed in _ALLOWED.items():
+        table = data.get(key)
+        if table is None:
+            continue
+        if not isinstance(table, dict):
+            problems.append(f"[{key}]: expected a table")
+            continue
+        for k in table:
+            if k not in allowed:
+                problems.append(f"[{key}].{k}: unknown key (known: {', '.join(sorted(allowed))})")
+
+    servo = force = tool = thermal = clamping = None
+    t = data.get("servo")
+    if isinstance(t, dict) and enabled("[servo]", t):
+        kv, acc = {}, {}
+        for name, table, out, kwargs in (("kv_per_s", t.get("kv_per_s", {}), kv, {"positive": True}),
+                                         ("accel", t.get("accel", {}), acc, {"positive": True})):
+            if not isinstance(table, dict):
+                problems.append(f"[servo].{name}: expected a table axis = value")
+                continue
+            for ax, v in table.items():
+                if ax not in axes:
+                    problems.append(f"[servo].{name}.{ax}: unknown axis (machine axes: {' '.join(axes)})")
+                out[ax] = num(f"[servo].{name}.{ax}", v, **kwargs)
+        if "kv_per_s" not in t:
+            problems.append("[servo].kv_per_s: required")
+        servo = ServoLag(kv, acc)
+    t = data.get("force")
+    if isinstance(t, dict) and enabled("[force]", t):
+        c = None
+        if "compliance_um_per_n" in t:
+            try:
+                c = np.asarray(t["compliance_um_per_n"], dtype=float)
+            except (TypeError, ValueError):
+                c = None
+            if c is None or c.shape != (3, 3) or not np.all(np.isfinite(c)):
+                problems.append("[force].compliance_um_per_n: expected a 3x3 matrix of numbers (um/N)")
+                c = None
+        use = boolean("[force].use_machine_compliance", t.get("use_machine_compliance", False))
+        if c is None and not use:
+            problems.append("[force]: give compliance_um_per_n or use_machine_compliance = true")
+        force = ForceDeflection(c, use)
+    t = data.get("tool_deflection")
+    if isinstance(t, dict) and enabled("[tool_deflection]", t):
+        kw = {k: num(f"[tool_deflection].{k}", t[k], positive=True) for k in t if k != "enabled"}
+        tool = ToolDeflection(**{k: v for k, v in kw.items() if v is not None})
+    t = data.get("thermal")
+    if isinstance(t, dict) and enabled("[thermal]", t):
+        f = t.get("file")
+        if not isinstance(f, str):
+            problems.append("[thermal].file: required, a path to the series CSV")
+        else:
+            fp = Path(f) if Path(f).is_absolute() else base / f
+            if not fp.exists():
+                problems.append(f"[thermal].file: {fp} does not exist")
+            f = str(fp)
+        ch = t.get("channels")
+        if not isinstance(ch, dict) or not ch:
+            problems.append("[thermal].channels: required, a table direction = column, e.g. { Z = \"ch3_um\" }")
+            ch = {}
+        for d, name in ch.items():
+            if d not in ("X", "Y", "Z"):
+                problems.append(f"[thermal].channels.{d}: directions are X, Y, Z")
+            if not isinstance(name, str):
+                problems.append(f"[thermal].channels.{d}: expected a column name")
+        kw = {}
+        for k in ("time_scale", "time_offset_s", "amplitude_scale"):
+            if k in t:
+                kw[k] = num(f"[thermal].{k}", t[k], positive=(k == "time_scale"), nonneg=(k == "time_offset_s"))
+        if "relative_to_start" in t:
+            kw["relative_to_start"] = boolean("[thermal].relative_to_start", t["relative_to_start"])
+        thermal = ThermalDrift(f if isinstance(f, str) else "", dict(ch), **{k: v for k, v in kw.items() if v is not None})
+    t = data.get("clamping")
+    if isinstance(t, dict) and enabled("[clamping]", t):
+        missing = [k for k in ("amplitude_um", "center", "length_mm", "direction") if k not in t]
+        if missing:
+            problems.append(f"[clamping]: missing {', '.join(missing)}")
+        else:
+            a = num("[clamping].amplitude_um", t["amplitude_um"])
+            c = vec3("[clamping].center", t["center"])
+            ln = num("[clamping].length_mm", t["length_mm"], positive=True)
+            d = vec3("[clamping].direction", t["direction"])
+            if d is not None and np.linalg.norm(d) == 0:
+                problems.append("[clamping].direction: must not be zero")
+            if None not in (a, ln) and c is not None and d is not None:
+                clamping = Clamping(a, c, ln, d)
+
+    backlash, periodic = [], []
+    for key, allowed in _PER_AXIS.items():
+        table = data.get(key)
+        if table is None:
+            continue
+        if not isinstance(table, dict):
+            problems.append(f"[{key}]: expected tables [{key}.AXIS]")
+            continue
+        for ax, sub in table.items():
+            where = f"[{key}.{ax}]"
+            if ax not in axes:
+                problems.append(f"{where}: unknown axis (machine axes: {' '.join(axes)})")
+                continue
+            if not isinstance(sub, dict):
+                problems.append(f"{where}: expected a table")
+                continue
+            for k in sub:
+                if k not in allowed:
+                    problems.append(f"{where}.{k}: unknown key (known: {', '.join(sorted(allowed))})")
+            if not enabled(where, sub):
+                continue
+            if key == "backlash":
+                if "amplitude" not in sub:
+                    problems.append(f"{where}.amplitude: required (um or urad)")
+                    continue
+                amp = num(f"{where}.amplitude", sub["amplitude"], nonneg=True)
+                tr = num(f"{where}.transition", sub.get("transition", 0.01), positive=True)
+                if amp is not None and tr is not None:
+                    backlash.append(Backlash(ax, amp, tr))
+            else:
+                if machine is not None and not machine.axes[ax].is_rotary:
+                    problems.append(f"{where}: {ax} is not a rotary axis")
+                h = sub.get("harmonics_urad")
+                ok = isinstance(h, list) and len(h) > 0
+                rows = []
+                if ok:
+                    for i, row in enumerate(h):
+                        if (not isinstance(row, list) or len(row) != 3 or not all(
+                                isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
+                                or int(row[0]) != row[0] or row[0] < 1):
+                            problems.append(f"{where}.harmonics_urad[{i}]: expected [k >= 1 integer, cos, sin]")
+                        else:
+                            rows.append((int(row[0]), float(row[1]), float(row[2])))
+                else:
+                    problems.append(f"{where}.harmonics_urad: required, a list of [k, cos, sin]")
+                if rows:
+                    periodic.append(RotaryPeriodic(ax, tuple(rows)))
+    if problems:
+        raise EffectsFileError(f"{source}:\n  " + "\n  ".join(problems))
+    return Effects(servo, tuple(backlash), tuple(periodic), force, tool, thermal, clamping, source=source)

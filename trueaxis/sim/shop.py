@@ -1,0 +1,335 @@
+"""The virtual shop: machine a program on a *true* machine and measure the part on a virtual CMM (DESIGN §8).
+
+    result = simulate("cone.ngc", load_machine("true.toml"), effects=load_effects("EFFECTS.toml"), part="nas979")
+    write_cmm(result, "cmm.ply")          # cmm.ply (part frame, x y z nx ny nz) + cmm.truth.json (tests only)
+
+Pipeline, per sample of the 1 ms interpolation (``trajectory``):
+commanded axes -> axis effects (servo lag, backlash, rotary harmonics) -> the twin's actual pose (geometric errors,
+``ErrorTwin.actual_pose``; with the cutting force when the effects ask for the machine's own compliance) -> pose
+effects (force and tool deflection from the cutting force with the real engagement, thermal drift, clamping) ->
+the machined surface as the envelope of the cutting instances (``envelope``) along each probe normal -> probe noise.
+
+Command line (wired by ``trueaxis.cli``): ``main_simulate(args)`` with an argparse namespace holding
+``program, machine, effects, part, part_dir, output, points, noise_um, seed`` (see its docstring).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..machine import ErrorTwin, Machine, load_machine
+from ..postproc.gcode import Program, parse_program
+from . import cmm as _cmm
+from .cutting import cutting_forces, pass_index, structured_conditions
+from .effects import Effects, load_effects, machine_to_part_rotation
+from .envelope import envelope_deviation, thin_instances
+from .trajectory import Trajectory, interpolate
+
+CHUNK = 20_000
+
+
+@dataclass
+class SimResult:
+    """A simulated part and its measurement.
+
+    points, normals : (N, 3) nominal probe points (mm) and unit outward normals, part frame.
+    deviations_um : (N,) simulated deviation s* along the normal (positive = material left), um; NaN where not cut.
+    measured : (N, 3) mm, measured points (s* plus probe noise along the normal); NaN rows where not cut.
+    noise_um : (N,) the probe noise drawn, um.
+    cut_time_s : (N,) program time at which the deepest cut at each point was made; NaN where not cut.
+    sample : (N,) int, trajectory sample of that cut (-1 where not cut).
+    block_line : (N,) int, 1-based source line of the block that cut the point (0 where not cut).
+    axes_actual : (N, n_axes) actual axis positions at the cut (mm, rad); axes_commanded likewise.
+    force_n : (N, 3) cutting force on the tool at the cut, part frame, N (zeros without force effects).
+    trajectory : the commanded Trajectory.  machine, effects, part (JSON dict), timings (s), info (dict).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    deviations_um: np.ndarray
+    measured: np.ndarray
+    noise_um: np.ndarray
+    cut_time_s: np.ndarray
+    sample: np.ndarray
+    block_line: np.ndarray
+    axes_actual: np.ndarray
+    axes_commanded: np.ndarray
+    force_n: np.ndarray
+    trajectory: Trajectory
+    machine: Machine
+    effects: Effects
+    part: dict
+    noise_sigma_um: float
+    seed: int
+    timings: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+
+def load_part(part: str, part_json=None, part_dir=None) -> dict:
+    """The part JSON: from ``part_json`` (path or dict), ``part_dir/<part>.json``, or the default parameters."""
+    if part not in ("nas979", "slots"):
+        raise ValueError(f"part must be 'nas979' or 'slots', got {part!r}")
+    if isinstance(part_json, dict):
+        data = part_json
+    elif part_json is not None or part_dir is not None:
+        path = Path(part_json) if part_json is not None else Path(part_dir) / f"{part}.json"
+        try:
+            data = json.loads(Path(path).read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ValueError(f"part JSON {path} not found") from None
+    else:
+        from ..inspect.parts import nas979_description, slot_block_description
+
+        data = nas979_description() if part == "nas979" else slot_block_description()
+    if data.get("part") != part:
+        raise ValueError(f"part JSON is for {data.get('part')!r}, not {part!r}")
+    return data
+
+
+def material_mask(part: dict):
+    """Callable points (P, 3) -> bool: where the raw part has material, for the engagement of the first cut."""
+    if part["part"] == "nas979":
+        cone = next(s for s in part["surfaces"] if s["id"] == "cone")
+        a = np.asarray(cone["axis"], float)
+        c = np.asarray(cone["base_center"], float)
+        h0, h1 = cone["height_range"]
+        return lambda p: ((p - c) @ a >= h0) & ((p - c) @ a <= h1)
+    return lambda p: p[:, 2] <= 0.0
+
+
+def _pose_chunked(twin, q, force=None):
+    n = q.shape[0]
+    tip, u = np.empty((n, 3)), np.empty((n, 3))
+    for s in range(0, n, CHUNK):
+        sl = slice(s, min(n, s + CHUNK))
+        tip[sl], u[sl] = twin.actual_pose(q[sl], force_n=None if force is None else force[sl])
+    return tip, u
+
+
+def simulate(
+    program,
+    machine: Machine,
+    effects: Effects | None = None,
+    part: str = "nas979",
+    part_json=None,
+    part_dir=None,
+    points: int = 200_000,
+    noise_um: float = 0.0,
+    seed: int = 0,
+    dt: float = 1e-3,
+    *,
+    probe=None,
+    rapid_mm_min: float = 10_000.0,
+    search_mm="auto",
+    thin_tol_um: float = 0.01,
+    force_stride: int = 10,
+    progress: bool = False,
+) -> SimResult:
+    """Machine ``program`` on ``machine`` (the true machine: twin parameters) with ``effects`` and measure it.
+
+    program : G-code text, a path to it, or a parsed ``Program`` (machine-axis program, see ``trajectory``).
+    machine : the true machine.  effects : ``Effects`` (None = none).
+    part : "nas979" | "slots"; part_json : path or dict of the part JSON; part_dir : folder holding <part>.json
+        (default: the generator's default parameters).
+    points : number of probe points (about; the pattern rounds).  noise_um : probe noise sigma, um.  seed : noise seed.
+    dt : interpolation period, s.  probe : optional (points (N,3), normals (N,3)) instead of the part's pattern.
+    search_mm : window of the envelope along each normal, mm, or "auto" (see ``envelope_deviation``).
+    thin_tol_um : largest change of the envelope allowed when thinning instances along straight motion (0 = none).
+    force_stride : the force (and engagement) is evaluated every force_stride samples and interpolated.
+    """
+    timings = {}
+    t0 = time.perf_counter()
+    effects = effects or Effects()
+    if isinstance(program, Program):
+        prog = program
+    else:
+        text, source = program, "<string>"
+        if isinstance(program, Path) or (isinstance(program, str) and "\n" not in program and Path(program).is_file()):
+            source = str(program)
+            text = Path(program).read_text(encoding="utf-8", errors="replace")
+        prog = parse_program(text, source)
+    part_data = load_part(part, part_json, part_dir) if probe is None or part_json is not None else {"part": part}
+    traj = interpolate(prog, machine, dt, rapid_mm_min=rapid_mm_min)
+    timings["interpolate_s"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    q_act = effects.apply_axes(traj.q, machine, dt)
+    twin = ErrorTwin(machine)
+    tip, u = _pose_chunked(twin, q_act)
+    cutting = traj.motion != 0
+    ci = np.nonzero(cutting)[0]
+    force_part = np.zeros((len(traj), 3))
+    info = {"samples": len(traj), "cutting_samples": int(ci.size)}
+    if effects.needs_force and ci.size:
+        conds_by_line = structured_conditions(prog, machine)
+        conds = [conds_by_line[i] for i in traj.line[ci]]
+        vel = np.gradient(tip[ci], traj.t[ci], axis=0) if ci.size > 1 else np.zeros((ci.size, 3))
+        fr = cutting_forces(tip[ci], u[ci], vel, pass_index(traj.motion)[ci], conds, machine,
+                            material=material_mask(part_data) if "surfaces" in part_data else None,
+                            stride=force_stride)
+        force_part[ci] = fr.force_part
+        R = machine_to_part_rotation(machine, q_act[ci])
+        f_machine = np.einsum("nji,nj->ni", R, fr.force_part)  # R^T F: part frame -> machine frame
+        if effects.force is not None and effects.force.use_machine_compliance:
+            tip[ci], u[ci] = _pose_chunked(twin, q_act[ci], f_machine)
+        if effects.force is not None and effects.force.compliance_um_per_n is not None:
+            d_m = f_machine @ np.asarray(effects.force.compliance_um_per_n).T * 1e-3
+            tip[ci] += np.einsum("nij,nj->ni", R, d_m)
+        if effects.tool_deflection is not None:
+            tip[ci], u[ci] = effects.tool_deflection.displace(tip[ci], u[ci], fr.force_part, fr.z_contact_mm,
+                                                              2 * machine.tool.radius)
+        info.update(ap_mean_mm=float(fr.ap_mm.mean()), ae_mean_mm=float(fr.ae_mm.mean()),
+                    force_max_n=float(np.linalg.norm(fr.force_part, axis=1).max()),
+                    ae_by_pass_mm=[float(fr.ae_mm[fr.passes == p].mean()) for p in np.unique(fr.passes)],
+                    ap_by_pass_mm=[float(fr.ap_mm[fr.passes == p].mean()) for p in np.unique(fr.passes)])
+    if effects.thermal is not None:
+        R = machine_to_part_rotation(machine, q_act)
+        tip += np.einsum("nij,nj->ni", R, effects.thermal.drift_um(traj.t) * 1e-3)
+    if effects.clamping is not None:
+        tip, u = effects.clamping.apply(tip, u)
+    timings["poses_s"] = time.perf_counter() - t1
+
+    # Cutting instances, thinned along straight steady motion.
+    t2 = time.perf_counter()
+    R_tool, L_tool = machine.tool.radius, machine.tool.flute_length
+    breaks = np.r_[True, traj.row[ci][1:] != traj.row[ci][:-1]] if ci.size else None
+    keep = (thin_instances(tip[ci], u[ci], R_tool, L_tool, thin_tol_um * 1e-3, breaks=breaks)
+            if thin_tol_um > 0 and ci.size else np.ones(ci.size, bool))
+    inst = ci[keep]
+    info["instances"] = int(inst.size)
+    if probe is None:
+        pts, nrm = _cmm.probe_pattern(part_data, points)
+    else:
+        pts, nrm = (np.asarray(a, float) for a in probe)
+    env = envelope_deviation(pts, nrm, tip[inst], u[inst], R_tool, L_tool, search_mm=search_mm, progress=progress)
+    timings["envelope_s"] = time.perf_counter() - t2
+    info["pairs"] = env.n_pairs
+    info["points"] = int(pts.shape[0])
+    info["not_cut"] = int(np.isnan(env.deviation_mm).sum())
+
+    dev_um = env.deviation_um
+    cut = env.instance >= 0
+    sample = np.where(cut, inst[np.maximum(env.instance, 0)], -1)
+    measured, noise = _cmm.measure(pts, nrm, np.nan_to_num(dev_um), noise_um, seed)
+    measured[~cut] = np.nan
+    s = np.maximum(sample, 0)
+    nan_rows = lambda a: np.where(cut[:, None], a, np.nan)  # noqa: E731
+    timings["total_s"] = time.perf_counter() - t0
+    return SimResult(
+        points=pts,
+        normals=nrm,
+        deviations_um=dev_um,
+        measured=measured,
+        noise_um=noise,
+        cut_time_s=np.where(cut, traj.t[s], np.nan),
+        sample=sample,
+        block_line=np.where(cut, traj.line[s] + 1, 0),
+        axes_actual=nan_rows(q_act[s]),
+        axes_commanded=nan_rows(traj.q[s]),
+        force_n=np.where(cut[:, None], force_part[s], 0.0),
+        trajectory=traj,
+        machine=machine,
+        effects=effects,
+        part=part_data,
+        noise_sigma_um=float(noise_um),
+        seed=int(seed),
+        timings=timings,
+        info=info,
+    )
+
+
+def write_cmm(result: SimResult, out_ply, binary: bool = True) -> Path:
+    """Write the measured cloud (cut points only) as PLY in the part frame and ``<name>.truth.json`` beside it.
+
+    Returns the truth file's path. The truth file is for tests; no product code reads it.
+    """
+    from ..inspect.cloud import write_cloud_ply
+
+    out_ply = Path(out_ply)
+    cut = np.isfinite(result.deviations_um)
+    if not np.any(cut):
+        raise ValueError("no probe point was cut: nothing to write (is the program cutting the part?)")
+    comments = [f"trueaxis virtual CMM: part {result.part.get('part')}, machine {result.machine.name}",
+                f"probe noise sigma {result.noise_sigma_um:g} um, seed {result.seed}"]
+    write_cloud_ply(out_ply, result.measured[cut], result.normals[cut], binary=binary, comments=comments)
+    truth = {
+        "note": "truth of a simulated measurement, for tests only",
+        "machine_file": result.machine.source,
+        "machine_name": result.machine.name,
+        "effects_file": result.effects.source,
+        "effects": result.effects.as_dict(),
+        "part": result.part.get("part"),
+        "seed": result.seed,
+        "noise_sigma_um": result.noise_sigma_um,
+        "dt_s": result.trajectory.dt,
+        "axis_names": list(result.trajectory.axis_names),
+        "points_written": int(cut.sum()),
+        "points_not_cut": int((~cut).sum()),
+        "info": result.info,
+        "timings_s": result.timings,
+        "per_point": {
+            "nominal_mm": result.points[cut].round(9).tolist(),
+            "deviation_um": result.deviations_um[cut].round(6).tolist(),
+            "noise_um": result.noise_um[cut].round(6).tolist(),
+            "cut_time_s": result.cut_time_s[cut].round(6).tolist(),
+            "block_line": result.block_line[cut].tolist(),
+            "axes_actual": result.axes_actual[cut].round(9).tolist(),
+            "force_n": result.force_n[cut].round(4).tolist(),
+        },
+    }
+    path = _cmm.truth_path(out_ply)
+    _cmm.write_json_atomic(path, truth)
+    return path
+
+
+def main_simulate(args) -> int:
+    """``trueaxis simulate PROGRAM --machine TRUE.toml [--effects E.toml] --part nas979|slots [--part-dir DIR]
+    -o cmm.ply [--points N] [--noise-um S] [--seed K]``.
+
+    args : namespace with ``program`` (path), ``machine`` (path), ``effects`` (path or None), ``part``,
+    ``part_dir`` (or None), ``output`` (path), ``points`` (int, default 200000), ``noise_um`` (float, default 0),
+    ``seed`` (int, default 0). Prints a one-line summary; returns 0. Errors raise ValueError with a clear message.
+
+    The program's setup comment ``(trueaxis-setup: part=.. origin_mm=X,Y,Z ...)`` (written by
+    ``trueaxis.inspect.programs``) places the part: its origin replaces the machine file's ``[workpiece] origin``, and
+    a program for the other part is refused. Probe points the program did not cut are counted and reported on stderr.
+    """
+    import dataclasses
+    import sys
+
+    from ..inspect.programs import read_setup
+
+    machine = load_machine(args.machine)
+    program_path = Path(args.program)
+    if not program_path.is_file():
+        raise ValueError(f"{program_path}: no such program file")
+    setup = read_setup(program_path.read_text(encoding="utf-8", errors="replace"))
+    if setup.get("part") and setup["part"] != args.part:
+        raise ValueError(f"{program_path} is a program for part {setup['part']!r}, not {args.part!r}")
+    if "origin_mm" in setup:
+        origin = setup["origin_mm"]
+        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+            raise ValueError(f"{program_path}: setup comment origin_mm must be three numbers")
+        if not np.allclose(origin, machine.workpiece_origin, atol=1e-9):
+            print(f"part placed as the program says: origin {origin.tolist()} mm in M (machine file: "
+                  f"{machine.workpiece_origin.tolist()})", file=sys.stderr)
+            machine = dataclasses.replace(machine, workpiece_origin=origin.astype(float))
+    effects = load_effects(args.effects, machine) if getattr(args, "effects", None) else None
+    res = simulate(program_path, machine, effects, part=args.part, part_dir=getattr(args, "part_dir", None),
+                   points=int(getattr(args, "points", 200_000) or 200_000),
+                   noise_um=float(getattr(args, "noise_um", 0.0) or 0.0), seed=int(getattr(args, "seed", 0) or 0),
+                   progress=True)
+    truth = write_cmm(res, args.output)
+    d = res.deviations_um[np.isfinite(res.deviations_um)]
+    not_cut = int(res.info.get("not_cut", 0))
+    if not_cut:
+        print(f"warning: {not_cut} of {res.info['points']} probe points were not cut by the program (left out of "
+              f"{args.output}); is the program cutting the whole part?", file=sys.stderr)
+    print(f"{args.output}: {d.size} points ({not_cut} not cut), deviation mean {d.mean():+.2f} um, rms {np.sqrt(np.mean(d**2)):.2f} um, "
+          f"range {d.min():+.2f}..{d.max():+.2f} um; truth in {truth}; {res.timings['total_s']:.1f} s")
+    return 0
