@@ -34,6 +34,10 @@ def test_subcommands_exist_in_the_parser():
         args = words + (["x"] if words[0] == "machine" else [])
         if words[0] == "error":
             args += ["--machine", "m.toml", "--at", "X=0"]
+        if words[0] in ("part", "program"):
+            args += ["nas979", "-o", "out"]
+        if words[0] == "simulate":
+            args += ["p.ngc", "--machine", "m.toml", "--part", "nas979", "-o", "c.ply"]
         parsed = parser.parse_args(args)
         assert parsed.command == words[0]
 

@@ -116,6 +116,92 @@ def cmd_error(args) -> int:
     return 0
 
 
+def cmd_post(args) -> int:
+    from .fileio import atomic_write
+    from .machine import load_machine
+    from .postproc.post import post_text, _read_input
+
+    machine = load_machine(args.machine)
+    text, source = _read_input(Path(args.input), None) if Path(args.input).exists() else (None, args.input)
+    if text is None:
+        raise UsageError(f"{args.input}: no such file")
+    conditions = {k: getattr(args, k) for k in ("ap", "ae", "fz", "n", "d", "z")}
+    conditions["mode"] = args.cut_mode
+    out, report = post_text(text, machine, args.mode, tol_um=args.tol_um, max_correction_mm=args.max_correction_mm,
+                            singular_deg=args.singular_deg, conditions=conditions,
+                            passthrough_unsupported=args.passthrough_unsupported, source=source)
+    atomic_write(args.output, out)
+    if args.report:
+        atomic_write(args.report, json.dumps(report.as_dict(), indent=2))
+    corr = ", ".join(f"{a} {max(v.values()):.2f}" for a, v in report.correction.items())
+    print(f"{args.output}: {report.blocks_in} blocks in, {report.blocks_out} out; {report.moves_split} moves split; "
+          f"max correction {corr} (um/urad); {len(report.singular_blocks)} singular blocks")
+    return 0
+
+
+def _parse_placement(text):
+    """'X,Y' (mm) -> (2,) array, or None."""
+    return None if text is None else _parse_vector(text, "--placement-mm", 2)
+
+
+def cmd_part(args) -> int:
+    from .inspect.parts import Nas979Params, SlotBlockParams, write_part
+
+    cls = Nas979Params if args.part == "nas979" else SlotBlockParams
+    params = cls.from_overrides(args.param or [])  # ValueError (one line, exit 2) before anything is written
+    paths = write_part(args.part, Path(args.output), params)
+    doc = json.loads(paths["json"].read_text(encoding="utf-8"))
+    stl = doc["stl"]
+    print(f"{args.part}: wrote {paths['step']}, {paths['stl']} ({stl['triangles']} triangles, chord tolerance "
+          f"{stl['chord_tolerance_mm'] * 1e3:g} um, chord error bound {stl['chord_error_bound_mm'] * 1e3:.2f} um), "
+          f"{paths['json']}")
+    return 0
+
+
+def cmd_program(args) -> int:
+    from .fileio import atomic_write
+    from .inspect.parts import Nas979Params, SlotBlockParams
+    from .inspect.programs import nas979_program, slots_program
+    from .machine import load_machine
+    from .resources import machine_file
+
+    machine = load_machine(machine_file(args.machine or ("nmv1500dcg" if args.part == "nas979" else "xh714")))
+    placement = _parse_placement(args.placement_mm)
+    if args.part == "nas979":
+        if not (args.tool_diameter > 0 and args.stock_um > 0 and args.finish_um > 0 and args.chord_tol_um > 0):
+            raise UsageError("--tool-diameter, --stock-um, --finish-um and --chord-tol-um must be > 0")
+        prog = nas979_program(machine, Nas979Params.from_overrides(args.param or []),
+                              compensation=args.compensate or "geometric",
+                              tool_diameter=args.tool_diameter, stock_um=args.stock_um, finish_um=args.finish_um,
+                              placement_mm=placement, step_deg=args.step_deg, chord_tol_um=args.chord_tol_um)
+    else:
+        if args.compensate is not None:
+            raise UsageError("--compensate does not apply to the slot block: its slots are posted none, geometric "
+                             "and comprehensive")
+        prog = slots_program(machine, SlotBlockParams.from_overrides(args.param or []), placement_mm=placement)
+    atomic_write(args.output, prog.text)
+    if args.cl:
+        prog.cl.write_csv(args.cl)
+    passes = ", ".join(p["name"] for p in prog.info["passes"]) if args.part == "nas979" else \
+        f"{len(prog.info['passes'])} passes in 3 slots (none, geometric, comprehensive)"
+    print(f"{args.output}: {args.part} on {machine.name}: {len(prog.text.splitlines())} lines, {len(prog.cl.tip)} CL "
+          f"points ({passes}); placement {prog.info['placement_mm']} mm, safe Z {prog.safe_z:.3f} mm"
+          + (f"; CL data in {args.cl}" if args.cl else ""))
+    return 0
+
+
+def cmd_simulate(args) -> int:
+    from .resources import machine_file
+    from .sim.shop import main_simulate
+
+    args.machine = str(machine_file(args.machine))
+    if args.points is not None and args.points < 1:
+        raise UsageError("--points must be >= 1")
+    if args.noise_um < 0:
+        raise UsageError("--noise-um must be >= 0")
+    return main_simulate(args)
+
+
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
@@ -148,6 +234,65 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", action="store_true", help="print JSON")
     e.set_defaults(func=cmd_error)
 
+    po = sub.add_parser("post", help="compensate an NC program with a machine's error twin")
+    po.add_argument("input", help="G-code program (machine axes)")
+    po.add_argument("-o", "--output", required=True, help="compensated program (written atomically)")
+    po.add_argument("--machine", required=True, help="machine file (TOML)")
+    po.add_argument("--mode", default="geometric", choices=["none", "geometric", "comprehensive"])
+    po.add_argument("--tol-um", type=float, default=1.0, help="path tolerance, um (default 1)")
+    po.add_argument("--max-correction-mm", type=float, default=0.5, help="largest correction allowed (default 0.5)")
+    po.add_argument("--singular-deg", type=float, default=1.0,
+                    help="tilt below which the free rotary axis is held (default 1 deg)")
+    po.add_argument("--report", help="write the report JSON here")
+    po.add_argument("--passthrough-unsupported", action="store_true",
+                    help="leave blocks the reader does not understand as they are (counted in the report)")
+    for key, what in (("ap", "axial depth, mm"), ("ae", "radial engagement, mm"), ("fz", "feed per tooth, mm"),
+                      ("n", "spindle speed, rpm"), ("d", "tool diameter, mm"), ("z", "flutes")):
+        po.add_argument(f"--{key}", type=float if key != "z" else int, help=f"cutting conditions: {what} "
+                        "(overrides the program's structured comments)")
+    po.add_argument("--cut-mode", choices=["down", "up"], help="cutting conditions: down or up milling")
+    po.set_defaults(func=cmd_post)
+
+    pa = sub.add_parser("part", help="write a test part: STEP, STL (chord tolerance stated) and JSON")
+    pa.add_argument("part", choices=["nas979", "slots"])
+    pa.add_argument("-o", "--output", required=True, help="output folder")
+    pa.add_argument("--param", action="append", metavar="NAME=VALUE",
+                    help="override a part dimension (mm, deg); repeatable")
+    pa.set_defaults(func=cmd_part)
+
+    pg = sub.add_parser("program", help="NC program of a test part, through the machine's inverse kinematics")
+    pg.add_argument("part", choices=["nas979", "slots"])
+    pg.add_argument("--machine", help="machine file (TOML; default nmv1500dcg for nas979, xh714 for slots)")
+    pg.add_argument("-o", "--output", required=True, help="program file (written atomically)")
+    pg.add_argument("--compensate", choices=["none", "geometric", "comprehensive"],
+                    help="nas979: compensation of the program (default geometric); slots: each slot has its own")
+    pg.add_argument("--tool-diameter", type=float, default=10.0, help="nas979: flat end mill diameter, mm (10)")
+    pg.add_argument("--stock-um", type=float, default=200.0,
+                    help="nas979: radial stock on the cone before flank milling, um (200)")
+    pg.add_argument("--finish-um", type=float, default=100.0,
+                    help="nas979: stock the finishing pass removes; more stock adds a semi-finishing pass, um (100)")
+    pg.add_argument("--step-deg", type=float, default=1.0,
+                    help="nas979: largest angle about the cone axis per block, deg (1; refined to --chord-tol-um)")
+    pg.add_argument("--chord-tol-um", type=float, default=0.05,
+                    help="nas979: largest mid-block departure of the interpolated tool from the offset surface, um")
+    pg.add_argument("--placement-mm", help="part origin X,Y off the C axis (off the machine zero without C), mm "
+                    "(default: the machine file's [workpiece] origin)")
+    pg.add_argument("--param", action="append", metavar="NAME=VALUE", help="part dimension override; repeatable")
+    pg.add_argument("--cl", help="write the CL data (part frame) as CSV x,y,z,i,j,k,f here")
+    pg.set_defaults(func=cmd_program)
+
+    sm = sub.add_parser("simulate", help="machine a program on a true machine and measure it on a virtual CMM")
+    sm.add_argument("program", help="machine-axis NC program")
+    sm.add_argument("--machine", required=True, help="the true machine (TOML)")
+    sm.add_argument("--effects", help="effects the twin may not have (TOML)")
+    sm.add_argument("--part", required=True, choices=["nas979", "slots"])
+    sm.add_argument("--part-dir", help="folder holding <part>.json (default: the default part parameters)")
+    sm.add_argument("-o", "--output", required=True, help="CMM cloud (PLY, part frame); <name>.truth.json beside it")
+    sm.add_argument("--points", type=int, default=200_000, help="probe points (200000)")
+    sm.add_argument("--noise-um", type=float, default=0.0, help="probe noise sigma, um (0)")
+    sm.add_argument("--seed", type=int, default=0, help="noise seed (0)")
+    sm.set_defaults(func=cmd_simulate)
+
     d = sub.add_parser("demo", help="run the end-to-end demonstration on built-in defaults")
     d.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     d.set_defaults(func=cmd_demo)
@@ -160,11 +305,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     from .machine import MachineFileError
+    from .postproc.gcode import GcodeError
 
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except MachineFileError as exc:
+    except (MachineFileError, GcodeError) as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_BAD_INPUT
     except (UsageError, ValueError, FileNotFoundError) as exc:

@@ -1,0 +1,177 @@
+"""The command line of the test parts: ``trueaxis part``, ``trueaxis program``, ``trueaxis simulate``."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from trueaxis.cli import main
+
+PERFECT_3AX = """
+[machine]
+name = "perfect 3-axis mill (test)"
+kind = "mill"
+format = 1
+[kinematics]
+bed_to_workpiece = ["Y", "X"]
+bed_to_tool = ["Z"]
+[axes]
+X = { type = "linear", travel = [-200.0, 200.0] }
+Y = { type = "linear", travel = [-150.0, 150.0] }
+Z = { type = "linear", travel = [-400.0, 0.0] }
+[tool]
+length = 100.0
+radius = 5.0
+flutes = 4
+flute_length = 30.0
+[workpiece]
+origin = [0.0, 0.0, -300.0]
+[cutting]
+material = "C45"
+Ktc = 2000.0
+Krc = 750.0
+Kac = 400.0
+Kte = 30.0
+Kre = 45.0
+Kae = 5.0
+"""
+
+PERFECT_BC = """
+[machine]
+name = "perfect B-C table (test)"
+kind = "mill"
+format = 1
+[kinematics]
+bed_to_workpiece = ["B", "C"]
+bed_to_tool = ["Y", "X", "Z"]
+[axes]
+X = { type = "linear", travel = [-200.0, 200.0] }
+Y = { type = "linear", travel = [-150.0, 150.0] }
+Z = { type = "linear", travel = [-300.0, 100.0] }
+B = { type = "rotary", about = "Y", travel = [-120.0, 30.0], pivot = [0.0, 0.0, -100.0] }
+C = { type = "rotary", about = "Z", pivot = [0.0, 0.0, 0.0] }
+[tool]
+length = 100.0
+radius = 5.0
+flutes = 4
+flute_length = 30.0
+[workpiece]
+origin = [0.0, 0.0, 50.0]
+"""
+
+
+def _one_line_error(capsys):
+    err = capsys.readouterr().err.strip()
+    assert err and len(err.splitlines()) == 1 and "Traceback" not in err
+    return err
+
+
+# -------------------------------------------------------------------------------------------------------- part ----
+@pytest.mark.parametrize("part", ["nas979", "slots"])
+def test_part_writes_step_stl_json(tmp_path, capsys, part):
+    param = "height=18" if part == "nas979" else "slot_depth=2.4"
+    assert main(["part", part, "-o", str(tmp_path / "out"), "--param", param]) == 0
+    files = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert files == [f"{part}.json", f"{part}.step", f"{part}.stl"]
+    doc = json.loads((tmp_path / "out" / f"{part}.json").read_text())
+    name, value = param.split("=")
+    assert doc["parameters"][name] == float(value)
+    assert doc["stl"]["chord_tolerance_mm"] > 0 and "chord tolerance" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("param", ["height=abc", "nope=3", "height", "half_angle_deg=95", "height=200"])
+def test_part_refuses_bad_params_with_exit_2_and_writes_nothing(tmp_path, capsys, param):
+    out = tmp_path / "out"
+    assert main(["part", "nas979", "-o", str(out), "--param", param]) == 2
+    err = _one_line_error(capsys)
+    assert err.startswith("trueaxis part:")
+    assert not out.exists()
+
+
+# ----------------------------------------------------------------------------------------------------- program ----
+def test_program_nas979_writes_program_and_cl(tmp_path, capsys):
+    out, cl = tmp_path / "cone.ngc", tmp_path / "cl.csv"
+    assert main(["program", "nas979", "-o", str(out), "--cl", str(cl), "--compensate", "none", "--step-deg", "3",
+                 "--chord-tol-um", "5", "--placement-mm", "5,-5", "--stock-um", "80"]) == 0
+    text = out.read_text()
+    assert "(trueaxis-setup: part=nas979 origin_mm=5.000,-5.000,50.000 placement_mm=5.000,-5.000" in text
+    assert len(re.findall(r"\(trueaxis: ap=", text)) == 1  # 80 um of stock: the finishing pass alone
+    assert cl.read_text().splitlines()[0] == "x,y,z,i,j,k,f"
+
+
+def test_program_refuses_bad_input(tmp_path, capsys):
+    out = tmp_path / "p.ngc"
+    assert main(["program", "nas979", "-o", str(out), "--placement-mm", "1,2,3"]) == 2
+    assert "--placement-mm" in _one_line_error(capsys)
+    assert main(["program", "nas979", "-o", str(out), "--machine", "xh714"]) == 2
+    assert "five-axis" in _one_line_error(capsys)
+    assert main(["program", "slots", "-o", str(out), "--compensate", "none"]) == 2
+    _one_line_error(capsys)
+    assert main(["program", "nas979", "-o", str(out), "--placement-mm", "190,0"]) == 2  # off the table
+    assert "travel" in _one_line_error(capsys)
+    assert not out.exists()
+
+
+# ---------------------------------------------------------------------------------------------------- simulate ----
+@pytest.fixture(scope="module")
+def slot_sim(tmp_path_factory):
+    d = tmp_path_factory.mktemp("slotsim")
+    machine = d / "perfect.toml"
+    machine.write_text(PERFECT_3AX)
+    prog = d / "slots.ngc"
+    assert main(["program", "slots", "--machine", str(machine), "-o", str(prog), "--param", "slot_depth=1.2"]) == 0
+    part_dir = d / "part"
+    part_dir.mkdir()
+    from trueaxis.inspect.parts import SlotBlockParams, slot_block_description
+
+    (part_dir / "slots.json").write_text(json.dumps(slot_block_description(SlotBlockParams(slot_depth=1.2))))
+    return d, machine, prog, part_dir
+
+
+def test_simulate_perfect_machine_cuts_the_slots_exactly(slot_sim, capsys):
+    d, machine, prog, part_dir = slot_sim
+    out = d / "cmm.ply"
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "slots", "--part-dir", str(part_dir),
+                 "-o", str(out), "--points", "1500"]) == 0
+    assert "(0 not cut)" in capsys.readouterr().out
+    truth = json.loads((d / "cmm.truth.json").read_text())
+    dev = np.array(truth["per_point"]["deviation_um"])
+    assert truth["points_not_cut"] == 0 and dev.size > 1000
+    assert np.sqrt(np.mean(dev**2)) < 0.3
+
+
+def test_simulate_reports_points_not_cut(slot_sim, capsys):
+    d, machine, prog, part_dir = slot_sim
+    text = prog.read_text()
+    one_slot = text[:text.index("(slot 2 of 3")] + "M30\n%\n"  # slot 1 only
+    short = d / "one_slot.ngc"
+    short.write_text(one_slot)
+    assert main(["simulate", str(short), "--machine", str(machine), "--part", "slots", "--part-dir", str(part_dir),
+                 "-o", str(d / "one.ply"), "--points", "600"]) == 0
+    err = capsys.readouterr().err
+    n = int(re.search(r"warning: (\d+) of (\d+) probe points were not cut", err).group(1))
+    assert 300 < n < 500  # about two slots of three
+
+
+def test_simulate_refuses_a_program_for_the_other_part(slot_sim, capsys):
+    d, machine, prog, part_dir = slot_sim
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(d / "x.ply")]) == 2
+    assert "not 'nas979'" in _one_line_error(capsys)
+    assert not (d / "x.ply").exists()
+
+
+def test_simulate_perfect_machine_cuts_the_cone(tmp_path, capsys):
+    machine = tmp_path / "perfect.toml"
+    machine.write_text(PERFECT_BC)
+    prog = tmp_path / "cone.ngc"
+    assert main(["program", "nas979", "--machine", str(machine), "-o", str(prog), "--compensate", "none",
+                 "--placement-mm", "10,-5"]) == 0
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
+                 "--points", "3000"]) == 0
+    truth = json.loads((tmp_path / "c.truth.json").read_text())
+    dev = np.array(truth["per_point"]["deviation_um"])
+    assert truth["points_not_cut"] == 0
+    assert np.sqrt(np.mean(dev**2)) < 0.3 and np.abs(dev).max() < 0.5

@@ -1,0 +1,235 @@
+"""Part programs of the test parts (trueaxis.inspect.programs): CL data geometry, kinematics, slot sections, rs274."""
+
+from __future__ import annotations
+
+import math
+import re
+
+import numpy as np
+import pytest
+
+from conftest import MACHINES
+from rs274_helpers import run_rs274
+from trueaxis.inspect.parts import Nas979Params, SlotBlockParams, cone_signed_distance
+from trueaxis.inspect.programs import (ClPath, cone_flank_cl, nas979_program, read_setup, slots_program)
+from trueaxis.machine import forward_nominal, load_machine
+from trueaxis.postproc.gcode import parse_program
+
+R = 5.0
+
+
+def perfect(machine):
+    return machine.with_parameters(np.zeros(len(machine.parameter_names())))
+
+
+@pytest.fixture(scope="module")
+def nmv():
+    return load_machine(MACHINES / "nmv1500dcg.toml")
+
+
+@pytest.fixture(scope="module")
+def xh714():
+    return load_machine(MACHINES / "xh714.toml")
+
+
+@pytest.fixture(scope="module")
+def cone():
+    return Nas979Params().cone_surface()
+
+
+@pytest.fixture(scope="module")
+def cone_prog(nmv):
+    """Coarse nas979 program (uniform 2 deg steps, no refinement: few blocks), uncompensated, part off the C axis."""
+    return nas979_program(nmv, compensation="none", step_deg=2.0, chord_tol_um=None, placement_mm=(10.0, -5.0))
+
+
+@pytest.fixture(scope="module")
+def slots_prog(xh714):
+    return slots_program(xh714)
+
+
+def _axis_words(text: str, names) -> np.ndarray:
+    """(M, n_axes) axis words of every G0/G1 block (mm, deg), in ``names`` order."""
+    rows = []
+    for line in text.splitlines():
+        if re.match(r"^G[01]\s", line):
+            rows.append([float(re.search(rf"{a}(-?[0-9.]+)", line).group(1)) for a in names])
+    return np.array(rows)
+
+
+# ----------------------------------------------------------------------------------------------- nas979 CL ----
+def test_cl_tool_side_is_tangent_to_the_offset_cone_along_the_generatrix(cone):
+    cl = cone_flank_cl(cone, R, stock_mm=0.2, finish_mm=0.1, step_deg=3.0)
+    assert [p["name"] for p in cl.passes] == ["semi-finishing", "finishing"]
+    a = np.asarray(cone["axis"])
+    alpha = math.radians(cone["half_angle_deg"])
+    ap = cone["height_range"][1] / math.cos(alpha)
+    for k, offset in ((0, 0.1), (1, 0.0)):
+        cut = (cl.kind == "cut") & (cl.pass_no == k)
+        tip, u = cl.tip[cut], cl.axis[cut]
+        np.testing.assert_allclose(np.linalg.norm(u, axis=1), 1.0, atol=1e-12)
+        # Tool axis along the generatrix: the angle to the cone axis is the half angle, and u lies in the meridian
+        # plane of the tip (u, a and the tip's radial direction are coplanar).
+        np.testing.assert_allclose(u @ a, math.cos(alpha), atol=1e-12)
+        radial = tip - np.outer(tip @ a, a)
+        np.testing.assert_allclose(np.einsum("ij,ij->i", np.cross(u, a), radial), 0.0, atol=1e-9)
+        # The tool-axis segment over the cone's height lies at R + offset from the cone: the side touches the offset
+        # surface along the whole generatrix (exact signed distance of the analytic cone).
+        for s in np.linspace(0.0, ap, 5):
+            np.testing.assert_allclose(cone_signed_distance(tip + s * u, cone), R + offset, atol=1e-9)
+        # The tip is at the base: the tool's end disk touches the base plane at most (no gouge of the wedge).
+        assert np.all(tip @ a - R * math.sin(alpha) >= -1e-9)
+        # Clockwise about a (down milling on the external cone), covering a full turn plus the overlap.
+        ang = np.unwrap(np.arctan2(np.cross(a, [1.0, 0, 0]) @ tip.T, (tip - np.outer(tip @ a, a)) @ [1.0, 0, 0]))
+        assert np.all(np.diff(ang) < 0) and ang[0] - ang[-1] > 2 * np.pi
+
+
+def test_lead_in_and_lead_out_stay_off_the_surface(cone):
+    cl = cone_flank_cl(cone, R, stock_mm=0.1, finish_mm=0.1, step_deg=3.0)
+    assert [p["name"] for p in cl.passes] == ["finishing"]
+    alpha = math.radians(cone["half_angle_deg"])
+    ap = cone["height_range"][1] / math.cos(alpha)
+    for kind in ("plunge", "lead_in", "lead_out", "approach", "retract"):
+        sel = cl.kind == kind
+        assert sel.any(), kind
+        for s in np.linspace(0.0, ap, 5):
+            d = cone_signed_distance(cl.tip[sel] + s * cl.axis[sel], cone)
+            assert np.all(d > R + 0.01), kind  # the tool's side clear of the cone (finishing offset 0)
+    # The lead-in arrives and the lead-out leaves tangentially: the last lead-in step is along the first cut step.
+    idx = np.nonzero(cl.kind == "cut")[0]
+    step_in = cl.tip[idx[0]] - cl.tip[idx[0] - 1]
+    step_cut = cl.tip[idx[1]] - cl.tip[idx[0]]
+    cos = step_in @ step_cut / np.linalg.norm(step_in) / np.linalg.norm(step_cut)
+    assert cos > math.cos(math.radians(10))
+    np.testing.assert_allclose(cl.feed[cl.kind == "approach"], 0.0)
+
+
+def test_cl_csv_has_the_header_and_one_row_per_point(tmp_path, cone):
+    cl = cone_flank_cl(cone, R, stock_mm=0.2, step_deg=5.0)
+    path = tmp_path / "cl.csv"
+    cl.write_csv(path)
+    lines = path.read_text().splitlines()
+    assert lines[0] == "x,y,z,i,j,k,f"
+    data = np.loadtxt(path, delimiter=",", skiprows=1)
+    assert data.shape == (len(cl.tip), 7)
+    np.testing.assert_allclose(data[:, :3], cl.tip, atol=1e-6)
+    np.testing.assert_allclose(data[:, 3:6], cl.axis, atol=1e-6)
+
+
+def test_refuses_bad_stock(cone):
+    with pytest.raises(ValueError, match="stock"):
+        cone_flank_cl(cone, R, stock_mm=0.0)
+
+
+# ------------------------------------------------------------------------------------------- nas979 program ----
+def test_program_poses_through_forward_kinematics_reproduce_the_cl(cone_prog):
+    m = cone_prog.machine
+    names = m.axis_names
+    words = _axis_words(cone_prog.raw, names)
+    q = np.column_stack([np.radians(words[:, c]) if m.axes[a].is_rotary else words[:, c]
+                         for c, a in enumerate(names)])
+    tip, u = forward_nominal(m, q)
+    # Every CL point is a block of the program, in order (plus the rapids at the safe height around each pass).
+    cl = cone_prog.cl
+    zc = names.index("Z")
+    at_safe = np.isclose(words[:, zc], cone_prog.safe_z, atol=1e-6)
+    assert (~at_safe).sum() == len(cl.tip)
+    np.testing.assert_allclose(tip[~at_safe], cl.tip, atol=2e-5)  # 6 decimals in the program
+    np.testing.assert_allclose(u[~at_safe], cl.axis, atol=1e-6)
+    # The setup comment says where the part is: its origin is the placement off the C axis (C pivot at 0, 0).
+    setup = read_setup(cone_prog.raw)
+    assert setup["part"] == "nas979"
+    np.testing.assert_allclose(setup["origin_mm"], [10.0, -5.0, 50.0])
+    np.testing.assert_allclose(m.workpiece_origin, [10.0, -5.0, 50.0])
+
+
+def test_program_structure_and_safe_height(cone_prog, nmv):
+    text = cone_prog.raw
+    assert text.startswith("%\n") and text.rstrip().endswith("M30\n%")
+    conds = re.findall(r"\(trueaxis: ap=([0-9.]+) ae=([0-9.]+) fz=\S+ n=\S+ d=10 z=4 mode=down\)", text)
+    assert [float(ae) for _, ae in conds] == pytest.approx([0.1, 0.1])  # 200 um stock: semi + finishing
+    assert float(conds[0][0]) == pytest.approx(20 / math.cos(math.radians(15)), abs=1e-3)
+    # The safe height clears the part at any B, C between the program's: every part point stays below it.
+    assert cone_prog.safe_z <= nmv.axes["Z"].travel[1]
+    prog = parse_program(text)
+    assert np.all(prog.inverse_time[prog.motion == 1][1:] | (prog.feed[prog.motion == 1][1:] > 0))
+
+
+def test_refinement_meets_the_chord_tolerance(nmv):
+    prog = nas979_program(perfect(nmv), compensation="none", stock_um=100, step_deg=2.0, chord_tol_um=0.5)
+    assert prog.info["chord_error_um"] <= 0.5
+    assert len(prog.cl.passes) == 1
+
+
+def test_compensated_program_differs_from_the_raw_one_by_little(cone_prog, nmv):
+    geo = nas979_program(nmv, compensation="geometric", step_deg=2.0, chord_tol_um=None, placement_mm=(10.0, -5.0))
+    assert geo.raw == cone_prog.raw.replace("compensation: none", "compensation: geometric").replace(
+        "compensation=none", "compensation=geometric")
+    names = nmv.axis_names
+    raw, comp = _axis_words(geo.raw, names), _axis_words(geo.text, names)
+    if len(raw) == len(comp):  # moves were not split
+        d = np.abs(comp - raw)
+        assert 0 < d[:, :3].max() < 0.5
+        assert d[:, 3:].max() < 0.05  # deg
+
+
+# ---------------------------------------------------------------------------------------------- slot program ----
+def _sections(text):
+    parts = re.split(r"\(slot \d of 3: compensation \w+\)\n", text)
+    assert len(parts) == 4
+    return [p.split("(end of slot")[0] for p in parts[1:]]
+
+
+def test_slot_sections_differ_only_where_compensation_applies(slots_prog, xh714):
+    p = SlotBlockParams()
+    raw = [s.splitlines() for s in slots_prog.info["sections_raw"]]
+    posted = [s.splitlines() for s in _sections(slots_prog.text)]
+    # Uncompensated, the three sections are the same program shifted by the slot pitch.
+    w = [_axis_words("\n".join(s), "XYZ") for s in raw]
+    for k in (1, 2):
+        np.testing.assert_allclose(w[k] - w[0], np.tile([k * p.slot_pitch_x, 0, 0], (len(w[0]), 1)), atol=1e-9)
+    # Slot 1 (none) is passed through; non-motion lines are identical in all three posted sections.
+    assert "\n".join(posted[0]) == "\n".join(raw[0][1:-1])
+    non_motion = [[ln for ln in s if not re.match(r"^G[01]\s", ln)] for s in posted]
+    assert non_motion[0] == non_motion[1] == non_motion[2]
+    # Motion blocks: same motion words and count; slots 2 and 3 moved by the compensation (micrometres), 3 apart
+    # from 2 on the feed moves where the cutting force applies.
+    motion = [[ln.split()[0] for ln in s if re.match(r"^G[01]\s", ln)] for s in posted]
+    assert motion[0] == motion[1] == motion[2]
+    c = [_axis_words("\n".join(s), "XYZ") for s in posted]
+    d_geo = c[1] - w[1]
+    d_com = c[2] - w[2]
+    assert 1e-3 < np.abs(d_geo).max() < 0.2
+    feed = np.array([m == "G1" for m in motion[0]])
+    assert np.abs(d_com).max() < 0.2
+    assert np.abs(d_com[feed] - d_geo[feed]).max() > 1e-3  # the force part of the comprehensive correction
+    # Cutting conditions are stated for comprehensive mode.
+    assert re.search(r"\(trueaxis: ap=0\.6 ae=10 fz=0\.05 n=5000 d=10 z=4 mode=down\)", "\n".join(posted[2]))
+
+
+def test_slot_cl_follows_the_tool_centre_paths(slots_prog):
+    p = SlotBlockParams()
+    cl = slots_prog.cl
+    assert isinstance(cl, ClPath) and len(cl.passes) == 3 * len(p.pass_depths())
+    cut = cl.kind == "cut"
+    np.testing.assert_allclose(cl.axis, np.tile([0, 0, 1.0], (len(cl.tip), 1)))
+    assert set(np.round(cl.tip[cut, 2], 9)) == set(np.round(p.pass_depths(), 9))
+    ends = {tuple(np.round(r, 6)) for r in cl.tip[cut, :2]}
+    for k in range(3):
+        assert {tuple(np.round(r, 6)) for r in p.tool_centre_path(k)[1:, :2]} <= ends
+
+
+# ------------------------------------------------------------------------------------------------------ rs274 ----
+@pytest.mark.external
+def test_rs274_reads_both_programs(tmp_path, nmv, slots_prog):
+    cone = nas979_program(nmv, compensation="geometric", step_deg=3.0, chord_tol_um=None)
+    for name, prog, n_axes in (("cone", cone, 5), ("slots", slots_prog, 3)):
+        path = tmp_path / f"{name}.ngc"
+        path.write_text(prog.text)
+        moves = run_rs274(path, {1: 100.0}, tmp_path / name)
+        assert moves.returncode == 0, moves.stderr
+        assert "error" not in moves.stderr.lower(), moves.stderr
+        words = _axis_words(prog.text, prog.machine.axis_names)
+        assert len(moves.kind) == len(words)
+        cols = [("XYZABC".index(a)) for a in prog.machine.axis_names]
+        np.testing.assert_allclose(moves.end[:, cols], words, atol=6e-5)

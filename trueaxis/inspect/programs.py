@@ -1,0 +1,596 @@
+"""Part programs of the two test parts (DESIGN §6): CL data in the part frame and machine-axis NC programs.
+
+NAS 979 cone (``nas979_program``)
+    5-axis simultaneous flank milling with a flat end mill on a five-axis machine (default: the B-C table of
+    nmv1500dcg). The tool axis lies along the cone's generatrix and the tool's side touches the cone's offset surface
+    (offset = the stock the pass leaves), tool tip at the base circle; the pass goes clockwise about the cone axis
+    (down milling on an external surface) over 360 deg plus an overlap. A semi-finishing pass comes first when the
+    stock is more than the finishing allowance. Each pass: rapid at a safe height, rapid down the tool axis to a
+    clearance, plunge to the lead-in start, a tangential quarter-circle lead-in (in the plane of the cut direction
+    and the surface normal, off the surface), the cut, the mirrored lead-out, rapid back up the tool axis.
+``slot block`` (``slots_program``)
+    Three identical slots (``SlotBlockParams``), full-width slotting in passes of ``axial_depth_per_pass`` along the
+    tool-centre path; slot 1 posted with no compensation, slot 2 geometric, slot 3 comprehensive, each section posted
+    on its own with ``trueaxis.postproc.post.compensate`` and the three concatenated into one program.
+
+CL data (``ClPath``): tool tip (mm) and unit tool axis in the part frame, feed (mm/min; 0 = rapid) and a kind per point
+(approach, plunge, lead_in, cut, lead_out, retract); ``write_csv`` writes ``x,y,z,i,j,k,f``.
+
+Programs are machine-axis G-code (X Y Z = tool tip with tool length compensation active; rotary words in degrees),
+made with the machine's inverse kinematics. 5-axis moves use G93 (inverse time, F = feed / tip path length of the
+block, 1/min). Cutting conditions are structured comments ``(trueaxis: ap=.. ae=.. fz=.. n=.. d=.. z=.. mode=down)``.
+The header holds a setup comment that the virtual shop reads to place the part:
+``(trueaxis-setup: part=nas979 origin_mm=X,Y,Z placement_mm=X,Y tool_d_mm=10 compensation=geometric)``
+(origin_mm: the part origin in M with all axes at zero; placement_mm: its offset from the C-axis line, or from the
+machine zero on a machine without a C axis about Z).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..machine import Machine, forward_nominal, inverse_kinematics
+from .parts import COMPENSATION_MODES, Nas979Params, SlotBlockParams
+
+MODES = ("none", "geometric", "comprehensive")
+SETUP_TAG = "trueaxis-setup"
+_SETUP = re.compile(r"\(\s*trueaxis-setup:([^)]*)\)", re.IGNORECASE)
+
+
+# --------------------------------------------------------------------------------------------------- CL data ----
+@dataclass
+class ClPath:
+    """CL data of a part program, in the part frame.
+
+    tip : (N, 3) tool tip, mm.  axis : (N, 3) unit tool axis (tip towards spindle).
+    feed : (N,) feed of the move *to* the point, mm/min (0 = rapid).
+    kind : (N,) str: approach | plunge | lead_in | cut | lead_out | lift | retract (lift: up the tool axis at feed,
+        out of the cut; retract and approach: rapids).
+    pass_no : (N,) int, pass index (0, 1, ...).  passes : one dict per pass (name, offset_mm, conditions).
+    """
+
+    tip: np.ndarray
+    axis: np.ndarray
+    feed: np.ndarray
+    kind: np.ndarray
+    pass_no: np.ndarray
+    passes: list = field(default_factory=list)
+
+    def csv_text(self) -> str:
+        """CSV ``x,y,z,i,j,k,f`` (mm, unit vector, mm/min), one row per CL point."""
+        rows = np.column_stack([self.tip, self.axis, self.feed])
+        body = "\n".join(",".join(f"{v:.6f}" for v in r[:6]) + f",{r[6]:.1f}" for r in rows)
+        return "x,y,z,i,j,k,f\n" + body + "\n"
+
+    def write_csv(self, path) -> None:
+        from ..fileio import atomic_write
+
+        atomic_write(path, self.csv_text())
+
+
+def _concat(parts: list[ClPath], passes: list[dict]) -> ClPath:
+    return ClPath(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("tip", "axis", "feed", "kind", "pass_no")),
+                  passes=passes)
+
+
+def _cone_frame(cone: dict):
+    """Cone axis a and the basis (u, w) normal to it (u = part X projected), all unit, part frame."""
+    a = np.asarray(cone["axis"], float)
+    a = a / np.linalg.norm(a)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = ref - (ref @ a) * a
+    u /= np.linalg.norm(u)
+    return a, u, np.cross(a, u)
+
+
+def cone_flank_poses(cone: dict, tool_radius: float, n_blocks: int, stock: float = 0.0, overlap_deg: float = 5.0,
+                     start_deg: float = 0.0, theta_deg=None):
+    """Tool tips (n+1, 3) mm and unit axes (n+1, 3) in the part frame for a flank pass around the cone, clockwise
+    about the axis (down milling), tool axis along the generatrix, the tool's side at ``stock`` (mm) off the cone,
+    tip at the base circle's height; ``n_blocks`` steps over 360 + overlap_deg from ``start_deg`` (about a, from u),
+    or the angles ``theta_deg`` (increasing, deg of travel from the start) when given."""
+    a, u, w = _cone_frame(cone)
+    alpha = math.radians(cone["half_angle_deg"])
+    rb = cone["base_radius"]
+    c = np.asarray(cone.get("base_center", (0.0, 0.0, 0.0)), float)
+    travel = np.linspace(0.0, 360.0 + overlap_deg, n_blocks + 1) if theta_deg is None else np.asarray(theta_deg, float)
+    theta = -np.radians(start_deg + travel)
+    radial = np.cos(theta)[:, None] * u + np.sin(theta)[:, None] * w
+    normal = math.cos(alpha) * radial + math.sin(alpha) * a
+    g = math.cos(alpha) * a - math.sin(alpha) * radial  # generatrix direction, base towards top, unit
+    return c + rb * radial + (tool_radius + stock) * normal, g
+
+
+def _lead_arc(p0, t, n, radius, n_points, out: bool):
+    """Quarter circle of ``radius`` (mm) in the plane (t, n) joining p0 tangentially: (n_points, 3) points.
+
+    Lead-in (out=False): from p0 + r n - r t to p0, arriving along t. Lead-out (out=True): from p0 along t to
+    p0 + r n + r t. The end at p0 is excluded."""
+    phi = np.linspace(0.5 * math.pi, 0.0, n_points + 1)[:-1]
+    if out:
+        phi = phi[::-1]
+        return p0 + radius * ((1 - np.cos(phi))[:, None] * n + np.sin(phi)[:, None] * t)
+    return p0 + radius * ((1 - np.cos(phi))[:, None] * n - np.sin(phi)[:, None] * t)
+
+
+def cone_flank_cl(cone: dict, tool_radius: float, *, stock_mm: float = 0.2, finish_mm: float = 0.1,
+                  step_deg: float = 0.2, overlap_deg: float = 5.0, lead_radius: float | None = None,
+                  lead_points: int = 10, clearance: float = 5.0, feed: float = 1000.0, plunge_feed: float = 300.0,
+                  conditions: dict | None = None, theta_deg=None) -> ClPath:
+    """CL data of the cone flank milling: a semi-finishing pass leaving ``finish_mm`` when ``stock_mm`` exceeds it,
+    then the finishing pass. Lengths in mm, angles in degrees, feeds in mm/min.
+
+    conditions : fz, n, z, mode for the structured comment (ap and ae are computed: ap = generatrix length, ae =
+    stock removed by the pass; d = 2 tool_radius).  theta_deg : angles of the cut poses (deg of travel about the
+    axis, 0 .. 360 + overlap_deg), instead of the uniform ``step_deg``.
+    """
+    if not stock_mm > 0:
+        raise ValueError(f"stock must be > 0 mm, got {stock_mm}")
+    if not finish_mm > 0:
+        raise ValueError(f"finishing allowance must be > 0 mm, got {finish_mm}")
+    if not (0 < step_deg <= 5):
+        raise ValueError(f"angle step must be in (0, 5] deg, got {step_deg}")
+    lead_r = tool_radius if lead_radius is None else float(lead_radius)
+    alpha = math.radians(cone["half_angle_deg"])
+    h0, h1 = cone["height_range"]
+    ap = (h1 - h0) / math.cos(alpha)
+    a, _, _ = _cone_frame(cone)
+    n_blocks = int(math.ceil((360.0 + overlap_deg) / step_deg))
+    if stock_mm > finish_mm + 1e-9:
+        plan = [("semi-finishing", finish_mm, stock_mm - finish_mm), ("finishing", 0.0, finish_mm)]
+    else:
+        plan = [("finishing", 0.0, stock_mm)]
+    cond = {"fz": 0.05, "n": 5000.0, "z": 4, "mode": "down", **(conditions or {})}
+    parts, passes = [], []
+    for k, (name, offset, ae) in enumerate(plan):
+        tip, g = cone_flank_poses(cone, tool_radius, n_blocks, offset, overlap_deg, theta_deg=theta_deg)
+        # Cut direction t at the ends (unit tangent of the tip path), surface normal n = (tip - contact) direction.
+        t0 = tip[1] - tip[0]
+        t1 = tip[-1] - tip[-2]
+        t0, t1 = t0 / np.linalg.norm(t0), t1 / np.linalg.norm(t1)
+        a_, c_ = a, np.asarray(cone.get("base_center", (0.0, 0.0, 0.0)), float)
+
+        def normal_at(p, gi):
+            """Outward surface normal at a pose: (tip - axis point) made normal to g, unit."""
+            v = p - c_
+            v = v - (v @ a_) * a_
+            v = v - (v @ gi) * gi
+            return v / np.linalg.norm(v)
+
+        nA, nB = normal_at(tip[0], g[0]), normal_at(tip[-1], g[-1])
+        lead_in = _lead_arc(tip[0], t0, nA, lead_r, lead_points, out=False)
+        lead_out = _lead_arc(tip[-1], t1, nB, lead_r, lead_points, out=True)
+        approach = lead_in[0] + clearance * g[0]
+        retract = lead_out[-1] + clearance * g[-1]
+        pts = np.vstack([approach, lead_in, tip, lead_out, retract])
+        axes = np.vstack([g[0], np.tile(g[0], (lead_points, 1)), g, np.tile(g[-1], (lead_points, 1)), g[-1]])
+        kinds = (["approach"] + ["lead_in"] * lead_points + ["cut"] * len(tip) + ["lead_out"] * lead_points
+                 + ["retract"])
+        feeds = np.full(len(pts), feed)
+        feeds[0] = 0.0
+        feeds[1] = plunge_feed  # the lead-in start is reached by the plunge
+        kinds[1] = "plunge"
+        feeds[-1] = 0.0
+        parts.append(ClPath(pts, axes, feeds, np.array(kinds), np.full(len(pts), k)))
+        c = {"ap": round(ap, 3), "ae": round(ae, 4), **cond, "d": 2 * tool_radius}
+        passes.append({"name": name, "offset_mm": offset, "ae_mm": ae, "conditions": c})
+    return _concat(parts, passes)
+
+
+def slots_cl(params: SlotBlockParams | None = None, *, clearance: float = 2.0, feed: float = 1000.0,
+             plunge_feed: float = 200.0, conditions: dict | None = None) -> tuple[ClPath, list[int]]:
+    """CL data of the three slots (tool axis +Z): per slot and pass, approach above the start, plunge to the pass
+    depth, cut along the tool-centre path, lift out of the slot at the plunge feed (so the end of the slot is cut
+    before any rapid). Returns (cl, slot index of each pass)."""
+    p = params or SlotBlockParams()
+    cond = {"fz": 0.05, "n": 5000.0, "z": 4, "mode": "down", **(conditions or {})}
+    depths = p.pass_depths()
+    parts, passes, slot_of = [], [], []
+    z_axis = np.array([0.0, 0.0, 1.0])
+    for s in range(len(COMPENSATION_MODES)):
+        path = p.tool_centre_path(s)[:, :2]
+        prev = 0.0
+        for z in depths:
+            k = len(passes)
+            pts = np.vstack([[*path[0], clearance], [*path[0], z],
+                             np.column_stack([path[1:], np.full(len(path) - 1, z)]), [*path[-1], clearance]])
+            kinds = ["approach", "plunge"] + ["cut"] * (len(path) - 1) + ["lift"]
+            feeds = np.r_[0.0, plunge_feed, np.full(len(path) - 1, feed), plunge_feed]
+            parts.append(ClPath(pts, np.tile(z_axis, (len(pts), 1)), feeds, np.array(kinds), np.full(len(pts), k)))
+            c = {"ap": round(prev - z, 4), "ae": p.tool_diameter, **cond, "d": p.tool_diameter}
+            passes.append({"name": f"slot {s + 1} pass at z {z:g}", "offset_mm": 0.0, "conditions": c})
+            slot_of.append(s)
+            prev = z
+    return _concat(parts, passes), slot_of
+
+
+# ----------------------------------------------------------------------------------------------- kinematics ----
+def place_machine(machine: Machine, placement_mm=None) -> tuple[Machine, np.ndarray]:
+    """The machine with its part origin moved to ``placement_mm`` = (x, y) mm off the C-axis line (off the machine
+    zero without a C axis about Z); None keeps the machine file's origin. Returns (machine, placement (2,))."""
+    base = np.zeros(2)
+    c = machine.axes.get("C")
+    if c is not None and c.is_rotary and abs(abs(np.asarray(c.direction) @ [0, 0, 1.0]) - 1) < 1e-12:
+        base = np.asarray(c.pivot, float)[:2]
+    origin = np.asarray(machine.workpiece_origin, float).copy()
+    if placement_mm is None:
+        return machine, origin[:2] - base
+    pl = np.asarray(placement_mm, float).reshape(-1)
+    if pl.shape != (2,) or not np.all(np.isfinite(pl)):
+        raise ValueError(f"placement must be two finite numbers X,Y in mm, got {placement_mm!r}")
+    origin[:2] = base + pl
+    return dataclasses.replace(machine, workpiece_origin=origin), pl
+
+
+def machine_linear_positions(machine: Machine, q_rot: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Linear axes (P, K, n_linear) in mm that put the tool tip on ``points`` (K, 3, part frame) with the rotary axes
+    of poses ``q_rot`` (P, n_axes; linear columns ignored). With the rotary axes fixed the tip is affine in the linear
+    axes, so three unit probes give the map."""
+    names = machine.axis_names
+    linear = [c for c, a in enumerate(names) if not machine.axes[a].is_rotary]
+    q0 = np.array(q_rot, float, ndmin=2).copy()
+    q0[:, linear] = 0.0
+    p0, _ = forward_nominal(machine, q0)
+    cols = []
+    for c in linear:
+        qc = q0.copy()
+        qc[:, c] += 1.0
+        cols.append(forward_nominal(machine, qc)[0] - p0)
+    M = np.stack(cols, axis=-1)  # (P, 3, n_linear)
+    rhs = np.asarray(points, float)[None, :, :] - p0[:, None, :]  # (P, K, 3)
+    return np.einsum("pij,pkj->pki", np.linalg.pinv(M), rhs)
+
+
+def safe_height(machine: Machine, hull_points: np.ndarray, q_rot: np.ndarray, clearance: float = 10.0) -> float:
+    """Machine Z (mm) at which the tool tip clears the part (``hull_points``, part frame, whose convex hull holds it)
+    by ``clearance`` for every rotary position between those of ``q_rot`` (rad; C over a full turn when it moves).
+    Raises ValueError when that lies above Z's travel."""
+    names = machine.axis_names
+    rot = [c for c, a in enumerate(names) if machine.axes[a].is_rotary]
+    grids = []
+    for c in rot:
+        lo, hi = float(np.min(q_rot[:, c])), float(np.max(q_rot[:, c]))
+        if names[c] == "C" or hi - lo > math.radians(300):
+            grids.append(np.radians(np.arange(0.0, 360.0, 5.0)))
+        else:
+            grids.append(np.linspace(min(lo, 0.0), max(hi, 0.0), 16))
+    q = np.zeros((1, len(names)))
+    if rot:
+        mesh = np.meshgrid(*grids, indexing="ij")
+        q = np.zeros((mesh[0].size, len(names)))
+        for c, m in zip(rot, mesh):
+            q[:, c] = m.ravel()
+    lin = machine_linear_positions(machine, q, hull_points)
+    zi = [a for a in names if not machine.axes[a].is_rotary].index("Z")
+    z = float(lin[:, :, zi].max()) + clearance
+    tr = machine.axes["Z"].travel
+    if tr is not None and z > tr[1]:
+        raise ValueError(f"no safe height: the part reaches Z {z - clearance:.1f} mm (+{clearance:g} clearance) above "
+                         f"Z's travel ({tr[1]:g} mm); move the part (placement) or check the machine file")
+    if tr is not None:
+        z = min(z + 10.0, tr[1] - 1.0) if z + 10.0 <= tr[1] - 1.0 else z
+    return z
+
+
+def cl_to_axes(machine: Machine, cl: ClPath) -> np.ndarray:
+    """Machine axes (N, n_axes) mm/rad for the CL points, pass by pass: branch -1 of the tilt (or +1 when -1 leaves
+    the travel), the outer rotary axis unwrapped and continuous across passes. Raises ValueError when no branch
+    keeps every axis inside its travel."""
+    names = machine.axis_names
+    q = np.zeros((len(cl.tip), len(names)))
+    previous = None
+    for k in np.unique(cl.pass_no):
+        sel = np.nonzero(cl.pass_no == k)[0]
+        if machine.is_five_axis:
+            res = None
+            for branch in (-1, 1):
+                r = inverse_kinematics(machine, cl.tip[sel], cl.axis[sel], branch=branch)
+                if not np.any(r.out_of_travel):
+                    res = r
+                    break
+            if res is None:
+                res = inverse_kinematics(machine, cl.tip[sel], cl.axis[sel], branch=-1)
+            qk = res.q
+            for c, a in enumerate(names):
+                ax = machine.axes[a]
+                if ax.is_rotary and ax.travel is None:
+                    qk[:, c] = np.unwrap(qk[:, c])
+                    if previous is not None:
+                        qk[:, c] += 2 * np.pi * np.round((previous[c] - qk[0, c]) / (2 * np.pi))
+        else:
+            if np.any(np.abs(cl.axis[sel] - [0, 0, 1.0]) > 1e-12):
+                raise ValueError(f"{machine.name} has no rotary axes: the tool axis must stay +Z")
+            qk = np.zeros((sel.size, len(names)))
+            lin = [c for c, a in enumerate(names) if not machine.axes[a].is_rotary]
+            qk[:, lin] = machine_linear_positions(machine, qk[:1], cl.tip[sel])[0]
+        bad = _out_of_travel(machine, qk)
+        if bad:
+            raise ValueError(f"pass {k + 1} ({cl.passes[k]['name'] if cl.passes else ''}): {bad}; move the part "
+                             "(placement) or check the machine file")
+        q[sel] = qk
+        previous = qk[-1]
+    return q
+
+
+def _out_of_travel(machine: Machine, q: np.ndarray) -> str:
+    for c, a in enumerate(machine.axis_names):
+        tr = machine.axes[a].travel
+        if tr is None:
+            continue
+        lo, hi = float(q[:, c].min()), float(q[:, c].max())
+        if lo < tr[0] - 1e-9 or hi > tr[1] + 1e-9:
+            f = math.degrees if machine.axes[a].is_rotary else (lambda v: v)
+            return (f"axis {a} needs [{f(lo):.3f}, {f(hi):.3f}], outside its travel [{f(tr[0]):g}, {f(tr[1]):g}]")
+    return ""
+
+
+# ----------------------------------------------------------------------------------------------- G-code out ----
+def _words(machine: Machine, row: np.ndarray) -> str:
+    out = []
+    for c, a in enumerate(machine.axis_names):
+        v = math.degrees(row[c]) if machine.axes[a].is_rotary else row[c]
+        out.append(f"{a}{v + 0.0:.6f}")
+    return " ".join(out)
+
+
+def conditions_comment(c: dict) -> str:
+    """``(trueaxis: ap=.. ae=.. fz=.. n=.. d=.. z=.. mode=..)`` from a conditions dict."""
+    return (f"(trueaxis: ap={c['ap']:g} ae={c['ae']:g} fz={c['fz']:g} n={c['n']:g} d={c['d']:g} z={int(c['z'])} "
+            f"mode={c['mode']})")
+
+
+def setup_comment(part: str, origin, placement, tool_d: float, compensation: str) -> str:
+    o = ",".join(f"{v:.3f}" for v in origin)
+    p = ",".join(f"{v:.3f}" for v in placement)
+    return f"({SETUP_TAG}: part={part} origin_mm={o} placement_mm={p} tool_d_mm={tool_d:g} compensation={compensation})"
+
+
+def read_setup(text: str) -> dict:
+    """The setup comment of a program (first one): {"part", "origin_mm" (3,), "placement_mm" (2,), ...}; {} if none.
+    Raises ValueError for a malformed one."""
+    m = _SETUP.search(text)
+    if not m:
+        return {}
+    out = {}
+    for item in m.group(1).split():
+        k, sep, v = item.partition("=")
+        if not sep:
+            raise ValueError(f"setup comment: expected key=value, got {item!r}")
+        if k in ("origin_mm", "placement_mm"):
+            try:
+                out[k] = np.array([float(s) for s in v.split(",")])
+            except ValueError:
+                raise ValueError(f"setup comment: {k}={v!r} is not numbers") from None
+        else:
+            out[k] = v
+    return out
+
+
+def _pass_blocks(machine: Machine, cl: ClPath, q: np.ndarray, sel: np.ndarray, safe_z: float) -> list[str]:
+    """G-code of one pass (rows ``sel`` of the CL data): rapids at safe Z, approach, plunge, feed moves, retract."""
+    names = machine.axis_names
+    zc = names.index("Z")
+    five = machine.is_five_axis
+    up = lambda row: np.r_[row[:zc], safe_z, row[zc + 1:]]  # noqa: E731  (tool axis = machine Z on these layouts)
+    lines = [f"G0 {_words(machine, up(q[sel[0]]))}"]
+    out_feed = "G94"
+    for i in sel:
+        kind = cl.kind[i]
+        if kind == "approach" or kind == "retract":
+            if out_feed != "G94":
+                lines.append("G94")
+                out_feed = "G94"
+            lines.append(f"G0 {_words(machine, q[i])}")
+        elif kind in ("plunge", "lift"):
+            lines.append(f"G1 {_words(machine, q[i])} F{cl.feed[i]:.1f}")
+        else:
+            if five:
+                if out_feed != "G93":
+                    lines.append("G93")
+                    out_feed = "G93"
+                seg = float(np.linalg.norm(cl.tip[i] - cl.tip[i - 1]))
+                lines.append(f"G1 {_words(machine, q[i])} F{cl.feed[i] / max(seg, 1e-6):.4f}")
+            else:
+                lines.append(f"G1 {_words(machine, q[i])} F{cl.feed[i]:.1f}")
+    if out_feed != "G94":
+        lines.append("G94")
+    lines.append(f"G0 {_words(machine, up(q[sel[-1]]))}")
+    return lines
+
+
+@dataclass
+class PartProgram:
+    """A generated program: ``text`` (posted), ``raw`` (before compensation), ``cl`` (CL data), ``q`` (N, n_axes)
+    machine axes of the CL points (mm, rad), ``machine`` (with the placement applied), ``safe_z`` (mm), ``info``."""
+
+    text: str
+    raw: str
+    cl: ClPath
+    q: np.ndarray
+    machine: Machine
+    safe_z: float
+    info: dict = field(default_factory=dict)
+
+
+def _header(title: list[str], machine: Machine, setup: str, n_rpm: float) -> list[str]:
+    return (["%"] + [f"({t})" for t in title] +
+            [f"(machine: {machine.name.replace('(', '[').replace(')', ']')})", setup,
+             "(X Y Z: tool tip, tool length compensation active; rotary axes in degrees)",
+             "G21 G90 G17 G94 G40 G49", "T1 M6", "G43 H1", f"S{n_rpm:g} M3"])
+
+
+def _footer() -> list[str]:
+    return ["M5", "M30", "%"]
+
+
+def refine_cone_steps(machine: Machine, cone: dict, tool_radius: float, offsets, *, step_deg: float = 0.2,
+                      overlap_deg: float = 5.0, tol_um: float = 0.05, max_blocks: int = 40_000):
+    """Angles (deg of travel) of the cut poses so that the linear interpolation of the machine axes between blocks
+    leaves the tool's side off the cone's offset surface by at most ``tol_um`` (um) at mid-block, checked at the tip
+    and at the top of the cone along the tool, for every offset (mm) in ``offsets``. Starts from ``step_deg`` and
+    splits each block by sqrt(error / tol) (the mid-chord error is quadratic in the step).
+    Returns (theta_deg (n+1,), max error um after refinement)."""
+    from .parts import cone_signed_distance
+
+    theta = np.linspace(0.0, 360.0 + overlap_deg, int(math.ceil((360.0 + overlap_deg) / step_deg)) + 1)
+    h1 = cone["height_range"][1]
+    ap = h1 / math.cos(math.radians(cone["half_angle_deg"]))
+    err = np.zeros(1)
+    for _ in range(3):
+        err = np.zeros(len(theta) - 1)
+        for off in offsets:
+            tip, g = cone_flank_poses(cone, tool_radius, 0, off, overlap_deg, theta_deg=theta)
+            cl = ClPath(tip, g, np.ones(len(tip)), np.array(["cut"] * len(tip)), np.zeros(len(tip), int))
+            q = cl_to_axes(machine, cl)
+            tm, um = forward_nominal(machine, 0.5 * (q[:-1] + q[1:]))
+            for lever in (0.0, ap):
+                d = cone_signed_distance(tm + lever * um, cone) - (tool_radius + off)
+                err = np.maximum(err, np.abs(d) * 1e3)
+        split = np.ceil(np.sqrt(np.maximum(err, 1e-30) / tol_um)).astype(int)
+        if np.all(split <= 1):
+            break
+        split = np.maximum(split, 1)
+        if split.sum() > max_blocks:
+            raise ValueError(f"the cone needs more than {max_blocks} blocks per pass for a {tol_um:g} um chord "
+                             "tolerance on this machine and placement")
+        frac = [np.arange(m) / m for m in split]
+        theta = np.r_[np.concatenate([t0 + f * (t1 - t0) for t0, t1, f in zip(theta[:-1], theta[1:], frac)]),
+                      theta[-1]]
+    return theta, float(err.max())
+
+
+def nas979_program(machine: Machine, params: Nas979Params | None = None, *, compensation: str = "geometric",
+                   tool_diameter: float = 10.0, stock_um: float = 200.0, finish_um: float = 100.0,
+                   placement_mm=None, step_deg: float = 1.0, chord_tol_um: float | None = 0.05, fz: float = 0.05,
+                   n_rpm: float = 5000.0, post_options: dict | None = None) -> PartProgram:
+    """NC program of the NAS 979 cone flank milling (see the module docstring) on a five-axis ``machine``.
+
+    tool_diameter (mm), stock_um / finish_um (radial stock before the flank milling / allowance of the finishing pass,
+    um), placement_mm (x, y) off the C-axis line (None: the machine file's part origin), step_deg: angle about the cone
+    axis between blocks, refined where the machine's rotary axes turn fast until the interpolated tool leaves the
+    offset surface by at most chord_tol_um (um; None: uniform step_deg), fz (mm) and n_rpm: cutting conditions
+    (feed = fz z n). compensation: none | geometric |
+    comprehensive, applied with ``trueaxis.postproc.post.compensate``.
+    """
+    if compensation not in MODES:
+        raise ValueError(f"compensation must be one of {', '.join(MODES)}, got {compensation!r}")
+    if not machine.is_five_axis:
+        raise ValueError(f"the NAS 979 cone needs a five-axis machine; {machine.name} has axes "
+                         f"{' '.join(machine.axis_names)}")
+    if not tool_diameter > 0:
+        raise ValueError(f"tool diameter must be > 0 mm, got {tool_diameter}")
+    p = params or Nas979Params()
+    cone = p.cone_surface()
+    placed, placement = place_machine(machine, placement_mm)
+    z_fl = machine.tool.flutes
+    feed = fz * z_fl * n_rpm
+    offsets = [0.0] + ([finish_um * 1e-3] if stock_um > finish_um + 1e-6 else [])
+    theta, chord_um = ((None, None) if chord_tol_um is None else
+                       refine_cone_steps(placed, cone, tool_diameter / 2, offsets, step_deg=step_deg, tol_um=chord_tol_um))
+    cl = cone_flank_cl(cone, tool_diameter / 2, stock_mm=stock_um * 1e-3, finish_mm=finish_um * 1e-3,
+                       step_deg=step_deg, feed=feed, plunge_feed=feed * 0.3,
+                       conditions={"fz": fz, "n": n_rpm, "z": z_fl, "mode": "down"}, theta_deg=theta)
+    generatrix = (cone["height_range"][1] - cone["height_range"][0]) / math.cos(math.radians(p.half_angle_deg))
+    if generatrix > machine.tool.flute_length:
+        raise ValueError(f"the cone's generatrix ({generatrix:.2f} mm) is longer than the tool's flutes "
+                         f"({machine.tool.flute_length:g} mm)")
+    q = cl_to_axes(placed, cl)
+    safe_z = safe_height(placed, _nas979_hull(p), q)
+    setup = setup_comment("nas979", placed.workpiece_origin, placement, tool_diameter, compensation)
+    title = [f"trueaxis NAS 979 cone frustum: 5-axis flank milling, flat end mill d {tool_diameter:g} mm",
+             f"cone: half angle {p.half_angle_deg:g} deg, axis inclined {p.axis_inclination_deg:g} deg, base diameter "
+             f"{p.base_diameter:g} mm, height {p.height:g} mm along the axis",
+             f"stock {stock_um:g} um; " + "; ".join(f"{ps['name']} pass leaves {ps['offset_mm'] * 1e3:g} um"
+                                                   for ps in cl.passes),
+             f"placement X{placement[0]:g} Y{placement[1]:g} mm off the C axis; part origin in M "
+             f"{' '.join(f'{v:g}' for v in placed.workpiece_origin)} mm; safe Z {safe_z:.3f} mm",
+             f"compensation: {compensation}"]
+    lines = _header(title, placed, setup, n_rpm)
+    for k, ps in enumerate(cl.passes):
+        sel = np.nonzero(cl.pass_no == k)[0]
+        lines.append(f"(pass {k + 1} of {len(cl.passes)}: {ps['name']}, leaves {ps['offset_mm'] * 1e3:g} um)")
+        lines.append(conditions_comment(ps["conditions"]))
+        lines += _pass_blocks(placed, cl, q, sel, safe_z)
+    lines += _footer()
+    raw = "\n".join(lines) + "\n"
+    text = raw
+    report = {}
+    if compensation != "none":
+        from ..postproc.post import compensate
+
+        text = compensate(raw, placed, compensation, source="nas979.ngc", report=report, **(post_options or {}))
+    return PartProgram(text, raw, cl, q, placed, safe_z,
+                       {"placement_mm": placement.tolist(), "feed_mm_min": feed, "passes": cl.passes,
+                        "chord_error_um": chord_um, "cut_blocks_per_pass": int((cl.kind == "cut").sum()) // len(cl.passes),
+                        "post_report": report})
+
+
+def _nas979_hull(p: Nas979Params) -> np.ndarray:
+    """Points (part frame, mm) whose convex hull holds the part: the wedge's 8 corners and the top circle."""
+    t = math.radians(p.axis_inclination_deg)
+    hl, hw = p.block_length_x / 2, p.block_width_y / 2
+    corners = np.array([[x, y, z] for x in (-hl, hl) for y in (-hw, hw) for z in (p.z_bottom, -x * math.tan(t))])
+    a, u, w = _cone_frame(p.cone_surface())
+    th = np.radians(np.arange(0, 360, 5.0))
+    ring = p.height * a + p.top_radius / math.cos(math.radians(2.5)) * (np.cos(th)[:, None] * u + np.sin(th)[:, None] * w)
+    return np.vstack([corners, ring])
+
+
+def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, placement_mm=None, fz: float = 0.05,
+                  n_rpm: float = 5000.0, clearance: float = 2.0, post_options: dict | None = None) -> PartProgram:
+    """NC program of the slot block (see the module docstring): slot k posted with mode COMPENSATION_MODES[k].
+
+    placement_mm (x, y): part origin off the C-axis line / machine zero (None: the machine file's origin).
+    Sections are marked ``(slot k of 3: compensation MODE)`` ... ``(end of slot k)``."""
+    from ..postproc.post import compensate
+
+    p = params or SlotBlockParams()
+    placed, placement = place_machine(machine, placement_mm)
+    z_fl = machine.tool.flutes
+    feed = fz * z_fl * n_rpm
+    cl, slot_of = slots_cl(p, clearance=clearance, feed=feed, plunge_feed=feed * 0.2,
+                           conditions={"fz": fz, "n": n_rpm, "z": z_fl, "mode": "down"})
+    q = cl_to_axes(placed, cl)
+    hull = np.array([[x, y, z] for x in (0, p.block_length_x) for y in (0, p.block_width_y)
+                     for z in (-p.block_height_z, 0.0)])
+    safe_z = safe_height(placed, hull, q, clearance=10.0)
+    setup = setup_comment("slots", placed.workpiece_origin, placement, p.tool_diameter, "per-slot")
+    title = [f"trueaxis slot block: three slots, flat end mill d {p.tool_diameter:g} mm, depth {p.slot_depth:g} mm "
+             f"in passes of {p.axial_depth_per_pass:g} mm",
+             "slot 1: no compensation, slot 2: geometric, slot 3: comprehensive; each section posted on its own",
+             f"placement X{placement[0]:g} Y{placement[1]:g} mm; part origin in M "
+             f"{' '.join(f'{v:g}' for v in placed.workpiece_origin)} mm; safe Z {safe_z:.3f} mm"]
+    header = _header(title, placed, setup, n_rpm)
+    head_text = "\n".join(header) + "\n"
+    raw_sections, posted, reports = [], [], []
+    slot_of = np.asarray(slot_of)
+    for s, mode in enumerate(COMPENSATION_MODES):
+        sec = [f"(slot {s + 1} of 3: compensation {mode})"]
+        last = None
+        for k in np.nonzero(slot_of == s)[0]:
+            c = cl.passes[k]["conditions"]
+            if c != last:
+                sec.append(conditions_comment(c))
+                last = c
+            sec += _pass_blocks(placed, cl, q, np.nonzero(cl.pass_no == k)[0], safe_z)
+        sec.append(f"(end of slot {s + 1})")
+        sec_text = "\n".join(sec) + "\n"
+        raw_sections.append(sec_text)
+        rep = {}
+        out = compensate(head_text + sec_text, placed, mode, source=f"slots.ngc[slot {s + 1}]", report=rep,
+                         **(post_options or {}))
+        if not out.startswith(head_text):
+            raise RuntimeError("the post changed the program header; cannot splice the slot sections")
+        posted.append(out[len(head_text):])
+        reports.append(rep)
+    tail = "\n".join(_footer()) + "\n"
+    raw = head_text + "".join(raw_sections) + tail
+    text = head_text + "".join(posted) + tail
+    return PartProgram(text, raw, cl, q, placed, safe_z,
+                       {"placement_mm": placement.tolist(), "feed_mm_min": feed, "passes": cl.passes,
+                        "sections_raw": raw_sections, "sections": posted, "post_reports": reports})
