@@ -15,6 +15,8 @@ Conventions (LinuxCNC's, DESIGN §5)
   lasts 1/F minutes. Rapids: every axis at its rapid rate (``rapid_mm_min`` for linear axes, ``rapid_deg_min`` for
   rotary ones), all axes arriving together (the slowest axis sets the duration), straight in axis space, then the
   command holds for ``rapid_settle_s`` (in-position wait).
+- Every block lasts a whole number of periods (its time from the feed rounded up), as in a CNC interpolator, so that
+  block ends are samples; the speed of a block is therefore at most one period's worth slower than programmed.
 - Feed moves are interpolated at constant speed (no acceleration profile here: axis dynamics are the servo-lag effect
   of ``effects``). Arcs are interpolated exactly: the angle about the centre is linear in time, the normal-axis
   coordinate and any rotary axes too (a helix).
@@ -185,6 +187,10 @@ def interpolate(
         t_g93 = 60.0 / feed
     duration = np.where(cut, np.where(inv, t_g93, t_g94), duration)
     duration = np.where(moving, duration, 0.0)
+    # Like a CNC's interpolator, every block takes a whole number of interpolation periods (its time rounded up), so
+    # that every block end is a sample: the tool passes through each corner and end point exactly, as the continuous
+    # motion does, instead of skipping up to one period of path (17 um at 1000 mm/min) at every block end.
+    duration = np.where(moving, np.ceil(duration / dt - 1e-9) * dt, 0.0)
     move_time = duration.copy()
     duration = np.where(rapid & moving, duration + max(0.0, float(rapid_settle_s)), duration)
     path_speed = np.where(duration > 0, np.where(lin_len > 1e-12, lin_len, rot_len_deg) / np.maximum(move_time, 1e-300)
