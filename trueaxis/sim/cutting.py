@@ -5,7 +5,9 @@ Cambridge University Press 2012, ch. 2, as implemented in ``trueaxis.machine.cut
 machine file's ``[cutting]`` table). What this module adds is the engagement:
 
 - Passes: a pass is a maximal run of consecutive feed samples (rapids separate passes).
-- The tool's flank is cut into ``n_heights`` slices along the flute (height z_j above the tip, width dz). At each slice
+- The tool's flank is cut into slices along the flute (height z_j above the tip, width dz_j): ``fine_slices`` slices
+  of ``fine_height_mm / fine_slices`` next to the tip, where slotting and pocketing passes of a few tenths of a
+  millimetre engage, and ``n_heights`` slices over the rest of the flute, where flank milling engages. At each slice
   the contact point is on the material side of the tool: c_j = tip + z_j u + R m, with the feed frame of Altintas
   (x along the feed, projected normal to the tool axis; z the tool axis; y = z x x) and m = -y for down milling, +y for
   up milling (material side of a clockwise spindle; the program's ``mode``).
@@ -114,6 +116,8 @@ def cutting_forces(
     *,
     material=None,
     n_heights: int = 16,
+    fine_height_mm: float = 2.0,
+    fine_slices: int = 20,
     stride: int = 10,
     stock_search_mm: float = 1.0,
 ) -> ForceResult:
@@ -160,8 +164,11 @@ def cutting_forces(
         raise ValueError("cutting forces need fz (feed per tooth) in the program's (trueaxis: ...) comment")
     side = np.where(modes == "up", 1.0, -1.0)  # m = side * y
 
-    dz = L / n_heights
-    zj = (np.arange(n_heights) + 0.5) * dz
+    fine = min(fine_height_mm, L)
+    edges = np.unique(np.concatenate([np.linspace(0.0, fine, fine_slices + 1), np.linspace(fine, L, n_heights + 1)]))
+    dz = np.diff(edges)
+    zj = 0.5 * (edges[1:] + edges[:-1])
+    n_heights = zj.size
     m_dir = side[ev, None] * y[ev]  # (E,3) towards the material
     contact = tips[ev, None, :] + zj[None, :, None] * axes[ev, None, :] + R * m_dir[:, None, :]  # (E,K,3)
     E = ev.size
@@ -194,12 +201,12 @@ def cutting_forces(
             Aj = np.stack([np.interp(a, grid, A[:, c]) for c in range(3)], axis=-1)
             Bj = np.stack([np.interp(a, grid, B[:, c]) for c in range(3)], axis=-1)
             engaged = (a > 0)[..., None]
-            force_ff[s2] = dz * np.sum(engaged * (fz[ev][s2, None, None] * Aj + Bj), axis=1)
+            force_ff[s2] = np.sum(dz[:, None] * engaged * (fz[ev][s2, None, None] * Aj + Bj), axis=1)
     engaged = ae > 0
-    ap = engaged.sum(axis=1) * dz
+    ap = (engaged * dz).sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        z_c = np.where(ap > 0, (engaged * zj).sum(axis=1) * dz / np.maximum(ap, 1e-300), 0.0)
-        ae_mean = np.where(ap > 0, (ae * engaged).sum(axis=1) / np.maximum(engaged.sum(axis=1), 1), 0.0)
+        z_c = np.where(ap > 0, (engaged * zj * dz).sum(axis=1) / np.maximum(ap, 1e-300), 0.0)
+        ae_mean = np.where(ap > 0, (ae * engaged * dz).sum(axis=1) / np.maximum(ap, 1e-300), 0.0)
     f_part_ev = force_ff[:, :1] * x[ev] + force_ff[:, 1:2] * y[ev] + force_ff[:, 2:] * axes[ev]
 
     # Interpolate over the instance index within each pass (evaluated instances bracket every sample of their pass).
