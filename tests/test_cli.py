@@ -1,4 +1,4 @@
-"""The command line: trueaxis error / machine show / inspect placeholder, exit statuses."""
+"""The command line: trueaxis error / machine show / inspect, exit statuses."""
 
 from __future__ import annotations
 
@@ -53,6 +53,14 @@ def test_machine_show_lists_parameters_with_units():
     assert "XOC" in r.stdout and "um" in r.stdout and "urad" in r.stdout
 
 
-def test_inspect_console_script_is_a_placeholder_until_inspection_lands():
-    r = run("inspect", "cloud.ply", "--part", "nas979")
-    assert r.returncode == 2 and "not yet available" in r.stderr
+def test_inspect_refuses_a_missing_cloud_with_one_line_and_exit_2(tmp_path):
+    r = run("inspect", str(tmp_path / "cloud.ply"), "--part", "nas979", "-o", str(tmp_path / "rep"))
+    assert r.returncode == 2 and "cannot read the file" in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "rep").exists()
+
+
+def test_inspect_console_script_is_trueaxis_inspect(tmp_path, capsys):
+    from trueaxis.cli import inspect_main
+
+    assert inspect_main([str(tmp_path / "none.xyz"), "--part", "slots"]) == 2
+    assert "trueaxis inspect:" in capsys.readouterr().err

@@ -1,0 +1,361 @@
+"""Comparing a cloud with the CAD: exact deviations, alignments, form evaluation, refusals and the report folder."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import DATA
+from trueaxis.inspect import deviation as dv
+from trueaxis.inspect.cloud import read_cloud, write_cloud_ply
+from trueaxis.inspect.parts import (cone_signed_distance, cone_surface_points, nas979_description,
+                                    slot_block_description)
+from trueaxis.inspect.report import inspect_cloud, write_report
+
+NAS = nas979_description()
+CONE = NAS["surfaces"][0]
+SLOTS = slot_block_description()
+ALPHA = math.radians(CONE["half_angle_deg"])
+AXIS = np.asarray(CONE["axis"])
+U, W = dv._axis_basis(AXIS)
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "trueaxis.cli", *args], capture_output=True, text=True)
+
+
+def deformed_cone(eccentricity_mm=(0.0, 0.0), ovality_mm=0.0, taper_rad=0.0, heights=None, per_ring=360):
+    """Rings on the cone with a known deformation: the axis moved by eccentricity (along u, w), the section radius
+    R - s tan(alpha + taper) + ovality cos(2 theta). Returns points (n, 3) and the exact outward normals of the
+    nominal cone (n, 3)."""
+    heights = np.arange(1.0, 20.0) if heights is None else np.asarray(heights, float)
+    theta = 2 * np.pi * np.arange(per_ring) / per_ring
+    s, th = np.meshgrid(heights, theta, indexing="ij")
+    s, th = s.ravel(), th.ravel()
+    radial = np.cos(th)[:, None] * U + np.sin(th)[:, None] * W
+    rho = CONE["base_radius"] - s * math.tan(ALPHA + taper_rad) + ovality_mm * np.cos(2 * th)
+    shift = eccentricity_mm[0] * U + eccentricity_mm[1] * W
+    points = s[:, None] * AXIS + rho[:, None] * radial + shift
+    return points, math.cos(ALPHA) * radial + math.sin(ALPHA) * AXIS
+
+
+def block_faces(n=400, seed=0):
+    """Points on the NAS 979 wedge block's bottom, four sides and top face (outside the base circle)."""
+    rng = np.random.default_rng(seed)
+    zb = NAS["derived"]["z_bottom"]
+    t = math.radians(10.0)
+    bottom = np.column_stack([rng.uniform(-45, 45, n), rng.uniform(-45, 45, n), np.full(n, zb)])
+    sides = []
+    for sx, sy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        a = rng.uniform(-45, 45, n)
+        x = np.full(n, 50.0 * sx) if sx else a
+        y = np.full(n, 50.0 * sy) if sy else a
+        z = rng.uniform(zb + 1, -x * math.tan(t) - 1, n) if sx else rng.uniform(zb + 1, -x * math.tan(t) - 1)
+        sides.append(np.column_stack([x, y, z]))
+    ang = rng.uniform(0, 2 * np.pi, n)
+    r = rng.uniform(42, 48, n)
+    top = r[:, None] * (np.cos(ang)[:, None] * U + np.sin(ang)[:, None] * W)
+    return np.vstack([bottom, *sides, top])
+
+
+def rigid(rotvec, translation):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(rotvec).as_matrix(), np.asarray(translation, float)
+
+
+# ------------------------------------------------------------------------------------------------ deviations ----
+def test_analytic_cone_patch_equals_the_exact_cone_distance():
+    rng = np.random.default_rng(1)
+    p, n = cone_surface_points(CONE, rng.uniform(0.2, 19.8, 50), 97)
+    offset = rng.uniform(-0.05, 0.05, len(p))
+    q = p + offset[:, None] * n
+    d = dv.analytic_deviation(q, dv.analytic_surfaces(NAS))
+    assert set(np.array(d.surface_ids)[d.surface]) == {"cone"}
+    # points moved along the normal by a known amount: the distance is that amount (to rounding)
+    np.testing.assert_allclose(d.deviation_mm, offset, atol=1e-12)
+    np.testing.assert_allclose(d.deviation_mm, cone_signed_distance(q, CONE), atol=1e-12)
+
+
+def test_raycast_on_the_fine_mesh_agrees_with_the_analytic_cone_within_the_chord_error():
+    mesh = dv.cone_frustum_mesh(CONE, chord_error_mm=5e-5)
+    assert mesh.chord_error_mm <= 5e-5
+    rng = np.random.default_rng(2)
+    p, n = cone_surface_points(CONE, rng.uniform(0.1, 19.9, 60), 211)
+    offset = rng.uniform(-0.03, 0.03, len(p))
+    q = p + offset[:, None] * n
+    d_mesh, _, _ = dv.MeshDistance(mesh).signed_distance(q)
+    d_exact = cone_signed_distance(q, CONE)
+    diff_um = (d_mesh - d_exact) * 1e3
+    # the inscribed mesh lies inside the cone by 0 .. chord error; float32 in Embree adds < 0.01 um
+    assert diff_um.max() <= mesh.chord_error_mm * 1e3 + 0.01
+    assert diff_um.min() >= -0.01
+    assert mesh.chord_error_mm * 1e3 < 0.1
+
+
+def test_nas979_mesh_matches_every_analytic_surface():
+    mesh = dv.nas979_mesh(NAS)
+    rng = np.random.default_rng(3)
+    tri = mesh.vertices[mesh.triangles]
+    pick = rng.integers(0, len(tri), 20_000)
+    x = np.einsum("ij,ijk->ik", rng.dirichlet([1, 1, 1], len(pick)), tri[pick]) + rng.normal(0, 0.01, (len(pick), 3))
+    exact = dv.analytic_deviation(x, dv.analytic_surfaces(NAS)).deviation_mm
+    diff_um = (dv.MeshDistance(mesh).signed_distance(x)[0] - exact) * 1e3
+    assert np.abs(diff_um).max() <= mesh.chord_error_mm * 1e3 + 0.01
+
+
+def test_points_far_from_the_analytic_surfaces_fall_back_to_the_mesh():
+    # without the block sides in the analytic set, points on a side are measured against the CAD mesh
+    surfaces = [s for s in dv.analytic_surfaces(NAS) if not s["id"].startswith("block_side")]
+    side = np.array([[50.003, 0.0, -14.0], [-49.998, 10.0, -15.0]])
+    d = dv.deviation(side, surfaces, dv.MeshDistance(dv.nas979_mesh(NAS)))
+    assert d.from_mesh.all()
+    np.testing.assert_allclose(d.deviation_mm * 1e3, [3.0, -2.0], atol=0.01)
+
+
+def test_slot_walls_arcs_and_floors_are_exact_and_assigned_to_their_slot():
+    from trueaxis.sim.cmm import slot_pattern
+
+    p, n = slot_pattern(SLOTS, 3000)
+    offset = np.random.default_rng(4).uniform(-0.01, 0.01, len(p))
+    d = dv.analytic_deviation(p + offset[:, None] * n, dv.analytic_surfaces(SLOTS))
+    np.testing.assert_allclose(d.deviation_mm, offset, atol=1e-12)
+    ids = np.array(d.surface_ids)[d.surface]
+    for mode in ("none", "geometric", "comprehensive"):
+        assert np.any(ids == f"slot_{mode}_floor") and np.any(ids == f"slot_{mode}_start_cap")
+
+
+# ----------------------------------------------------------------------------------------- known deformation ----
+def test_known_eccentricity_ovality_and_taper_come_out_of_the_cone_evaluation():
+    e_mm, b_mm, taper = (0.0, 0.010), 0.003, 50e-6
+    p, _ = deformed_cone(e_mm, b_mm, taper)
+    rep = inspect_cloud(_cloud(p), "nas979").report
+    cone = rep["cone"]
+    # ovality cos(2 theta) is orthogonal to the cone's parameters on full rings: the fit sees the taper alone; its
+    # second-order pull, b^2 / R over the height, is ~0.002 urad
+    assert cone["half_angle_error_urad"] == pytest.approx(taper * 1e6, abs=0.05)
+    assert cone["axis_tilt_urad"] < 0.05
+    np.testing.assert_allclose(cone["axis_offset_um"], (e_mm[1] * W) * 1e3, atol=1e-3)
+    assert [r["height_mm"] for r in rep["roundness_um"]] == [2.0, 10.0, 18.0]
+    for ring in rep["roundness_um"]:
+        # a section radius r0 + b cos(2 theta), sampled at multiples of 1 deg (the extremes included): 2 b exactly
+        assert ring["least_squares"] == pytest.approx(2 * b_mm * 1e3, abs=1e-4)
+        assert ring["minimum_zone"] == pytest.approx(2 * b_mm * 1e3, abs=1e-4)
+        assert ring["points"] == 360
+    # diameter at the reference height: 2 (R - h tan(alpha + taper)) against 2 (R - h tan(alpha))
+    h = rep["diameter"]["height_mm"]
+    expected = -2 * h * (math.tan(ALPHA + taper) - math.tan(ALPHA)) * 1e3
+    assert rep["diameter"]["error_um"] == pytest.approx(expected, abs=1e-3)
+
+
+def test_a_perfect_cone_has_zero_deviation_and_form_error():
+    p, _ = deformed_cone()
+    rep = inspect_cloud(_cloud(p), "nas979").report
+    assert rep["deviation_um"]["rms"] < 1e-6 and rep["points"] == len(p)
+    assert abs(rep["cone"]["half_angle_error_urad"]) < 1e-3
+    assert all(r["least_squares"] < 1e-6 and r["minimum_zone"] < 1e-6 for r in rep["roundness_um"])
+
+
+def _cloud(points, normals=None):
+    from trueaxis.inspect.cloud import Cloud
+
+    return Cloud(points=np.asarray(points, float), normals=normals, source="<test>")
+
+
+# ------------------------------------------------------------------------------------------------- alignment ----
+def test_bestfit_recovers_a_known_rigid_motion_and_reports_it():
+    perfect = np.vstack([deformed_cone(per_ring=120)[0], block_faces(200)])
+    rotation, translation = rigid([40e-6, -25e-6, 60e-6], [0.030, -0.020, 0.015])
+    moved = perfect @ rotation.T + translation
+    result = inspect_cloud(_cloud(moved), "nas979", align="bestfit")
+    al = result.report["alignment"]
+    # the removed motion is the inverse of the applied one: x = R^T (y - t)
+    np.testing.assert_allclose(al["translation_um"], -rotation.T @ translation * 1e3, atol=1e-3)
+    from scipy.spatial.transform import Rotation
+
+    np.testing.assert_allclose(al["rotation_urad"], Rotation.from_matrix(rotation.T).as_rotvec() * 1e6, atol=1e-3)
+    assert al["not_determined"] == []
+    assert result.report["deviation_um"]["rms"] < 1e-4
+    assert np.abs(result.aligned - perfect).max() < 1e-9
+
+
+def test_bestfit_on_a_cone_alone_names_the_rotation_it_cannot_see():
+    p, _ = deformed_cone(per_ring=90)
+    rotation, translation = rigid([0.0, 30e-6, 0.0], [0.010, 0.0, 0.0])
+    result = inspect_cloud(_cloud(p @ rotation.T + translation), "nas979", align="bestfit")
+    al = result.report["alignment"]
+    assert len(al["not_determined"]) == 1 and "rotation about the line" in al["not_determined"][0]
+    assert "(0.1736, 0.0000, 0.9848)" in al["not_determined"][0]  # the cone axis
+    assert result.report["deviation_um"]["rms"] < 1e-4
+
+
+def test_datum_alignment_uses_the_block_bottom_and_sides():
+    perfect = np.vstack([deformed_cone(per_ring=90)[0], block_faces(300)])
+    rotation, translation = rigid([30e-6, 20e-6, -50e-6], [0.020, 0.010, -0.030])
+    result = inspect_cloud(_cloud(perfect @ rotation.T + translation), "nas979", align="datum")
+    al = result.report["alignment"]
+    assert [d["surface"] for d in al["datums"]][0] == "block_bottom"
+    assert np.abs(result.aligned - perfect).max() < 1e-9
+    assert result.report["cone"]["half_angle_error_urad"] == pytest.approx(0.0, abs=1e-3)
+
+
+def test_datum_alignment_names_the_missing_datums():
+    p, _ = deformed_cone(per_ring=60)
+    with pytest.raises(dv.InspectionError, match="missing datum A .*block_bottom.*datum B"):
+        inspect_cloud(_cloud(p), "nas979", align="datum")
+
+
+# --------------------------------------------------------------------------------------------------- slots ----
+def test_slot_width_position_straightness_and_parallelism_of_known_changes():
+    from trueaxis.sim.cmm import slot_pattern
+
+    p, n = slot_pattern(SLOTS, 6000)
+    d = dv.analytic_deviation(p, dv.analytic_surfaces(SLOTS))
+    ids = np.array(d.surface_ids)[d.surface]
+    moved = p.copy()
+    wider = np.char.startswith(ids, "slot_none_seg") | np.char.startswith(ids, "slot_none_corner") | \
+        np.char.endswith(ids, "_cap") & np.char.startswith(ids, "slot_none")
+    moved[wider] -= 0.020 * n[wider]  # walls 20 um into the material: the slot is 40 um wider
+    shifted = np.char.startswith(ids, "slot_geometric")
+    moved[shifted] += [0.0, 0.015, 0.0]  # the whole slot 15 um along +Y
+    rep = inspect_cloud(_cloud(moved), "slots").report
+    slots = {s["compensation"]: s for s in rep["slots"]}
+    for seg in slots["none"]["width"]["segments"]:
+        assert seg["width_error_um"] == pytest.approx(40.0, abs=1e-6)
+        assert seg["position_um"] == pytest.approx(0.0, abs=1e-6)
+        assert seg["parallelism_um"] == pytest.approx(0.0, abs=1e-6)
+    # position along each segment's left normal: +Y on the X segment, cos 45 deg of it on the diagonal, 0 along Y
+    positions = [s["position_um"] for s in slots["geometric"]["width"]["segments"]]
+    np.testing.assert_allclose(positions, [15.0, 15.0 / math.sqrt(2), 0.0], atol=1e-6)
+    assert slots["geometric"]["position_um"]["max_abs"] == pytest.approx(15.0, abs=1e-6)
+    assert all(v < 1e-6 for v in slots["comprehensive"]["straightness_um"].values())
+    assert slots["comprehensive"]["mean_contour_error_um"] < 1e-6
+    assert slots["none"]["mean_contour_error_um"] == pytest.approx(20.0, abs=1e-6)
+    assert slots["none"]["depth"]["error_um"] == pytest.approx(0.0, abs=1e-9)
+
+
+# ----------------------------------------------------------------------------------------------- virtual shop ----
+@pytest.fixture(scope="module")
+def shop_cloud(tmp_path_factory):
+    """A cone cut on a B-C machine with XOC = 20 um, measured with 4000 points (the virtual shop)."""
+    from trueaxis.machine import load_machine
+    from trueaxis.sim.programs import cone_flank_program
+    from trueaxis.sim.shop import simulate, write_cmm
+
+    bc = load_machine(DATA / "bc_table.toml")
+    names = bc.parameter_names()
+    perfect = bc.with_parameters(np.zeros(len(names)))
+    values = np.zeros(len(names))
+    values[names.index("XOC")] = 20.0
+    res = simulate(cone_flank_program(perfect, CONE, n_blocks=900), bc.with_parameters(values), part="nas979",
+                   points=4000)
+    path = tmp_path_factory.mktemp("shop") / "cmm.ply"
+    write_cmm(res, path)
+    return path, res
+
+
+def test_deviations_of_a_virtual_shop_cloud_are_the_simulated_ones(shop_cloud, tmp_path):
+    path, res = shop_cloud
+    result = inspect_cloud(path, "nas979")
+    truth = res.deviations_um[np.isfinite(res.deviations_um)]
+    # the virtual CMM moves each nominal point along the cone normal by the simulated deviation: exact
+    np.testing.assert_allclose(result.deviation_um, truth, atol=1e-6)
+    assert np.ptp(truth) > 20  # XOC makes the deviation swing around the cone
+    # an eccentric cone: the roundness stays small, the axis moves by about XOC
+    offset = np.linalg.norm(result.report["cone"]["axis_offset_um"])
+    assert 10 < offset < 30
+    best = inspect_cloud(path, "nas979", align="bestfit")
+    assert best.report["deviation_um"]["rms"] < 0.2 * result.report["deviation_um"]["rms"]
+    assert np.linalg.norm(best.report["alignment"]["translation_um"]) > 10
+    out = write_report(best, tmp_path / "rep")
+    assert json.loads((out / "report.json").read_text())["alignment"]["method"] == "bestfit"
+
+
+# ---------------------------------------------------------------------------------------- CLI and the report ----
+def test_cli_writes_report_json_html_and_pictures(tmp_path):
+    p, n = deformed_cone((0.0, 0.005), 0.002, 20e-6, per_ring=180)
+    cloud = tmp_path / "cone.ply"
+    write_cloud_ply(cloud, p, n)
+    r = run("inspect", str(cloud), "--part", "nas979", "-o", str(tmp_path / "rep"))
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert {"rms", "min", "max", "p95"} <= set(rep["deviation_um"])
+    assert {"height_mm", "least_squares", "minimum_zone"} <= set(rep["roundness_um"][0])
+    assert {"half_angle_deg", "half_angle_error_urad", "axis"} <= set(rep["cone"])
+    assert rep["points"] == len(p)
+    for name in ("report.html", "deviation_map.png", "roundness.png", "histogram.png"):
+        assert (tmp_path / "rep" / name).stat().st_size > 1000
+    assert "data:image/png;base64," in (tmp_path / "rep" / "report.html").read_text()
+    assert not [f for f in tmp_path.iterdir() if f.name.startswith(".")]  # no temporary folder left
+
+
+def test_cli_reads_csv_and_xyz_clouds(tmp_path):
+    p, _ = deformed_cone(per_ring=72)
+    np.savetxt(tmp_path / "c.csv", p, delimiter=",", header="x,y,z", comments="")
+    np.savetxt(tmp_path / "c.xyz", p)
+    for name in ("c.csv", "c.xyz"):
+        r = run("inspect", str(tmp_path / name), "--part", "nas979", "-o", str(tmp_path / (name + "_rep")))
+        assert r.returncode == 0, r.stderr
+        assert json.loads((tmp_path / (name + "_rep") / "report.json").read_text())["points"] == len(p)
+
+
+def _refusal(tmp_path, name, content, message):
+    cloud = tmp_path / name
+    if isinstance(content, bytes):
+        cloud.write_bytes(content)
+    elif content is not None:
+        cloud.write_text(content)
+    r = run("inspect", str(cloud), "--part", "nas979", "-o", str(tmp_path / "rep"))
+    assert r.returncode == 2, r.stdout
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0] and "Traceback" not in r.stderr, r.stderr
+    assert not (tmp_path / "rep").exists()
+    assert not [f for f in tmp_path.iterdir() if f.name.startswith(".rep")]
+
+
+def test_refuses_an_empty_cloud(tmp_path):
+    _refusal(tmp_path, "empty.xyz", "", "empty")
+
+
+def test_refuses_an_unreadable_cloud(tmp_path):
+    _refusal(tmp_path, "missing.ply", None, "cannot read")
+    _refusal(tmp_path, "junk.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 5\n"
+             b"property double x\nproperty double y\nproperty double z\nend_header\n\x00\x01", "truncated")
+
+
+def test_refuses_nan_and_infinite_points(tmp_path):
+    _refusal(tmp_path, "nan.xyz", "38 0 1\nnan 1 2\n", "NaN or infinite")
+    _refusal(tmp_path, "inf.csv", "x,y,z\n38,0,1\n1,inf,2\n", "NaN or infinite")
+
+
+def test_refuses_a_cloud_that_cannot_be_the_part_and_says_how_far_off(tmp_path):
+    p, _ = deformed_cone(per_ring=36)
+    np.savetxt(tmp_path / "shifted.xyz", p + [150.0, 0.0, 0.0])
+    _refusal(tmp_path, "shifted.xyz", None, "exceeds the nas979 part by 1")
+    np.savetxt(tmp_path / "metres.xyz", p * 1e-3)  # inside the box, on no surface
+    _refusal(tmp_path, "metres.xyz", None, "cannot be the nas979 part")
+    np.savetxt(tmp_path / "slots.xyz", p + [100.0, 40.0, -2.0])
+    r = run("inspect", str(tmp_path / "slots.xyz"), "--part", "slots", "-o", str(tmp_path / "rep"))
+    assert r.returncode == 2 and "exceeds the slots part" in r.stderr and not (tmp_path / "rep").exists()
+
+
+def test_identify_needs_its_machine_and_program(tmp_path):
+    p, _ = deformed_cone(per_ring=36)
+    np.savetxt(tmp_path / "c.xyz", p)
+    r = run("inspect", str(tmp_path / "c.xyz"), "--part", "nas979", "--identify")
+    assert r.returncode == 2 and "--identify needs --machine" in r.stderr
+
+
+def test_a_failed_inspection_keeps_the_previous_report(tmp_path):
+    p, _ = deformed_cone(per_ring=36)
+    np.savetxt(tmp_path / "good.xyz", p)
+    assert run("inspect", str(tmp_path / "good.xyz"), "--part", "nas979", "-o", str(tmp_path / "rep")).returncode == 0
+    before = (tmp_path / "rep" / "report.json").read_text()
+    (tmp_path / "bad.xyz").write_text("1 2 nan\n")
+    assert run("inspect", str(tmp_path / "bad.xyz"), "--part", "nas979", "-o", str(tmp_path / "rep")).returncode == 2
+    assert (tmp_path / "rep" / "report.json").read_text() == before
