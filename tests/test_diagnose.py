@@ -1,0 +1,186 @@
+"""Checks of the diagnosis: candidate sensitivities against the simulator, withheld effects named, controls left
+alone, the report's schema, and the command's refusals."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import MACHINES, ROOT
+from trueaxis.diagnose.analysis import diagnose_state, estimate_noise_um
+from trueaxis.diagnose.candidates import LIBRARY, build, build_all
+from trueaxis.diagnose.report import run_diagnosis, write_report
+from trueaxis.diagnose.state import twin_state
+from trueaxis.inspect.parts import SlotBlockParams, slot_block_description
+from trueaxis.inspect.programs import slots_program
+from trueaxis.machine import load_machine
+from trueaxis.sim.effects import parse_effects
+from trueaxis.sim.shop import simulate, write_cmm
+
+POINTS = 400
+
+
+@pytest.fixture(scope="module")
+def slots():
+    """xh714 cutting one 0.6 mm pass per slot: the smallest real program of the slot block."""
+    m = load_machine(MACHINES / "xh714.toml")
+    params = SlotBlockParams(slot_depth=0.6)
+    prog = slots_program(m, params)
+    prog.part_json = slot_block_description(params)
+    base = simulate(prog.text, prog.machine, None, part="slots", part_json=prog.part_json, points=POINTS)
+    cut = np.isfinite(base.deviations_um)
+    base.points, base.normals, base.deviations_um = base.points[cut], base.normals[cut], base.deviations_um[cut]
+    return m, prog, base
+
+
+def _cut(m, prog, effects, noise=0.0, seed=1, points=POINTS):
+    """The slot block cut with ``effects``; only the probe points the shallow program cut (the default part's
+    pattern also probes the deeper walls)."""
+    eff = parse_effects(effects, machine=prog.machine) if effects else None
+    r = simulate(prog.text, prog.machine, eff, part="slots", part_json=prog.part_json, points=points, noise_um=noise,
+                 seed=seed, force_stride=50)
+    cut = np.isfinite(r.deviations_um)
+    for name in ("points", "normals", "deviations_um", "measured", "noise_um"):
+        setattr(r, name, getattr(r, name)[cut])
+    return r
+
+
+def test_gap_reads_the_simulated_deviation_difference(slots):
+    # The gap read at the measured points equals (true - twin) deviation + noise at the nominal points.
+    m, prog, base = slots
+    r = _cut(m, prog, {"backlash": {"Y": {"amplitude": 6.0, "transition": 0.02}}}, noise=0.5)
+    st = twin_state(r.measured, r.normals, m, prog.text, "slots", want_force=False)
+    assert np.array_equal(r.points, base.points)
+    expect = r.deviations_um - base.deviations_um + r.noise_um
+    np.testing.assert_allclose(st.gap_um, expect, atol=0.02)  # envelope scallop differences only
+
+
+def test_twin_parameter_sensitivity_matches_finite_difference(slots):
+    m, prog, base = slots
+    st = twin_state(base.points, base.normals, m, prog.text, "slots", want_force=False)
+    cand = build("twin_parameters", st)
+    j = cand.parameters.index("dC0Y")
+    names = m.parameter_names()
+    v = m.parameter_values().copy()
+    v[names.index("C0Y")] += 20.0  # urad
+    moved = simulate(prog.text, prog.machine.with_parameters(
+        np.where(np.arange(v.size) == names.index("C0Y"), v, prog.machine.parameter_values())), None, part="slots",
+        probe=(base.points, base.normals))
+    fd = moved.deviations_um - base.deviations_um
+    assert np.ptp(fd) > 1.0  # not vacuous
+    np.testing.assert_allclose(cand.columns[:, j] * 20.0, fd, atol=0.05)
+
+
+def test_thermal_and_backlash_sensitivities_match_the_simulator(slots, tmp_path):
+    m, prog, base = slots
+    st = twin_state(base.points, base.normals, m, prog.text, "slots", want_force=False)
+    # A linear drift in Z: the linear-spline candidate holds it exactly.
+    T = st.t_end_s
+    series = tmp_path / "drift.csv"
+    series.write_text("time_s,ch_um\n0,0\n1000,100\n")
+    r = _cut(m, prog, {"thermal": {"file": str(series), "channels": {"Z": "ch_um"}}})
+    cand = build("thermal_z", st)
+    rate = 0.1  # um/s
+    theta = rate * T * np.arange(1, 4) / 3
+    np.testing.assert_allclose(cand.columns @ theta, r.deviations_um - base.deviations_um, atol=0.02)
+    # A sharp backlash on Y: the step candidate agrees away from the reversals.
+    r = _cut(m, prog, {"backlash": {"Y": {"amplitude": 8.0, "transition": 0.001}}})
+    cand = build("backlash_y", st)
+    diff = r.deviations_um - base.deviations_um
+    assert np.ptp(diff) > 4.0
+    assert np.median(np.abs(cand.columns[:, 0] * 8.0 - diff)) < 0.05
+
+
+def _named(slots, effects, noise=1.0, seed=3, candidates=None):
+    m, prog, _ = slots
+    r = _cut(m, prog, effects, noise=noise, seed=seed)
+    diag, state = run_diagnosis(r.measured, r.normals, "slots", m, prog.text,
+                                candidates=candidates or "all")
+    return diag, state
+
+
+def test_backlash_x_is_named_on_the_cone():
+    # On the slot block X only ever cuts moving +, so its backlash is a constant shift that a drift mimics; on the
+    # cone X reverses twice per turn and the step is unmistakable.
+    from trueaxis.inspect.programs import nas979_program
+
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    prog = nas979_program(m, compensation="none", step_deg=4.0, chord_tol_um=None)
+    eff = parse_effects({"backlash": {"X": {"amplitude": 6.0, "transition": 0.02}}}, machine=prog.machine)
+    r = simulate(prog.text, prog.machine, eff, part="nas979", points=300, noise_um=1.0, seed=2)
+    diag, _ = run_diagnosis(r.measured, r.normals, "nas979", m, prog.text,
+                            candidates=[n for n in LIBRARY if n not in ("force_deflection", "tool_deflection")])
+    assert diag.chosen == ["backlash_x"]
+    assert diag.shrink_above_noise > 0.7
+    value = diag.chosen_fit.value[0]
+    assert value == pytest.approx(6.0, abs=3 * diag.chosen_fit.std[0] + 0.5)
+
+
+def test_thermal_z_is_named(slots):
+    diag, _ = _named(slots, {"thermal": {"file": str(ROOT / "fixtures/thermal/spindle_thermal_drift_part1.csv"),
+                                         "channels": {"Z": "ch3_um"}, "time_scale": 60.0, "time_offset_s": 60000.0,
+                                         "amplitude_scale": 0.5}},
+                     candidates=[n for n in LIBRARY if n not in ("force_deflection", "tool_deflection")])
+    assert diag.chosen == ["thermal_z"]
+
+
+def test_force_deflection_is_named(slots):
+    diag, _ = _named(slots, {"force": {"compliance_um_per_n": [[0.04, 0, 0], [0, 0.03, 0], [0, 0, 0.02]]}})
+    assert diag.chosen == ["force_deflection"]
+
+
+def test_control_says_none_of_the_candidates(slots):
+    m, prog, _ = slots
+    r = _cut(m, prog, None, noise=1.0, seed=11)
+    st = twin_state(r.measured, r.normals, m, prog.text, "slots", want_force=False)
+    cands, _ = build_all([n for n in LIBRARY if n not in ("force_deflection", "tool_deflection")], st)
+    diag = diagnose_state(st, cands)
+    assert diag.verdict == "none of the candidates" and diag.chosen == []
+    # ~200 independent neighbour pairs: the MAD scale scatters by ~10 %, so 3 sigma is 30 %.
+    assert estimate_noise_um(st) == pytest.approx(1.0, rel=0.3)
+
+
+def test_report_schema_and_cli(slots, tmp_path):
+    from trueaxis.cli import main
+
+    m, prog, _ = slots
+    r = _cut(m, prog, {"backlash": {"Y": {"amplitude": 8.0}}}, noise=1.0, seed=5, points=300)
+    write_cmm(r, tmp_path / "cmm.ply")
+    (tmp_path / "p.ngc").write_text(prog.text)
+    out = tmp_path / "rep"
+    rc = main(["diagnose", "--cloud", str(tmp_path / "cmm.ply"), "--part", "slots", "--machine", "xh714",
+               "--program", str(tmp_path / "p.ngc"), "--candidates", "backlash_x,backlash_y,thermal_x,twin_parameters",
+               "--noise-um", "1.0", "-o", str(out)])
+    assert rc == 0
+    data = json.loads((out / "diagnosis.json").read_text())
+    assert (out / "diagnosis.html").read_text().count("data:image/png") >= 3
+    assert {"where", "chosen", "candidates", "gap_um", "shrink"} <= set(data)
+    assert data["where"][0]["variable"] and "held_out_r2" in data["where"][0]
+    assert data["chosen"][0]["effect"] == "backlash_y" and 0 < data["chosen"][0]["confidence"] <= 1
+    assert {"rms", "p95", "max"} <= set(data["gap_um"]["before"]) and data["gap_um"]["after"]["rms"] < \
+        data["gap_um"]["before"]["rms"]
+    p = data["chosen"][0]["parameters"][0]
+    assert p["value_um"] == pytest.approx(8.0, abs=1.5) and p["std_um"] > 0
+
+
+@pytest.mark.parametrize("extra,msg", [
+    (["--candidates", "backlash_q"], "unknown"),
+    (["--noise-um", "-1"], "noise"),
+    (["--cloud-missing"], None),
+])
+def test_cli_refuses_bad_input_with_exit_2(tmp_path, capsys, extra, msg):
+    from trueaxis.cli import main
+
+    (tmp_path / "p.ngc").write_text("G0 X0\n")
+    (tmp_path / "c.xyz").write_text("0 0 0\n1 0 0\nnan 0 0\n")
+    args = ["diagnose", "--cloud", str(tmp_path / ("nope.ply" if extra == ["--cloud-missing"] else "c.xyz")),
+            "--part", "slots", "--machine", "xh714", "--program", str(tmp_path / "p.ngc"), "-o", str(tmp_path / "r")]
+    rc = main(args + ([] if extra == ["--cloud-missing"] else extra))
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert err.strip() and "Traceback" not in err
+    if msg:
+        assert msg in err
+    assert not (tmp_path / "r").exists()

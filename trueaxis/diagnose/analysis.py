@@ -1,0 +1,361 @@
+"""Where the gap lies, which candidate explains it, and how far it shrinks (DESIGN §8), on arrays.
+
+Held-out judgement. Every fit is cross-validated over K folds whose members are kept apart from their neighbours:
+``region`` folds are cells of a coarse grid on the part (each cell whole in one fold), ``time`` folds are contiguous
+blocks of cut time, ``random`` folds are random points. Each point's held-out prediction comes from the fit on the
+other folds, so "before" and "after" figures are on points no fit has seen.
+
+Significance against the probe noise. With held-out squared gaps g_i^2 and held-out squared residuals r_i^2, the
+candidate's gain per point is d_i = g_i^2 - r_i^2. A candidate explains the gap when the mean gain is both
+significant (mean / standard error > ``Z_MIN``; a paired test on held-out points, which needs no distribution of
+the fit's parameters) and material (more than ``MIN_GAIN_OF_NOISE`` sigma^2). The noise sigma is given or estimated
+from the data: the differences of the gap between nearest neighbours on the part that were cut close in time carry
+twice the noise variance and almost none of any smooth effect (robust MAD scale). An F-test of the training fit is
+reported too.
+
+Choice and ambiguity. Candidates are ranked by held-out gain. Those whose gain is at least ``ALMOST`` of the best's
+"explain almost as well"; among those within ``TIE`` of the best the one with fewer parameters and in-bounds values is
+preferred (parsimony, plausibility). A pair is chosen when the pair's held-out gain over the best single one is
+again significant and material. The confidence is 0.3 + 0.7 min(1, separation / 0.5), separation = 1 - (runner-up's
+gain / chosen's gain), halved when fitted values are outside their plausible bounds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+from scipy.spatial import cKDTree
+
+from .candidates import Candidate
+from .state import TwinState
+
+K_FOLDS = 5
+Z_MIN = 4.0
+MIN_GAIN_OF_NOISE = 0.1
+ALMOST = 0.9
+TIE = 0.97
+
+SEPARATING_MEASUREMENT = {
+    frozenset({"force_deflection", "tool_deflection"}): "a cut with a different tool stick-out or radial engagement "
+    "(tool bending grows with the cube of the stick-out, machine compliance does not), or the slot block",
+    frozenset({"servo_lag", "backlash"}): "the same part at a different feed: servo lag scales with the feed, "
+    "backlash does not",
+    frozenset({"thermal", "twin_parameters"}): "the same cut repeated after a warm-up or at another time: drift "
+    "changes with time, location errors do not",
+    frozenset({"thermal", "backlash"}): "the passes cut in the reverse order or direction: a reversal step follows "
+    "the direction, a drift follows the time",
+    frozenset({"force_deflection", "twin_parameters"}): "a second placement of the part on the table, or a different "
+    "feed per tooth (force scales with the feed, location errors do not)",
+    frozenset({"tool_deflection", "twin_parameters"}): "a second placement of the part, or a different feed per tooth",
+    frozenset({"force_deflection", "thermal"}): "a different feed per tooth: force scales with it, drift does not",
+    frozenset({"tool_deflection", "thermal"}): "a different feed per tooth: force scales with it, drift does not",
+    frozenset({"rotary_periodic", "twin_parameters"}): "a second placement of the part off the rotary axis: "
+    "angular errors scale with the radius, location offsets do not",
+}
+
+
+def family(name: str) -> str:
+    for f in ("backlash", "thermal", "rotary_periodic"):
+        if name.startswith(f):
+            return f
+    return name
+
+
+def separating_measurement(a: str, b: str) -> str:
+    fa, fb = family(a), family(b)
+    if fa == fb:
+        return f"a second placement or the slot block, which move {a} and {b} differently"
+    return SEPARATING_MEASUREMENT.get(frozenset({fa, fb}),
+                                      "a second placement of the part, the slot block, or a different feed")
+
+
+# -------------------------------------------------------------------------------------------------- the folds ----
+def make_folds(state: TwinState, split: str = "region", k: int = K_FOLDS, seed: int = 0) -> np.ndarray:
+    """(N,) fold index 0..k-1 of every point (see the module docstring)."""
+    rng = np.random.default_rng(seed)
+    n = len(state)
+    if split == "random":
+        return rng.permutation(np.arange(n) % k)
+    if split == "time":
+        blocks = 4 * k
+        order = np.argsort(state.t_s, kind="stable")
+        block = np.empty(n, int)
+        block[order] = np.arange(n) * blocks // n
+    elif split == "region":
+        p = state.points - state.points.mean(axis=0)
+        # Cells of a grid along the cloud's principal directions, about 4k of them over the part.
+        _, _, vt = np.linalg.svd(p, full_matrices=False)
+        c = p @ vt.T
+        ext = np.ptp(c, axis=0)
+        dims = ext > 0.05 * ext.max()
+        per = max(2, int(round((4 * k) ** (1 / max(1, dims.sum())))))
+        cell = np.zeros(n, int)
+        for d in np.nonzero(dims)[0]:
+            b = np.minimum(((c[:, d] - c[:, d].min()) / max(ext[d], 1e-12) * per).astype(int), per - 1)
+            cell = cell * per + b
+        _, block = np.unique(cell, return_inverse=True)
+    else:
+        raise ValueError(f"split must be region, time or random, got {split!r}")
+    nb = block.max() + 1
+    # Assign blocks to folds so that the folds hold about equal numbers of points.
+    sizes = np.bincount(block, minlength=nb)
+    fold_of_block = np.empty(nb, int)
+    load = np.zeros(k)
+    perm = rng.permutation(nb)
+    for b in perm[np.argsort(-sizes[perm], kind="stable")]:
+        f = int(np.argmin(load))
+        fold_of_block[b] = f
+        load[f] += sizes[b]
+    return fold_of_block[block]
+
+
+# ------------------------------------------------------------------------------------------------- the noise ----
+def estimate_noise_um(state: TwinState) -> float:
+    """Probe noise sigma (um) from nearest-neighbour differences of the gap (see the module docstring)."""
+    g = state.gap_um
+    if g.size < 10:
+        return float(np.std(g))
+    tree = cKDTree(state.points)
+    dist, idx = tree.query(state.points, k=min(6, g.size))
+    # The nearest neighbour cut within a short time (same pass, same direction): a smooth effect cancels.
+    dt = np.abs(state.t_s[idx[:, 1:]] - state.t_s[:, None])
+    tol = max(0.01 * state.t_end_s, 0.5)
+    ok = dt < tol
+    j = np.where(ok.any(axis=1), ok.argmax(axis=1), 0)
+    pair = idx[np.arange(g.size), 1 + j]
+    keep = ok.any(axis=1)
+    d = (g - g[pair])[keep] if keep.sum() >= 10 else g - g[idx[:, 1]]
+    mad = np.median(np.abs(d - np.median(d)))
+    return float(1.4826 * mad / math.sqrt(2.0))
+
+
+# ---------------------------------------------------------------------------------------------- the fitting ----
+def _solve(S, g, rcond=1e-4):
+    """Least squares with column scaling; returns theta (p,) and the pseudo-inverse normal matrix (p, p)."""
+    scale = np.sqrt(np.mean(S**2, axis=0))
+    scale = np.where(scale > 0, scale, 1.0)
+    A = S / scale
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    keep = s > rcond * s[0] if s.size else s
+    inv = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+    theta = (Vt.T * inv) @ (U.T @ g) / scale
+    cov_unit = (Vt.T * inv**2) @ Vt / np.outer(scale, scale)
+    return theta, cov_unit, int(keep.sum())
+
+
+@dataclass
+class Fit:
+    """A candidate (or a pair) fitted and judged on held-out points.
+
+    name : "a" or "a+b".  parameters, units : names.  value, std : fitted on all points (std from the residual
+    scatter).  held_out_pred_um : (N,) cross-validated prediction.  gain_um2 : mean held-out g^2 - r^2.
+    z : paired significance of the gain.  f_stat, f_p : F-test of the fit on all points.
+    plausible : fitted values inside their bounds.  rank : effective number of parameters.
+    """
+
+    name: str
+    members: list
+    parameters: list
+    units: list
+    value: np.ndarray
+    std: np.ndarray
+    held_out_pred_um: np.ndarray
+    gain_um2: float
+    z: float
+    f_stat: float
+    f_p: float
+    plausible: bool
+    rank: int
+    n_parameters: int
+    rms_after_um: float = 0.0
+    explained_share: float = 0.0
+    significant: bool = False
+    extra: dict = field(default_factory=dict)
+
+
+def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray) -> Fit:
+    S = np.column_stack([c.columns for c in cands])
+    n, p = S.shape
+    pred = np.zeros(n)
+    for f in np.unique(folds):
+        tr = folds != f
+        theta, _, _ = _solve(S[tr], g[tr])
+        pred[~tr] = S[~tr] @ theta
+    theta, cov_unit, rank = _solve(S, g)
+    resid = g - S @ theta
+    dof = max(n - rank, 1)
+    s2 = float(resid @ resid) / dof
+    std = np.sqrt(np.maximum(np.diag(cov_unit) * s2, 0.0))
+    rss0, rss1 = float(g @ g), float(resid @ resid)
+    f_stat = ((rss0 - rss1) / max(rank, 1)) / max(rss1 / dof, 1e-300)
+    f_p = float(stats.f.sf(f_stat, max(rank, 1), dof))
+    d = g**2 - (g - pred) ** 2
+    gain = float(d.mean())
+    z = gain / max(float(d.std(ddof=1)) / math.sqrt(n), 1e-300)
+    bounds = [b for c in cands for b in (c.plausible or [None] * c.n_parameters)]
+    plausible = all(b is None or (b[0] <= v <= b[1]) for v, b in zip(theta, bounds))
+    return Fit(name="+".join(c.name for c in cands), members=[c.name for c in cands],
+               parameters=[x for c in cands for x in c.parameters], units=[x for c in cands for x in c.units],
+               value=theta, std=std, held_out_pred_um=pred, gain_um2=gain, z=float(z), f_stat=float(f_stat), f_p=f_p,
+               plausible=plausible, rank=rank, n_parameters=p)
+
+
+def gap_figures(r: np.ndarray) -> dict:
+    a = np.abs(r)
+    return {"rms": float(np.sqrt(np.mean(r**2))), "p95": float(np.percentile(a, 95)), "max": float(a.max())}
+
+
+# ------------------------------------------------------------------------------------------------- where ----
+def state_variables(state: TwinState) -> dict:
+    """name -> (values (N,), kind "continuous" | "categorical", unit)."""
+    out = {}
+    for j, a in enumerate(state.axis_names):
+        rot = a in state.rotary
+        v = np.degrees(state.q[:, j]) if rot else state.q[:, j]
+        out[f"{a} position"] = (v, "continuous", "deg" if rot else "mm")
+    for j, a in enumerate(state.axis_names):
+        out[f"{a} direction"] = (state.direction[:, j], "categorical", "sign")
+    out["time since start"] = (state.t_s, "continuous", "s")
+    out["feed"] = (state.feed_mm_min, "continuous", "mm/min")
+    if state.has_force:
+        out["cutting force"] = (np.linalg.norm(state.force_n, axis=1), "continuous", "N")
+    out["height on tool"] = (state.height_mm, "continuous", "mm")
+    return out
+
+
+def _binned_predict(x_tr, g_tr, x_te, kind, bins=10):
+    if kind == "categorical":
+        cats = np.unique(x_tr)
+        means = {c: g_tr[x_tr == c].mean() for c in cats}
+        base = g_tr.mean()
+        return np.array([means.get(v, base) for v in x_te])
+    edges = np.unique(np.quantile(x_tr, np.linspace(0, 1, bins + 1)))
+    if edges.size < 2:
+        return np.full(x_te.shape, g_tr.mean())
+    bt = np.clip(np.searchsorted(edges, x_tr, side="right") - 1, 0, edges.size - 2)
+    sums = np.bincount(bt, g_tr, minlength=edges.size - 1)
+    cnt = np.bincount(bt, minlength=edges.size - 1)
+    means = np.where(cnt > 0, sums / np.maximum(cnt, 1), g_tr.mean())
+    be = np.clip(np.searchsorted(edges, x_te, side="right") - 1, 0, edges.size - 2)
+    return means[be]
+
+
+def where(state: TwinState, folds: np.ndarray, noise_um: float) -> list[dict]:
+    """Rank the state variables by the held-out R^2 of a binned-mean fit of the gap (1-D each)."""
+    g = state.gap_um
+    ss = float(np.sum((g - g.mean()) ** 2))
+    out = []
+    for name, (x, kind, unit) in state_variables(state).items():
+        if np.ptp(x) <= 1e-9:
+            out.append({"variable": name, "unit": unit, "held_out_r2": 0.0, "note": "constant while cutting"})
+            continue
+        pred = np.empty_like(g)
+        for f in np.unique(folds):
+            tr = folds != f
+            pred[~tr] = _binned_predict(x[tr], g[tr], x[~tr], kind)
+        r2 = 1.0 - float(np.sum((g - pred) ** 2)) / max(ss, 1e-300)
+        out.append({"variable": name, "unit": unit, "held_out_r2": max(r2, 0.0)})
+    out.sort(key=lambda d: -d["held_out_r2"])
+    # The share of the gap's variance above the noise: what any variable could at most explain.
+    ceiling = max(0.0, 1.0 - noise_um**2 * g.size / max(ss, 1e-300))
+    for d in out:
+        d["share_of_explainable"] = d["held_out_r2"] / ceiling if ceiling > 0 else 0.0
+    return out
+
+
+# ------------------------------------------------------------------------------------------------- which ----
+@dataclass
+class Diagnosis:
+    noise_um: float
+    noise_estimated: bool
+    where: list
+    fits: list
+    chosen: list
+    chosen_fit: Fit | None
+    confidence: float
+    alternatives: list
+    separating_measurement: str | None
+    verdict: str
+    gap_before: dict
+    gap_after: dict
+    shrink_raw: float
+    shrink_above_noise: float
+    split: str
+    skipped: list
+
+
+def _significant(gain, z, noise_um):
+    return z > Z_MIN and gain > MIN_GAIN_OF_NOISE * noise_um**2
+
+
+def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str = "region",
+                   noise_um: float | None = None, skipped=(), seed: int = 0) -> Diagnosis:
+    """The whole judgement on one twin state and a built candidate list."""
+    g = state.gap_um
+    folds = make_folds(state, split, seed=seed)
+    estimated = noise_um is None
+    sigma = estimate_noise_um(state) if estimated else float(noise_um)
+    fits = [fit_candidate([c], g, folds) for c in candidates]
+    before = gap_figures(g)
+    ms_before = float(np.mean(g**2))
+    for f in fits:
+        f.rms_after_um = float(np.sqrt(np.mean((g - f.held_out_pred_um) ** 2)))
+        f.explained_share = f.gain_um2 / max(ms_before - sigma**2, 1e-12)
+        f.significant = _significant(f.gain_um2, f.z, sigma)
+    fits.sort(key=lambda f: -f.gain_um2)
+    sig = [f for f in fits if f.significant]
+    chosen_fit, alternatives, confidence, sep = None, [], 0.0, None
+    if sig:
+        best = sig[0]
+        near = [f for f in sig[1:] if f.gain_um2 >= ALMOST * best.gain_um2]
+        # Parsimony and plausibility among the ties.
+        ties = [best] + [f for f in near if f.gain_um2 >= TIE * best.gain_um2]
+        ties.sort(key=lambda f: (not f.plausible, f.name == "twin_parameters", f.n_parameters, -f.gain_um2))
+        chosen_fit = ties[0]
+        others = [f for f in sig if f is not chosen_fit]
+        runner = others[0] if others else None
+        # A second effect: pairs of the chosen one with the next significant candidates.
+        by_name = {c.name: c for c in candidates}
+        best_pair = None
+        for f in others[:4]:
+            pair = fit_candidate([by_name[chosen_fit.name], by_name[f.name]], g, folds)
+            d = (g - chosen_fit.held_out_pred_um) ** 2 - (g - pair.held_out_pred_um) ** 2
+            extra = float(d.mean())
+            zz = extra / max(float(d.std(ddof=1)) / math.sqrt(g.size), 1e-300)
+            if (zz > Z_MIN and extra > MIN_GAIN_OF_NOISE * sigma**2
+                    and extra > 0.1 * (chosen_fit.gain_um2)
+                    and (best_pair is None or pair.gain_um2 > best_pair.gain_um2)):
+                pair.z, pair.extra = zz, {"gain_over_single_um2": extra}
+                best_pair = pair
+        if best_pair is not None:
+            best_pair.rms_after_um = float(np.sqrt(np.mean((g - best_pair.held_out_pred_um) ** 2)))
+            best_pair.explained_share = best_pair.gain_um2 / max(ms_before - sigma**2, 1e-12)
+            best_pair.significant = True
+            chosen_fit = best_pair
+            runner = next((f for f in sig if f.name not in best_pair.members), None)
+        alternatives = [f.name for f in sig if f.name not in chosen_fit.members
+                        and f.gain_um2 >= ALMOST * chosen_fit.gain_um2]
+        separation = 1.0 if runner is None else max(0.0, 1.0 - runner.gain_um2 / max(chosen_fit.gain_um2, 1e-300))
+        confidence = 0.3 + 0.7 * min(1.0, separation / 0.5)
+        if not chosen_fit.plausible:
+            confidence *= 0.5
+        if runner is not None and runner.gain_um2 >= ALMOST * chosen_fit.gain_um2:
+            sep = separating_measurement(chosen_fit.members[0], runner.name)
+        after_r = g - chosen_fit.held_out_pred_um
+        verdict = " + ".join(chosen_fit.members)
+    else:
+        after_r = g
+        verdict = "none of the candidates"
+        best_z = fits[0].z if fits else 0.0
+        confidence = float(min(0.99, 0.5 + 0.5 * (1.0 - max(0.0, best_z) / Z_MIN)))
+    after = gap_figures(after_r)
+    shrink_raw = 1.0 - after["rms"] / max(before["rms"], 1e-300)
+    den = before["rms"] ** 2 - sigma**2
+    shrink_noise = 1.0 - (after["rms"] ** 2 - sigma**2) / den if den > 0 else 0.0
+    return Diagnosis(sigma, estimated, where(state, folds, sigma), fits,
+                     [] if chosen_fit is None else chosen_fit.members, chosen_fit, float(round(confidence, 3)),
+                     alternatives, sep, verdict, before, after, float(shrink_raw), float(shrink_noise), split,
+                     list(skipped))

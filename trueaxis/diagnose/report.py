@@ -1,0 +1,266 @@
+"""The diagnosis report: ``diagnosis.json`` and ``diagnosis.html`` with matplotlib pictures, written together.
+
+    diag, state = run_diagnosis(cloud, part, machine, program_text, candidates="all", split="region", noise_um=None)
+    write_report(diag, state, "report_dir")
+
+``main_diagnose(args)`` is the command ``trueaxis diagnose`` (wired in ``trueaxis.cli``).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .analysis import Diagnosis, diagnose_state
+from .candidates import LIBRARY, build_all
+from .state import TwinState, twin_state
+
+FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
+
+
+def parse_candidates(text: str | None) -> list[str]:
+    """'all' or 'NAME,NAME' -> names; ValueError naming the unknown ones."""
+    if text is None or text.strip() == "all":
+        return list(LIBRARY)
+    names = [s.strip() for s in text.split(",") if s.strip()]
+    bad = [n for n in names if n not in LIBRARY]
+    if bad or not names:
+        raise ValueError(f"--candidates: unknown {', '.join(bad) or '(empty)'} (known: all, {', '.join(LIBRARY)})")
+    return names
+
+
+def cloud_normals(points: np.ndarray, normals: np.ndarray | None, part: str) -> np.ndarray:
+    """The cloud's normals, or, without them, the normal of the nearest point of the part's probe pattern (the
+    part's analytic surfaces from its JSON)."""
+    if normals is not None:
+        return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    from scipy.spatial import cKDTree
+
+    from ..sim.cmm import probe_pattern
+    from ..sim.shop import load_part
+
+    pts, nrm = probe_pattern(load_part(part), 200_000)
+    _, idx = cKDTree(pts).query(points)
+    return nrm[idx]
+
+
+def run_diagnosis(points, normals, part: str, machine, program_text: str, *, candidates="all", split="region",
+                  noise_um=None, force_stride: int = 200) -> tuple[Diagnosis, TwinState]:
+    """Twin simulation, candidates, judgement. points (N,3) mm part frame; normals (N,3) or None."""
+    names = parse_candidates(candidates) if isinstance(candidates, str) or candidates is None else list(candidates)
+    normals = cloud_normals(np.asarray(points, float), normals, part)
+    state = twin_state(points, normals, machine, program_text, part,
+                       want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride)
+    if len(state) < 20:
+        raise ValueError(f"only {len(state)} measured points were cut by the program: too few to diagnose")
+    t0 = time.perf_counter()
+    cands, skipped = build_all(names, state)
+    diag = diagnose_state(state, cands, split=split, noise_um=noise_um, skipped=skipped)
+    state.timings["diagnosis_s"] = time.perf_counter() - t0
+    return diag, state
+
+
+# ---------------------------------------------------------------------------------------------------- JSON ----
+def _fit_dict(f) -> dict:
+    return {"effect": f.name, "members": f.members,
+            "parameters": [{"name": n, f"value_{u.replace('/', '_per_')}": float(v),
+                            f"std_{u.replace('/', '_per_')}": float(s), "unit": u}
+                           for n, u, v, s in zip(f.parameters, f.units, f.value, f.std)],
+            "held_out_gain_um2": f.gain_um2, "held_out_rms_after_um": f.rms_after_um,
+            "explained_share_above_noise": f.explained_share, "z": f.z, "f_stat": f.f_stat, "f_p_value": f.f_p,
+            "significant": f.significant, "plausible": f.plausible, "n_parameters": f.n_parameters,
+            "effective_rank": f.rank, **f.extra}
+
+
+def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None) -> dict:
+    chosen = []
+    if diag.chosen_fit is not None:
+        f = diag.chosen_fit
+        chosen.append({"effect": f.name, "members": f.members,
+                       "parameters": _fit_dict(f)["parameters"], "confidence": diag.confidence,
+                       "plausible": f.plausible, "alternatives": diag.alternatives,
+                       "separating_measurement": diag.separating_measurement})
+    return {
+        "format": 1,
+        "inputs": inputs or {},
+        "verdict": diag.verdict,
+        "confidence_in_verdict": diag.confidence,
+        "points": len(state), "points_not_cut_by_twin": state.dropped,
+        "noise_sigma_um": diag.noise_um, "noise_estimated": diag.noise_estimated,
+        "split": diag.split,
+        "where": diag.where,
+        "chosen": chosen,
+        "alternatives": diag.alternatives,
+        "separating_measurement": diag.separating_measurement,
+        "candidates": [_fit_dict(f) for f in diag.fits],
+        "candidates_not_applicable": diag.skipped,
+        "gap_um": {"before": diag.gap_before, "after": diag.gap_after},
+        "shrink": {"raw_rms_reduction": diag.shrink_raw, "above_noise": diag.shrink_above_noise,
+                   "formula_above_noise": "1 - (rms_after^2 - sigma^2) / (rms_before^2 - sigma^2)"},
+        "timings_s": {k: float(v) for k, v in state.timings.items()},
+    }
+
+
+# ------------------------------------------------------------------------------------------------ pictures ----
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def pictures(diag: Diagnosis, state: TwinState) -> dict:
+    """name -> PNG bytes: gap map, gap vs the top state variables, candidates, before/after."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .analysis import state_variables
+
+    out = {}
+    g = state.gap_um
+    lim = float(np.percentile(np.abs(g), 99)) or 1.0
+    p = state.points
+    fig, axs = plt.subplots(1, 2, figsize=(11, 4.5))
+    for ax, (i, j, lab) in zip(axs, ((0, 1, "x-y (top)"), (0, 2, "x-z (front)"))):
+        sc = ax.scatter(p[:, i], p[:, j], c=g, cmap="coolwarm", vmin=-lim, vmax=lim, s=6)
+        ax.set_aspect("equal")
+        ax.set_title(f"gap on the part, {lab}")
+        ax.set_xlabel("xyz"[i] + " mm")
+        ax.set_ylabel("xyz"[j] + " mm")
+    fig.colorbar(sc, ax=axs, label="gap: measured - twin, um")
+    out["gap_map.png"] = _png(fig)
+
+    variables = state_variables(state)
+    top = [w["variable"] for w in diag.where[:6]]
+    fig, axs = plt.subplots(2, 3, figsize=(12, 6.5))
+    for ax, name in zip(axs.ravel(), top):
+        x, kind, unit = variables[name]
+        ax.scatter(x, g, s=3, alpha=0.4)
+        r2 = next(w["held_out_r2"] for w in diag.where if w["variable"] == name)
+        ax.set_title(f"{name}: held-out R2 {r2:.2f}")
+        ax.set_xlabel(unit)
+        ax.set_ylabel("gap, um")
+    fig.tight_layout()
+    out["gap_vs_state.png"] = _png(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 0.35 * max(4, len(diag.fits)) + 1))
+    names = [f.name for f in diag.fits][::-1]
+    rms = [f.rms_after_um for f in diag.fits][::-1]
+    colors = ["tab:green" if f.significant else "tab:gray" for f in diag.fits][::-1]
+    ax.barh(names, rms, color=colors)
+    ax.axvline(diag.gap_before["rms"], color="k", ls="--", label="before")
+    ax.axvline(diag.noise_um, color="tab:red", ls=":", label="noise sigma")
+    ax.set_xlabel("held-out gap RMS after adding the candidate, um")
+    ax.legend()
+    out["candidates.png"] = _png(fig)
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    after = g - (diag.chosen_fit.held_out_pred_um if diag.chosen_fit is not None else 0.0)
+    bins = np.linspace(-max(lim, 1e-3) * 1.2, max(lim, 1e-3) * 1.2, 60)
+    ax.hist(g, bins=bins, alpha=0.5, label=f"before (rms {diag.gap_before['rms']:.2f} um)")
+    ax.hist(after, bins=bins, alpha=0.5, label=f"after {diag.verdict} (rms {diag.gap_after['rms']:.2f} um)")
+    ax.set_xlabel("held-out gap, um")
+    ax.legend()
+    out["before_after.png"] = _png(fig)
+    return out
+
+
+def _html(data: dict, pngs: dict) -> str:
+    e = html.escape
+    rows = "".join(f"<tr><td>{e(w['variable'])}</td><td>{w['held_out_r2']:.3f}</td></tr>" for w in data["where"])
+    cands = "".join(
+        f"<tr><td>{e(c['effect'])}</td><td>{c['held_out_rms_after_um']:.3f}</td><td>{c['held_out_gain_um2']:.3f}</td>"
+        f"<td>{c['z']:.1f}</td><td>{'yes' if c['significant'] else 'no'}</td><td>{'yes' if c['plausible'] else 'no'}"
+        f"</td></tr>" for c in data["candidates"])
+    chosen = "".join(
+        f"<p><b>{e(c['effect'])}</b> (confidence {c['confidence']:.2f}): " + ", ".join(
+            f"{e(p['name'])} = {p[next(k for k in p if k.startswith('value_'))]:.4g} ± "
+            f"{p[next(k for k in p if k.startswith('std_'))]:.2g} {e(p['unit'])}" for p in c["parameters"]) + "</p>"
+        for c in data["chosen"]) or "<p><b>none of the candidates</b> explains the gap beyond the probe noise.</p>"
+    alt = ""
+    if data["alternatives"]:
+        alt = (f"<p>Almost as good: {e(', '.join(data['alternatives']))}. "
+               f"To separate them: {e(data['separating_measurement'] or 'a second placement')}.</p>")
+    b, a = data["gap_um"]["before"], data["gap_um"]["after"]
+    imgs = "".join(f'<h3>{e(k)}</h3><img src="data:image/png;base64,{base64.b64encode(v).decode()}">'
+                   for k, v in pngs.items())
+    return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>trueaxis diagnosis</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{padding:2px 8px;border-bottom:1px solid #ddd}}</style>
+</head><body><h1>Sim-to-real gap: diagnosis</h1>
+<p>{data['points']} points ({data['points_not_cut_by_twin']} not cut by the twin's program), probe noise sigma
+{data['noise_sigma_um']:.3f} um ({'estimated' if data['noise_estimated'] else 'given'}), held-out split: {e(data['split'])}.</p>
+<h2>Which</h2>{chosen}{alt}
+<h2>How far</h2><table><tr><th></th><th>RMS um</th><th>P95 um</th><th>max um</th></tr>
+<tr><td>before</td><td>{b['rms']:.3f}</td><td>{b['p95']:.3f}</td><td>{b['max']:.3f}</td></tr>
+<tr><td>after</td><td>{a['rms']:.3f}</td><td>{a['p95']:.3f}</td><td>{a['max']:.3f}</td></tr></table>
+<p>Shrink: raw RMS {data['shrink']['raw_rms_reduction'] * 100:.1f} %, above the noise
+{data['shrink']['above_noise'] * 100:.1f} %.</p>
+<h2>Where</h2><table><tr><th>variable</th><th>held-out R2</th></tr>{rows}</table>
+<h2>Candidates</h2><table><tr><th>effect</th><th>held-out RMS after, um</th><th>gain um2</th><th>z</th>
+<th>significant</th><th>plausible</th></tr>{cands}</table>
+{imgs}</body></html>
+"""
+
+
+def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None = None) -> dict:
+    """Write diagnosis.json, diagnosis.html and the PNGs into ``out_dir`` together: everything is written into a
+    temporary folder beside it first, then moved in with ``os.replace`` (pictures, HTML, then the JSON last), so a
+    reader never sees a JSON without its pictures. Returns the JSON dict."""
+    out_dir = Path(out_dir)
+    data = diagnosis_dict(diag, state, inputs)
+    pngs = pictures(diag, state)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        for k, v in pngs.items():
+            (tmp / k).write_bytes(v)
+        (tmp / "diagnosis.html").write_text(_html(data, pngs), encoding="utf-8")
+        (tmp / "diagnosis.json").write_text(json.dumps(data, indent=2), encoding="utf-8")
+        out_dir.mkdir(exist_ok=True)
+        for k in [*pngs, "diagnosis.html", "diagnosis.json"]:
+            os.replace(tmp / k, out_dir / k)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return data
+
+
+def main_diagnose(args) -> int:
+    """``trueaxis diagnose --cloud C --part P --machine M --program G [--candidates ..] [--split ..]
+    [--noise-um S] [-o DIR]``. Errors raise ValueError (exit 2 in the CLI); nothing is written then."""
+    from ..inspect.cloud import read_cloud
+    from ..machine import load_machine
+
+    if args.noise_um is not None and not (np.isfinite(args.noise_um) and args.noise_um > 0):
+        raise ValueError("--noise-um must be a finite number > 0")
+    names = parse_candidates(args.candidates)
+    program = Path(args.program)
+    if not program.is_file():
+        raise ValueError(f"{program}: no such program file")
+    machine = load_machine(args.machine)
+    cloud = read_cloud(args.cloud)
+    text = program.read_text(encoding="utf-8", errors="replace")
+    diag, state = run_diagnosis(cloud.points, cloud.normals, args.part, machine, text, candidates=names,
+                                split=args.split, noise_um=args.noise_um)
+    inputs = {"cloud": str(args.cloud), "part": args.part, "machine": str(args.machine), "program": str(program),
+              "candidates": names, "split": args.split, "noise_um": args.noise_um}
+    data = write_report(diag, state, args.output, inputs)
+    b, a = data["gap_um"]["before"], data["gap_um"]["after"]
+    print(f"{args.output}: {diag.verdict} (confidence {diag.confidence:.2f}); held-out gap rms {b['rms']:.2f} -> "
+          f"{a['rms']:.2f} um, max {b['max']:.2f} -> {a['max']:.2f} um; shrink {diag.shrink_raw * 100:.0f} % raw, "
+          f"{diag.shrink_above_noise * 100:.0f} % above the noise (sigma {diag.noise_um:.2f} um)")
+    if diag.alternatives:
+        print(f"  almost as good: {', '.join(diag.alternatives)}; to separate: {diag.separating_measurement}")
+    return 0
