@@ -89,20 +89,42 @@ _TOKEN = re.compile(
     r"|([A-Za-z])[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)|#[0-9]+|\[[^\n(;]*?\](?:[^\n(;\[]*\])*)?"
     r"|([^\s])"
 )
+_TOKEN_KINDS = (None, "comment", "comment", "word", "word", "other")
 _ASSIGN = re.compile(r"^[ \t]*(?:[Nn][0-9]+[ \t]*)?#([0-9]+)[ \t]*=[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))[ \t]*(?:\(.*\)|;.*)?[ \t]*$")
 _PARAM_REF = re.compile(r"^(?:#([0-9]+)|\[[ \t]*#([0-9]+)[ \t]*\])$")
 # the fast path's plain G0/G1 block, and its words (upper case, no comments, no other codes)
 _FAST = re.compile(
     r"[ \t]*(?:N[0-9]+[ \t]*)?(?:G0?([0-3])(?![0-9.])[ \t]*)?"
-    + "".join(rf"(?:{c}[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))[ \t]*)?" for c in "XYZABCIJKRF")
+    + "".join(rf"(?:{c}[ \t]*([-+]?(?:[0-9]{{1,9}}(?:\.[0-9]*)?|\.[0-9]+))[ \t]*)?" for c in "XYZABCIJKRF")
     + r"\r?\n?\Z"
 )
 _FAST_WORD = re.compile(r"([XYZABCFIJKR])[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))")
 _DECIMALS = re.compile(r"([A-Za-z])[ \t]*[-+]?[0-9]*\.([0-9]*)")
 
+# Lines end at \n, \r\n or a lone \r, as an editor counts them (str.splitlines also splits at \f, \v, \x1c-\x1e,
+# \x85, \u2028 and \u2029, which would shift the line numbers of the messages).
+_LINE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n)|[^\r\n]+\Z")
+_OTHER_BREAKS = re.compile("[\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
+# A canned cycle block that would expand into more moves than this is refused (a tiny Q or a huge L: the table
+# would not fit in memory, and no real program drills that way).
+MAX_CYCLE_MOVES = 100_000
+# Word values (coordinates, offsets, feeds) must stay below this in size: 1000 km, or 25,400 km in inches, is no
+# machine's travel, and bounded values keep every sum, square and unit conversion downstream finite. The fast path's
+# regular expression takes at most 9 digits before the point, so larger values go through the checked general path.
+MAX_WORD_VALUE = 1e9
+# Arc turns (P) are stored as int16.
+MAX_ARC_TURNS = 32767
+
 _AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2, "A": 3, "B": 4, "C": 5}
 _LINEAR = np.array([True, True, True, False, False, False])
 _LINEAR_T = (True, True, True, False, False, False)
+
+
+def split_lines(text: str) -> list:
+    """The lines of ``text`` with their endings (``"".join(split_lines(t)) == t``), split at \n, \r\n and \r only."""
+    if _OTHER_BREAKS.search(text) is None:
+        return text.splitlines(keepends=True)
+    return _LINE.findall(text)
 
 
 def _add(pos: list, delta) -> None:
@@ -304,15 +326,10 @@ def tokenize_line(line: str) -> list:
     For a word, text is the letter and its value as written (``"X-.0531"``); start/end are column offsets in the
     line. This is the same regular expression the parser uses.
     """
-    out = []
-    for m in _TOKEN.finditer(line):
-        if m.group(1) or m.group(2):
-            out.append(("comment", m.group(0), m.start(), m.end()))
-        elif m.group(3):
-            out.append(("word", m.group(0), m.start(), m.end()))
-        else:
-            out.append(("other", m.group(0), m.start(), m.end()))
-    return out
+    # m.lastindex is the alternative that matched (1, 2 comment; 3, 4 word; 5 other): one lookup per token, which
+    # matters to the writer that calls this for every motion block
+    kinds = _TOKEN_KINDS
+    return [(kinds[m.lastindex], m.group(), *m.span()) for m in _TOKEN.finditer(line)]
 
 
 def word_spans(program: Program, row: int) -> dict:
@@ -454,7 +471,7 @@ class _Interpreter:
         self.warn(line_no, f"passed through uninterpreted: {reason}")
 
     def run(self) -> Program:
-        lines = self.text.splitlines(keepends=True)
+        lines = split_lines(self.text)
         # state, in current program units (lengths) and degrees
         inch = False
         self.inch = False
@@ -530,6 +547,8 @@ class _Interpreter:
                 mode = motion_mode if g is None else int(g) * 10
                 if f_ is not None:
                     new_feed = float(f_)
+                    if new_feed < 0.0:
+                        raise self.err(li + 1, f"negative feed rate F{f_}")
                     if new_feed != feed:
                         feed = new_feed
                         refresh_state()
@@ -698,6 +717,10 @@ class _Interpreter:
                         raise self.err(line_no, f"unexpected character {other!r}")
             if block_delete:
                 pass  # executed: the block delete switch is off, as in rs274
+            if "E" in vals and not any(m.strip().lstrip("0")[:2] in ("66", "67", "68") for m in mcodes):
+                # LinuxCNC refuses an E word without G76/M66-M68 too; reading past it could misread "X1e2" as X1
+                raise self.err(line_no, f"E word 'E{vals['E']}': exponent notation (X1e2) is not RS-274, and E "
+                               "words (thread lead, extruder) are not understood here")
             if refuse is None and macro_nonmoving and any(k in vals for k in "XYZABC"):
                 refuse = macro_nonmoving + " in a block with axis words"
             if not gcodes and not mcodes and not vals:
@@ -730,7 +753,15 @@ class _Interpreter:
 
                 fvals = {}
                 for k, v in vals.items():
-                    fvals[k] = float(v)
+                    fv = float(v)
+                    if not abs(fv) < MAX_WORD_VALUE and k not in "NO":
+                        raise self.err(line_no, f"number out of range: {k}{v[:20]}{'...' if len(v) > 20 else ''} "
+                                       f"(the reader takes values below {MAX_WORD_VALUE:.0e})")
+                    fvals[k] = fv
+                if fvals.get("F", 0.0) < 0.0:
+                    raise self.err(line_no, f"negative feed rate F{vals['F']}")
+                if "T" in fvals and not 0 <= fvals["T"] <= 2**31 - 1:
+                    raise self.err(line_no, f"tool number T{fvals['T']:g} out of range (0 .. 2147483647)")
                 words_mask = 0
                 for k in vals:
                     words_mask |= _WORD_BIT.get(k, 0)
@@ -997,17 +1028,27 @@ class _Interpreter:
         mask = int(np.bitwise_or.reduce(words)) if m else 0
         used_axes.update(c for c in AXES if mask & _WORD_BIT[c])
         units = "mixed" if len(units_seen) > 1 else ("inch" if units_seen == {"inch"} else "mm")
+        start = np.array(r_start, float).reshape(m, 6)
+        end = np.array(r_end, float).reshape(m, 6)
+        offset = st_off[sid].reshape(m, 6)
+        feed_rows = st_feed[sid].reshape(m)
+        # Numbers too large for a float (a 400-digit X), or sums of huge ones, must not reach a writer as inf/NaN.
+        finite = (np.isfinite(start).all(axis=1) & np.isfinite(end).all(axis=1) & np.isfinite(offset).all(axis=1)
+                  & np.isfinite(feed_rows) & (np.isfinite(arc_center).all(axis=1) | (arc_plane == 0)))
+        if not finite.all():
+            bad = int(np.argmin(finite))
+            raise self.err(int(r_line[bad]) + 1, "number out of range: a position, offset or feed is not finite")
         return Program(
             source=self.source,
-            start=np.array(r_start, float).reshape(m, 6),
-            end=np.array(r_end, float).reshape(m, 6),
-            offset=st_off[sid].reshape(m, 6),
+            start=start,
+            end=end,
+            offset=offset,
             motion=np.array(r_motion, np.int8),
             kind=np.array(r_kind, np.int8),
             arc_center=arc_center,
             arc_plane=arc_plane,
             arc_turns=arc_turns,
-            feed=st_feed[sid].reshape(m),
+            feed=feed_rows,
             inverse_time=st_flags[sid, 0].astype(bool).reshape(m),
             inch=st_flags[sid, 1].astype(bool).reshape(m),
             cutter_comp=st_flags[sid, 2].astype(np.int8).reshape(m),
@@ -1090,8 +1131,8 @@ class _Interpreter:
         turns = 1
         if "P" in fvals:
             turns = int(fvals["P"])
-            if turns < 1 or turns != fvals["P"]:
-                raise ValueError(f"arc P (turns) must be a positive integer, got {fvals['P']:g}")
+            if turns < 1 or turns != fvals["P"] or turns > MAX_ARC_TURNS:
+                raise ValueError(f"arc P (turns) must be a whole number from 1 to {MAX_ARC_TURNS}, got {fvals['P']:g}")
         center = [0.0, 0.0, 0.0]
         center[a0], center[a1], center[an] = c0, c1, pos[an]
         emit(ARC_CW if cw else ARC_CCW, ROW_PROGRAMMED, target, li, words_mask, tuple(center), plane, turns)
@@ -1174,6 +1215,11 @@ class _Interpreter:
                 raise ValueError("G87 needs I, J and K")
             for k in "ijk":
                 st[k] = fvals.get(k.upper(), st[k])
+        # Moves the expansion makes (at most 8 per hole, 3 per peck): refused before it fills the memory.
+        pecks = max(0.0, (r - cc) / st["q"]) if mm in (730, 830) else 0.0
+        if l_rep * (8 + 3 * pecks) > MAX_CYCLE_MOVES:
+            raise ValueError(f"canned cycle would expand into more than {MAX_CYCLE_MOVES} moves (L{l_rep}"
+                             + (f", {pecks:.0f} pecks of Q{st['q']:g}" if pecks else "") + ")")
         first = True
         for _ in range(l_rep):
             aa += inc0

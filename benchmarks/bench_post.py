@@ -1,0 +1,187 @@
+"""Benchmark: the whole post (``trueaxis post``: read, parse, compensate, write) against LinuxCNC's ``rs274``
+interpreting the same file. Goal (issue: the post-processor): our post in at most half of rs274's time, peak memory
+under 2 GB.
+
+Two programs of ``--blocks`` blocks (default 1,000,000):
+
+- five-axis: ``cone_flank_program`` (X Y Z B C machine axes, G93) on the NMV 1500 DCG fixture with every error
+  parameter non-zero (the file's values, zeros given a typical 10 um / 10 urad as in bench_twin.py);
+- three-axis: the NIST programs mtc_cover_rev_a.nc + mtc_plate_1.nc (inch, lines and arcs) repeated, on the xh714
+  fixture with wide travel (as test_post.py widens it).
+
+Each command runs once as a subprocess; wall time and the child's peak resident memory (``wait4``) are measured.
+
+    .venv/bin/python benchmarks/bench_post.py [--blocks 1000000] [--work DIR] [--only five|three] [--profile]
+
+``--profile`` also runs the post in this process under cProfile and prints the top costs (cumulative).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import os
+import pstats
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+NIST = ROOT / "fixtures" / "programs" / "nist"
+CONE = {"axis": [float(np.sin(np.radians(10))), 0.0, float(np.cos(np.radians(10)))], "half_angle_deg": 15.0,
+        "base_radius": 40.0, "height_range": [0.0, 20.0]}
+
+
+def five_axis_case(work: Path, blocks: int):
+    """(program path, machine path): the cone flank pass with ``blocks`` moves; every error parameter non-zero."""
+    from trueaxis.machine import load_machine
+    from trueaxis.resources import machine_file
+    from trueaxis.sim.programs import cone_flank_program
+
+    m = load_machine(machine_file("nmv1500dcg"))
+    prog = work / f"cone_{blocks}.ngc"
+    mach = work / "nmv1500dcg_all_errors.toml"
+    if not prog.exists():
+        prog.write_text(cone_flank_program(m, CONE, n_blocks=blocks))
+    if not mach.exists():
+        values = m.parameter_values()
+        rng = np.random.default_rng(0)
+        values = np.where(values == 0.0, rng.normal(0.0, 10.0, values.size), values)
+        mach.write_text(_machine_toml_with(m, values))
+    return prog, mach
+
+
+def _machine_toml_with(machine, values) -> str:
+    """The machine file of ``machine`` with its error parameters set to ``values`` (checked by reading it back)."""
+    from trueaxis.machine import parse_machine
+    from trueaxis.machine.machine_file import dump_machine
+
+    text = dump_machine(machine.with_parameters(values))
+    back = parse_machine(text, source="bench").parameter_values()
+    if not np.allclose(back, values, rtol=1e-9, atol=1e-12):
+        raise SystemExit("the benchmark machine file does not read back with the parameters written")
+    return text
+
+
+def three_axis_case(work: Path, blocks: int):
+    """(program path, machine path): NIST cover + plate repeated to ``blocks`` lines; xh714 with wide travel."""
+    prog = work / f"nist_{blocks}.nc"
+    mach = work / "xh714_wide.toml"
+    if not prog.exists():
+        body = []
+        for name in ("mtc_cover_rev_a.nc", "mtc_plate_1.nc"):
+            lines = (NIST / name).read_text(errors="replace").splitlines(keepends=True)
+            body += [ln for ln in lines if not ln.startswith("%") and "M30" not in ln.upper()
+                     and "M02" not in ln.upper() and not ln.upper().startswith("M2")]
+        reps = blocks // len(body) + 1
+        text = "".join((body * reps)[: blocks - 2])
+        prog.write_text("%\n" + text + "M30\n%\n")
+    if not mach.exists():
+        text = (ROOT / "fixtures" / "machines" / "xh714.toml").read_text()
+        for old in ("[-200.0, 200.0]", "[-150.0, 150.0]", "[-400.0, 0.0]"):
+            text = text.replace(old, "[-2000.0, 2000.0]")
+        mach.write_text(text)
+    return prog, mach
+
+
+def timed(cmd, cwd=None, stdin=subprocess.DEVNULL):
+    """(seconds, peak RSS in MB of the child, return code, stderr tail) of one run."""
+    t0 = time.perf_counter()
+    with open(os.devnull, "wb") as devnull:
+        proc = subprocess.Popen(cmd, cwd=cwd, stdin=stdin, stdout=devnull, stderr=subprocess.PIPE)
+        err_chunks = []
+        # stderr is small (one line per problem); read it while waiting
+        err = proc.stderr.read()
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        err_chunks.append(err)
+    seconds = time.perf_counter() - t0
+    return seconds, usage.ru_maxrss / 1024.0, proc.returncode, b"".join(err_chunks).decode(errors="replace")[-500:]
+
+
+def run_case(name, prog: Path, mach: Path, work: Path):
+    trueaxis = shutil.which("trueaxis") or str(ROOT / ".venv" / "bin" / "trueaxis")
+    out = work / f"{prog.stem}.out.ngc"
+    t_post, mem_post, rc, err = timed([trueaxis, "post", str(prog), "-o", str(out), "--machine", str(mach)])
+    if rc != 0:
+        print(f"{name}: trueaxis post failed (exit {rc}): {err}", file=sys.stderr)
+    rs274 = shutil.which("rs274")
+    t_rs, mem_rs, rc_rs = float("nan"), float("nan"), None
+    if rs274:
+        tbl = work / "tools.tbl"
+        tbl.write_text("".join(f"T{t} P{t} D0.1 Z+0.0 ;\n" for t in range(1, 40)))
+        with open(os.devnull, "rb") as devnull:
+            t_rs, mem_rs, rc_rs, err_rs = timed([rs274, "-t", str(tbl), "-g", str(prog), str(work / "canon.txt")],
+                                                cwd=work, stdin=devnull)
+        if rc_rs != 0:
+            print(f"{name}: rs274 exit {rc_rs}: {err_rs}", file=sys.stderr)
+    n_lines = sum(1 for _ in open(prog, "rb"))
+    return {"case": name, "lines": n_lines, "post_s": t_post, "post_mb": mem_post, "post_rc": rc,
+            "rs274_s": t_rs, "rs274_mb": mem_rs, "rs274_rc": rc_rs,
+            "out_lines": sum(1 for _ in open(out, "rb")) if out.exists() else 0}
+
+
+def profile_post(prog: Path, mach: Path, top: int = 25):
+    """cProfile of the post (read, parse, compensate, write to memory) in this process; prints the top costs."""
+    from trueaxis.machine import load_machine
+    from trueaxis.postproc.post import post_text
+
+    machine = load_machine(mach)
+    text = prog.read_text()
+    prof = cProfile.Profile()
+    prof.enable()
+    post_text(text, machine, "geometric", source=str(prog))
+    prof.disable()
+    buf = io.StringIO()
+    pstats.Stats(prof, stream=buf).sort_stats("cumulative").print_stats(top)
+    print(f"--- cProfile of the post on {prog.name} (cumulative, top {top}) ---")
+    print(buf.getvalue())
+    buf = io.StringIO()
+    pstats.Stats(prof, stream=buf).sort_stats("tottime").print_stats(top)
+    print(f"--- same, by own time ---")
+    print(buf.getvalue())
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--blocks", type=int, default=1_000_000, help="blocks per program (default 1,000,000)")
+    ap.add_argument("--work", help="folder for the generated programs and outputs (default: a temporary folder)")
+    ap.add_argument("--only", choices=["five", "three"], help="run one case only")
+    ap.add_argument("--profile", action="store_true", help="also profile the post in this process (cProfile)")
+    args = ap.parse_args()
+    work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_post_"))
+    work.mkdir(parents=True, exist_ok=True)
+    cases = []
+    if args.only in (None, "five"):
+        t = time.perf_counter()
+        prog, mach = five_axis_case(work, args.blocks)
+        print(f"five-axis program ready ({time.perf_counter() - t:.1f} s): {prog}")
+        cases.append(("five-axis cone, nmv1500dcg (all errors)", prog, mach))
+    if args.only in (None, "three"):
+        prog, mach = three_axis_case(work, args.blocks)
+        print(f"three-axis program ready: {prog}")
+        cases.append(("three-axis NIST cover+plate, xh714 wide", prog, mach))
+    rows = [run_case(name, prog, mach, work) for name, prog, mach in cases]
+    print()
+    print(f"{'case':42s} {'lines':>9s} {'post s':>8s} {'post MB':>8s} {'rs274 s':>8s} {'rs274 MB':>8s} "
+          f"{'post/rs274':>10s}  goal (<= 0.5, < 2048 MB)")
+    for r in rows:
+        ratio = r["post_s"] / r["rs274_s"] if r["rs274_s"] == r["rs274_s"] else float("nan")
+        ok = "met" if ratio <= 0.5 and r["post_mb"] < 2048 and r["post_rc"] == 0 else "MISSED"
+        print(f"{r['case']:42s} {r['lines']:9d} {r['post_s']:8.2f} {r['post_mb']:8.0f} {r['rs274_s']:8.2f} "
+              f"{r['rs274_mb']:8.0f} {ratio:10.2f}  {ok}"
+              + ("" if r["post_rc"] == 0 else f" (post exit {r['post_rc']})")
+              + ("" if r["rs274_rc"] in (0, None) else f" (rs274 exit {r['rs274_rc']})"))
+    if args.profile:
+        for _, prog, mach in cases:
+            profile_post(prog, mach)
+
+
+if __name__ == "__main__":
+    main()

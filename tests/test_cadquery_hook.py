@@ -1,0 +1,91 @@
+"""The CadQuery host: the parts as Workplane plugins, and docs/cadquery_example.py compensating G-code made from one."""
+
+from __future__ import annotations
+
+import runpy
+
+import cadquery as cq
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from post_checks import actual_points, distance_to_polyline, nominal_polyline
+from trueaxis.inspect.parts import nas979_workplane, slot_block_workplane
+from trueaxis.postproc.gcode import parse_program
+from trueaxis.postproc.hosts import cadquery as cq_host
+
+EXAMPLE = ROOT / "docs" / "cadquery_example.py"
+
+
+@pytest.fixture(scope="module")
+def example():
+    """The example module's run(): (part, machine, program, compensated, report)."""
+    module = runpy.run_path(str(EXAMPLE), run_name="cadquery_example")
+    return module["run"]()
+
+
+def test_importing_the_host_registers_the_parts_as_workplane_methods():
+    assert cq.Workplane.nas979 is nas979_workplane
+    assert cq.Workplane.slotBlock is slot_block_workplane
+
+
+def test_unregister_and_register_take_the_methods_away_and_back():
+    cq_host.unregister()
+    try:
+        assert not hasattr(cq.Workplane, "nas979") and not hasattr(cq.Workplane, "slotBlock")
+    finally:
+        cq_host.register()
+        cq_host.register()  # idempotent
+    assert cq.Workplane.nas979 is nas979_workplane
+
+
+def test_the_plugin_places_the_part_on_the_calling_workplane():
+    plain = nas979_workplane().val().BoundingBox()
+    moved = cq.Workplane("XY", origin=(100.0, -20.0, 5.0)).nas979().val().BoundingBox()
+    np.testing.assert_allclose([moved.xmin, moved.ymin, moved.zmin, moved.xmax, moved.ymax, moved.zmax],
+                               [plain.xmin + 100, plain.ymin - 20, plain.zmin + 5, plain.xmax + 100, plain.ymax - 20,
+                                plain.zmax + 5], atol=1e-6)
+
+
+def test_the_plugin_passes_overrides_to_the_part_parameters():
+    block = cq.Workplane("XY").slotBlock(block_length_x=230.0, block_height_z=40.0).val().BoundingBox()
+    assert (block.xlen, block.zlen) == (pytest.approx(230.0), pytest.approx(40.0))
+
+
+def test_compensate_is_the_python_hook_of_the_package():
+    from trueaxis.postproc import compensate
+    from trueaxis.postproc.post import compensate as post_compensate
+
+    assert cq_host.compensate is compensate is post_compensate
+
+
+def test_example_program_runs_around_the_part(example):
+    part, machine, program, _, _ = example
+    bb = part.val().BoundingBox()
+    prog = parse_program(program)
+    # the tool centre stays the tool radius outside the part's outline (machine XY = part XY on this machine)
+    feed = prog.motion == 1
+    xy = prog.end[feed, :2]
+    outside = np.maximum(np.maximum(bb.xmin - xy[:, 0], xy[:, 0] - bb.xmax),
+                         np.maximum(bb.ymin - xy[:, 1], xy[:, 1] - bb.ymax))
+    assert np.all(outside >= machine.tool.radius - 1e-9)
+
+
+def test_example_compensated_program_lands_on_the_nominal_path(example):
+    _, machine, program, compensated, report = example
+    assert compensated != program and report["moves"] > 0
+    actual, _, _ = actual_points(compensated, machine)
+    nominal = nominal_polyline(parse_program(program), machine)
+    d_um = distance_to_polyline(actual, nominal) * 1e3
+    # as in test_post.py: written numbers at 5 decimals (0.005 um) and a solver at 0.01 um stay below 0.1 um
+    assert d_um.max() < 0.1, d_um.max()
+    # and the machine's errors were not negligible to begin with (the check is not trivially true)
+    uncompensated, _, _ = actual_points(program, machine)
+    assert distance_to_polyline(uncompensated, nominal).max() * 1e3 > 5.0
+
+
+def test_example_script_writes_its_files(tmp_path):
+    module = runpy.run_path(str(EXAMPLE), run_name="cadquery_example")
+    assert module["main"](["-o", str(tmp_path)]) == 0
+    for name in ("nas979.step", "nas979_contour.ngc", "nas979_contour_compensated.ngc"):
+        assert (tmp_path / name).stat().st_size > 0
