@@ -429,4 +429,140 @@ def _read_surfaces(data, axes, ck: _Checker):
                                   1 if motion == "forward" else -1, coeffs, str(note))
 
 
-__all__ = ["MachineFileError", "load_machine", "parse_machine", "DIRECTION_LETTER"]
+# ------------------------------------------------------------------------------------------------------ writing ----
+def dump_machine(machine: Machine) -> str:
+    """A complete machine file (TOML, format 1) for ``machine``: ``parse_machine(dump_machine(m))`` gives back the same
+    layout, tool, placement, error parameters (bit for bit), loaded set, force model and cutting coefficients.
+
+    Geometry is written in mm and degrees, error values in um and urad (DESIGN §4). Component errors keep their form:
+    tables (one ``at`` and ``interpolation`` per axis, as the reader wants them), Legendre and Fourier series. A
+    periodic rotary table is written with its last value equal to its first (the model never uses the last one).
+    Comments of the original file are not kept.
+    """
+    out = ["[machine]", f"name = {_toml_str(machine.name)}", f"kind = {_toml_str(machine.kind)}", "format = 1"]
+    if machine.note:
+        out.append(f"note = {_toml_str(machine.note)}")
+    out += ["", "[kinematics]", f"bed_to_workpiece = {_toml_list(machine.bed_to_workpiece)}",
+            f"bed_to_tool = {_toml_list(machine.bed_to_tool)}", "", "[axes]"]
+    for name in machine.axis_names:
+        ax = machine.axes[name]
+        items = [f'type = "{ax.kind}"']
+        if ax.travel is not None:
+            tr = _degrees(ax.travel) if ax.is_rotary else ax.travel
+            items.append(f"travel = {_toml_floats(tr)}")
+        if ax.is_rotary:
+            items.append(f'about = "{ax.about}"')
+            items.append(f"pivot = {_toml_floats(ax.pivot)}")
+        out.append(f"{name} = {{ {', '.join(items)} }}")
+    t = machine.tool
+    out += ["", "[tool]", f"length = {_toml_float(t.length)}", f"radius = {_toml_float(t.radius)}",
+            f"flutes = {int(t.flutes)}", f"flute_length = {_toml_float(t.flute_length)}",
+            f"helix_deg = {_toml_float(t.helix_deg)}",
+            "", "[workpiece]", f"origin = {_toml_floats(machine.workpiece_origin)}"]
+    out += _dump_error_set(machine, machine.errors, "")
+    if machine.loaded is not None:
+        out += ["", "[loaded]", f"force_n = {_toml_floats(machine.loaded_force_n)}"]
+        out += _dump_error_set(machine, machine.loaded, "loaded.")
+    if machine.compliance_um_per_n is not None or machine.surfaces:
+        out += ["", "[force]"]
+        if machine.compliance_um_per_n is not None:
+            rows = ", ".join(_toml_floats(r) for r in np.asarray(machine.compliance_um_per_n))
+            out.append(f"compliance_um_per_n = [{rows}]")
+        for s in machine.surfaces:
+            out += ["", "[[force.surface]]", f'axis = "{s.axis}"',
+                    f'inputs = ["{s.position_axis}", "P{s.force_direction.lower()}"]',
+                    f'load_sign = "{"+" if s.load_sign > 0 else "-"}"',
+                    f'motion = "{"forward" if s.motion > 0 else "backward"}"', f"coeffs = {_toml_floats(s.coeffs)}"]
+            if s.note:
+                out.append(f"note = {_toml_str(s.note)}")
+    if machine.cutting is not None:
+        out += ["", "[cutting]"]
+        for key, value in machine.cutting.items():
+            out.append(f"{key} = {_toml_str(value) if isinstance(value, str) else _toml_float(value)}")
+    return "\n".join(out) + "\n"
+
+
+def _dump_error_set(machine: Machine, errors: ErrorSet, prefix: str) -> list[str]:
+    out = []
+    names = [n for n in machine.location_names() if errors.location.get(n, 0.0) != 0.0]
+    if names:
+        out += ["", f"[{prefix}location]"] + [f"{n} = {_toml_float(errors.location[n])}" for n in names]
+    for axis_name in machine.axis_names:
+        comps = errors.components.get(axis_name, {})
+        if not comps:
+            continue
+        axis = machine.axes[axis_name]
+        out += ["", f"[{prefix}component.{axis_name}]"]
+        tables = {n: f for n, f in comps.items() if f.kind in ("linear", "cubic")}
+        if tables:
+            kinds = {f.kind for f in tables.values()}
+            ats = {f.at.tobytes() for f in tables.values()}
+            if len(kinds) > 1 or len(ats) > 1:
+                raise ValueError(f"component tables of axis {axis_name} must share their positions and interpolation "
+                                 "to be written (one [component.AXIS] table)")
+            first = next(iter(tables.values()))
+            at = _degrees(first.at) if axis.is_rotary else first.at
+            out += [f'interpolation = "{first.kind}"', f"at = {_toml_floats(at)}"]
+            for n in machine.component_names(axis_name):
+                if n in tables:
+                    values = np.array(tables[n].values, float)
+                    if tables[n].periodic:
+                        values[-1] = values[0]
+                    out.append(f"{n} = {_toml_floats(values)}")
+        for form in ("legendre", "fourier"):
+            series = [(n, comps[n]) for n in machine.component_names(axis_name) if n in comps and comps[n].kind == form]
+            if not series:
+                continue
+            items = []
+            for n, f in series:
+                if form == "legendre":
+                    items.append(f"{n} = {_toml_floats(f.values)}")
+                else:
+                    ab = np.asarray(f.values, float).reshape(-1, 2)
+                    rows = ", ".join(f"[{int(k)}, {_toml_float(a)}, {_toml_float(b)}]"
+                                     for k, (a, b) in zip(f.harmonics, ab))
+                    items.append(f"{n} = [{rows}]")
+            out.append(f"{form} = {{ {', '.join(items)} }}")
+    return out
+
+
+def _degrees(radians) -> np.ndarray:
+    """Degrees from the internal radians, rounded to 12 significant digits (30.0, not 29.999999999999996)."""
+    return np.array([float(f"{v:.12g}") for v in np.degrees(np.asarray(radians, float))])
+
+
+def _toml_float(v) -> str:
+    v = float(v)
+    if not math.isfinite(v):
+        raise ValueError(f"cannot write a non-finite number ({v}) to a machine file")
+    return repr(v + 0.0)
+
+
+def _toml_floats(values) -> str:
+    return "[" + ", ".join(_toml_float(v) for v in np.asarray(values, float).reshape(-1)) + "]"
+
+
+def _toml_list(words) -> str:
+    return "[" + ", ".join(_toml_str(w) for w in words) + "]"
+
+
+def _toml_str(s: str) -> str:
+    """A TOML basic string: backslash, quote and control characters escaped."""
+    out = []
+    for ch in str(s):
+        if ch == "\\":
+            out.append("\\\\")
+        elif ch == '"':
+            out.append('\\"')
+        elif ch == "\n":
+            out.append("\\n")
+        elif ch == "\t":
+            out.append("\\t")
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04x}")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
+__all__ = ["MachineFileError", "dump_machine", "load_machine", "parse_machine", "DIRECTION_LETTER"]

@@ -1,0 +1,245 @@
+"""The closed loop in the virtual shop: cut, measure, identify, compensate, cut again (DESIGN §1, §8).
+
+    result = closed_loop(load_machine("fixtures/machines/nmv1500dcg.toml"))      # the true machine
+    print(result.summary())
+
+1. The part program (``trueaxis.inspect.programs``) is posted (``trueaxis.postproc.post.compensate``, geometric) with
+   the *twin* the shop believes in (default: the true machine's layout with no errors at all).
+2. The virtual shop (``trueaxis.sim.shop.simulate``) cuts it on the *true* machine and measures it (virtual CMM,
+   probe noise); the deviations come from the measured cloud alone: the analytic cone distance
+   (``cone_signed_distance``) for the NAS 979 cone, the distance to the slot walls, arcs and floors of the part JSON
+   for the slot block. Nothing of the simulator's truth (instances, axes at the cut) is used.
+3. ``identify`` back-propagates the deviations into the twin's parameters; the post compensates the same program with
+   the identified twin; the shop cuts and measures again.
+
+Slot block: the part program posts slot 1 uncompensated, slot 2 geometric, slot 3 comprehensive. In the loop all
+three slots get the same treatment: the uncompensated program (``slots_program(...).raw``) is posted whole with mode
+"geometric", first with the starting twin, then with the identified one, so the three slots are three repeats.
+
+Units: um for deviations, mm for geometry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..machine import Machine
+from ..postproc.post import compensate
+from .form import roundness, section_ring
+from .identify import Identification, identify
+from .parts import cone_signed_distance
+from .programs import nas979_program, slots_program
+
+
+def error_free(machine: Machine) -> Machine:
+    """The machine's layout with every error parameter zero and no force model: a nominal twin."""
+    zero = np.zeros(len(machine.parameter_names()))
+    return dataclasses.replace(machine.with_parameters(zero), loaded=None, loaded_force_n=None,
+                               compliance_um_per_n=None, surfaces=())
+
+
+# ----------------------------------------------------------------------------------------------- deviations ----
+def cone_deviation_um(points, part: dict) -> np.ndarray:
+    """Signed deviation (N,) um of measured points from the NAS 979 cone (+ = material outside)."""
+    cone = next(s for s in part["surfaces"] if s["id"] == "cone")
+    return cone_signed_distance(np.asarray(points, float), cone) * 1e3
+
+
+def slot_deviation_um(points, normals, part: dict, max_mm: float = 0.5) -> np.ndarray:
+    """Signed deviation (N,) um of measured points from the slot block's walls, arcs and floors (+ = material
+    outside, along the surface's outward normal); NaN where no slot surface within ``max_mm`` faces the point's
+    normal. Each point takes the surface it lies on: the normals must agree (cos > 0.9) and the point must lie within
+    the surface's extent (walls: along their segment and depth; arcs: their angle range; floors: within the slot's
+    outline, the tool-centre path swept by the tool radius)."""
+    p = np.asarray(points, float)
+    n = np.asarray(normals, float)
+    best = np.full(p.shape[0], np.inf)
+    out = np.full(p.shape[0], np.nan)
+    surfaces = {s["id"]: s for s in part["surfaces"]}
+    tol = 0.5  # mm of extent margin
+
+    def take(d, ok):
+        better = ok & (np.abs(d) < np.abs(best)) & (np.abs(d) <= max_mm)
+        best[better] = d[better]
+        out[better] = d[better] * 1e3
+
+    for feat in part["features"]:
+        if feat.get("type") != "slot":
+            continue
+        z_lo, z_hi = -feat["nominal_depth"], 0.0
+        for sid in feat["walls"]:
+            s = surfaces[sid]
+            a, b = np.array(s["segment"]["start"]), np.array(s["segment"]["end"])
+            ns = np.array(s["normal"], float)
+            t = (b - a) / np.linalg.norm(b - a)
+            along = (p[:, :2] - a) @ t
+            ok = ((n @ ns) > 0.9) & (along >= -tol) & (along <= np.linalg.norm(b - a) + tol)
+            ok &= (p[:, 2] >= z_lo - tol) & (p[:, 2] <= z_hi + tol)
+            take((p - np.array(s["point"], float)) @ ns, ok)
+        for sid in feat["arcs"]:
+            s = surfaces[sid]
+            c = np.array(s["center"], float)[:2]
+            v = p[:, :2] - c
+            r = np.linalg.norm(v, axis=1)
+            radial = v / np.maximum(r, 1e-12)[:, None]
+            lo, hi = np.radians(s["angle_range_deg"])
+            ang = lo + np.mod(np.arctan2(v[:, 1], v[:, 0]) - lo, 2 * np.pi)
+            ok = ((n[:, :2] * -radial).sum(axis=1) > 0.9) & (ang <= hi + tol / s["radius"])
+            ok &= (p[:, 2] >= z_lo - tol) & (p[:, 2] <= z_hi + tol)
+            take(s["radius"] - r, ok)  # concave: material beyond the radius; the normal points to the axis
+        floor = surfaces[feat["floor"]]
+        path = np.asarray(feat["tool_centre_path"], float)[:, :2]
+        d_path = np.full(p.shape[0], np.inf)
+        for a, b in zip(path[:-1], path[1:]):
+            t = b - a
+            s_ = np.clip((p[:, :2] - a) @ t / (t @ t), 0.0, 1.0)
+            d_path = np.minimum(d_path, np.linalg.norm(p[:, :2] - (a + s_[:, None] * t), axis=1))
+        ok = (n[:, 2] > 0.9) & (d_path <= feat["nominal_width"] / 2 + tol)
+        take(p[:, 2] - floor["point"][2], ok)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- one round ----
+@dataclass
+class Cut:
+    """One cut-and-measure round: the program, the measured cloud and its deviations (um)."""
+
+    program: str
+    points: np.ndarray
+    normals: np.ndarray
+    deviation_um: np.ndarray
+    metrics: dict
+
+
+def _measure(program: str, true: Machine, part_name: str, points: int, noise_um: float, seed: int,
+             part_json=None) -> Cut:
+    from ..sim.shop import load_part, simulate
+
+    part = load_part(part_name, part_json)
+    res = simulate(program, true, part=part_name, part_json=part, points=points, noise_um=noise_um, seed=seed)
+    cut = np.all(np.isfinite(res.measured), axis=1)
+    pts, nrm = res.measured[cut], res.normals[cut]
+    if part_name == "nas979":
+        dev = cone_deviation_um(pts, part)
+    else:
+        dev = slot_deviation_um(pts, nrm, part)
+    ok = np.isfinite(dev)
+    pts, nrm, dev = pts[ok], nrm[ok], dev[ok]
+    return Cut(program, pts, nrm, dev, _metrics(pts, nrm, dev, part))
+
+
+def _metrics(points, normals, dev, part: dict) -> dict:
+    m = {"points": int(dev.size), "rms_um": float(np.sqrt(np.mean(dev**2))), "mean_um": float(np.mean(dev)),
+         "max_abs_um": float(np.max(np.abs(dev))), "range_um": float(np.ptp(dev))}
+    if part["part"] == "nas979":
+        cone = next(s for s in part["surfaces"] if s["id"] == "cone")
+        alpha = math.radians(cone["half_angle_deg"])
+        a = np.asarray(cone["axis"], float)
+        h = (points - np.asarray(cone["base_center"], float)) @ (a / np.linalg.norm(a))
+        rings = {}
+        for feat in part["features"]:
+            if feat["type"] != "roundness":
+                continue
+            # The probed ring nearest the feature's height (the probe pattern's rings need not hit it exactly).
+            level = h[np.argmin(np.abs(h - feat["height"]))]
+            if abs(level - feat["height"]) > 1.0:
+                continue
+            ring = section_ring(points, cone["base_center"], a, level, 0.05, half_angle_rad=alpha)
+            if len(ring) >= 8:
+                rings[feat["id"]] = float(roundness(ring) * 1e3)
+        m["roundness_um"] = rings
+        m["roundness_max_um"] = max(rings.values()) if rings else float("nan")
+    else:
+        walls = np.abs(normals[:, 2]) < 0.5
+        m["walls_rms_um"] = float(np.sqrt(np.mean(dev[walls] ** 2))) if walls.any() else float("nan")
+        m["floors_rms_um"] = float(np.sqrt(np.mean(dev[~walls] ** 2))) if (~walls).any() else float("nan")
+    return m
+
+
+# ----------------------------------------------------------------------------------------------- the loop ----
+@dataclass
+class LoopResult:
+    """Before and after one identification loop. ``before`` / ``after``: :class:`Cut`. ``twin``: the twin the first
+    program was posted with; ``identification``: what ``identify`` found (its ``machine`` posted the second)."""
+
+    part: str
+    before: Cut
+    after: Cut
+    identification: Identification
+    twin: Machine
+    timings_s: dict = field(default_factory=dict)
+
+    @property
+    def rms_reduction(self) -> float:
+        """1 - rms_after / rms_before."""
+        return 1.0 - self.after.metrics["rms_um"] / self.before.metrics["rms_um"]
+
+    def as_dict(self) -> dict:
+        ident = self.identification.as_report()
+        return {"part": self.part, "before": self.before.metrics, "after": self.after.metrics,
+                "rms_reduction": self.rms_reduction,
+                "identified": ident["parameters"], "not_identifiable_count": len(ident["not_identifiable"]),
+                "residual_rms_um": ident["residual_rms_um"], "condition_number": ident["condition_number"],
+                "condition_number_identified": ident["condition_number_identified"], "timings_s": self.timings_s}
+
+    def summary(self) -> str:
+        b, a = self.before.metrics, self.after.metrics
+        lines = [f"{self.part}: RMS deviation {b['rms_um']:.2f} -> {a['rms_um']:.2f} um "
+                 f"({100 * self.rms_reduction:.0f} % lower), max |dev| {b['max_abs_um']:.2f} -> "
+                 f"{a['max_abs_um']:.2f} um"]
+        if "roundness_um" in b:
+            for k in b["roundness_um"]:
+                lines.append(f"  {k}: {b['roundness_um'][k]:.2f} -> {a['roundness_um'].get(k, float('nan')):.2f} um")
+        r = self.identification
+        lines.append("  identified: " + ", ".join(f"{r.names[i]} {r.value[i]:+.2f} +- {r.std[i]:.2f}"
+                                                 for i in np.nonzero(r.identified)[0]))
+        return "\n".join(lines)
+
+
+def closed_loop(true_machine: Machine, twin: Machine | None = None, part: str = "nas979", *, points: int = 4000,
+                noise_um: float = 0.5, seed: int = 0, program_options: dict | None = None,
+                identify_options: dict | None = None, post_options: dict | None = None) -> LoopResult:
+    """One loop of cut, measure, identify, compensate, cut, measure in the virtual shop.
+
+    true_machine : the machine that cuts (its errors are the truth; only twin parameters, no other effects).
+    twin : the twin the shop starts with (default ``error_free(true_machine)``; same layout, its parameter values
+        are the starting point of the identification).
+    part : "nas979" (five-axis machine) | "slots".  points : probe points per measurement.  noise_um : probe noise.
+    program_options : keywords for ``nas979_program`` / ``slots_program`` (e.g. step_deg, chord_tol_um).
+    identify_options : keywords for ``identify``.  post_options : keywords for ``compensate``.
+    """
+    if part not in ("nas979", "slots"):
+        raise ValueError(f"part must be 'nas979' or 'slots', got {part!r}")
+    twin = error_free(true_machine) if twin is None else twin
+    if twin.parameter_names() != true_machine.parameter_names():
+        raise ValueError("the twin and the true machine must share their parameter structure (same layout and tables)")
+    timings = {}
+    t = time.perf_counter()
+    if part == "nas979":
+        pp = nas979_program(twin, compensation="none", **(program_options or {}))
+    else:
+        pp = slots_program(twin, **(program_options or {}))
+    raw = pp.raw
+    placed_twin = pp.machine
+    true = dataclasses.replace(true_machine, workpiece_origin=placed_twin.workpiece_origin.copy())
+    post = {"source": f"{part}.ngc", **(post_options or {})}
+    program0 = compensate(raw, placed_twin, "geometric", **post)
+    timings["program_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    before = _measure(program0, true, part, points, noise_um, seed)
+    timings["cut_and_measure_before_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    result = identify(before.points, before.normals, before.deviation_um, program0, placed_twin,
+                      **(identify_options or {}))
+    timings["identify_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    program1 = compensate(raw, result.machine, "geometric", **post)
+    after = _measure(program1, true, part, points, noise_um, seed + 1)
+    timings["post_cut_and_measure_after_s"] = time.perf_counter() - t
+    return LoopResult(part, before, after, result, placed_twin, timings)
