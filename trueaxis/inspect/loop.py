@@ -6,9 +6,8 @@
 1. The part program (``trueaxis.inspect.programs``) is posted (``trueaxis.postproc.post.compensate``, geometric) with
    the *twin* the shop believes in (default: the true machine's layout with no errors at all).
 2. The virtual shop (``trueaxis.sim.shop.simulate``) cuts it on the *true* machine and measures it (virtual CMM,
-   probe noise); the deviations come from the measured cloud alone: the analytic cone distance
-   (``cone_signed_distance``) for the NAS 979 cone, the distance to the slot walls, arcs and floors of the part JSON
-   for the slot block. Nothing of the simulator's truth (instances, axes at the cut) is used.
+   probe noise); the deviations come from the measured cloud alone, as ``inspect`` computes them (exact distances to
+   the part JSON's analytic surfaces, ``trueaxis.inspect.deviation``). Nothing of the simulator's truth (instances, axes at the cut) is used.
 3. ``identify`` back-propagates the deviations into the twin's parameters; the post compensates the same program with
    the identified twin; the shop cuts and measures again.
 
@@ -31,6 +30,7 @@ import numpy as np
 from ..machine import Machine
 from ..postproc.post import compensate
 from .form import roundness, section_ring
+from .deviation import analytic_surfaces, deviation
 from .identify import Identification, identify
 from .parts import cone_signed_distance
 from .programs import nas979_program, slots_program
@@ -48,60 +48,6 @@ def cone_deviation_um(points, part: dict) -> np.ndarray:
     """Signed deviation (N,) um of measured points from the NAS 979 cone (+ = material outside)."""
     cone = next(s for s in part["surfaces"] if s["id"] == "cone")
     return cone_signed_distance(np.asarray(points, float), cone) * 1e3
-
-
-def slot_deviation_um(points, normals, part: dict, max_mm: float = 0.5) -> np.ndarray:
-    """Signed deviation (N,) um of measured points from the slot block's walls, arcs and floors (+ = material
-    outside, along the surface's outward normal); NaN where no slot surface within ``max_mm`` faces the point's
-    normal. Each point takes the surface it lies on: the normals must agree (cos > 0.9) and the point must lie within
-    the surface's extent (walls: along their segment and depth; arcs: their angle range; floors: within the slot's
-    outline, the tool-centre path swept by the tool radius)."""
-    p = np.asarray(points, float)
-    n = np.asarray(normals, float)
-    best = np.full(p.shape[0], np.inf)
-    out = np.full(p.shape[0], np.nan)
-    surfaces = {s["id"]: s for s in part["surfaces"]}
-    tol = 0.5  # mm of extent margin
-
-    def take(d, ok):
-        better = ok & (np.abs(d) < np.abs(best)) & (np.abs(d) <= max_mm)
-        best[better] = d[better]
-        out[better] = d[better] * 1e3
-
-    for feat in part["features"]:
-        if feat.get("type") != "slot":
-            continue
-        z_lo, z_hi = -feat["nominal_depth"], 0.0
-        for sid in feat["walls"]:
-            s = surfaces[sid]
-            a, b = np.array(s["segment"]["start"]), np.array(s["segment"]["end"])
-            ns = np.array(s["normal"], float)
-            t = (b - a) / np.linalg.norm(b - a)
-            along = (p[:, :2] - a) @ t
-            ok = ((n @ ns) > 0.9) & (along >= -tol) & (along <= np.linalg.norm(b - a) + tol)
-            ok &= (p[:, 2] >= z_lo - tol) & (p[:, 2] <= z_hi + tol)
-            take((p - np.array(s["point"], float)) @ ns, ok)
-        for sid in feat["arcs"]:
-            s = surfaces[sid]
-            c = np.array(s["center"], float)[:2]
-            v = p[:, :2] - c
-            r = np.linalg.norm(v, axis=1)
-            radial = v / np.maximum(r, 1e-12)[:, None]
-            lo, hi = np.radians(s["angle_range_deg"])
-            ang = lo + np.mod(np.arctan2(v[:, 1], v[:, 0]) - lo, 2 * np.pi)
-            ok = ((n[:, :2] * -radial).sum(axis=1) > 0.9) & (ang <= hi + tol / s["radius"])
-            ok &= (p[:, 2] >= z_lo - tol) & (p[:, 2] <= z_hi + tol)
-            take(s["radius"] - r, ok)  # concave: material beyond the radius; the normal points to the axis
-        floor = surfaces[feat["floor"]]
-        path = np.asarray(feat["tool_centre_path"], float)[:, :2]
-        d_path = np.full(p.shape[0], np.inf)
-        for a, b in zip(path[:-1], path[1:]):
-            t = b - a
-            s_ = np.clip((p[:, :2] - a) @ t / (t @ t), 0.0, 1.0)
-            d_path = np.minimum(d_path, np.linalg.norm(p[:, :2] - (a + s_[:, None] * t), axis=1))
-        ok = (n[:, 2] > 0.9) & (d_path <= feat["nominal_width"] / 2 + tol)
-        take(p[:, 2] - floor["point"][2], ok)
-    return out
 
 
 # ----------------------------------------------------------------------------------------------- one round ----
@@ -124,11 +70,10 @@ def _measure(program: str, true: Machine, part_name: str, points: int, noise_um:
     res = simulate(program, true, part=part_name, part_json=part, points=points, noise_um=noise_um, seed=seed)
     cut = np.all(np.isfinite(res.measured), axis=1)
     pts, nrm = res.measured[cut], res.normals[cut]
-    if part_name == "nas979":
-        dev = cone_deviation_um(pts, part)
-    else:
-        dev = slot_deviation_um(pts, nrm, part)
-    ok = np.isfinite(dev)
+    # The inspection's own deviations (exact distances to the part JSON's analytic surfaces); points farther than
+    # half a millimetre from every surface are not on the part's inspection surfaces and are left out.
+    dev = deviation(pts, analytic_surfaces(part)).deviation_um
+    ok = np.abs(dev) <= 500.0
     pts, nrm, dev = pts[ok], nrm[ok], dev[ok]
     return Cut(program, pts, nrm, dev, _metrics(pts, nrm, dev, part))
 

@@ -19,25 +19,13 @@ import math
 import numpy as np
 
 from ..inspect import form
+from ..inspect.deviation import analytic_surfaces, deviation
+from ..inspect.report import evaluate_slots
 from ..inspect.parts import Nas979Params, SlotBlockParams, nas979_description, slot_block_description
 from ..machine import Machine, load_machine
 from ..resources import machine_file
 from .effects import parse_effects
 from .shop import simulate
-
-
-def slot_of_points(part: dict, points) -> np.ndarray:
-    """(N,) int: index of the slot (0, 1, 2) whose tool-centre path is nearest to each point in XY."""
-    pts = np.asarray(points, float)[:, :2]
-    slots = [f for f in part["features"] if f.get("type") == "slot"]
-    best = np.full((pts.shape[0], len(slots)), np.inf)
-    for k, feat in enumerate(slots):
-        path = np.asarray(feat["tool_centre_path"], float)[:, :2]
-        a, b = path[:-1], path[1:]
-        ab = b - a
-        t = np.clip(np.einsum("nkj,kj->nk", pts[:, None, :] - a, ab) / np.einsum("kj,kj->k", ab, ab), 0.0, 1.0)
-        best[:, k] = np.linalg.norm(pts[:, None, :] - (a + t[..., None] * ab), axis=2).min(axis=1)
-    return best.argmin(axis=1)
 
 
 def slot_experiment(points: int = 6000, params: SlotBlockParams | None = None, machine: Machine | None = None,
@@ -51,14 +39,14 @@ def slot_experiment(points: int = 6000, params: SlotBlockParams | None = None, m
     part = slot_block_description(p)
     effects = parse_effects({"force": {"use_machine_compliance": True}}, machine=m)
     res = simulate(prog.text, m, effects, part="slots", part_json=part, points=points, seed=seed)
-    slot = slot_of_points(part, res.points)
-    wall = (np.abs(res.normals[:, 2]) < 0.5) & np.isfinite(res.deviations_um)
-    out = []
-    for k, mode in enumerate(("none", "geometric", "comprehensive")):
-        d = res.deviations_um[wall & (slot == k)]
-        out.append({"slot": k + 1, "compensation": mode, "points": int(d.size),
-                    "contour_error_um": float(np.mean(np.abs(d))), "rms_um": float(np.sqrt(np.mean(d**2))),
-                    "max_abs_um": float(np.max(np.abs(d)))})
+    # Measured the way ``inspect`` measures a real slot block: deviations from the part's analytic surfaces, then
+    # each slot's mean contour error over its walls and arcs.
+    measured = res.measured[np.all(np.isfinite(res.measured), axis=1)]
+    report, _ = evaluate_slots(measured, deviation(measured, analytic_surfaces(part)), part)
+    out = [{"slot": k + 1, "compensation": s["compensation"], "points": s["points"],
+            "contour_error_um": s["mean_contour_error_um"], "rms_um": s["deviation_um"]["rms"],
+            "max_abs_um": max(abs(s["deviation_um"]["min"]), abs(s["deviation_um"]["max"]))}
+           for k, s in enumerate(report["slots"])]
     return {"slots": out, "force_max_n": res.info.get("force_max_n", 0.0), "not_cut": res.info["not_cut"],
             "seconds": res.timings["total_s"]}
 
