@@ -127,14 +127,18 @@ def cmd_post(args) -> int:
         raise UsageError(f"{args.input}: no such file")
     conditions = {k: getattr(args, k) for k in ("ap", "ae", "fz", "n", "d", "z")}
     conditions["mode"] = args.cut_mode
+    branch = {"nearest": "nearest", "+1": 1, "-1": -1}[args.cl_branch]
     out, report = post_text(text, machine, args.mode, tol_um=args.tol_um, max_correction_mm=args.max_correction_mm,
                             singular_deg=args.singular_deg, conditions=conditions,
-                            passthrough_unsupported=args.passthrough_unsupported, source=source)
+                            passthrough_unsupported=args.passthrough_unsupported, source=source,
+                            cl_feed_mm_min=args.cl_feed, cl_branch=branch)
     atomic_write(args.output, out)
     if args.report:
         atomic_write(args.report, json.dumps(report.as_dict(), indent=2))
     corr = ", ".join(f"{a} {max(v.values()):.2f}" for a, v in report.correction.items())
-    print(f"{args.output}: {report.blocks_in} blocks in, {report.blocks_out} out; {report.moves_split} moves split; "
+    cl = (f"CL data ({report.input_format[3:]}, {report.cl_points} points, {report.cl_program_blocks} machine-axis "
+          "blocks) -> " if report.input_format.startswith("cl-") else "")
+    print(f"{args.output}: {cl}{report.blocks_in} blocks in, {report.blocks_out} out; {report.moves_split} moves split; "
           f"max correction {corr} (um/urad); {len(report.singular_blocks)} singular blocks")
     return 0
 
@@ -202,15 +206,60 @@ def cmd_simulate(args) -> int:
     return main_simulate(args)
 
 
+def cmd_diagnose(args) -> int:
+    from .diagnose.report import main_diagnose
+    from .resources import machine_file
+
+    args.machine = str(machine_file(args.machine))
+    if args.noise_um is not None and not args.noise_um > 0:
+        raise UsageError("--noise-um must be > 0")
+    return main_diagnose(args)
+
+
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
     return run_demo(Path(args.out))
 
 
+def cmd_freecad_install(args) -> int:
+    from .postproc.hosts.freecad import default_macro_dir, install_post
+
+    folder = args.dir if args.dir is not None else default_macro_dir()
+    try:
+        target = install_post(folder)
+    except OSError as exc:  # a folder we may not write, a file where the folder should be
+        raise UsageError(f"cannot install into {folder}: {exc.strerror or exc}") from None
+    print(f"{target}: installed; in a FreeCAD CAM Job choose the post processor 'trueaxis' with arguments such as "
+          "--machine /path/to/machine.toml")
+    return 0
+
+
 def cmd_inspect(args) -> int:
-    print("trueaxis inspect: not yet available (the inspection issue is open)", file=sys.stderr)
-    return EXIT_BAD_INPUT
+    """Compare a cloud with its part and write the report folder (trueaxis.inspect.report does the work)."""
+    from .inspect.report import inspect_cloud, write_report
+
+    if args.identify and not (args.machine and args.program):
+        raise UsageError("--identify needs --machine TWIN.toml and --program PROG.ngc")
+    if not args.identify and (args.machine or args.program or args.write):
+        raise UsageError("--machine, --program and --write go with --identify")
+    out_dir = Path(args.output) if args.output else Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
+    result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align)
+    if args.identify:
+        from .inspect.identify import run_identification
+
+        identified = run_identification(result.aligned_cloud(), result.deviation_um, result.part, args)
+        if isinstance(identified, dict):
+            result.report["identification"] = identified
+    write_report(result, out_dir)
+    r = result.report
+    d = r["deviation_um"]
+    line = (f"{out_dir}: {r['points']} points vs {args.part} ({r['alignment']['method']} alignment): deviation rms "
+            f"{d['rms']:.2f} um, range {d['min']:+.2f}..{d['max']:+.2f} um")
+    if r.get("cone"):
+        line += f"; half angle error {r['cone']['half_angle_error_urad']:+.1f} urad"
+    print(line)
+    return 0
 
 
 # ------------------------------------------------------------------------------------------------------ parser ----
@@ -235,7 +284,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=cmd_error)
 
     po = sub.add_parser("post", help="compensate an NC program with a machine's error twin")
-    po.add_argument("input", help="G-code program (machine axes)")
+    po.add_argument("input", help="G-code program (machine axes), or CL data in the part frame: CSV with a header "
+                    "naming x,y,z,i,j,k[,f] or APT (GOTO/x,y,z,i,j,k, FEDRAT/f, RAPID); told apart by content")
     po.add_argument("-o", "--output", required=True, help="compensated program (written atomically)")
     po.add_argument("--machine", required=True, help="machine file (TOML)")
     po.add_argument("--mode", default="geometric", choices=["none", "geometric", "comprehensive"])
@@ -251,6 +301,10 @@ def build_parser() -> argparse.ArgumentParser:
         po.add_argument(f"--{key}", type=float if key != "z" else int, help=f"cutting conditions: {what} "
                         "(overrides the program's structured comments)")
     po.add_argument("--cut-mode", choices=["down", "up"], help="cutting conditions: down or up milling")
+    po.add_argument("--cl-feed", type=float, help="CL data: feed, mm/min, for cuts before the data gives one")
+    po.add_argument("--cl-branch", choices=["nearest", "+1", "-1"], default="nearest",
+                    help="CL data: sign of the tilt axis (default: kept along the path, the one farthest inside "
+                         "its travel to start)")
     po.set_defaults(func=cmd_post)
 
     pa = sub.add_parser("part", help="write a test part: STEP, STL (chord tolerance stated) and JSON")
@@ -293,12 +347,45 @@ def build_parser() -> argparse.ArgumentParser:
     sm.add_argument("--seed", type=int, default=0, help="noise seed (0)")
     sm.set_defaults(func=cmd_simulate)
 
+    fc = sub.add_parser("freecad", help="FreeCAD CAM integration")
+    fcsub = fc.add_subparsers(dest="freecad_command", required=True)
+    fi = fcsub.add_parser("install", help="copy the trueaxis post processor into FreeCAD's macro folder")
+    fi.add_argument("--dir", type=Path, help="folder to install into (default: FreeCAD's user macro folder, from its "
+                    "user.cfg MacroPath, else ~/.local/share/FreeCAD/Macro or ~/.FreeCAD/Macro)")
+    fi.set_defaults(func=cmd_freecad_install)
+
+    dg = sub.add_parser("diagnose", help="the sim-to-real gap: where it lies, which effect explains it, how far it shrinks")
+    dg.add_argument("--cloud", required=True, help="measured CMM cloud (PLY/CSV/XYZ, part frame, mm)")
+    dg.add_argument("--part", required=True, choices=["nas979", "slots"])
+    dg.add_argument("--machine", required=True, help="the twin (machine file, TOML)")
+    dg.add_argument("--program", required=True, help="the NC program that cut the part")
+    dg.add_argument("--candidates", default="all", help="all, or a comma-separated list of candidate effects")
+    dg.add_argument("--split", default="region", choices=["region", "time", "random"],
+                    help="how held-out points are kept apart from the fitted ones (default region)")
+    dg.add_argument("--noise-um", type=float, help="probe noise sigma, um (default: estimated from the data)")
+    dg.add_argument("-o", "--output", default="diagnosis", help="report folder (default ./diagnosis)")
+    dg.set_defaults(func=cmd_diagnose)
+
     d = sub.add_parser("demo", help="run the end-to-end demonstration on built-in defaults")
     d.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
     d.set_defaults(func=cmd_demo)
 
-    i = sub.add_parser("inspect", help="compare a CMM cloud with the part (not yet available)")
-    i.add_argument("rest", nargs=argparse.REMAINDER)
+    i = sub.add_parser("inspect", help="compare a CMM cloud with the part: deviations, form, report folder")
+    i.add_argument("cloud", help="CMM cloud in the part frame, mm: PLY (ascii/binary), CSV or XYZ, normals optional")
+    i.add_argument("--part", required=True, choices=["nas979", "slots"])
+    ref = i.add_mutually_exclusive_group()
+    ref.add_argument("--part-dir", help="folder holding <part>.json (and slots.stl) from 'trueaxis part' "
+                     "(default: the default part parameters)")
+    ref.add_argument("--cad", help="CAD of the part: STEP (tessellated to < 0.1 um chord error; slow) or STL/PLY/OBJ; "
+                     "its analytic surfaces come from <stem>.json beside it when present")
+    i.add_argument("--align", default="none", choices=["none", "bestfit", "datum"],
+                   help="none: cloud already in the part frame (default); bestfit: ICP onto the CAD, the rigid motion "
+                        "removed is reported; datum: 3-2-1 frame from the probed datum planes")
+    i.add_argument("-o", "--output", help="report folder (default: <cloud stem>_report beside the cloud)")
+    i.add_argument("--identify", action="store_true", help="identify twin parameters from the deviations")
+    i.add_argument("--machine", help="with --identify: the machine's error twin (TOML)")
+    i.add_argument("--program", help="with --identify: the program that cut the part")
+    i.add_argument("--write", help="with --identify: write the updated machine file here")
     i.set_defaults(func=cmd_inspect)
     return p
 

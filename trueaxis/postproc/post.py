@@ -73,12 +73,20 @@ class PostReport:
     arcs_kept: int = 0
     arcs_linearised: int = 0
     singular_blocks: list = field(default_factory=list)
+    singular_block_count: int = 0
+    singular_points: int = 0
+    max_axis_error_singular_urad: float = 0.0
+    input_format: str = "gcode"
+    cl_points: int = 0
+    cl_program_blocks: int = 0
     correction: dict = field(default_factory=dict)
     units_note: str = ""
     passthrough: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
     max_residual_um: float = 0.0
     max_residual_urad: float = 0.0
+    max_split_deviation_um: float = 0.0
+    max_split_deviation_urad: float = 0.0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -99,12 +107,16 @@ def compensate(
     passthrough_unsupported: bool = False,
     source: str | None = None,
     report: dict | None = None,
+    cl_feed_mm_min: float | None = None,
+    cl_branch="nearest",
 ) -> str:
-    """Compensated program text. ``program``: G-code text or a path. ``report``: a dict to fill with the report."""
+    """Compensated program text. ``program``: G-code text, CL data (CSV or APT, see ``cl``) or a path.
+    ``report``: a dict to fill with the report."""
     text, source = _read_input(program, source)
     out, rep = post_text(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
                          singular_deg=singular_deg, conditions=conditions,
-                         passthrough_unsupported=passthrough_unsupported, source=source)
+                         passthrough_unsupported=passthrough_unsupported, source=source,
+                         cl_feed_mm_min=cl_feed_mm_min, cl_branch=cl_branch)
     if report is not None:
         report.update(rep.as_dict())
     return out
@@ -128,12 +140,24 @@ def _read_input(program, source):
 
 def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: float = 1.0,
               max_correction_mm: float = 0.5, singular_deg: float = 1.0, conditions: dict | None = None,
-              passthrough_unsupported: bool = False, source: str = "<string>") -> tuple[str, PostReport]:
-    """Compensate program text; returns (text, report)."""
+              passthrough_unsupported: bool = False, source: str = "<string>", cl_feed_mm_min: float | None = None,
+              cl_branch="nearest") -> tuple[str, PostReport]:
+    """Compensate program text (G-code or CL data, told apart by content); returns (text, report).
+
+    CL data (``GOTO/`` lines, or a CSV header naming x,y,z,i,j,k) first become machine-axis G-code through the
+    machine's inverse kinematics (``cl.cl_program``: linearised within tol_um / 2 of the CL segments), which is then
+    compensated within tol_um / 2, so the actual path stays within tol_um of the CL segments. Errors and the singular
+    blocks of the report then name lines of the CL file."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
     if not (tol_um > 0):
         raise ValueError(f"tolerance must be positive, got {tol_um} um")
+    from .cl import cl_format
+
+    if cl_format(text) is not None:
+        return _post_cl(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
+                        singular_deg=singular_deg, conditions=conditions, source=source,
+                        feed_mm_min=cl_feed_mm_min, branch=cl_branch)
     prog = parse_program(text, source, passthrough_unsupported=passthrough_unsupported)
     rep = PostReport(source=source, machine=machine.name, mode=mode, tol_um=tol_um)
     rep.blocks_in = len(prog.lines)
@@ -147,6 +171,29 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
         rep.blocks_out = rep.blocks_in
         return text, rep
     return _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep).run()
+
+
+def _post_cl(text, machine, mode, *, tol_um, max_correction_mm, singular_deg, conditions, source, feed_mm_min,
+             branch):
+    from .cl import cl_program, read_cl
+
+    cl = read_cl(text, source)
+    gcode, line_map = cl_program(cl, machine, tol_um=tol_um / 2, feed_mm_min=feed_mm_min, branch=branch)
+    try:
+        out, rep = post_text(gcode, machine, mode, tol_um=tol_um / 2, max_correction_mm=max_correction_mm,
+                             singular_deg=singular_deg, conditions=conditions, source=source)
+    except GcodeError as exc:
+        line = line_map[min(max(exc.line_no, 1), len(line_map)) - 1]
+        raise PostError(source, line, f"{exc.reason} (CL point; line {exc.line_no} of the machine-axis program "
+                                      "made from it)") from None
+    rep.tol_um = tol_um
+    rep.input_format = f"cl-{cl.format}"
+    rep.cl_points = len(cl)
+    rep.cl_program_blocks = len(line_map)
+    rep.blocks_in = len(text.splitlines())
+    rep.singular_blocks = sorted({line_map[ln - 1] for ln in rep.singular_blocks})
+    rep.singular_block_count = len(rep.singular_blocks)
+    return out, rep
 
 
 def _check_axes(prog: Program, machine: Machine, source: str):
@@ -178,6 +225,8 @@ class _Poster:
         self.cols = [AXES.index(a) for a in self.names]
         self.orientation = any(a in prog.axes_present for a in machine.rotary_axes)
         self.inch_rows = prog.inch
+        self.stats = {"um": 0.0, "urad": 0.0, "urad_singular": 0.0, "singular_points": 0, "singular_lines": set()}
+        self.fractions = {}  # row index -> piece boundaries (fractions of the move) of split moves
 
     # --- coordinates ------------------------------------------------------------------------------------------------
     def to_machine(self, prog6, inch):
@@ -268,12 +317,29 @@ class _Poster:
         return at
 
     # --- solving -------------------------------------------------------------------------------------------------
-    def solve(self, q, force, rows):
-        hold = np.zeros_like(q, bool)
-        if self.orientation and self.m.is_five_axis:
+    def _pair(self):
+        """(outer, inner) rotary links of a five-axis machine with orientation compensation, else None."""
+        if not (self.orientation and self.m.is_five_axis):
+            return None
+        if not hasattr(self, "_pair_cache"):
             from ..machine.kinematics import _rotary_pair
 
-            outer, inner = _rotary_pair(self.m)
+            try:
+                self._pair_cache = _rotary_pair(self.m)
+            except NotImplementedError as exc:
+                self._pair_cache = None
+                self.rep.warnings.append(f"singular cone not handled for this layout: {exc}")
+        return self._pair_cache
+
+    def solve(self, q, force, rows):
+        """Commanded poses for nominal poses q (K, n_axes), and (K,) bool: the free axis was held (singular cone).
+
+        Every solve is recorded: its residuals (for the report) and the blocks with points in the singular cone."""
+        hold = np.zeros_like(q, bool)
+        pair = self._pair()
+        if pair is not None:
+            outer, inner = pair
+            # Inside the cone |tilt| < singular_deg the outer axis hardly turns the tool axis: held at its nominal value.
             sing = np.abs(np.sin(q[:, inner.column])) < np.sin(self.singular)
             hold[:, outer.column] = sing
         res = solve_commanded(self.twin, q, force, orientation=self.orientation, hold=hold,
@@ -284,7 +350,15 @@ class _Poster:
             raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
                             f"compensation did not converge (residual {res.position_residual_um[k]:.3g} um,"
                             f" {res.axis_residual_urad[k]:.3g} urad)")
-        return res.q, hold.any(axis=1)
+        held = hold.any(axis=1)
+        st = self.stats
+        st["um"] = max(st["um"], float(res.position_residual_um.max(initial=0.0)))
+        if self.orientation:
+            st["urad"] = max(st["urad"], float(res.axis_residual_urad[~held].max(initial=0.0)))
+            st["urad_singular"] = max(st["urad_singular"], float(res.axis_residual_urad[held].max(initial=0.0)))
+        st["singular_points"] += int(held.sum())
+        st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
+        return res.q, held
 
     def check(self, q_nom, q_cmd, rows):
         """Correction bound and travel, per point; raises PostError naming the block."""
@@ -331,7 +405,6 @@ class _Poster:
         force = self.forces(rows, direction)
         q_cmd, singular = self.solve(q_end, force, rows)
         self.check(q_end, q_cmd, rows)
-        self.rep.singular_blocks = sorted({int(x) for x in p.line_no[rows[singular]]})
         delta_prog = self.to_program_delta(q_cmd - q_end, inch)
         self._summarise(q_cmd - q_end)
 
@@ -339,7 +412,7 @@ class _Poster:
         pieces = {}
         arc_mode = {}
         feed_rows = np.nonzero(p.motion[rows] == FEED)[0]
-        pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch))
+        pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd))
         if np.any(arcs):
             arc_pieces, modes = self._arcs(rows, np.nonzero(arcs)[0], q_start, q_end, force, inch, delta_prog)
             pieces.update(arc_pieces)
@@ -356,10 +429,15 @@ class _Poster:
         self.rep.correction = out
 
     def _residual_check(self, rows, q_cmd, q_end, force):
-        p_nom, u_nom = self.twin.nominal_pose(q_end)
-        p_act, u_act = self.twin.actual_pose(q_cmd, force)
-        self.rep.max_residual_um = float(np.linalg.norm(p_act - p_nom, axis=1).max() * 1e3)
-        self.rep.max_residual_urad = float(np.linalg.norm(u_act - u_nom, axis=1).max() * 1e6) if self.orientation else 0.0
+        """Report: the largest pose residual over every solved point (block ends and split points); the tool-axis
+        residual outside the singular cone, and apart the tool-axis error left inside it (its free axis held)."""
+        st = self.stats
+        self.rep.max_residual_um = st["um"]
+        self.rep.max_residual_urad = st["urad"]
+        self.rep.max_axis_error_singular_urad = st["urad_singular"]
+        self.rep.singular_points = st["singular_points"]
+        self.rep.singular_blocks = sorted(st["singular_lines"])
+        self.rep.singular_block_count = len(self.rep.singular_blocks)
 
     def _arc_end_tangent(self, arc_rows, q_end_mm):
         p = self.p
@@ -374,75 +452,103 @@ class _Poster:
         tang = np.cross(normal, radial) * sense[:, None]
         return tang
 
-    def _split_lines(self, rows, feed_idx, q_start, q_end, force, inch):
-        """Straight feed moves: split until the actual path stays within tolerance of the nominal straight move."""
+    def _split_lines(self, rows, feed_idx, q_start, q_end, force, inch, q_cmd_end, max_rounds=10):
+        """Straight feed moves: split until the actual path stays within tolerance of the nominal path.
+
+        The nominal path is the one the control makes of the programmed move: the axes interpolated linearly (in five
+        axes a curve in the part frame). The compensated move is linear in the commanded axes between its pieces'
+        ends; at fractions 1/4, 1/2, 3/4 of each piece the actual pose is compared with the nominal pose at the same
+        fraction of the move (the same instant: position and, in five axes, tool axis), so both the error's
+        variation and the kinematics' non-linearity count. Inside the singular cone the ends keep a tool-axis error
+        (free axis held): what is compared there is the deviation beyond the straight blend of the ends' residuals.
+
+        All points of all moves live in flat arrays (move, fraction, commanded pose, residual) and only new points
+        are solved, one batch per round."""
         out = {}
         if feed_idx.size == 0:
             return out
         p = self.p
-        # Fractions of each move at the current piece boundaries; start with the whole move.
-        todo = {int(i): np.array([0.0, 1.0]) for i in feed_idx}
-        for _ in range(8):
-            idx = np.array(sorted(todo))
-            if idx.size == 0:
+        n6 = 6 if self.orientation else 3
+        idx = np.asarray(feed_idx, int)
+        f_all = None if force is None else force
+
+        def residual(i_move, fr, qc):
+            q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
+            pn, un = self.twin.nominal_pose(q_nom)
+            pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
+            return np.hstack([pa - pn, ua - un])[:, :n6]
+
+        q0, _ = self.solve(q_start[idx], None if f_all is None else f_all[idx], rows[idx])
+        I = np.r_[idx, idx]
+        F = np.r_[np.zeros(idx.size), np.ones(idx.size)]
+        C = np.vstack([q0, q_cmd_end[idx]])
+        R = residual(I, F, C)
+        active = np.zeros(len(rows), bool)
+        active[idx] = True
+        scale = np.r_[np.full(3, 1 / self.tol_mm), np.full(3, 1 / self.tol_rad)][:n6]
+        worst_final = np.zeros(0)
+        for _ in range(max_rounds):
+            order = np.lexsort((F, I))
+            I, F, C, R = I[order], F[order], C[order], R[order]
+            ia = np.nonzero((I[1:] == I[:-1]) & active[I[:-1]])[0]
+            if ia.size == 0:
                 break
-            bounds = [todo[i] for i in idx]
-            counts = np.array([b.size - 1 for b in bounds])
-            a = np.concatenate([b[:-1] for b in bounds])
-            b = np.concatenate([b[1:] for b in bounds])
-            owner = np.repeat(idx, counts)
-            qs, qe = q_start[owner], q_end[owner]
-            f = None if force is None else force[owner]
-            # Commanded piece ends (solve at both ends; the same points as neighbours: cached by value below).
-            ca, _ = self.solve(qs + a[:, None] * (qe - qs), f, rows[owner])
-            cb, _ = self.solve(qs + b[:, None] * (qe - qs), f, rows[owner])
+            owner, a, b = I[ia], F[ia], F[ia + 1]
+            ca, cb, ra, rb = C[ia], C[ia + 1], R[ia], R[ia + 1]
             worst = np.zeros(owner.size)
-            for s in (0.25, 0.5, 0.75):
-                frac = a + s * (b - a)
-                q_nom = qs + frac[:, None] * (qe - qs)
-                pn, un = self.twin.nominal_pose(q_nom)
-                pa, ua = self.twin.actual_pose(ca + s * (cb - ca), f)
-                dev = np.linalg.norm(pa - pn, axis=1) / self.tol_mm
-                if self.orientation:
-                    dev = np.maximum(dev, np.linalg.norm(ua - un, axis=1) / self.tol_rad)
-                worst = np.maximum(worst, dev)
-            new_todo = {}
-            for i in idx:
-                sel = owner == i
-                if np.all(worst[sel] <= 1.0):
-                    continue
-                bnd = todo[i]
-                refined = [bnd[0]]
-                for k, (lo, hi) in enumerate(zip(bnd[:-1], bnd[1:])):
-                    w = worst[sel][k]
-                    nsub = 1 if w <= 1.0 else int(np.ceil(np.sqrt(w))) + 1
-                    refined.extend(lo + (hi - lo) * np.arange(1, nsub + 1) / nsub)
-                new_todo[i] = np.array(refined)
-            for i in idx:
-                if i not in new_todo:
-                    out[i] = todo[i]
-            todo = new_todo
-        for i, bnd in todo.items():
-            out[i] = bnd
-        # Convert fraction lists into program-coordinate end points of each piece.
-        pieces = {}
-        split_rows = [i for i, bnd in out.items() if bnd.size > 2]
-        self.rep.moves_split = len(split_rows)
-        if split_rows:
-            fr = np.concatenate([out[i][1:-1] for i in split_rows])
-            owner = np.concatenate([np.full(out[i].size - 2, i) for i in split_rows])
-            qs, qe = q_start[owner], q_end[owner]
-            q_nom = qs + fr[:, None] * (qe - qs)
-            f = None if force is None else force[owner]
-            q_c, _ = self.solve(q_nom, f, rows[owner])
-            self.check(q_nom, q_c, rows[owner])
-            start6 = p.start[rows[owner]]
-            end6 = p.end[rows[owner]]
-            nom6 = start6 + fr[:, None] * (end6 - start6)
-            cmd6 = nom6 + self.to_program_delta(q_c - q_nom, inch[owner])
-            for i in split_rows:
-                pieces[i] = cmd6[owner == i]
-        return pieces
+            dev_um = np.zeros(owner.size)
+            dev_urad = np.zeros(owner.size)
+            for sfrac in (0.25, 0.5, 0.75):
+                e = residual(owner, a + sfrac * (b - a), ca + sfrac * (cb - ca)) - ((1 - sfrac) * ra + sfrac * rb)
+                ep = np.linalg.norm(e[:, :3], axis=1)
+                eu = np.linalg.norm(e[:, 3:], axis=1) if self.orientation else np.zeros(owner.size)
+                dev_um, dev_urad = np.maximum(dev_um, ep * 1e3), np.maximum(dev_urad, eu * 1e6)
+                worst = np.maximum(worst, np.maximum(ep * scale[0], eu / self.tol_rad))
+            bad = worst > 1.0
+            worst_final = worst
+            self.rep.max_split_deviation_um = max(self.rep.max_split_deviation_um, float(dev_um[~bad].max(initial=0)))
+            self.rep.max_split_deviation_urad = max(self.rep.max_split_deviation_urad,
+                                                    float(dev_urad[~bad].max(initial=0)))
+            if not np.any(bad):
+                break
+            # Deviations of a chord shrink with the square of its length: about sqrt(worst) sub-pieces each.
+            nsub = np.where(bad, np.maximum(2, np.ceil(np.sqrt(worst))), 1).astype(int)
+            rep_ = np.repeat(np.arange(owner.size), nsub - 1)
+            j = np.arange(rep_.size) - np.repeat(np.cumsum(nsub - 1) - (nsub - 1), nsub - 1) + 1
+            fr = a[rep_] + (b[rep_] - a[rep_]) * j / nsub[rep_]
+            mv = owner[rep_]
+            q_nom = q_start[mv] + fr[:, None] * (q_end[mv] - q_start[mv])
+            qc, _ = self.solve(q_nom, None if f_all is None else f_all[mv], rows[mv])
+            self.check(q_nom, qc, rows[mv])
+            I, F, C = np.r_[I, mv], np.r_[F, fr], np.vstack([C, qc])
+            R = np.vstack([R, residual(mv, fr, qc)])
+            active[:] = False
+            active[np.unique(owner[bad])] = True
+        else:
+            still = np.unique(owner[worst_final > 1.0]) if worst_final.size else np.array([], int)
+            for i in still:
+                self.rep.warnings.append(f"{p.source}:{int(p.line_no[rows[i]])}: the move was split {max_rounds} "
+                                         "times and still leaves the nominal path by more than the tolerance")
+        order = np.lexsort((F, I))
+        I, F, C = I[order], F[order], C[order]
+        counts = np.bincount(I, minlength=len(rows))
+        split_rows = np.nonzero(counts > 2)[0]
+        self.rep.moves_split = int(split_rows.size)
+        if split_rows.size == 0:
+            return out
+        inner = np.isin(I, split_rows) & (F > 0) & (F < 1)
+        fr, mv, qc = F[inner], I[inner], C[inner]
+        q_nom = q_start[mv] + fr[:, None] * (q_end[mv] - q_start[mv])
+        start6 = p.start[rows[mv]]
+        end6 = p.end[rows[mv]]
+        nom6 = start6 + fr[:, None] * (end6 - start6)
+        cmd6 = nom6 + self.to_program_delta(qc - q_nom, inch[mv])
+        bounds = np.split(np.arange(mv.size), np.nonzero(np.diff(mv))[0] + 1)
+        for sel in bounds:
+            i = int(mv[sel[0]])
+            out[i] = cmd6[sel]
+            self.fractions[i] = np.r_[0.0, fr[sel], 1.0]
+        return out
 
     def _arcs(self, rows, arc_idx, q_start, q_end, force, inch, delta_prog):
         """Arcs whose correction is constant within tolerance stay arcs; others become straight pieces.
@@ -549,9 +655,11 @@ class _Poster:
                 if arc_mode.get(k) == "lines":
                     motion = FEED
                 n = len(pts)
+                # G93: each piece takes its share of the block's time (the control interpolates the axes linearly
+                # in time, so a piece over the fraction df of the move takes df of it): inverse time F / df.
+                piece_f = p.feed[r] / np.diff(self.fractions.get(k, np.linspace(0.0, 1.0, n + 1)))
                 if p.inverse_time[r]:
-                    # G93: each piece takes its share of the block's time, so its inverse time is n times F.
-                    body = _replace_feed(body, p.feed[r] * n, fmt, sep)
+                    body = _replace_feed(body, piece_f[0], fmt, sep)
                 target, rest = pts[0], pts[1:]
             new_body = self._rewrite_motion(body, motion, target, last_written, axes_out, inch, fmt, sep,
                                             incremental[li], arc=arc_kept, row=r,
@@ -559,10 +667,10 @@ class _Poster:
             out_lines.append(new_body + ending)
             last_written = target.copy()
             word = "G0" if motion == RAPID else "G1"
-            for pt in rest:
+            for j_piece, pt in enumerate(rest, 1):
                 words = [word] + [fmt(a, _out_value(pt, last_written, a, incremental[li]), inch) for a in axes_out]
                 if p.inverse_time[r]:
-                    words.append(fmt("F", p.feed[r] * n, False))
+                    words.append(fmt("F", piece_f[j_piece], False))
                 out_lines.append(sep.join(words) + ending)
                 last_written = pt.copy()
         self.rep.blocks_out = len(out_lines)
