@@ -562,7 +562,8 @@ class _Poster:
         pts6 = np.concatenate([_arc_points(p, rows[i], n_s) for i in arc_idx])
         owner = np.repeat(np.arange(arc_idx.size), n_s + 1)
         q_c, q_pts = self._solve_arc_points(rows, arc_idx, owner, pts6, force)
-        d = (q_c - q_pts)[:, :3].reshape(arc_idx.size, n_s + 1, 3)
+        lin = [j for j, a in enumerate(self.names) if not self.m.axes[a].is_rotary]
+        d = (q_c - q_pts)[:, lin].reshape(arc_idx.size, n_s + 1, len(lin))
         spread = np.abs(d - d[:, -1:, :]).max(axis=(1, 2))
         kept = spread <= self.tol_mm / 2
         for i in arc_idx[kept]:
