@@ -11,7 +11,7 @@ import pytest
 from conftest import MACHINES, ROOT
 from trueaxis.diagnose.analysis import diagnose_state, estimate_noise_um
 from trueaxis.diagnose.candidates import LIBRARY, build, build_all
-from trueaxis.diagnose.report import run_diagnosis, write_report
+from trueaxis.diagnose.report import run_diagnosis
 from trueaxis.diagnose.state import twin_state
 from trueaxis.inspect.parts import SlotBlockParams, slot_block_description
 from trueaxis.inspect.programs import slots_program

@@ -13,8 +13,7 @@ from conftest import MACHINES, ROOT
 from post_checks import actual_points, distance_to_polyline, machine_rows, nominal_polyline
 from rs274_helpers import run_rs274
 from trueaxis.machine import ErrorTwin, load_machine, parse_machine
-from trueaxis.postproc import post as post_module
-from trueaxis.postproc.gcode import GcodeError, parse_program
+from trueaxis.postproc.gcode import parse_program
 from trueaxis.postproc.post import PostError, compensate
 
 XH714 = MACHINES / "xh714.toml"

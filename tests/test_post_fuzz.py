@@ -12,18 +12,16 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
-from pathlib import Path
 
-import numpy as np
 import pytest
-from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from conftest import MACHINES, ROOT
 from trueaxis.cli import main as cli_main
 from trueaxis.machine import parse_machine
-from trueaxis.postproc.gcode import ROW_CYCLE, ROW_PROGRAMMED, GcodeError, parse_program
-from trueaxis.postproc.post import PostError, compensate
+from trueaxis.postproc.gcode import GcodeError, parse_program
+from trueaxis.postproc.post import compensate
 
 XH714 = MACHINES / "xh714.toml"
 WIDE_TEXT = XH714.read_text().replace("[-200.0, 200.0]", "[-2000.0, 2000.0]").replace(
@@ -41,21 +39,6 @@ SETTINGS = settings(max_examples=250, deadline=None, derandomize=True, database=
 def physical_lines(text: str) -> int:
     """Lines as an editor counts them (\\n, \\r\\n or a lone \\r end a line)."""
     return max(1, len(re.findall(r"\r\n|\r|\n", text)) + (0 if re.search(r"[\r\n]\Z", text) else 1))
-
-
-# Bugs of post.py found by this fuzzer, open at the time of writing (each has a strict xfail test below). Inputs of that
-# shape are left out of the random runs, so that those keep guarding everything else; when a bug is fixed its xfail
-# test passes (and fails as strict), and its entry here goes.
-def known_post_bug(text: str) -> str | None:
-    """The open post.py bug this input would hit, or None."""
-    try:
-        prog = parse_program(text, SOURCE)
-    except GcodeError:
-        return None
-    compensated = np.isin(prog.kind, (ROW_PROGRAMMED, ROW_CYCLE))
-    if len(prog) and not compensated.any():
-        return "only G28/G30/G53 moves: ValueError (zero-size array) in _Poster._summarise"
-    return None
 
 
 def check_posts_or_refuses(text: str, source: str = SOURCE):
@@ -171,14 +154,12 @@ def test_every_fixture_program_posts_or_is_refused_with_a_line():
 @SETTINGS
 @given(mutated_fixture())
 def test_mutated_fixture_programs_post_or_stop_with_file_line_reason(text):
-    assume(known_post_bug(text) is None)
     check_posts_or_refuses(text)
 
 
 @SETTINGS
 @given(SOUP)
 def test_token_soup_posts_or_stops_with_file_line_reason(text):
-    assume(known_post_bug(text) is None)
     check_posts_or_refuses(text)
 
 
@@ -188,7 +169,6 @@ def test_token_soup_posts_or_stops_with_file_line_reason(text):
 def test_the_command_line_posts_or_prints_one_line_and_exits_2(tmp_path_factory, capsys, text):
     # The command line in this process (a subprocess per example would take minutes): exit 0 and a file, or exit 2,
     # one `file:line: reason` line on stderr and no file.
-    assume(known_post_bug(text) is None)
     work = tmp_path_factory.mktemp("cli")
     src, out = work / "in.ngc", work / "out.ngc"
     src.write_bytes(text.encode("utf-8"))
@@ -205,13 +185,10 @@ def test_the_command_line_posts_or_prints_one_line_and_exits_2(tmp_path_factory,
         assert len(lines) == 1 and DIAGNOSTIC.match(lines[0]) and lines[0].startswith(str(src)), err
 
 
-@pytest.mark.xfail(strict=True, raises=ValueError, reason="post.py bug: a program whose only moves are G28/G30/G53 "
-                   "(no compensated row) raises ValueError 'zero-size array to reduction operation maximum' in "
-                   "_Poster._summarise instead of passing the program through")
 @pytest.mark.parametrize("text", ["G21 G90\nG28\nM2\n", "G21 G90\nG53 G0 X0 Y0\nM2\n"])
 def test_a_program_whose_only_moves_are_reference_or_machine_moves_posts(text):
-    assert known_post_bug(text)
-    check_posts_or_refuses(text)
+    # G28/G30/G53 targets are machine positions: nothing to compensate, the program passes through unchanged.
+    assert compensate(text, WIDE, "geometric", source=SOURCE) == text
 
 
 # --- the command line on inputs a user gets wrong ------------------------------------------------------------------

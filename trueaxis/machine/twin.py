@@ -512,7 +512,7 @@ class ErrorTwin:
             else:
                 twists.append((i + 1, eps_c, delta_c))
             # Location errors: L G L^-1 ~ G + [lambda] G - G [lambda]; zero offset: G(q + z) ~ G + z G'.
-            eps_l, delta_l = np.zeros((n, 3)), np.zeros((n, 3))
+            delta_l = np.zeros((n, 3))
             for src in self._location_sources[link.axis]:
                 v = loc[src.name][0][:, None]
                 if src.kind == "square":

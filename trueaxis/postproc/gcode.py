@@ -98,7 +98,6 @@ _FAST = re.compile(
     + "".join(rf"(?:{c}[ \t]*([-+]?(?:[0-9]{{1,9}}(?:\.[0-9]*)?|\.[0-9]+))[ \t]*)?" for c in "XYZABCIJKRF")
     + r"\r?\n?\Z"
 )
-_FAST_WORD = re.compile(r"([XYZABCFIJKR])[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))")
 _DECIMALS = re.compile(r"([A-Za-z])[ \t]*[-+]?[0-9]*\.([0-9]*)")
 
 # Lines end at \n, \r\n or a lone \r, as an editor counts them (str.splitlines also splits at \f, \v, \x1c-\x1e,
@@ -527,7 +526,6 @@ class _Interpreter:
             pos[:] = target
 
         fast_match = _FAST.match
-        fast_words = _FAST_WORD.findall
         word_bit = _WORD_BIT
         pre_cycle_mode = 0
         token_findall = _TOKEN.findall

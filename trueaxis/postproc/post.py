@@ -386,13 +386,16 @@ class _Poster:
                     v = np.degrees(q_cmd[k, j]) if ax.is_rotary else q_cmd[k, j]
                     t = np.degrees(ax.travel) if ax.is_rotary else ax.travel
                     raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
-                                    f"corrected {a} = {v:.4f} lies outside its travel [{t[0]:g}, {t[1]:g}]")
+                                    f"corrected {a} = {v:.6g} lies outside its travel [{t[0]:g}, {t[1]:g}]")
 
     # --- the run -------------------------------------------------------------------------------------------------
     def run(self):
         p = self.p
         rows = np.nonzero((p.kind == ROW_PROGRAMMED) | (p.kind == ROW_CYCLE))[0]
         self.rep.moves = int(rows.size)
+        if rows.size == 0:  # only G28/G30/G53 moves: machine positions, passed through as they are
+            self.rep.blocks_out = self.rep.blocks_in
+            return "".join(p.lines), self.rep
         inch = p.inch[rows]
         q_end = self.to_machine(p.end_machine[rows], inch)
         q_start = self.to_machine((p.start + p.offset)[rows], inch)
