@@ -829,10 +829,14 @@ def _describe_null(direction: np.ndarray, centre: np.ndarray, scale: float) -> s
             axis, dw, dt = -axis, -dw, -dt
         # a rotation about a line through p0: dt = -dw x (p0 - centre) -> the point of the line nearest the centre
         p0 = centre + np.cross(dw, dt) / (dw @ dw)
-        return (f"rotation about the line through ({p0[0]:.3f}, {p0[1]:.3f}, {p0[2]:.3f}) mm along "
-                f"({axis[0]:.4f}, {axis[1]:.4f}, {axis[2]:.4f})")
-    d = dt / np.linalg.norm(dt)
-    return f"translation along ({d[0]:.4f}, {d[1]:.4f}, {d[2]:.4f})"
+        return f"rotation about the line through {_triple(p0, 3)} mm along {_triple(axis, 4)}"
+    return f"translation along {_triple(dt / np.linalg.norm(dt), 4)}"
+
+
+def _triple(v, decimals: int) -> str:
+    """'(x, y, z)' at the given decimals, with no '-0.000' (rounding first, then adding 0.0 turns -0.0 into 0.0)."""
+    r = np.round(np.asarray(v, float), decimals) + 0.0
+    return "(" + ", ".join(f"{x:.{decimals}f}" for x in r) + ")"
 
 
 def _icp_coarse(points, mesh: CadMesh, max_distance_mm: float, samples: int = 200_000) -> np.ndarray:
