@@ -7,7 +7,21 @@ carbide tool, a measured thermal series. Parts: the NAS 979 cone on nmv1500dcg (
 on xh714 (``slots_program``, shallower slots to keep the run short). Each effect is scaled so that its RMS on the
 part is 1x, 3x or 10x the probe noise (calibrated by one noise-free run per effect); a few cases hold two effects,
 and effect-free controls check false alarms. The diagnoser sees only the cloud (points and normals), the program and
-the twin. Attribution is correct when the chosen set equals the withheld set.
+the twin.
+
+Scoring. *Strict*: the chosen set equals the withheld set. *Honest tie* (DESIGN §8: one part in one placement cannot
+tell some effects apart, e.g. force and tool deflection under the slot block's constant engagement): also correct when
+the diagnosis names as many effects as were withheld, each withheld effect is a chosen one or one of the candidates the
+report lists as indistinguishable from a chosen one on this part (``Diagnosis.tied``: an equal held-out gain, or one
+not significantly lower), no such tie group holds more than four candidates, the confidence is at most
+1 / (1 + number of tied alternatives) and a separating measurement is named. A user reading that report is told the
+family, that the part cannot tell its members apart, how little to trust the preferred one, and what to measure
+next; a report that names one effect with high confidence when another was withheld is wrong under both rules. The
+headline accuracy is the honest-tie one; the strict one is printed beside it.
+
+Effects a part cannot show (servo lag on the slot block's constant-speed straight walls) are skipped: when the
+effect at its reference size moves the surface by less than 1/20 of the target size, reaching the target would need
+more than 20 times the reference (a 2 /s loop gain, 100 um of backlash), outside real machines and the shop's models.
 
     .venv/bin/python benchmarks/diagnose_withheld.py --cases 16 --points 600
 
@@ -39,6 +53,26 @@ from trueaxis.sim.shop import simulate  # noqa: E402
 
 SERIES = str(ROOT / "fixtures/thermal/spindle_thermal_drift_part1.csv")
 NOISE_UM = 1.0
+MAX_SCALE = 20.0  # largest multiple of an effect's reference size the benchmark scales it to
+MAX_TIE_GROUP = 4
+
+
+def tie_correct(truth: list, diag) -> bool:
+    """The honest-tie rule of the module docstring."""
+    chosen = list(diag.chosen)
+    if not truth or len(chosen) != len(truth):
+        return False
+    groups = {m: [m] + list(diag.tied.get(m, [])) for m in chosen}
+    if any(len(gr) > MAX_TIE_GROUP for gr in groups.values()):
+        return False
+    n_tied = sum(len(gr) - 1 for gr in groups.values())
+    exact = sorted(truth) == sorted(chosen)
+    if not exact and (n_tied == 0 or diag.confidence > 1.0 / (1 + n_tied) + 1e-9 or not diag.separating_measurement):
+        return False
+    # Each withheld effect matched to a distinct chosen member's group.
+    import itertools
+
+    return any(all(t in groups[m] for t, m in zip(truth, perm)) for perm in itertools.permutations(chosen))
 
 # The force tables of the cutting model take ~1.5 s per call and depend only on the tool and the coefficients: cache
 # them for this benchmark (the shop's code is not changed).
@@ -156,7 +190,7 @@ def main(argv=None) -> int:
         m, prog, base, pj = setups[key]
         t0 = time.perf_counter()
         tables = []
-        if any(reference_rms(key, e) < 0.05 * NOISE_UM for e in effects):
+        if any(reference_rms(key, e) * MAX_SCALE < mag * NOISE_UM for e in effects):
             # The effect hardly moves this part's surface at its reference size (servo lag on the slot block's
             # equal-speed straight walls): scaling it up to a target size would leave the shop's valid range.
             print(f"[{i + 1:2d}/{len(cases)}] skip {key} {'+'.join(effects)}: not visible on this part")
@@ -171,20 +205,29 @@ def main(argv=None) -> int:
                      seed=100 + i, force_stride=50)
         cut = np.isfinite(r.deviations_um)
         effect_rms = float(np.sqrt(np.mean((r.deviations_um - base.deviations_um)[cut] ** 2)))
+        if effect_rms > 3.0 * mag * NOISE_UM * max(1, len(effects)):
+            # Scaled to the target the effect did not stay near it: the shop's model left its valid range (servo lag
+            # on the slot block: a loop gain of a few /s runs the tool off the part). Not a diagnosis case.
+            print(f"[{i + 1:2d}/{len(cases)}] skip {key} {'+'.join(effects)}: scaled to {mag:.0f}x it moves the "
+                  f"surface by {effect_rms:.0f} um rms, outside the shop's valid range")
+            continue
         t1 = time.perf_counter()
         diag, state = run_diagnosis(r.measured[cut], r.normals[cut], PARTS[key]["part"], m, prog.text,
                                     split=args.split)
         t2 = time.perf_counter()
         truth = "+".join(sorted(effects)) or "none"
         verdict = "+".join(sorted(diag.chosen)) or "none"
+        tie_ok = tie_correct(list(effects), diag)
         rows.append({"part": key, "truth": truth, "mag": mag, "effect_rms": effect_rms, "verdict": verdict,
+                     "tie_ok": tie_ok, "tied": {m: t for m, t in diag.tied.items() if t},
                      "conf": diag.confidence, "alts": diag.alternatives, "shrink": diag.shrink_above_noise,
                      "shrink_raw": diag.shrink_raw, "before": diag.gap_before["rms"], "after": diag.gap_after["rms"],
                      "sigma": diag.noise_um, "t_sim": t1 - t0, "t_diag": t2 - t1})
-        ok = "ok " if verdict == truth else "BAD"
+        ok = "ok " if verdict == truth else ("tie" if tie_ok else "BAD")
         print(f"[{i + 1:2d}/{len(cases)}] {ok} {key:5s} {truth:28s} {mag:4.0f}x (rms {effect_rms:5.2f} um) -> "
               f"{verdict:28s} conf {diag.confidence:.2f} shrink {diag.shrink_above_noise * 100:5.1f} % "
               f"(raw {diag.shrink_raw * 100:5.1f} %) sigma^ {diag.noise_um:.2f} alts {','.join(diag.alternatives)} "
+              f"tied {rows[-1]['tied'] or '-'} "
               f"[sim {t1 - t0:.1f} s, diagnose {t2 - t1:.1f} s]", flush=True)
 
     # Summary.
@@ -200,8 +243,15 @@ def main(argv=None) -> int:
     weak = [r for r in rows if r["truth"] != "none" and r["effect_rms"] < 3 * NOISE_UM * 0.999]
     controls = [r for r in rows if r["truth"] == "none"]
     if strong:
-        acc = np.mean([r["verdict"] == r["truth"] for r in strong])
-        print(f"\nattribution accuracy (effects >= 3x noise): {acc * 100:.0f} % of {len(strong)}")
+        acc = np.mean([r["verdict"] == r["truth"] or r["tie_ok"] for r in strong])
+        strict = np.mean([r["verdict"] == r["truth"] for r in strong])
+        print(f"\nattribution accuracy (effects >= 3x noise): {acc * 100:.0f} % of {len(strong)} with honest ties "
+              f"({sum(r['verdict'] != r['truth'] and r['tie_ok'] for r in strong)} of them), strict {strict * 100:.0f} %")
+        hi = [r for r in strong if r["conf"] > 0.5]
+        if hi:
+            print(f"confidence > 0.5: {sum(r['verdict'] == r['truth'] for r in hi)} of {len(hi)} strictly right; "
+                  f"<= 0.5: {sum(r['verdict'] == r['truth'] for r in strong if r['conf'] <= 0.5)} of "
+                  f"{sum(r['conf'] <= 0.5 for r in strong)}")
         print(f"median held-out shrink (>= 3x): above noise {np.median([r['shrink'] for r in strong]) * 100:.0f} %, "
               f"raw {np.median([r['shrink_raw'] for r in strong]) * 100:.0f} %")
     if weak:
@@ -210,11 +260,12 @@ def main(argv=None) -> int:
     if controls:
         fa = np.mean([r["verdict"] != "none" for r in controls])
         print(f"false alarms on controls: {fa * 100:.0f} % of {len(controls)}")
-    bad = [r for r in strong + controls if r["verdict"] != r["truth"]]
+    bad = [r for r in strong + controls if r["verdict"] != r["truth"]]  # ties listed too, marked
     if bad:
         print("\nfailures:")
         for r in bad:
-            print(f"  {r['part']} {r['truth']} ({r['effect_rms']:.1f} um) -> {r['verdict']} (alternatives: "
+            print(f"  {'[honest tie] ' if r['tie_ok'] else ''}{r['part']} {r['truth']} ({r['effect_rms']:.1f} um) -> "
+                  f"{r['verdict']} conf {r['conf']:.2f} (tied: {r['tied'] or '-'}; alternatives: "
                   f"{', '.join(r['alts']) or '-'})")
     print(f"\ntimings: simulate (true) median {np.median([r['t_sim'] for r in rows]):.1f} s, diagnose median "
           f"{np.median([r['t_diag'] for r in rows]):.1f} s per case; total {time.perf_counter() - t_all:.0f} s")

@@ -13,11 +13,20 @@ from the data: the differences of the gap between nearest neighbours on the part
 twice the noise variance and almost none of any smooth effect (robust MAD scale). An F-test of the training fit is
 reported too.
 
-Choice and ambiguity. Candidates are ranked by held-out gain. Those whose gain is at least ``ALMOST`` of the best's
-"explain almost as well"; among those within ``TIE`` of the best the one with fewer parameters and in-bounds values is
-preferred (parsimony, plausibility). A pair is chosen when the pair's held-out gain over the best single one is
-again significant and material. The confidence is 0.3 + 0.7 min(1, separation / 0.5), separation = 1 - (runner-up's
-gain / chosen's gain), halved when fitted values are outside their plausible bounds.
+Bounded fits. Every fit, the held-out ones included, keeps the parameters inside the candidates' plausible bounds
+(``lsq_linear`` when the free solution leaves them), so a candidate is judged by what it explains with physically
+plausible values; a fit that wanted to leave its bounds is flagged not plausible.
+
+Choice and ambiguity. Candidates are ranked by held-out gain. Tied with the best are those whose gain is at least
+``TIE`` of its gain or not significantly below it (paired held-out z of the deficit < ``Z_TIE``); among the tied ones
+the plausible, then a new effect rather than a re-identification of the twin, then fewer parameters is preferred
+(parsimony, plausibility), and the others are reported as indistinguishable on this part (``Diagnosis.tied``, with
+the measurement that would separate them). A second effect: all pairs of the ``PAIR_POOL`` leading significant
+candidates are fitted; the pairs whose held-out gain over the best single candidate is significant and material (more
+than ``MIN_GAIN_OF_NOISE`` sigma^2 and ``PAIR_MIN_SHARE`` of that candidate's gain) compete with the same tie rule.
+Confidence: 0.3 + 0.7 min(1, separation / 0.5), separation = 1 - (runner-up's gain / chosen's gain), at most
+1 / (1 + k) when k candidates are tied with the chosen ones, halved when fitted values wanted to leave their bounds.
+Candidates whose gain is at least ``ALMOST`` of the chosen's, and the tied ones, are listed as alternatives.
 """
 
 from __future__ import annotations
@@ -37,6 +46,9 @@ Z_MIN = 4.0
 MIN_GAIN_OF_NOISE = 0.1
 ALMOST = 0.9
 TIE = 0.97
+Z_TIE = 2.0
+PAIR_POOL = 6
+PAIR_MIN_SHARE = 0.1
 
 SEPARATING_MEASUREMENT = {
     frozenset({"force_deflection", "tool_deflection"}): "a cut with a different tool stick-out or radial engagement "
@@ -176,15 +188,41 @@ class Fit:
     extra: dict = field(default_factory=dict)
 
 
-def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray) -> Fit:
+def _solve_bounded(S, g, bounds):
+    """Least squares within the plausible bounds (``lsq_linear``, column-scaled); the plain solution when it is
+    inside them already. Returns theta (p,) and whether a bound is active."""
+    theta, _, _ = _solve(S, g)
+    lo = np.array([-np.inf if b is None else b[0] for b in bounds], float)
+    hi = np.array([np.inf if b is None else b[1] for b in bounds], float)
+    if np.all((theta >= lo) & (theta <= hi)):
+        return theta, False
+    from scipy.optimize import lsq_linear
+
+    scale = np.sqrt(np.mean(S**2, axis=0))
+    scale = np.where(scale > 0, scale, 1.0)
+    r = lsq_linear(S / scale, g, bounds=(lo * scale, hi * scale), method="bvls", lsmr_tol="auto")
+    return r.x / scale, True
+
+
+def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray, bounded: bool = True) -> Fit:
+    """Fit the candidates' columns to the gap, cross-validated over ``folds``. ``bounded``: every fit (the held-out
+    ones too) keeps the parameters inside their plausible bounds, so that a candidate is judged by what it explains
+    with physically plausible values, not by what an absurd value of an aliased column can mimic (DESIGN §8: prefer
+    bounded parameter changes)."""
     S = np.column_stack([c.columns for c in cands])
     n, p = S.shape
+    bounds = [b for c in cands for b in (c.plausible or [None] * c.n_parameters)]
     pred = np.zeros(n)
     for f in np.unique(folds):
         tr = folds != f
-        theta, _, _ = _solve(S[tr], g[tr])
+        theta = _solve_bounded(S[tr], g[tr], bounds)[0] if bounded else _solve(S[tr], g[tr])[0]
         pred[~tr] = S[~tr] @ theta
     theta, cov_unit, rank = _solve(S, g)
+    at_bound = False
+    if bounded:
+        theta_b, at_bound = _solve_bounded(S, g, bounds)
+        if at_bound:
+            theta = theta_b
     resid = g - S @ theta
     dof = max(n - rank, 1)
     s2 = float(resid @ resid) / dof
@@ -195,8 +233,9 @@ def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray) -> F
     d = g**2 - (g - pred) ** 2
     gain = float(d.mean())
     z = gain / max(float(d.std(ddof=1)) / math.sqrt(n), 1e-300)
-    bounds = [b for c in cands for b in (c.plausible or [None] * c.n_parameters)]
-    plausible = all(b is None or (b[0] <= v <= b[1]) for v, b in zip(theta, bounds))
+    # At a bound the unbounded fit wanted a value outside the plausible range: the candidate is stretched.
+    theta_free = _solve(S, g)[0] if at_bound else theta
+    plausible = all(b is None or (b[0] <= v <= b[1]) for v, b in zip(theta_free, bounds))
     return Fit(name="+".join(c.name for c in cands), members=[c.name for c in cands],
                parameters=[x for c in cands for x in c.parameters], units=[x for c in cands for x in c.units],
                value=theta, std=std, held_out_pred_um=pred, gain_um2=gain, z=float(z), f_stat=float(f_stat), f_p=f_p,
@@ -285,6 +324,26 @@ class Diagnosis:
     shrink_above_noise: float
     split: str
     skipped: list
+    tied: dict = field(default_factory=dict)
+
+
+def _prefer(best: Fit, pool: list, g: np.ndarray) -> tuple[Fit, list]:
+    """(the preferred fit, the others tied with it) among ``pool`` (``best`` has the largest held-out gain).
+
+    Tied with the best: a gain of at least ``TIE`` of its gain, or a gain not significantly below it on the held-out
+    points (paired z of the deficit < ``Z_TIE``). Among the tied ones the plausible (fitted values inside their
+    bounds), then the one that is a new effect rather than a re-identification of the twin, then the one with fewer
+    parameters, then the larger gain is preferred."""
+    tied = [best]
+    for f in pool:
+        if f is best:
+            continue
+        d = (g - f.held_out_pred_um) ** 2 - (g - best.held_out_pred_um) ** 2
+        zz = float(d.mean()) / max(float(d.std(ddof=1)) / math.sqrt(g.size), 1e-300)
+        if f.gain_um2 >= TIE * best.gain_um2 or zz < Z_TIE:
+            tied.append(f)
+    tied.sort(key=lambda f: (not f.plausible, "twin_parameters" in f.members, f.n_parameters, -f.gain_um2))
+    return tied[0], tied[1:]
 
 
 def _significant(gain, z, noise_um):
@@ -307,45 +366,65 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         f.significant = _significant(f.gain_um2, f.z, sigma)
     fits.sort(key=lambda f: -f.gain_um2)
     sig = [f for f in fits if f.significant]
-    chosen_fit, alternatives, confidence, sep = None, [], 0.0, None
+    chosen_fit, alternatives, confidence, sep, tied = None, [], 0.0, None, {}
     if sig:
         best = sig[0]
-        near = [f for f in sig[1:] if f.gain_um2 >= ALMOST * best.gain_um2]
-        # Parsimony and plausibility among the ties.
-        ties = [best] + [f for f in near if f.gain_um2 >= TIE * best.gain_um2]
-        ties.sort(key=lambda f: (not f.plausible, f.name == "twin_parameters", f.n_parameters, -f.gain_um2))
-        chosen_fit = ties[0]
-        others = [f for f in sig if f is not chosen_fit]
-        runner = others[0] if others else None
-        # A second effect: pairs of the chosen one with the next significant candidates.
+        chosen_fit, tie_fits = _prefer(best, sig, g)
+        # A second effect: every pair of the leading significant candidates (a pair need not contain the best single
+        # one: one candidate with many columns can mimic two effects at once, and a second effect hidden under the
+        # first need not be the runner-up alone). A pair is taken when it beats the best single candidate on held-out
+        # points significantly and materially (by more than the noise floor and a tenth of that candidate's gain: the
+        # candidates' forms are poorer than the real effects, and a strong effect leaves a residual of form that a
+        # second candidate can always nibble at).
         by_name = {c.name: c for c in candidates}
-        best_pair = None
-        for f in others[:4]:
-            pair = fit_candidate([by_name[chosen_fit.name], by_name[f.name]], g, folds)
-            d = (g - chosen_fit.held_out_pred_um) ** 2 - (g - pair.held_out_pred_um) ** 2
-            extra = float(d.mean())
-            zz = extra / max(float(d.std(ddof=1)) / math.sqrt(g.size), 1e-300)
-            if (zz > Z_MIN and extra > MIN_GAIN_OF_NOISE * sigma**2
-                    and extra > 0.1 * (chosen_fit.gain_um2)
-                    and (best_pair is None or pair.gain_um2 > best_pair.gain_um2)):
-                pair.z, pair.extra = zz, {"gain_over_single_um2": extra}
-                best_pair = pair
-        if best_pair is not None:
-            best_pair.rms_after_um = float(np.sqrt(np.mean((g - best_pair.held_out_pred_um) ** 2)))
-            best_pair.explained_share = best_pair.gain_um2 / max(ms_before - sigma**2, 1e-12)
-            best_pair.significant = True
-            chosen_fit = best_pair
-            runner = next((f for f in sig if f.name not in best_pair.members), None)
+        top = [f.name for f in sig[:PAIR_POOL]]
+        pairs = []
+        for i, na in enumerate(top):
+            for nb in top[i + 1:]:
+                pair = fit_candidate([by_name[na], by_name[nb]], g, folds)
+                d = (g - best.held_out_pred_um) ** 2 - (g - pair.held_out_pred_um) ** 2
+                extra = float(d.mean())
+                zz = extra / max(float(d.std(ddof=1)) / math.sqrt(g.size), 1e-300)
+                if zz > Z_MIN and extra > max(MIN_GAIN_OF_NOISE * sigma**2, PAIR_MIN_SHARE * best.gain_um2):
+                    pair.z, pair.extra = zz, {"gain_over_single_um2": extra, "over": best.name}
+                    pairs.append(pair)
+        if pairs:
+            pairs.sort(key=lambda f: -f.gain_um2)
+            for pf in pairs:
+                pf.rms_after_um = float(np.sqrt(np.mean((g - pf.held_out_pred_um) ** 2)))
+                pf.explained_share = pf.gain_um2 / max(ms_before - sigma**2, 1e-12)
+                pf.significant = True
+            chosen_fit, tie_fits = _prefer(pairs[0], pairs, g)
+            rivals = [f for f in pairs if f is not chosen_fit]
+            # Each member's ties: the candidates that can replace it in a pair tied with the chosen one.
+            for m in chosen_fit.members:
+                other = [x for x in chosen_fit.members if x != m]
+                tied[m] = [n for f in tie_fits for n in f.members
+                           if set(other) <= set(f.members) and n not in chosen_fit.members]
+        else:
+            rivals = [f for f in sig if f is not chosen_fit]
+            tied[chosen_fit.name] = [f.name for f in tie_fits]
+        runner = rivals[0] if rivals else None
         alternatives = [f.name for f in sig if f.name not in chosen_fit.members
-                        and f.gain_um2 >= ALMOST * chosen_fit.gain_um2]
+                        and (f.gain_um2 >= ALMOST * chosen_fit.gain_um2 or any(f.name in t for t in tied.values()))]
         separation = 1.0 if runner is None else max(0.0, 1.0 - runner.gain_um2 / max(chosen_fit.gain_um2, 1e-300))
         confidence = 0.3 + 0.7 * min(1.0, separation / 0.5)
+        n_tied = sum(len(t) for t in tied.values())
+        if n_tied:
+            # k candidates explain the gap equally well here: at most one chance in k + 1 that the preferred one is
+            # the right one, whatever the (tiny) margin says.
+            confidence = min(confidence, 1.0 / (1 + n_tied))
         if not chosen_fit.plausible:
             confidence *= 0.5
-        if runner is not None and runner.gain_um2 >= ALMOST * chosen_fit.gain_um2:
-            sep = separating_measurement(chosen_fit.members[0], runner.name)
+        seps = [separating_measurement(m, t[0]) for m, t in tied.items() if t]
+        if not seps and runner is not None and runner.gain_um2 >= ALMOST * chosen_fit.gain_um2:
+            odd = [n for n in runner.members if n not in chosen_fit.members] or runner.members
+            mine = [n for n in chosen_fit.members if n not in runner.members] or chosen_fit.members
+            seps = [separating_measurement(mine[0], odd[0])]
+        sep = "; ".join(dict.fromkeys(seps)) if seps else None
         after_r = g - chosen_fit.held_out_pred_um
-        verdict = " + ".join(chosen_fit.members)
+        verdict = " + ".join(m + (f" (or {' / '.join(tied[m])}: indistinguishable on this part)" if tied.get(m) else "")
+                             for m in chosen_fit.members)
     else:
         after_r = g
         verdict = "none of the candidates"
@@ -358,4 +437,4 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
     return Diagnosis(sigma, estimated, where(state, folds, sigma), fits,
                      [] if chosen_fit is None else chosen_fit.members, chosen_fit, float(round(confidence, 3)),
                      alternatives, sep, verdict, before, after, float(shrink_raw), float(shrink_noise), split,
-                     list(skipped))
+                     list(skipped), tied)
