@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.polynomial import legendre as npleg
-from scipy.interpolate import CubicSpline
+from scipy.interpolate import CubicSpline, PPoly
 
 TWO_PI = 2.0 * np.pi
 
@@ -43,11 +43,51 @@ class ErrorFunction:
         q = np.asarray(q, dtype=float)
         if self.kind == "linear":
             return np.interp(self._wrap(q), self.at, self.values)
+        if self.kind == "cubic":
+            # The spline of the values themselves (the unit splines' coefficients contracted with the values): the
+            # same function as basis(q) @ values without the (N, n) basis.
+            return self._value_spline()(np.clip(self._wrap(q), self.at[0], self.at[-1]))
+        if self.kind == "legendre":
+            lo, hi = self.domain
+            return npleg.legval(np.clip((2.0 * q - (lo + hi)) / (hi - lo), -1.0, 1.0), self.values)
         return self.basis(q) @ self.values
 
     def derivative(self, q: np.ndarray) -> np.ndarray:
         """d value / d q at q (N,): um per mm, or urad per rad, ..."""
+        q = np.asarray(q, dtype=float)
+        if self.kind == "linear":
+            at, v = self.at, self._folded_values()
+            x = self._wrap(q)
+            inside = (x >= at[0]) & (x <= at[-1])
+            i = np.clip(np.searchsorted(at, np.clip(x, at[0], at[-1]), side="right") - 1, 0, at.size - 2)
+            return np.where(inside, (v[i + 1] - v[i]) / (at[i + 1] - at[i]), 0.0)
+        if self.kind == "cubic":
+            x = self._wrap(q)
+            inside = (x >= self.at[0]) & (x <= self.at[-1])
+            return self._value_spline().derivative()(np.clip(x, self.at[0], self.at[-1])) * inside
+        if self.kind == "legendre":
+            lo, hi = self.domain
+            u = (2.0 * q - (lo + hi)) / (hi - lo)
+            d = npleg.legval(np.clip(u, -1.0, 1.0), npleg.legder(self.values)) if self.values.size > 1 else 0.0 * u
+            return d * (2.0 / (hi - lo)) * (np.abs(u) <= 1.0)
         return self.basis_derivative(q) @ self.values
+
+    def _folded_values(self):
+        """Values per table node, the last node of a periodic table carrying the first value."""
+        if not self.periodic:
+            return self.values
+        v = self.values.copy()
+        v[-1] = v[0]
+        return v
+
+    def _value_spline(self):
+        sp = self.__dict__.get("_spline_cache")
+        if sp is None:
+            unit = _unit_spline(self.at.tobytes(), self.periodic)
+            c = np.tensordot(unit.c, self._folded_values(), axes=([2], [0]))
+            sp = PPoly(c, unit.x, extrapolate=True)
+            object.__setattr__(self, "_spline_cache", sp)
+        return sp
 
     def _wrap(self, q):
         if self.periodic:

@@ -142,6 +142,18 @@ class ErrorTwin:
             J[sl] = self._evaluate(q[sl], _slice(force_n, sl), _slice(motion, sl), True, True, cols="axes")[2]
         return J
 
+    def pose_and_axis_jacobian(self, q, force_n=None, motion=None):
+        """Actual pose and its axis Jacobian in one pass: tip (N,3), unit axis (N,3), J (N, 6, n_axes); the same
+        numbers as ``actual_pose`` and ``axis_jacobian``."""
+        q = validate_poses(self.machine, q)
+        n = q.shape[0]
+        P, U = np.empty((n, 3)), np.empty((n, 3))
+        J = np.empty((n, 6, self.n_axes))
+        for sl in _chunks(n):
+            P[sl], U[sl], J[sl] = self._evaluate(q[sl], _slice(force_n, sl), _slice(motion, sl), True, True,
+                                                 cols="axes")
+        return P, U, J
+
     def parameter_jacobian(self, q, force_n=None, motion=None):
         """d(position error um, tool-axis error urad)/d(parameter um | urad): (N, 6, n_params), exact.
 
@@ -229,7 +241,7 @@ class ErrorTwin:
             out[src.name] = (np.asarray(val) * _internal(src.name), np.asarray(dval))
         return out
 
-    def _component_values(self, link: Link, q_axis, force_n, n: int):
+    def _component_values(self, link: Link, q_axis, force_n, n: int, deriv: bool = True):
         """Per-component values (n,6) and d/dq (n,6) in mm and rad; plus per-component Jacobian factors."""
         m = self.machine
         comps = m.errors.components.get(link.axis, {})
@@ -243,12 +255,13 @@ class ErrorTwin:
             scale = URAD if d in "ABC" else UM
             fn = comps.get(name)
             v = fn(q_axis) if fn is not None else 0.0
-            dv = fn.derivative(q_axis) if fn is not None else 0.0
+            dv = fn.derivative(q_axis) if (fn is not None and deriv) else 0.0
             factor = np.ones(n)
             if s is not None and name in loaded:
                 fl = loaded[name]
                 v = v + s * (fl(q_axis) - v)
-                dv = dv + s * (fl.derivative(q_axis) - dv)
+                if deriv:
+                    dv = dv + s * (fl.derivative(q_axis) - dv)
                 factor = 1.0 - s
             val[:, j] = v * scale
             dval[:, j] = dv * scale
@@ -396,7 +409,7 @@ class ErrorTwin:
         return t, dt  # G(q) applied to the tip at the origin
 
     def _component_factor(self, link: Link, qa, force_n, n, want_axes, want_params):
-        val, dval, blend = self._component_values(link, qa, force_n, n)
+        val, dval, blend = self._component_values(link, qa, force_n, n, deriv=want_axes)
         delta, eps = val[:, :3], val[:, 3:]
         r, dr = self._reference_point(link, qa)
         R = np.eye(3) + skew(eps)

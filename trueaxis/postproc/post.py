@@ -562,7 +562,7 @@ class _Poster:
         arc_idx = np.asarray(arc_idx, int)
         # Stage 1: 17 samples per arc; the spread of the correction along it decides arc or lines.
         n_s = 16
-        pts6 = np.concatenate([_arc_points(p, rows[i], n_s) for i in arc_idx])
+        pts6 = _arcs_points(p, rows[arc_idx], np.full(arc_idx.size, n_s))
         owner = np.repeat(np.arange(arc_idx.size), n_s + 1)
         q_c, q_pts = self._solve_arc_points(rows, arc_idx, owner, pts6, force)
         lin = [j for j, a in enumerate(self.names) if not self.m.axes[a].is_rotary]
@@ -583,7 +583,7 @@ class _Poster:
             radius = np.linalg.norm(p.start[r, :3] - p.arc_center[r]) * (MM_PER_INCH if p.inch[r] else 1.0)
             step = 2 * np.arccos(max(0.0, 1 - (self.tol_mm / 2) / max(radius, 1e-9)))
             counts.append(max(2, int(np.ceil(_arc_sweep(p, r) / step))))
-        pts6 = np.concatenate([_arc_points(p, rows[i], n) for i, n in zip(lin, counts)])
+        pts6 = _arcs_points(p, rows[lin], np.asarray(counts, int))
         owner = np.repeat(np.arange(lin.size), np.asarray(counts) + 1)
         q_c, q_pts = self._solve_arc_points(rows, lin, owner, pts6, force)
         self.check(q_pts, q_c, rows[lin][owner])
@@ -623,11 +623,16 @@ class _Poster:
         for r in range(len(p)):
             all_rows_by_line.setdefault(int(p.line_index[r]), []).append(r)
 
+        decimals = {}
+        leading_zero, trailing_point = info.leading_zero, info.trailing_point
+
         def fmt(letter, value, inch):
-            dec = 5 if letter in "ABC" else (6 if inch else 5)
-            dec = max(dec, info.decimals.get(letter, 0))
-            return letter + write_number(float(value), dec, leading_zero=info.leading_zero,
-                                         trailing_point=info.trailing_point)
+            dec = decimals.get((letter, inch))
+            if dec is None:
+                dec = 5 if letter in "ABC" else (6 if inch else 5)
+                dec = decimals[(letter, inch)] = max(dec, info.decimals.get(letter, 0))
+            return letter + write_number(float(value), dec, leading_zero=leading_zero,
+                                         trailing_point=trailing_point)
 
         for li, line in enumerate(p.lines):
             ks = rows_by_line.get(li)
@@ -683,8 +688,9 @@ class _Poster:
     def _rewrite_motion(self, body, motion, target, last_written, axes_out, inch, fmt, sep, inc, arc, row,
                         arc_incremental, delta_end):
         p = self.p
-        code, comment = _split_comment(body)
-        toks = tokenize_line(code)
+        code, comment, toks = _split_comment_tokens(body)
+        if toks is None:
+            toks = tokenize_line(code)
         keep = []
         motion_done = False
         for kind, text, _, _ in toks:
@@ -759,6 +765,12 @@ def _split_ending(line: str):
 
 def _split_comment(body: str):
     """Code and trailing comment text (kept verbatim, with the space before it)."""
+    code, comment, _ = _split_comment_tokens(body)
+    return code, comment
+
+
+def _split_comment_tokens(body: str):
+    """As ``_split_comment``, plus the tokens of the code when it is the whole body (else None)."""
     toks = tokenize_line(body)
     for kind, text, start, _ in toks:
         if kind == "comment":
@@ -767,8 +779,8 @@ def _split_comment(body: str):
                 j -= 1
             # Only a comment at the end of the line is split off; inline comments stay in the code.
             if all(t[0] == "comment" for t in toks if t[2] >= start):
-                return body[:j], body[j:]
-    return body, ""
+                return body[:j], body[j:], None
+    return body, "", toks
 
 
 def _word_position(tokens):
@@ -835,4 +847,50 @@ def _arc_points(p: Program, r: int, n: int) -> np.ndarray:
     pts[:, j] = c[j] + rad * np.sin(ang)
     pts[:, normal] = s[normal] + t * (e[normal] - s[normal])
     pts[-1] = e
+    return pts
+
+
+_PLANE_AXES = {17: (0, 1), 18: (2, 0), 19: (1, 2)}
+
+
+def _arcs_points(p: Program, rs, counts) -> np.ndarray:
+    """``_arc_points`` of many arcs at once: (sum(counts + 1), 6), the same numbers arc after arc."""
+    rs = np.asarray(rs, int)
+    counts = np.asarray(counts, int)
+    if rs.size == 0:
+        return np.zeros((0, 6))
+    plane = p.arc_plane[rs].astype(int)
+    ii = np.select([plane == 17, plane == 18], [0, 2], 1)
+    jj = np.select([plane == 17, plane == 18], [1, 0], 2)
+    nn = 3 - ii - jj
+    c, s, e = p.arc_center[rs], p.start[rs], p.end[rs]
+    ar = np.arange(rs.size)
+    ci, cj = c[ar, ii], c[ar, jj]
+    si, sj, ei, ej = s[ar, ii], s[ar, jj], e[ar, ii], e[ar, jj]
+    a0 = np.arctan2(sj - cj, si - ci)
+    a1 = np.arctan2(ej - cj, ei - ci)
+    ccw = p.motion[rs] == ARC_CCW
+    sweep = np.where(ccw, (a1 - a0) % (2 * np.pi), (a0 - a1) % (2 * np.pi))
+    sweep = np.where(sweep < 1e-12, 2 * np.pi, sweep)
+    sweep = sweep + 2 * np.pi * (np.maximum(p.arc_turns[rs].astype(int), 1) - 1)
+    sign = np.where(ccw, 1.0, -1.0)
+    rad0 = np.hypot(si - ci, sj - cj)
+    rad1 = np.hypot(ei - ci, ej - cj)
+    npts = counts + 1
+    owner = np.repeat(ar, npts)
+    first = np.r_[0, np.cumsum(npts)[:-1]]
+    j = np.arange(owner.size) - first[owner]
+    t = j * (1.0 / counts)[owner]  # as np.linspace(0, 1, n + 1): i * (1 / n), the last exactly 1
+    last = first + counts
+    t[last] = 1.0
+    ang = a0[owner] + (sign * sweep)[owner] * t
+    rad = rad0[owner] + (rad1 - rad0)[owner] * t
+    so, eo = s[owner], e[owner]
+    pts = so + t[:, None] * (eo - so)
+    io, jo, no = ii[owner], jj[owner], nn[owner]
+    k = np.arange(owner.size)
+    pts[k, io] = ci[owner] + rad * np.cos(ang)
+    pts[k, jo] = cj[owner] + rad * np.sin(ang)
+    pts[k, no] = so[k, no] + t * (eo[k, no] - so[k, no])
+    pts[last] = e
     return pts

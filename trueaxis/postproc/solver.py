@@ -69,19 +69,26 @@ def solve_commanded(
     free = np.ones((n, k), bool) if hold is None else ~np.asarray(hold, bool)
     q = q0.copy()
     it = 0
+    # One twin pass per iteration: the pose and axis Jacobian at q serve both the convergence check of the previous
+    # step and the next step (the pose is the same numbers actual_pose gives).
+    p, u, Ja = twin.pose_and_axis_jacobian(q, force_n, motion)
+    pos_err = ax_err = None
     for it in range(1, max_iter + 1):
-        p, u = twin.actual_pose(q, force_n, motion)
         r = np.hstack([p - p_nom, u - u_nom]) @ M.T
-        J = np.einsum("rs,nsi->nri", M, twin.axis_jacobian(q, force_n, motion))
+        J = np.einsum("rs,nsi->nri", M, Ja)
         J = J * free[:, None, :]
         # Normal equations, batched; held axes get a unit diagonal so their step is zero.
         A = np.einsum("nri,nrj->nij", J, J) + np.einsum("ni,ij->nij", ~free, np.eye(k))
         b = np.einsum("nri,nr->ni", J, r)
         q = q - np.linalg.solve(A, b[..., None])[..., 0]
-        pos_err, ax_err = _residuals(twin, q, p_nom, u_nom, force_n, motion, B)
+        p, u = twin.actual_pose(q, force_n, motion)
+        pos_err, ax_err = _pose_residuals(p, u, p_nom, u_nom, B)
         if np.all(pos_err <= tol_um) and (not orientation or np.all((ax_err <= tol_urad) | ~free.all(1))):
             break
-    pos_err, ax_err = _residuals(twin, q, p_nom, u_nom, force_n, motion, B)
+        if it < max_iter:
+            Ja = twin.axis_jacobian(q, force_n, motion)
+    if pos_err is None:
+        pos_err, ax_err = _residuals(twin, q, p_nom, u_nom, force_n, motion, B)
     ok = pos_err <= tol_um
     if orientation:
         ok &= (ax_err <= tol_urad) | ~free.all(1)
@@ -101,5 +108,9 @@ def corrected_directions(machine) -> np.ndarray:
 
 def _residuals(twin, q, p_nom, u_nom, force_n, motion, B=None):
     p, u = twin.actual_pose(q, force_n, motion)
+    return _pose_residuals(p, u, p_nom, u_nom, B)
+
+
+def _pose_residuals(p, u, p_nom, u_nom, B=None):
     dp = p - p_nom if B is None else (p - p_nom) @ B.T
     return np.linalg.norm(dp, axis=1) * 1e3, np.linalg.norm(u - u_nom, axis=1) * 1e6
