@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..machine import Machine, forward_nominal, inverse_kinematics
+from ..machine.kinematics import linear_axis_map
 from .parts import COMPENSATION_MODES, Nas979Params, SlotBlockParams
 
 MODES = ("none", "geometric", "comprehensive")
@@ -231,17 +232,7 @@ def machine_linear_positions(machine: Machine, q_rot: np.ndarray, points: np.nda
     """Linear axes (P, K, n_linear) in mm that put the tool tip on ``points`` (K, 3, part frame) with the rotary axes
     of poses ``q_rot`` (P, n_axes; linear columns ignored). With the rotary axes fixed the tip is affine in the linear
     axes, so three unit probes give the map."""
-    names = machine.axis_names
-    linear = [c for c, a in enumerate(names) if not machine.axes[a].is_rotary]
-    q0 = np.array(q_rot, float, ndmin=2).copy()
-    q0[:, linear] = 0.0
-    p0, _ = forward_nominal(machine, q0)
-    cols = []
-    for c in linear:
-        qc = q0.copy()
-        qc[:, c] += 1.0
-        cols.append(forward_nominal(machine, qc)[0] - p0)
-    M = np.stack(cols, axis=-1)  # (P, 3, n_linear)
+    _, p0, M = linear_axis_map(machine, q_rot)
     rhs = np.asarray(points, float)[None, :, :] - p0[:, None, :]  # (P, K, 3)
     return np.einsum("pij,pkj->pki", np.linalg.pinv(M), rhs)
 

@@ -140,6 +140,23 @@ def _wind(angle, previous, travel):
     return cand
 
 
+def linear_axis_map(machine: Machine, q):
+    """With the rotary axes of poses q fixed, the tool tip in the part frame is affine in the linear axes:
+    tip = p0 + M q_linear. Returns (linear column indices, p0 (N, 3) mm: the tip with the linear axes at zero,
+    M (N, 3, n_linear)): three unit probes of the forward kinematics give the map."""
+    names = machine.axis_names
+    linear = [c for c, a in enumerate(names) if not machine.axes[a].is_rotary]
+    q0 = np.array(q, float, ndmin=2)
+    q0[:, linear] = 0.0
+    p0, _ = forward_nominal(machine, q0)
+    cols = []
+    for c in linear:
+        qc = q0.copy()
+        qc[:, c] += 1.0
+        cols.append(forward_nominal(machine, qc)[0] - p0)
+    return linear, p0, np.stack(cols, axis=-1)
+
+
 def inverse_kinematics(
     machine: Machine,
     tip,
@@ -219,15 +236,7 @@ def inverse_kinematics(
     q = np.zeros((n, len(names)))
     q[:, inner.column] = i_ang
     q[:, outer.column] = o_ang
-    # Position: with the rotary axes fixed the tip is affine in the linear axes, so three unit probes give the map.
-    linear = [c for c, a in enumerate(names) if not machine.axes[a].is_rotary]
-    p0, _ = forward_nominal(machine, q)
-    cols = []
-    for c in linear:
-        qc = q.copy()
-        qc[:, c] += 1.0
-        cols.append(forward_nominal(machine, qc)[0] - p0)
-    M = np.stack(cols, axis=-1)  # (N, 3, n_linear)
+    linear, p0, M = linear_axis_map(machine, q)
     if len(linear) == 3:
         sol = np.linalg.solve(M, (tip - p0)[..., None])[..., 0]
     else:
