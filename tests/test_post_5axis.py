@@ -424,3 +424,36 @@ def test_cli_posts_cl_data_and_refuses_bad_cl_with_exit_2(tmp_path):
                         nmv_file], capture_output=True, text=True)
     assert r.returncode == 2 and f"{bad}:3:" in r.stderr and "Traceback" not in r.stderr
     assert not out2.exists()
+
+
+def test_comprehensive_force_frame_follows_a_tilted_head():
+    """On a head machine the feed frame's z is the tilted tool axis: the output end point, put through the twin with
+    the force built here from the head angle (tool axis (sin B, 0, cos B) for +B about Y, ISO 841), lands on the
+    nominal pose; with the force frame of machine Z it would not."""
+    from trueaxis.machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
+
+    m = load_machine(MACHINES / "headtable.toml")
+    b = 30.0
+    prog = (f"G21 G90 G94\n(trueaxis: ap=2 ae=3 fz=0.1 n=3000 d=10 z=4 mode=down)\n"
+            f"G0 X0 Y0 Z-240 B{b} C0\nG1 X40 Y0 Z-240 B{b} C0 F600\nM2\n")
+    report = {}
+    out = compensate(prog, m, "comprehensive", report=report)
+    assert out != compensate(prog, m, "geometric")
+    line = [ln for ln in out.splitlines() if ln.startswith("G1")][-1]
+    w = {t[0]: float(t[1:]) for t in line.split() if t[0] in "XYZBC"}
+    q_cmd = np.array([[w["X"], w["Y"], w["Z"], np.radians(w["B"]), np.radians(w["C"])]])
+    f_feed = mean_force(CuttingCoefficients.from_mapping(m.cutting),
+                        CuttingConditions.from_mapping({"ap": 2, "ae": 3, "fz": 0.1, "n": 3000, "d": 10, "z": 4}))
+    z = np.array([np.sin(np.radians(b)), 0.0, np.cos(np.radians(b))])
+    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
+    x /= np.linalg.norm(x)
+    force = f_feed[0] * x + f_feed[1] * np.cross(z, x) + f_feed[2] * z
+    twin = ErrorTwin(m)
+    p_nom, u_nom = twin.nominal_pose(np.array([[40.0, 0.0, -240.0, np.radians(b), 0.0]]))
+    p_act, u_act = twin.actual_pose(q_cmd, force_n=force)
+    # 5-decimal output: 0.005 um per word; the solver's 0.01 um.
+    assert np.linalg.norm(p_act - p_nom) * 1e3 < 0.1
+    assert np.linalg.norm(u_act - u_nom) * 1e6 < 1.0
+    flat = f_feed[0] * np.array([1.0, 0, 0]) + f_feed[1] * np.array([0, 1.0, 0]) + f_feed[2] * np.array([0, 0, 1.0])
+    p_flat, _ = twin.actual_pose(q_cmd, force_n=flat)
+    assert np.linalg.norm(p_flat - p_nom) * 1e3 > 0.1  # the frame matters at this size

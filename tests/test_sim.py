@@ -11,8 +11,8 @@ import pytest
 from conftest import DATA, MACHINES, ROOT
 from trueaxis.machine import ErrorTwin, load_machine
 from trueaxis.postproc.gcode import parse_program
-from trueaxis.sim.effects import (Backlash, EffectsFileError, load_effects, machine_to_part_rotation,
-                                  parse_effects, _servo_axis)
+from trueaxis.machine.kinematics import machine_to_part_rotation
+from trueaxis.sim.effects import Backlash, EffectsFileError, _servo_axis, load_effects, parse_effects
 from trueaxis.sim.envelope import envelope_deviation, line_tool_intersection, thin_instances
 from trueaxis.sim.programs import boss_probe, cone_flank_program, square_boss_program
 from trueaxis.sim.shop import load_part, simulate, write_cmm

@@ -140,6 +140,21 @@ def _wind(angle, previous, travel):
     return cand
 
 
+def machine_to_part_rotation(machine: Machine, q) -> np.ndarray:
+    """(T, 3, 3): turns a vector given in the machine frame M (at the bed) into the part frame at poses q (T, n).
+
+    It is the rotation part of the workpiece branch of the relative chain (DESIGN §3): for a B-C table R_C(C) R_B(B).
+    """
+    q = np.asarray(q, float)
+    R = np.broadcast_to(np.eye(3), (q.shape[0], 3, 3))
+    for link in chain_links(machine):
+        if link.branch != "workpiece":
+            continue
+        (Rg, _), _ = axis_motion(link, q[:, link.column])
+        R = R @ Rg
+    return np.ascontiguousarray(R)
+
+
 def linear_axis_map(machine: Machine, q):
     """With the rotary axes of poses q fixed, the tool tip in the part frame is affine in the linear axes:
     tip = p0 + M q_linear. Returns (linear column indices, p0 (N, 3) mm: the tip with the linear axes at zero,

@@ -17,7 +17,8 @@ Cutting conditions for comprehensive mode, in order of precedence (the first tha
    stand (FreeCAD's post writes them from the job's tool controller and operation),
 3. the machine file's tool (diameter = 2 x radius, flutes).
 The force is the mechanistic model's mean force over a tooth period, in the feed frame turned to the machine frame:
-x along the feed direction (XY plane), z along the tool axis, y = z x x. Rapids and plunges carry no force.
+z along the tool axis (in the machine frame: machine Z unless a head tilts the tool), x along the feed
+direction normal to it, y = z x x. Rapids and plunges carry no force.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import numpy as np
 
 from ..machine import ErrorTwin, Machine
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
+from ..machine.kinematics import machine_to_part_rotation
 from .gcode import (
     ARC_CCW,
     ARC_CW,
@@ -250,8 +252,11 @@ class _Poster:
         return out
 
     # --- forces --------------------------------------------------------------------------------------------------
-    def forces(self, rows, direction):
-        """(K,3) N force on the tool for the given rows with feed directions (K,3) in the machine frame."""
+    def forces(self, rows, direction, q):
+        """(K,3) N force on the tool for the given rows with feed directions (K,3) in the machine frame, at the
+        rows' poses q (K, n_axes): the feed frame has z along the tool axis in the machine frame (machine Z on a
+        three-axis mill and a table-table machine, turned by the head on a head machine) and x along the feed
+        direction normal to it."""
         if self.mode != "comprehensive":
             return None
         if not self.m.cutting:
@@ -260,8 +265,9 @@ class _Poster:
         conds = self._conditions_per_line()
         K = len(rows)
         F = np.zeros((K, 3))
-        horiz = direction.copy()
-        horiz[:, 2] = 0.0
+        # Tool axis in the machine frame: the part-frame tool axis turned back by the workpiece branch.
+        tool_axis = np.einsum("nji,nj->ni", machine_to_part_rotation(self.m, q), self.twin.nominal_pose(q)[1])
+        horiz = direction - np.einsum("ni,ni->n", direction, tool_axis)[:, None] * tool_axis
         norm = np.linalg.norm(horiz, axis=1)
         cutting = (self.p.motion[rows] != RAPID) & (norm > 1e-9)
         groups: dict = {}
@@ -277,7 +283,7 @@ class _Poster:
             f_feed = mean_force(coeffs, cond)
             ks = np.asarray(ks)
             x = horiz[ks] / norm[ks, None]
-            z = np.array([0.0, 0.0, 1.0])
+            z = tool_axis[ks]
             y = np.cross(z, x)
             F[ks] = f_feed[0] * x + f_feed[1] * y + f_feed[2] * z
         return F
@@ -405,7 +411,7 @@ class _Poster:
         arcs = (p.motion[rows] == ARC_CW) | (p.motion[rows] == ARC_CCW)
         if np.any(arcs) and len(lin) == 3:
             direction[arcs] = self._arc_end_tangent(rows[arcs], q_end[arcs])
-        force = self.forces(rows, direction)
+        force = self.forces(rows, direction, q_end)
         q_cmd, singular = self.solve(q_end, force, rows)
         self.check(q_end, q_cmd, rows)
         delta_prog = self.to_program_delta(q_cmd - q_end, inch)

@@ -61,7 +61,6 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import lfilter
 
-from ..machine.kinematics import axis_motion, chain_links
 from ..machine.model import Machine
 
 UM = 1e-3
@@ -360,21 +359,6 @@ class Effects:
             return x
 
         return plain(self)
-
-
-def machine_to_part_rotation(machine: Machine, q) -> np.ndarray:
-    """(T, 3, 3): turns a vector given in the machine frame M (at the bed) into the part frame at poses q (T, n).
-
-    It is the rotation part of the workpiece branch of the relative chain (DESIGN §3): for a B-C table R_C(C) R_B(B).
-    """
-    q = np.asarray(q, float)
-    R = np.broadcast_to(np.eye(3), (q.shape[0], 3, 3))
-    for link in chain_links(machine):
-        if link.branch != "workpiece":
-            continue
-        (Rg, _), _ = axis_motion(link, q[:, link.column])
-        R = R @ Rg
-    return np.ascontiguousarray(R)
 
 
 # ----------------------------------------------------------------------------------------------------- the file ----

@@ -26,7 +26,8 @@ from ..machine import ErrorTwin, Machine, load_machine
 from ..postproc.gcode import Program, parse_program
 from . import cmm as _cmm
 from .cutting import cutting_forces, pass_index, structured_conditions
-from .effects import Effects, load_effects, machine_to_part_rotation
+from ..machine.kinematics import machine_to_part_rotation
+from .effects import Effects, load_effects
 from .envelope import envelope_deviation, thin_instances
 from .trajectory import Trajectory, interpolate
 
