@@ -25,16 +25,10 @@ def find_cloudcompare() -> str | None:
 
 
 def require_cloudcompare() -> str:
-    """Path of CloudCompare; when missing, fail under CI=true and skip otherwise (the rule of require_rs274)."""
-    import pytest
+    """Path of CloudCompare (conftest.require_program: fails under CI=true when missing, skips elsewhere)."""
+    from conftest import require_program  # here, not at the top: the benchmark imports this module without pytest
 
-    path = find_cloudcompare()
-    if path is None:
-        reason = "CloudCompare is not installed (Debian package cloudcompare); the C2M cross-check needs it"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(reason + " and CI=true")
-        pytest.skip(reason)
-    return path
+    return require_program(EXECUTABLE, "cloudcompare", "the C2M cross-checks")
 
 
 def cloudcompare_c2m(cloud_ply: Path, mesh_ply: Path, workdir: Path, exe: str | None = None):

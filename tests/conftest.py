@@ -18,13 +18,15 @@ DATA = Path(__file__).resolve().parent / "data"
 MACHINES = ROOT / "fixtures" / "machines"
 
 
-def require_program(name: str) -> str:
-    """Path of an outside program; fail under CI, skip elsewhere, when it is missing."""
+def require_program(name: str, package: str = "", needed_for: str = "") -> str:
+    """Path of an outside program: the one place of the rule that a missing program fails the test under CI=true
+    (the Makefile installs it) and skips it with the reason elsewhere."""
     path = shutil.which(name)
     if path is None:
-        message = f"{name} is not installed (make test installs it: see the Makefile's DEBS_TEST)"
-        if os.environ.get("CI") == "true":
-            pytest.fail(message)
+        message = (f"{name} is not installed ({f'Debian package {package}; ' if package else ''}make test installs it: "
+                   f"see the Makefile's DEBS_TEST){'; ' + needed_for + ' need it' if needed_for else ''}")
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(message + " and CI=true")
         pytest.skip(message)
     return path
 

@@ -11,15 +11,12 @@ The standalone ``rs274`` reads its tool table in **inches**.
 
 from __future__ import annotations
 
-import os
 import re
-import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 RS274 = "rs274"
 PRINT_DECIMALS = 4  # rs274 prints %.4f
@@ -29,15 +26,10 @@ _PLANE = {"CANON_PLANE_XY": (0, 1, 2), "CANON_PLANE_XZ": (2, 0, 1), "CANON_PLANE
 
 
 def require_rs274() -> str:
-    """Path of ``rs274``; when missing, fail under CI=true and skip otherwise (one place for that rule)."""
-    path = shutil.which(RS274)
-    if path is None:
-        reason = ("LinuxCNC's rs274 is not installed (Debian package linuxcnc-uspace); "
-                  "the G-code conformance tests need it")
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(reason + " and CI=true")
-        pytest.skip(reason)
-    return path
+    """Path of LinuxCNC's ``rs274`` (conftest.require_program: fails under CI=true when missing, skips elsewhere)."""
+    from conftest import require_program
+
+    return require_program(RS274, "linuxcnc-uspace", "the G-code conformance tests")
 
 
 @dataclass
@@ -106,3 +98,20 @@ def parse_canon(text: str) -> CanonMoves:
             rotation.append(int(vals[4]))
     return CanonMoves(kind, np.array(end, float).reshape(-1, 6), np.array(center, float).reshape(-1, 3),
                       np.array(rotation, int), "", 0)
+
+
+def assert_rs274_reads_as_we_do(text: str, workdir: Path, tool_lengths_mm: dict | None = None,
+                                name: str = "out.ngc") -> CanonMoves:
+    """rs274 interprets the program ``text`` without error, with as many moves as our reader and the same end points
+    (within rs274's 4 printed decimals). Returns rs274's moves."""
+    from trueaxis.postproc.gcode import parse_program
+
+    path = Path(workdir) / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    moves = run_rs274(path, tool_lengths_mm or {}, Path(workdir))
+    assert moves.returncode == 0, moves.stderr[-2000:]
+    ours = parse_program(text)
+    assert len(moves.kind) == len(ours)
+    np.testing.assert_allclose(moves.end, ours.end, atol=5e-5)
+    return moves

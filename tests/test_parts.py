@@ -5,12 +5,11 @@ from __future__ import annotations
 import json
 import math
 
+import cadquery as cq
 import numpy as np
 import pytest
-
-cq = pytest.importorskip("cadquery")
-trimesh = pytest.importorskip("trimesh")
-from scipy.optimize import minimize  # noqa: E402
+import trimesh
+from scipy.optimize import minimize
 
 from trueaxis.inspect import parts  # noqa: E402
 from trueaxis.inspect.parts import (  # noqa: E402

@@ -11,7 +11,7 @@ import pytest
 
 from conftest import MACHINES, ROOT
 from post_checks import actual_points, distance_to_polyline, machine_rows, nominal_polyline
-from rs274_helpers import run_rs274
+from rs274_helpers import assert_rs274_reads_as_we_do, run_rs274
 from trueaxis.machine import ErrorTwin, load_machine, parse_machine
 from trueaxis.postproc.gcode import parse_program
 from trueaxis.postproc.post import PostError, compensate
@@ -90,13 +90,7 @@ def test_the_actual_path_between_output_points_stays_within_tolerance(xh714, pos
 
 def test_rs274_reads_the_compensated_program(tmp_path, posted):
     out, _ = posted
-    path = tmp_path / "out.ngc"
-    path.write_text(out)
-    moves = run_rs274(path, {}, tmp_path)
-    assert moves.returncode == 0, moves.stderr
-    ours = parse_program(out)
-    assert len(moves.kind) == len(ours)
-    np.testing.assert_allclose(moves.end, ours.end, atol=5e-5)
+    assert_rs274_reads_as_we_do(out, tmp_path)
 
 
 def test_identical_input_gives_byte_identical_output(xh714, posted):

@@ -22,7 +22,7 @@ import pytest
 
 from conftest import MACHINES, ROOT
 from post_checks import machine_rows
-from rs274_helpers import run_rs274
+from rs274_helpers import assert_rs274_reads_as_we_do
 from trueaxis.machine import ErrorTwin, forward_nominal, load_machine
 from trueaxis.postproc.cl import ClError, cl_to_program, read_cl
 from trueaxis.postproc.gcode import FEED, parse_program
@@ -247,13 +247,7 @@ def test_inverse_time_feeds_of_split_blocks_keep_the_block_time(case):
 @pytest.mark.external
 def test_rs274_reads_the_five_axis_output(tmp_path, case):
     m, src, out, _ = case
-    path = tmp_path / "out.ngc"
-    path.write_text(out)
-    moves = run_rs274(path, {}, tmp_path)
-    assert moves.returncode == 0, moves.stderr
-    ours = parse_program(out)
-    assert len(moves.kind) == len(ours)
-    np.testing.assert_allclose(moves.end, ours.end, atol=5e-5)
+    assert_rs274_reads_as_we_do(out, tmp_path)
 
 
 def test_identical_input_gives_identical_output(case):

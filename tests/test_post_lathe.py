@@ -7,7 +7,7 @@ import pytest
 
 from conftest import MACHINES
 from post_checks import actual_points, distance_to_polyline, nominal_polyline
-from rs274_helpers import run_rs274
+from rs274_helpers import assert_rs274_reads_as_we_do
 from trueaxis.machine import load_machine
 from trueaxis.postproc.gcode import parse_program
 from trueaxis.postproc.post import PostError, compensate
@@ -45,10 +45,7 @@ def test_lathe_output_lands_on_the_nominal_path_in_xz(lathe, tmp_path):
     # The correction is not trivial: the typical errors move the tip by microns, and the arc's correction varies.
     assert max(v["max_abs_um"] for v in report["correction"].values()) > 1.0
     assert report["arcs_linearised"] == 1
-    path = tmp_path / "lathe.ngc"
-    path.write_text(out)
-    moves = run_rs274(path, {}, tmp_path)
-    assert moves.returncode == 0, moves.stderr[-2000:]
+    assert_rs274_reads_as_we_do(out, tmp_path, name="lathe.ngc")
 
 
 def test_comprehensive_mode_on_a_lathe_without_milling_coefficients_is_refused(lathe):
