@@ -17,6 +17,8 @@ def atomic_write(path: str | os.PathLike, data: bytes | str, encoding: str = "ut
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(payload)
+            f.flush()
+            os.fsync(f.fileno())
         os.replace(temp, path)
     except BaseException:
         if os.path.exists(temp):

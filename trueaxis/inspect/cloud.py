@@ -11,13 +11,15 @@ and an inspection must not measure a part against points that were never there.
 
 from __future__ import annotations
 
+import io
 import os
 import re
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from ..fileio import atomic_write
 
 __all__ = ["Cloud", "CloudError", "read_cloud", "write_cloud_ply", "check_extent"]
 
@@ -390,22 +392,13 @@ def write_cloud_ply(path: str | os.PathLike, points: np.ndarray, normals: np.nda
     header += ["end_header"]
     head = ("\n".join(header) + "\n").encode("ascii")
 
-    directory = os.path.dirname(os.path.abspath(name))
-    fd, temp = tempfile.mkstemp(prefix="." + os.path.basename(name) + ".", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as out:
-            out.write(head)
-            if binary:
-                out.write(np.ascontiguousarray(columns, dtype="<f8").tobytes())
-            else:
-                np.savetxt(out, columns, fmt="%.17g")
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(temp, name)
-    except BaseException:
-        if os.path.exists(temp):
-            os.unlink(temp)
-        raise
+    if binary:
+        body = np.ascontiguousarray(columns, dtype="<f8").tobytes()
+    else:
+        text = io.BytesIO()
+        np.savetxt(text, columns, fmt="%.17g")
+        body = text.getvalue()
+    atomic_write(name, head + body)
 
 
 # ------------------------------------------------------------------------------------------------------------ extent

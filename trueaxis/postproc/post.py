@@ -169,7 +169,8 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     if prog.units != "mm":
         rep.units_note = (f"program in {prog.units} (G20); converted to mm for the {machine.name} model and back to "
                           "program units for output")
-    if mode == "none" or len(prog) == 0:
+    # Nothing to compensate: mode none, no motion, or only G28/G30/G53 moves (machine positions, passed through).
+    if mode == "none" or not np.isin(prog.kind, (ROW_PROGRAMMED, ROW_CYCLE)).any():
         rep.blocks_out = rep.blocks_in
         return text, rep
     return _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep).run()
@@ -399,9 +400,6 @@ class _Poster:
         p = self.p
         rows = np.nonzero((p.kind == ROW_PROGRAMMED) | (p.kind == ROW_CYCLE))[0]
         self.rep.moves = int(rows.size)
-        if rows.size == 0:  # only G28/G30/G53 moves: machine positions, passed through as they are
-            self.rep.blocks_out = self.rep.blocks_in
-            return "".join(p.lines), self.rep
         inch = p.inch[rows]
         q_end = self.to_machine(p.end_machine[rows], inch)
         q_start = self.to_machine((p.start + p.offset)[rows], inch)

@@ -17,12 +17,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from ..fileio import atomic_write
 from ..inspect.parts import cone_surface_points
 
 
@@ -133,14 +132,5 @@ def truth_path(ply_path) -> Path:
 
 
 def write_json_atomic(path, data: dict) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=1)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write ``data`` as indented JSON, atomically (``trueaxis.fileio.atomic_write``)."""
+    atomic_write(path, json.dumps(data, indent=1) + "\n")
