@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from trueaxis.postproc.gcode import (
     ARC_CCW, ARC_CW, FEED, RAPID, ROW_CYCLE, ROW_REFERENCE, GcodeError, parse_file, parse_program,
-    parse_tool_table, word_spans, write_number,
+    parse_tool_table, word_spans, write_number, write_numbers,
 )
 
 from rs274_helpers import PRINT_DECIMALS, run_rs274
@@ -148,6 +148,22 @@ def test_write_number_formats():
     assert write_number(120.0, 3, trailing_point=True) == "120."
     with pytest.raises(ValueError):
         write_number(float("nan"), 4)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(st.floats(-1e5, 1e5), st.floats(-1e-3, 1e-3), st.integers(-500, 500).map(lambda i: i / 8)),
+                min_size=1, max_size=30),
+       st.integers(0, 7), st.booleans(), st.booleans())
+def test_write_numbers_writes_what_write_number_writes(values, decimals, leading_zero, trailing_point):
+    # The writer's batch formatter against the one-number reference, including halves (ties) and tiny negatives.
+    batch = write_numbers(np.array(values), decimals, leading_zero=leading_zero, trailing_point=trailing_point)
+    one = [write_number(v, decimals, leading_zero=leading_zero, trailing_point=trailing_point) for v in values]
+    assert batch == one
+
+
+def test_write_numbers_refuses_non_finite_values():
+    with pytest.raises(ValueError, match="non-finite"):
+        write_numbers(np.array([1.0, np.inf]), 4)
 
 
 def test_format_info_reports_input_precision():

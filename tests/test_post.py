@@ -14,7 +14,13 @@ from post_checks import actual_points, distance_to_polyline, machine_rows, nomin
 from rs274_helpers import assert_rs274_reads_as_we_do, run_rs274
 from trueaxis.machine import ErrorTwin, load_machine, parse_machine
 from trueaxis.postproc.gcode import parse_program
-from trueaxis.postproc.post import PostError, compensate
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from trueaxis.postproc import post as post_module
+from trueaxis.postproc.post import (
+    _DISTANCE, PostError, _modal_per_line, _rewrite_plain, _rewrite_tokens, compensate,
+)
 
 XH714 = MACHINES / "xh714.toml"
 
@@ -148,6 +154,56 @@ def test_arcs_stay_arcs_when_the_correction_is_constant():
     assert report["arcs_kept"] == 2 and report["arcs_linearised"] == 0
     n40 = next(ln for ln in out.splitlines() if ln.startswith("N40"))
     assert "G2" in n40 and "I-50" in n40 and "X99.997" in n40
+
+
+def test_kept_arc_with_absolute_centres_gets_its_centre_corrected(tmp_path):
+    # G90.1: I J are the centre's coordinates, which move with the (constant) correction like the end point does.
+    text = (MACHINES / "xh714.toml").read_text()
+    const = parse_machine(text.split("[location]")[0].replace("[loaded]", "[x]")
+                          + "[component.X]\nat = [-200.0, 200.0]\nEXX = [3.0, 3.0]\n", source="const")
+    program = "G21 G90 G90.1 G17\nG0 X150 Y80 Z-100\nG1 Z-105 F300\nG2 X100 Y30 I100 J80\nM2\n"
+    report = {}
+    out = compensate(program, const, "geometric", report=report)
+    assert report["arcs_kept"] == 1
+    arc = out.splitlines()[3]
+    assert "G2" in arc and "X99.997" in arc and "I99.997" in arc and "J80" in arc, arc
+    assert_rs274_reads_as_we_do(out, tmp_path)
+
+
+_WORD = st.builds(lambda v: f"{v:.4f}".rstrip("0").rstrip("."), st.floats(-999, 999))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.booleans(), st.sampled_from(["", "G0", "G1", "G01", "g1", "G2", "G03"]),
+       st.lists(st.sampled_from("XYZABCIJK"), unique=True), st.booleans(), st.booleans(), _WORD,
+       st.sampled_from([0, 1, 2, 3]), st.booleans(), st.sampled_from([" ", ""]))
+def test_the_writers_fast_path_writes_what_the_token_walk_writes(n, g, letters, r, f, value, motion, arc, sep):
+    letters = sorted(letters, key="XYZABCIJK".index)
+    words = [w for w in ["N120" if n else "", g] if w] + [c + value for c in letters]
+    words += ["R" + value] if r else []
+    words += ["F" + value] if f else []
+    code = sep.join(words)
+    new = ["X1.5", "Y-2", "Z0.25"]
+    plain = _rewrite_plain(code, motion, new, arc, sep)
+    assert plain is not None, code
+    assert plain == _rewrite_tokens(code, motion, new, arc, True, sep)
+
+
+def test_distance_mode_per_line_ignores_comments_and_follows_the_last_word():
+    lines = ["G21 G90\n", "G1 X1 (G91 in a comment)\n", "G91 G1 X1 ; G90\n", "X2\n", "N5 G90 G91 G90 X3\n", "G\n",
+             "91 X4\n", "g91\n"]
+    assert _modal_per_line(lines, _DISTANCE, default="0") == ["0", "0", "1", "1", "0", "0", "0", "1"]
+
+
+def test_the_post_in_small_chunks_writes_what_it_writes_in_one(xh714, monkeypatch):
+    # Moves are compensated chunk by chunk (bounded memory): chunk borders must not change what is written
+    # beyond the solver's own tolerance (its batch decides how many Newton steps each pose gets).
+    whole = compensate(PROGRAM, xh714, "geometric")
+    monkeypatch.setattr(post_module, "ROW_CHUNK", 3)
+    chunked = compensate(PROGRAM, xh714, "geometric")
+    a, b = parse_program(whole), parse_program(chunked)
+    assert len(a.lines) == len(b.lines)
+    assert np.abs(a.end - b.end).max() < 2e-5  # 0.02 um: the solver's tolerance, plus the last written digit
 
 
 def test_mode_none_returns_the_input_unchanged(xh714):

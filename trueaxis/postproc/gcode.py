@@ -90,6 +90,8 @@ _TOKEN = re.compile(
     r"|([^\s])"
 )
 _TOKEN_KINDS = (None, "comment", "comment", "word", "word", "other")
+# The tokenizer for writers that walk a block's tokens: group 3 is a word's letter (None for comments and others).
+TOKEN_PATTERN = _TOKEN
 _ASSIGN = re.compile(r"^[ \t]*(?:[Nn][0-9]+[ \t]*)?#([0-9]+)[ \t]*=[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))[ \t]*(?:\(.*\)|;.*)?[ \t]*$")
 _PARAM_REF = re.compile(r"^(?:#([0-9]+)|\[[ \t]*#([0-9]+)[ \t]*\])$")
 # the fast path's plain G0/G1 block, and its words (upper case, no comments, no other codes)
@@ -99,6 +101,9 @@ _FAST = re.compile(
     + r"\r?\n?\Z"
 )
 _DECIMALS = re.compile(r"([A-Za-z])[ \t]*[-+]?[0-9]*\.([0-9]*)")
+_LEADING_ZERO = re.compile(r"[XYZIJKR][-+]?(0?)\.[0-9]")
+# From a comment's start to the end of its line (what the writer's dialect checks look past)
+_COMMENT_TO_EOL = re.compile(r"[(;][^\r\n]*")
 
 # Lines end at \n, \r\n or a lone \r, as an editor counts them (str.splitlines also splits at \f, \v, \x1c-\x1e,
 # \x85, \u2028 and \u2029, which would shift the line numbers of the messages).
@@ -249,29 +254,21 @@ class Program:
     @cached_property
     def format_info(self) -> FormatInfo:
         """How the input writes numbers (decimals per word letter, leading zero, trailing point, separator)."""
+        # One pass of regular expressions over the program's code (its comments cut out), not one per line.
+        code = _COMMENT_TO_EOL.sub("", "".join(self.lines))
+        seen = {(letter.upper(), len(frac)) for letter, frac in _DECIMALS.findall(code)}
         decimals: dict = {}
-        leading_zero = None
-        trailing_point = None
-        for line in self.lines:
-            code = line.split("(", 1)[0].split(";", 1)[0]
-            for letter, frac in _DECIMALS.findall(code):
-                letter = letter.upper()
-                if len(frac) > decimals.get(letter, -1):
-                    decimals[letter] = len(frac)
-                if frac == "" and trailing_point is None and letter in "XYZABCF":
-                    trailing_point = True
-        for line in self.lines:
-            m = re.search(r"[XYZIJKR][-+]?(0?)\.[0-9]", line.split("(", 1)[0])
-            if m:
-                leading_zero = m.group(1) == "0"
-                break
+        for letter, n in seen:
+            decimals[letter] = max(n, decimals.get(letter, -1))
+        trailing_point = any((letter, 0) in seen for letter in "XYZABCF")
+        m = _LEADING_ZERO.search(code)
+        leading_zero = m.group(1) == "0" if m else True
         separator = ""
         for i in self.line_index[:50]:
             if re.search(r"[0-9.][ \t]+[A-Za-z]", self.lines[int(i)].split("(", 1)[0]):
                 separator = " "
                 break
-        return FormatInfo(decimals, bool(leading_zero) if leading_zero is not None else True,
-                          bool(trailing_point), separator)
+        return FormatInfo(decimals, leading_zero, trailing_point, separator)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -305,6 +302,29 @@ def write_number(value: float, decimals: int, *, leading_zero: bool = True, trai
         elif text.startswith("-0.") and len(text) > 3:
             text = "-" + text[2:]
     return text
+
+
+def write_numbers(values, decimals: int, *, leading_zero: bool = True, trailing_point: bool = False) -> list:
+    """``write_number`` of every value in ``values`` (a 1-D array): the same strings, for the writer's bulk of axis
+    words (list passes over the batch instead of one call per number)."""
+    v = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"cannot write a non-finite number ({v[~np.isfinite(v)][0]}) into G-code")
+    if decimals < 0:
+        raise ValueError(f"decimals must be >= 0, got {decimals}")
+    form = f"%.{decimals}f"
+    out = [form % x for x in v.tolist()]
+    if decimals > 0:
+        out = [t.rstrip("0") for t in out]  # every text has a point: "1.5", "120.", "-0."
+    out = [t[1:] if t in ("-0.", "-0") else t for t in out]
+    if decimals > 0 and not trailing_point:
+        out = [t[:-1] if t[-1] == "." else t for t in out]
+    elif decimals == 0 and trailing_point:
+        out = [t + "." for t in out]
+    if not leading_zero:
+        out = [("." + t[2:] if t[:2] == "0." and len(t) > 2 else "-." + t[3:] if t[:3] == "-0." and len(t) > 3 else t)
+               for t in out]
+    return out
 
 
 def output_decimals(info: FormatInfo, letter: str, units: str) -> int:

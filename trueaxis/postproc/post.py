@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from ..machine import ErrorTwin, Machine
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
@@ -40,10 +41,13 @@ from .gcode import (
     RAPID,
     ROW_CYCLE,
     ROW_PROGRAMMED,
+    WORD_BITS,
     GcodeError,
     Program,
     parse_program,
+    TOKEN_PATTERN,
     tokenize_line,
+    write_numbers,
     write_number,
 )
 from .solver import solve_commanded
@@ -54,6 +58,17 @@ _CONDITIONS = re.compile(r"\(\s*trueaxis:([^)]*)\)", re.IGNORECASE)
 _DISTANCE = re.compile(r"G\s*0*9([01])(?![0-9.])", re.IGNORECASE)
 _ARC_DISTANCE = re.compile(r"G\s*0*9([01])\.1", re.IGNORECASE)
 _MOTION_WORD = re.compile(r"^G0*([0-3])$", re.IGNORECASE)
+_NUM = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)"
+# A plain motion block: N G X Y Z A B C I J K R F, each optional, in this order, nothing else (the writer's fast path)
+_PLAIN = re.compile(
+    rf"[ \t]*(?P<n>[Nn][0-9]+)?[ \t]*(?P<g>[Gg]0*[0-3](?![0-9.]))?[ \t]*"
+    + "".join(rf"(?:[{c}{c.lower()}][ \t]*{_NUM}[ \t]*)?" for c in "XYZABCIJK")
+    + rf"(?P<r>[Rr][ \t]*{_NUM})?[ \t]*(?P<f>[Ff][ \t]*{_NUM})?[ \t]*\Z"
+)
+_R_BIT = 1 << WORD_BITS.index("R")
+_COMMENT_START = re.compile(r"[(;]")
+_LINE_BREAK = re.compile(r"[\r\n]")
+ROW_CHUNK = 8_000  # moves compensated together: bounds memory (an arc samples 17 poses) at little cost in speed
 
 
 class PostError(GcodeError):
@@ -229,7 +244,7 @@ class _Poster:
         self.orientation = any(a in prog.axes_present for a in machine.rotary_axes)
         self.inch_rows = prog.inch
         self.stats = {"um": 0.0, "urad": 0.0, "urad_singular": 0.0, "singular_points": 0, "singular_lines": set()}
-        self.fractions = {}  # row index -> piece boundaries (fractions of the move) of split moves
+        self.fractions = {}  # program row -> piece boundaries (fractions of the move) of split moves
 
     # --- coordinates ------------------------------------------------------------------------------------------------
     def to_machine(self, prog6, inch):
@@ -400,6 +415,34 @@ class _Poster:
         p = self.p
         rows = np.nonzero((p.kind == ROW_PROGRAMMED) | (p.kind == ROW_CYCLE))[0]
         self.rep.moves = int(rows.size)
+        delta_prog = np.empty((rows.size, 6))
+        pieces, arc_mode = {}, {}
+        sq = np.zeros(len(self.names))
+        mx = np.zeros(len(self.names))
+        # Moves are independent once their nominal start and end are known: compensate them chunk by chunk, so
+        # that memory stays bounded (arcs sample 17 points each) however long the program is.
+        chunks = [slice(s, min(rows.size, s + ROW_CHUNK)) for s in range(0, rows.size, ROW_CHUNK)]
+        # A bar on long programs, on a terminal only (tqdm's disable=None).
+        bar = tqdm(total=rows.size, unit="move", desc="compensating", disable=None if len(chunks) > 2 else True,
+                   leave=False)
+        for sl in chunks:
+            d_prog, dq, pcs, modes = self._compensate(rows[sl])
+            delta_prog[sl] = d_prog
+            pieces.update((sl.start + k, v) for k, v in pcs.items())
+            arc_mode.update((sl.start + k, v) for k, v in modes.items())
+            sq += np.sum(dq**2, axis=0)
+            mx = np.maximum(mx, np.abs(dq).max(axis=0, initial=0.0))
+            bar.update(sl.stop - sl.start)
+        bar.close()
+        self._summarise(mx, np.sqrt(sq / max(rows.size, 1)))
+        self._residual_check()
+        return self._write(rows, delta_prog, pieces, arc_mode)
+
+    def _compensate(self, rows):
+        """Compensate the moves ``rows`` (indices into the program's rows): (correction of each end in program units
+        (K, 6), the same in mm / rad (K, n_axes), split pieces {k: (n, 6) program-coordinate ends}, arc modes {k:
+        "arc" | "lines"}); k indexes ``rows``. Split moves' piece boundaries go to ``self.fractions`` (by row)."""
+        p = self.p
         inch = p.inch[rows]
         q_end = self.to_machine(p.end_machine[rows], inch)
         q_start = self.to_machine((p.start + p.offset)[rows], inch)
@@ -412,30 +455,27 @@ class _Poster:
         force = self.forces(rows, direction, q_end)
         q_cmd, singular = self.solve(q_end, force, rows)
         self.check(q_end, q_cmd, rows)
-        delta_prog = self.to_program_delta(q_cmd - q_end, inch)
-        self._summarise(q_cmd - q_end)
+        dq = q_cmd - q_end
+        delta_prog = self.to_program_delta(dq, inch)
 
-        # Pieces: per compensated row, a list of (program-coordinate end points (k,6)) incl. the final end.
-        pieces = {}
-        arc_mode = {}
+        pieces, arc_mode = {}, {}
         feed_rows = np.nonzero(p.motion[rows] == FEED)[0]
         pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd))
         if np.any(arcs):
             arc_pieces, modes = self._arcs(rows, np.nonzero(arcs)[0], q_start, q_end, force, inch, delta_prog)
             pieces.update(arc_pieces)
             arc_mode.update(modes)
-        self._residual_check(rows, q_cmd, q_end, force)
-        return self._write(rows, delta_prog, pieces, arc_mode)
+        return delta_prog, dq, pieces, arc_mode
 
-    def _summarise(self, dq):
+    def _summarise(self, max_abs, rms):
+        """Report the correction per axis: max and RMS over the move ends (um or urad)."""
         out = {}
         for j, a in enumerate(self.names):
             scale, unit = (1e6, "urad") if self.m.axes[a].is_rotary else (1e3, "um")
-            v = dq[:, j] * scale
-            out[a] = {f"max_abs_{unit}": float(np.abs(v).max()), f"rms_{unit}": float(np.sqrt(np.mean(v**2)))}
+            out[a] = {f"max_abs_{unit}": float(max_abs[j] * scale), f"rms_{unit}": float(rms[j] * scale)}
         self.rep.correction = out
 
-    def _residual_check(self, rows, q_cmd, q_end, force):
+    def _residual_check(self):
         """Report: the largest pose residual over every solved point (block ends and split points); the tool-axis
         residual outside the singular cone, and apart the tool-axis error left inside it (its free axis held)."""
         st = self.stats
@@ -485,7 +525,16 @@ class _Poster:
             pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
             return np.hstack([pa - pn, ua - un])[:, :n6]
 
-        q0, _ = self.solve(q_start[idx], None if f_all is None else f_all[idx], rows[idx])
+        # A move's commanded start is usually the previous move's commanded end (same pose, same force): reuse it.
+        q0 = np.empty((idx.size, q_start.shape[1]))
+        same = idx > 0
+        prev = idx[same] - 1
+        same[same] = np.all(q_start[idx[same]] == q_end[prev], axis=1) & (
+            True if f_all is None else np.all(f_all[idx[same]] == f_all[prev], axis=1))
+        q0[same] = q_cmd_end[idx[same] - 1]
+        if not same.all():
+            fresh = idx[~same]
+            q0[~same], _ = self.solve(q_start[fresh], None if f_all is None else f_all[fresh], rows[fresh])
         I = np.r_[idx, idx]
         F = np.r_[np.zeros(idx.size), np.ones(idx.size)]
         C = np.vstack([q0, q_cmd_end[idx]])
@@ -554,7 +603,7 @@ class _Poster:
         for sel in bounds:
             i = int(mv[sel[0]])
             out[i] = cmd6[sel]
-            self.fractions[i] = np.r_[0.0, fr[sel], 1.0]
+            self.fractions[int(rows[i])] = np.r_[0.0, fr[sel], 1.0]
         return out
 
     def _arcs(self, rows, arc_idx, q_start, q_end, force, inch, delta_prog):
@@ -610,128 +659,124 @@ class _Poster:
 
     # --- writing -------------------------------------------------------------------------------------------------
     def _write(self, rows, delta_prog, pieces, arc_mode):
+        """The output text: every line of the input, the compensated motion blocks rewritten (plus the extra pieces
+        of split moves after them); returns (text, report)."""
         p = self.p
         info = p.format_info
         sep = info.separator
         axes_out = [a for a in AXES if a in self.names and (a in p.axes_present or a in "XYZ")]
         if self.m.kind == "lathe":
             axes_out = [a for a in axes_out if a in p.axes_present or a in "XZ"]
-        rows_by_line: dict = {}
-        for k, r in enumerate(rows):
-            rows_by_line.setdefault(int(p.line_index[r]), []).append(k)
+        numbers = _Numbers(info)
         incremental = _modal_per_line(p.lines, _DISTANCE, default="0")  # "1" = G91
         arc_incremental = _modal_per_line(p.lines, _ARC_DISTANCE, default="1")  # "1" = G91.1 (default)
-        out_lines = []
-        last_written = np.zeros(6)  # program coordinates of the last end point written (or passed through)
-        all_rows_by_line: dict = {}
-        for r in range(len(p)):
-            all_rows_by_line.setdefault(int(p.line_index[r]), []).append(r)
-
-        decimals = {}
-        leading_zero, trailing_point = info.leading_zero, info.trailing_point
-
-        def fmt(letter, value, inch):
-            dec = decimals.get((letter, inch))
-            if dec is None:
-                dec = 5 if letter in "ABC" else (6 if inch else 5)
-                dec = decimals[(letter, inch)] = max(dec, info.decimals.get(letter, 0))
-            return letter + write_number(float(value), dec, leading_zero=leading_zero,
-                                         trailing_point=trailing_point)
-
-        for li, line in enumerate(p.lines):
-            ks = rows_by_line.get(li)
-            if not ks:
-                out_lines.append(line)
-                for r in all_rows_by_line.get(li, []):
-                    last_written = p.end[r].copy()
-                continue
-            body, ending = _split_ending(line)
-            r0 = rows[ks[0]]
-            inch = bool(p.inch[r0])
-            if p.kind[r0] == ROW_CYCLE:
-                if incremental[li] == "1":
+        is_cycle = p.kind[rows] == ROW_CYCLE
+        # The end point written for every program row (program coordinates): compensated moves' corrected ends,
+        # everything else (and canned cycles, rewritten from their hole and R level) as programmed. A block's
+        # incremental words and arc centres count from the end written for the row before it.
+        written_end = p.end.copy()
+        written_end[rows[~is_cycle]] += delta_prog[~is_cycle]
+        first_row_of_line = np.full(len(p.lines), -1)
+        first_row_of_line[p.line_index[::-1]] = np.arange(len(p))[::-1]
+        # The bulk of the axis words, formatted in one pass per axis: each compensated move's own corrected end, and
+        # the ends of the pieces of split moves and linearised arcs (the block's own end last).
+        target = p.end[rows] + delta_prog
+        inch_rows = p.inch[rows]
+        axis_words = {a: numbers.words(a, target[:, AXES.index(a)], inch_rows) for a in axes_out}
+        piece_keys = [k for k in pieces if arc_mode.get(k) != "arc"]
+        piece_pts = [pieces[k] if arc_mode.get(k) == "lines" else np.vstack([pieces[k], target[k]]) for k in piece_keys]
+        piece_first = dict(zip(piece_keys, np.cumsum([0] + [len(x) for x in piece_pts]).tolist()))
+        piece_pts_of = dict(zip(piece_keys, piece_pts))
+        if piece_pts:
+            flat = np.vstack(piece_pts)
+            flat_inch = np.repeat(inch_rows[piece_keys], [len(x) for x in piece_pts])
+            piece_words = {a: numbers.words(a, flat[:, AXES.index(a)], flat_inch) for a in axes_out}
+        line_of = p.line_index[rows]
+        starts = np.r_[0, np.nonzero(np.diff(line_of))[0] + 1]
+        ends = np.r_[starts[1:], rows.size]
+        # Python scalars for the per-line loop (numpy scalar access costs more than the rewrite itself).
+        rows_l, motion_l, inch_l = rows.tolist(), p.motion.tolist(), p.inch.tolist()
+        inverse_l, r_form_l = p.inverse_time.tolist(), (p.words & _R_BIT).astype(bool).tolist()
+        cycle_l = is_cycle.tolist()
+        formatters = {False: numbers.formatter(False), True: numbers.formatter(True)}
+        out = list(p.lines)
+        extra = 0
+        for k0, k1 in zip(starts.tolist(), ends.tolist()):
+            r0 = rows_l[k0]
+            li = int(line_of[k0])
+            body, ending = _split_ending(p.lines[li])
+            fmt = formatters[inch_l[r0]]
+            inc = incremental[li]
+            if cycle_l[k0]:
+                if inc == "1":
                     raise PostError(p.source, li + 1, "incremental (G91) canned cycles are not compensated: write "
                                                       "the cycle in G90, or post with --mode none")
-                out_lines.append(self._cycle_line(body, ks, rows, delta_prog, inch, fmt, sep) + ending)
-                last_written = p.end[rows[ks[-1]]].copy()
+                out[li] = self._cycle_line(body, list(range(k0, k1)), rows, delta_prog, fmt, sep) + ending
                 continue
-            k = ks[-1]
-            r = rows[k]
-            target = p.end[r] + delta_prog[k]
-            motion = int(p.motion[r])
+            k = k1 - 1
+            r = rows_l[k]
+            motion = motion_l[r]
             arc_kept = arc_mode.get(k) == "arc"
+            split = k in piece_first
+            if inc == "1" or split or arc_kept:
+                r_prev = int(first_row_of_line[li]) - 1
+                last_written = written_end[r_prev] if r_prev >= 0 else np.zeros(6)
             rest = []
-            if k in pieces and not arc_kept:
+            if split:
                 # The block itself goes to the first piece's end, so that its other words (F, S, M, N) act where
                 # they did; the remaining pieces follow as plain moves.
-                pts = list(pieces[k]) if arc_mode.get(k) == "lines" else list(pieces[k]) + [target]
+                o = piece_first[k]
+                pts = piece_pts_of[k]
+                n = len(pts)
                 if arc_mode.get(k) == "lines":
                     motion = FEED
-                n = len(pts)
                 # G93: each piece takes its share of the block's time (the control interpolates the axes linearly
                 # in time, so a piece over the fraction df of the move takes df of it): inverse time F / df.
-                piece_f = p.feed[r] / np.diff(self.fractions.get(k, np.linspace(0.0, 1.0, n + 1)))
-                if p.inverse_time[r]:
+                piece_f = p.feed[r] / np.diff(self.fractions.get(r, np.linspace(0.0, 1.0, n + 1)))
+                if inverse_l[r]:
                     body = _replace_feed(body, piece_f[0], fmt, sep)
-                target, rest = pts[0], pts[1:]
-            new_body = self._rewrite_motion(body, motion, target, last_written, axes_out, inch, fmt, sep,
-                                            incremental[li], arc=arc_kept, row=r,
-                                            arc_incremental=arc_incremental[li], delta_end=delta_prog[k])
-            out_lines.append(new_body + ending)
-            last_written = target.copy()
+                if inc == "1":
+                    words = [fmt(a, _out_value(pts[0], last_written, a, inc)) for a in axes_out]
+                    last_written = pts[0]
+                else:
+                    words = [piece_words[a][o] for a in axes_out]
+                rest = range(1, n)
+            elif inc == "1":
+                words = [fmt(a, _out_value(target[k], last_written, a, inc)) for a in axes_out]
+            else:
+                words = [axis_words[a][k] for a in axes_out]
+            if arc_kept and not r_form_l[r]:
+                words += self._centre_words(r, delta_prog[k], last_written, arc_incremental[li], fmt)
+            texts = [self._rewrite_motion(body, motion, words, arc_kept, r, sep), ending]
             word = "G0" if motion == RAPID else "G1"
-            for j_piece, pt in enumerate(rest, 1):
-                words = [word] + [fmt(a, _out_value(pt, last_written, a, incremental[li]), inch) for a in axes_out]
-                if p.inverse_time[r]:
-                    words.append(fmt("F", piece_f[j_piece], False))
-                out_lines.append(sep.join(words) + ending)
-                last_written = pt.copy()
-        self.rep.blocks_out = len(out_lines)
-        return "".join(out_lines), self.rep
+            for j in rest:
+                if inc == "1":
+                    piece = [word] + [fmt(a, _out_value(pts[j], last_written, a, inc)) for a in axes_out]
+                    last_written = pts[j]
+                else:
+                    piece = [word] + [piece_words[a][o + j] for a in axes_out]
+                if inverse_l[r]:
+                    piece.append(fmt("F", piece_f[j], inch=False))
+                texts += [sep.join(piece), ending]
+            extra += len(rest)
+            out[li] = "".join(texts)
+        self.rep.blocks_out = len(p.lines) + extra
+        return "".join(out), self.rep
 
-    def _rewrite_motion(self, body, motion, target, last_written, axes_out, inch, fmt, sep, inc, arc, row,
-                        arc_incremental, delta_end):
+    def _centre_words(self, r, delta_end, last_written, arc_incremental, fmt):
+        """I J K of a kept arc: its centre moved by the end's correction (constant along the arc), incremental from
+        the start (G91.1, the default) or absolute (G90.1)."""
         p = self.p
-        code, comment, toks = _split_comment_tokens(body)
-        if toks is None:
-            toks = tokenize_line(code)
-        keep = []
-        motion_done = False
-        for kind, text, _, _ in toks:
-            if kind != "word":
-                keep.append(text)
-                continue
-            letter = text[0].upper()
-            if letter in AXES:
-                continue
-            if letter in "IJKR" and not arc:
-                continue
-            if letter in "IJK" and arc and arc_incremental == "1":
-                continue
-            if letter == "P" and not arc and motion in (FEED, RAPID) and p.motion[row] in (ARC_CW, ARC_CCW):
-                continue
-            if letter == "G" and _MOTION_WORD.match(text.replace(" ", "")):
-                keep.append(f"G{motion}" if text[1:].strip() not in ("00", "01", "02", "03") else f"G0{motion}")
-                motion_done = True
-                continue
-            keep.append(text)
-        words = [fmt(a, _out_value(target, last_written, a, inc), inch) for a in axes_out]
-        if arc:
-            if arc_incremental == "1":
-                plane = int(p.arc_plane[row])
-                letters = {17: "IJ", 18: "IK", 19: "JK"}[plane]
-                center = p.arc_center[row] + delta_end[:3]
-                for letter in letters:
-                    j = "IJK".index(letter)
-                    words.append(fmt(letter, center[j] - last_written[j], inch))
-        if not motion_done:
-            keep.insert(_after_line_number(keep), f"G{motion}")
-        pos = _word_position(keep)
-        parts = keep[:pos] + words + keep[pos:]
-        text = sep.join(t for t in parts if t.strip())
-        return text + (comment if not comment.startswith(" ") or not sep else comment)
+        letters = {17: "IJ", 18: "IK", 19: "JK"}[int(p.arc_plane[r])]
+        center = p.arc_center[r] + delta_end[:3]
+        origin = last_written[:3] if arc_incremental == "1" else np.zeros(3)
+        return [fmt(c, center["IJK".index(c)] - origin["IJK".index(c)]) for c in letters]
 
-    def _cycle_line(self, body, ks, rows, delta_prog, inch, fmt, sep):
+    def _rewrite_motion(self, body, motion, words, arc, row, sep):
+        """A motion block with new axis words ``words`` (formatted): see ``rewrite_block``."""
+        return rewrite_block(body, motion, words, arc=arc, was_arc=self.p.motion[row] in (ARC_CW, ARC_CCW), sep=sep)
+
+    def _cycle_line(self, body, ks, rows, delta_prog, fmt, sep):
         """A canned-cycle block: hole position and depth from the correction at the bottom, R from the R level."""
         p = self.p
         rr = rows[ks]
@@ -749,12 +794,114 @@ class _Poster:
         code, comment = _split_comment(body)
         toks = tokenize_line(code)
         keep = [t[1] for t in toks if not (t[0] == "word" and t[1][0].upper() in "XYZR")]
-        words = [fmt("X", hole[0], inch), fmt("Y", hole[1], inch), fmt("Z", hole[2], inch), fmt("R", r_level, inch)]
+        words = [fmt("X", hole[0]), fmt("Y", hole[1]), fmt("Z", hole[2]), fmt("R", r_level)]
         pos = _word_position(keep)
         return sep.join(t for t in keep[:pos] + words + keep[pos:] if t.strip()) + comment
 
 
 # --------------------------------------------------------------------------------------------------- helpers -----
+
+
+class _Numbers:
+    """Numbers in the input's dialect: its leading zero and trailing point, and per word letter the input's
+    precision but at least 5 decimals (6 for inch lengths), so that writing does not eat the 0.1 um / 1 urad budget."""
+
+    def __init__(self, info):
+        self.info = info
+        self._decimals = {}
+
+    def decimals(self, letter: str, inch: bool) -> int:
+        key = (letter, inch)
+        if key not in self._decimals:
+            floor = 5 if letter in "ABC" else (6 if inch else 5)
+            self._decimals[key] = max(floor, self.info.decimals.get(letter, 0))
+        return self._decimals[key]
+
+    def formatter(self, inch: bool):
+        """fmt(letter, value, inch=inch) -> the word, e.g. "X12.5"."""
+        info = self.info
+
+        def fmt(letter, value, inch=inch):
+            return letter + write_number(float(value), self.decimals(letter, inch), leading_zero=info.leading_zero,
+                                         trailing_point=info.trailing_point)
+
+        return fmt
+
+    def words(self, letter: str, values, inch) -> list:
+        """The words of ``letter`` for every value (K,), with the rows' inch flags (K,) bool."""
+        out = [""] * len(values)
+        for flag in (False, True):
+            sel = np.nonzero(np.asarray(inch) == flag)[0]
+            if sel.size == 0:
+                continue
+            texts = write_numbers(np.asarray(values)[sel], self.decimals(letter, flag),
+                                  leading_zero=self.info.leading_zero, trailing_point=self.info.trailing_point)
+            for i, t in zip(sel.tolist(), texts):
+                out[i] = letter + t
+        return out
+
+
+
+def rewrite_block(body: str, motion: int, words: list, *, arc: bool, was_arc: bool, sep: str) -> str:
+    """A motion block (no line ending) with new axis words ``words`` (formatted, e.g. ["X1.5", "Y2"]): its other words
+    and comments kept, the motion word made ``motion`` (G0/G1 for straight moves, the arc's own for a kept arc),
+    the axis words after the last G word. ``arc``: the block stays an arc (``words`` then end with its centre, or
+    its R word stays); ``was_arc``: the source block was an arc (its P word goes when it becomes lines)."""
+    if "(" not in body and ";" not in body:
+        plain = _rewrite_plain(body, motion, words, arc, sep)
+        if plain is not None:
+            return plain
+        code, comment = body, ""
+    else:
+        code, comment = _split_comment(body)  # a trailing comment keeps the space before it
+    return _rewrite_tokens(code, motion, words, arc, was_arc, sep) + comment
+
+
+def _rewrite_plain(code, motion, words, arc, sep):
+    """``rewrite_block`` of the common block (N G X Y Z A B C I J K R F, each optional, in this order, nothing else)
+    without walking its tokens; None for any other block."""
+    plain = _PLAIN.match(code)
+    if plain is None:
+        return None
+    n, g, r, f = plain.group("n", "g", "r", "f")
+    keep = [n] if n else []
+    keep.append(_motion_text(g, motion) if g else f"G{motion}")
+    keep += words
+    if r and arc:
+        keep.append(r)
+    if f:
+        keep.append(f)
+    return sep.join(keep)
+
+
+def _rewrite_tokens(code, motion, words, arc, was_arc, sep):
+    """``rewrite_block`` of any block's code (comments inside it kept in place)."""
+    keep = []
+    motion_done = False
+    for m in TOKEN_PATTERN.finditer(code):
+        text = m.group()
+        letter = m.group(3)
+        if letter is not None:
+            letter = letter.upper()
+            if letter in "XYZABCIJK":
+                continue  # axis words are rewritten; the centre too (kept arcs) or dropped (straight moves)
+            if letter == "R" and not arc:
+                continue
+            if letter == "P" and was_arc and not arc:
+                continue  # a linearised arc's turns
+            if letter == "G" and _MOTION_WORD.match(text.replace(" ", "")):
+                text = _motion_text(text, motion)
+                motion_done = True
+        keep.append(text)
+    if not motion_done:
+        keep.insert(_after_line_number(keep), f"G{motion}")
+    pos = _word_position(keep)
+    return sep.join(keep[:pos] + words + keep[pos:])
+
+
+def _motion_text(word: str, motion: int) -> str:
+    """The motion word ``word`` (G0..G3 as written) made ``motion``, in the program's style (``G01`` or ``G1``)."""
+    return f"G0{motion}" if word[1:].strip() in ("00", "01", "02", "03") else f"G{motion}"
 
 
 def _out_value(target6, last6, letter, inc):
@@ -800,21 +947,31 @@ def _after_line_number(tokens):
 def _replace_feed(body, feed, fmt, sep):
     code, comment = _split_comment(body)
     toks = tokenize_line(code)
-    out = [fmt("F", feed, False) if (t[0] == "word" and t[1][0].upper() == "F") else t[1] for t in toks]
+    out = [fmt("F", feed, inch=False) if (t[0] == "word" and t[1][0].upper() == "F") else t[1] for t in toks]
     return sep.join(out) + comment
 
 
 def _modal_per_line(lines, pattern, default):
-    """Per line, the modal value of a two-state G group after the line (regex group 1)."""
-    state = default
-    out = []
-    for line in lines:
-        if "G" in line or "g" in line:
-            code = line.split("(", 1)[0].split(";", 1)[0]
-            for m in pattern.finditer(code):
-                state = m.group(1)
-        out.append(state)
-    return out
+    """Per line, the modal value of a two-state G group after the line (regex group 1); comments ignored.
+
+    One search over the whole text (the group's words are rare), each hit placed on its line by offset."""
+    text = "".join(lines)
+    hits = [(m.start(), m.group(1)) for m in pattern.finditer(text) if not _LINE_BREAK.search(m.group())]
+    if not hits:
+        return [default] * len(lines)
+    line_start = np.cumsum([0] + [len(ln) for ln in lines[:-1]])
+    state = np.full(len(lines), -1)
+    values = [default]
+    for pos, value in hits:
+        li = int(np.searchsorted(line_start, pos, side="right")) - 1
+        column = pos - int(line_start[li])
+        if _COMMENT_START.search(lines[li], 0, column):
+            continue  # inside a comment (or after one on its line)
+        values.append(value)
+        state[li] = len(values) - 1
+    # forward fill: each line takes the last value set on or before it
+    idx = np.maximum.accumulate(np.where(state >= 0, state, 0))
+    return [values[i] for i in idx.tolist()]
 
 
 def _arc_sweep(p: Program, r: int) -> float:
