@@ -66,6 +66,11 @@ _PLAIN = re.compile(
     + rf"(?P<r>[Rr][ \t]*{_NUM})?[ \t]*(?P<f>[Ff][ \t]*{_NUM})?[ \t]*\Z"
 )
 _R_BIT = 1 << WORD_BITS.index("R")
+# The Newton solve's tolerance (um, urad) and the rounding of the written numbers at their fewest decimals (5 in mm:
+# 0.005 um; 6 in inch: 0.013 um; 5 in degrees: 0.087 urad per rotary axis, two of them, and their effect on the tip
+# at a 200 mm lever arm, 0.02 um): both come off the split tolerance.
+SOLVE_TOL_UM, SOLVE_TOL_URAD = 0.01, 0.02
+WRITE_ROUNDING_UM, WRITE_ROUNDING_URAD = 0.03, 0.18
 _COMMENT_START = re.compile(r"[(;]")
 _LINE_BREAK = re.compile(r"[\r\n]")
 ROW_CHUNK = 8_000  # moves compensated together: bounds memory (an arc samples 17 poses) at little cost in speed
@@ -234,6 +239,7 @@ class _Poster:
         self.mode = mode
         self.tol_mm = tol_um * 1e-3
         self.tol_rad = max(tol_um, 1.0) * 1e-6  # orientation tolerance: 1 urad per um of position tolerance
+        self.solve_tol_um = min(SOLVE_TOL_UM, tol_um / 10)
         self.max_corr = max_corr
         self.singular = np.radians(singular_deg)
         self.conditions = conditions or {}
@@ -353,6 +359,14 @@ class _Poster:
                 self.rep.warnings.append(f"singular cone not handled for this layout: {exc}")
         return self._pair_cache
 
+    def singular_at(self, q):
+        """(K,) bool: nominal poses q (K, n_axes) inside the singular cone, |tilt| < singular_deg, where the outer
+        rotary axis hardly turns the tool axis and is held at its nominal value."""
+        pair = self._pair()
+        if pair is None:
+            return np.zeros(q.shape[0], bool)
+        return np.abs(np.sin(q[:, pair[1].column])) < np.sin(self.singular)
+
     def solve(self, q, force, rows):
         """Commanded poses for nominal poses q (K, n_axes), and (K,) bool: the free axis was held (singular cone).
 
@@ -360,12 +374,9 @@ class _Poster:
         hold = np.zeros_like(q, bool)
         pair = self._pair()
         if pair is not None:
-            outer, inner = pair
-            # Inside the cone |tilt| < singular_deg the outer axis hardly turns the tool axis: held at its nominal value.
-            sing = np.abs(np.sin(q[:, inner.column])) < np.sin(self.singular)
-            hold[:, outer.column] = sing
+            hold[:, pair[0].column] = self.singular_at(q)
         res = solve_commanded(self.twin, q, force, orientation=self.orientation, hold=hold,
-                              tol_um=min(0.01, self.tol_mm * 1e3 / 10), tol_urad=0.1)
+                              tol_um=self.solve_tol_um, tol_urad=SOLVE_TOL_URAD)
         bad = ~res.converged
         if np.any(bad):
             k = int(np.argmax(bad))
@@ -538,14 +549,20 @@ class _Poster:
         I = np.r_[idx, idx]
         F = np.r_[np.zeros(idx.size), np.ones(idx.size)]
         C = np.vstack([q0, q_cmd_end[idx]])
+        S = np.r_[self.singular_at(q_start[idx]), self.singular_at(q_end[idx])]
         R = residual(I, F, C)
         active = np.zeros(len(rows), bool)
         active[idx] = True
-        scale = np.r_[np.full(3, 1 / self.tol_mm), np.full(3, 1 / self.tol_rad)][:n6]
+        # The tolerance is a promise about the written program: the ends' own residuals (the solver's tolerance) and
+        # the rounding of the written numbers come off it before the chord is judged.
+        # (At most half of it: a tolerance near the written digits is then kept to within their rounding.)
+        tol_mm = max(self.tol_mm - 1e-3 * (self.solve_tol_um + WRITE_ROUNDING_UM), self.tol_mm / 2)
+        tol_rad = max(self.tol_rad - 1e-6 * (SOLVE_TOL_URAD + WRITE_ROUNDING_URAD), self.tol_rad / 2)
+        scale = np.r_[np.full(3, 1 / tol_mm), np.full(3, 1 / tol_rad)][:n6]
         worst_final = np.zeros(0)
         for _ in range(max_rounds):
             order = np.lexsort((F, I))
-            I, F, C, R = I[order], F[order], C[order], R[order]
+            I, F, C, R, S = I[order], F[order], C[order], R[order], S[order]
             ia = np.nonzero((I[1:] == I[:-1]) & active[I[:-1]])[0]
             if ia.size == 0:
                 break
@@ -554,12 +571,16 @@ class _Poster:
             worst = np.zeros(owner.size)
             dev_um = np.zeros(owner.size)
             dev_urad = np.zeros(owner.size)
+            # Inside the singular cone the ends keep a tool-axis error (free axis held): judged is what the chord adds
+            # to the straight blend of the ends' residuals. Elsewhere the whole deviation.
+            held = (S[ia] | S[ia + 1])[:, None]
             for sfrac in (0.25, 0.5, 0.75):
-                e = residual(owner, a + sfrac * (b - a), ca + sfrac * (cb - ca)) - ((1 - sfrac) * ra + sfrac * rb)
+                e = residual(owner, a + sfrac * (b - a), ca + sfrac * (cb - ca))
+                e = e - np.where(held, (1 - sfrac) * ra + sfrac * rb, 0.0)
                 ep = np.linalg.norm(e[:, :3], axis=1)
                 eu = np.linalg.norm(e[:, 3:], axis=1) if self.orientation else np.zeros(owner.size)
                 dev_um, dev_urad = np.maximum(dev_um, ep * 1e3), np.maximum(dev_urad, eu * 1e6)
-                worst = np.maximum(worst, np.maximum(ep * scale[0], eu / self.tol_rad))
+                worst = np.maximum(worst, np.maximum(ep * scale[0], eu * scale[-1]))
             bad = worst > 1.0
             worst_final = worst
             self.rep.max_split_deviation_um = max(self.rep.max_split_deviation_um, float(dev_um[~bad].max(initial=0)))
@@ -576,7 +597,7 @@ class _Poster:
             q_nom = q_start[mv] + fr[:, None] * (q_end[mv] - q_start[mv])
             qc, _ = self.solve(q_nom, None if f_all is None else f_all[mv], rows[mv])
             self.check(q_nom, qc, rows[mv])
-            I, F, C = np.r_[I, mv], np.r_[F, fr], np.vstack([C, qc])
+            I, F, C, S = np.r_[I, mv], np.r_[F, fr], np.vstack([C, qc]), np.r_[S, self.singular_at(q_nom)]
             R = np.vstack([R, residual(mv, fr, qc)])
             active[:] = False
             active[np.unique(owner[bad])] = True

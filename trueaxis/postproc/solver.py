@@ -68,31 +68,43 @@ def solve_commanded(
         M[d:, 3:] = np.eye(3) * orientation_weight_mm
     free = np.ones((n, k), bool) if hold is None else ~np.asarray(hold, bool)
     q = q0.copy()
+    pos_err = np.empty(n)
+    ax_err = np.empty(n)
+    # Newton on the poses not yet converged only (most converge after the first, differential-motion step); one twin
+    # pass per iteration gives the pose (the convergence check of the previous step) and the Jacobian of the next.
+    todo = np.arange(n)
     it = 0
-    # One twin pass per iteration: the pose and axis Jacobian at q serve both the convergence check of the previous
-    # step and the next step (the pose is the same numbers actual_pose gives).
-    p, u, Ja = twin.pose_and_axis_jacobian(q, force_n, motion)
-    pos_err = ax_err = None
-    for it in range(1, max_iter + 1):
-        r = np.hstack([p - p_nom, u - u_nom]) @ M.T
-        J = np.einsum("rs,nsi->nri", M, Ja)
-        J = J * free[:, None, :]
-        # Normal equations, batched; held axes get a unit diagonal so their step is zero.
-        A = np.einsum("nri,nrj->nij", J, J) + np.einsum("ni,ij->nij", ~free, np.eye(k))
-        b = np.einsum("nri,nr->ni", J, r)
-        q = q - np.linalg.solve(A, b[..., None])[..., 0]
-        p, u = twin.actual_pose(q, force_n, motion)
-        pos_err, ax_err = _pose_residuals(p, u, p_nom, u_nom, B)
-        if np.all(pos_err <= tol_um) and (not orientation or np.all((ax_err <= tol_urad) | ~free.all(1))):
+    while True:
+        qa = q[todo]
+        p, u, Ja = twin.pose_and_axis_jacobian(qa, _rows(force_n, todo, n), _rows(motion, todo, n))
+        pos_err[todo], ax_err[todo] = _pose_residuals(p, u, p_nom[todo], u_nom[todo], B)
+        fr = free[todo]
+        done = pos_err[todo] <= tol_um
+        if orientation:
+            done &= (ax_err[todo] <= tol_urad) | ~fr.all(1)
+        keep = ~done
+        if it == max_iter or not keep.any():
             break
-        if it < max_iter:
-            Ja = twin.axis_jacobian(q, force_n, motion)
-    if pos_err is None:
-        pos_err, ax_err = _residuals(twin, q, p_nom, u_nom, force_n, motion, B)
+        it += 1
+        todo, qa, p, u, Ja, fr = todo[keep], qa[keep], p[keep], u[keep], Ja[keep], fr[keep]
+        r = np.hstack([p - p_nom[todo], u - u_nom[todo]]) @ M.T
+        J = np.einsum("rs,nsi->nri", M, Ja) * fr[:, None, :]
+        # Normal equations, batched; held axes get a unit diagonal so their step is zero.
+        A = np.einsum("nri,nrj->nij", J, J) + np.einsum("ni,ij->nij", ~fr, np.eye(k))
+        b = np.einsum("nri,nr->ni", J, r)
+        q[todo] = qa - np.linalg.solve(A, b[..., None])[..., 0]
     ok = pos_err <= tol_um
     if orientation:
         ok &= (ax_err <= tol_urad) | ~free.all(1)
     return SolveResult(q=q, position_residual_um=pos_err, axis_residual_urad=ax_err, iterations=it, converged=ok)
+
+
+def _rows(arr, idx, n):
+    """Rows ``idx`` of a per-pose array (n, ...), or the array itself when it is shared by all poses (or None)."""
+    if arr is None:
+        return None
+    a = np.asarray(arr, dtype=float)
+    return a[idx] if a.ndim == 2 and a.shape[0] == n else a
 
 
 def corrected_directions(machine) -> np.ndarray:
@@ -104,11 +116,6 @@ def corrected_directions(machine) -> np.ndarray:
         return np.eye(3)
     basis, _ = np.linalg.qr(dirs.T)
     return basis.T
-
-
-def _residuals(twin, q, p_nom, u_nom, force_n, motion, B=None):
-    p, u = twin.actual_pose(q, force_n, motion)
-    return _pose_residuals(p, u, p_nom, u_nom, B)
 
 
 def _pose_residuals(p, u, p_nom, u_nom, B=None):
