@@ -21,6 +21,10 @@ Two formulations are kept: ``actual_pose`` multiplies the full transforms; ``dif
 differential-motion form of the differential-motion-matrix paper (each error twist carried along the nominal chain to
 the tool tip and summed). They agree up to second order in the errors.
 
+The full product is computed twice over, by design: the poses and axis Jacobians go through the compiled kernel of
+``chain_kernel`` (the error values are evaluated here, vectorised, and passed in per pose); ``_evaluate`` composes the
+same chain in numpy with the derivatives by every parameter, for the parameter Jacobian, and is the kernel's reference.
+
 Units: poses q in mm and rad; positions in mm; error parameters in um and urad (machine file units).
 """
 
@@ -30,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import chain_kernel
 from .kinematics import Z_TOOL, Link, axis_motion, chain_links, validate_poses
 from .model import ERROR_DIRECTIONS, SQUARENESS, Machine, is_angle_name
 from .transforms import UNIT, skew
@@ -98,12 +103,26 @@ class ErrorTwin:
             for comp, fn in comps:
                 self._comp_cols[(axis, comp)] = np.arange(i, i + fn.values.size)
                 i += fn.values.size
+        # The chain's layout as the compiled kernel takes it (chain_kernel's docstring).
+        tool_links = [k for k, lk in enumerate(self.links) if lk.branch == "tool"]
+        self._layout = (
+            np.array([lk.column for lk in self.links], dtype=np.int64),
+            np.array([lk.rotary for lk in self.links], dtype=bool),
+            np.array([lk.branch == "tool" for lk in self.links], dtype=bool),
+            np.array([lk.direction for lk in self.links], dtype=float).reshape(-1, 3),
+            np.array([lk.pivot for lk in self.links], dtype=float).reshape(-1, 3),
+            np.asarray(machine.workpiece_origin, dtype=float),
+            tool_links[0] if tool_links else len(self.links),
+        )
 
     # ----------------------------------------------------------------------------------------------- public API ----
     def nominal_pose(self, q):
         """Nominal tool tip (N,3) mm and unit tool axis (N,3), part frame."""
-        p, u, _ = self._evaluate(validate_poses(self.machine, q), None, None, errors=False, jacobian=False)
-        return p, u
+        q = validate_poses(self.machine, q)
+        P, U = np.empty((q.shape[0], 3)), np.empty((q.shape[0], 3))
+        for sl in _chunks(q.shape[0]):
+            P[sl], U[sl], _ = self._compose(q[sl], None, None, errors=False, jacobian=False)
+        return P, U
 
     def actual_pose(self, q, force_n=None, motion=None):
         """Actual tool tip (N,3) mm and unit tool axis (N,3), part frame, full product of transforms.
@@ -112,8 +131,10 @@ class ErrorTwin:
         motion : (N, n_axes) direction of motion of each axis (sign), for the response surfaces; None = forward.
         """
         q = validate_poses(self.machine, q)
-        p, u, _ = self._evaluate(q, force_n, motion, errors=True, jacobian=False)
-        return p, u
+        P, U = np.empty((q.shape[0], 3)), np.empty((q.shape[0], 3))
+        for sl in _chunks(q.shape[0]):
+            P[sl], U[sl], _ = self._compose(q[sl], _slice(force_n, sl), _slice(motion, sl), errors=True, jacobian=False)
+        return P, U
 
     def volumetric_error(self, q, force_n=None, motion=None, method: str = "full"):
         """Position error (N,3) um and tool-axis error (N,3) urad: actual minus nominal, part frame.
@@ -128,8 +149,8 @@ class ErrorTwin:
         out_p, out_u = np.empty((q.shape[0], 3)), np.empty((q.shape[0], 3))
         for sl in _chunks(q.shape[0]):
             f, m = _slice(force_n, sl), _slice(motion, sl)
-            pa, ua, _ = self._evaluate(q[sl], f, m, errors=True, jacobian=False)
-            pn, un, _ = self._evaluate(q[sl], None, None, errors=False, jacobian=False)
+            pa, ua, _ = self._compose(q[sl], f, m, errors=True, jacobian=False)
+            pn, un, _ = self._compose(q[sl], None, None, errors=False, jacobian=False)
             out_p[sl] = (pa - pn) / UM
             out_u[sl] = (ua - un) / URAD
         return out_p, out_u
@@ -139,7 +160,7 @@ class ErrorTwin:
         q = validate_poses(self.machine, q)
         J = np.empty((q.shape[0], 6, self.n_axes))
         for sl in _chunks(q.shape[0]):
-            J[sl] = self._evaluate(q[sl], _slice(force_n, sl), _slice(motion, sl), True, True, cols="axes")[2]
+            J[sl] = self._compose(q[sl], _slice(force_n, sl), _slice(motion, sl), errors=True, jacobian=True)[2]
         return J
 
     def pose_and_axis_jacobian(self, q, force_n=None, motion=None):
@@ -150,8 +171,8 @@ class ErrorTwin:
         P, U = np.empty((n, 3)), np.empty((n, 3))
         J = np.empty((n, 6, self.n_axes))
         for sl in _chunks(n):
-            P[sl], U[sl], J[sl] = self._evaluate(q[sl], _slice(force_n, sl), _slice(motion, sl), True, True,
-                                                 cols="axes")
+            P[sl], U[sl], J[sl] = self._compose(q[sl], _slice(force_n, sl), _slice(motion, sl), errors=True,
+                                                jacobian=True)
         return P, U, J
 
     def parameter_jacobian(self, q, force_n=None, motion=None):
@@ -193,7 +214,7 @@ class ErrorTwin:
         for sl in _chunks(q.shape[0], chunk):
             f, m = _slice(force_n, sl), _slice(motion, sl)
             pa, ua, J = self._evaluate(q[sl], f, m, True, True, cols="all")
-            pn, un, _ = self._evaluate(q[sl], None, None, errors=False, jacobian=False)
+            pn, un, _ = self._compose(q[sl], None, None, errors=False, jacobian=False)
             Jp = J[:, :, self.n_axes :]
             Jp *= scale * row
             yield sl, (pa - pn) / UM, (ua - un) / URAD, J[:, :, : self.n_axes], Jp
@@ -332,15 +353,35 @@ class ErrorTwin:
         derivs = [_Deriv(np.array([c]), np.ones((1, 1)), None, v) for c, v in dd.items()] if want_axes else []
         return (np.eye(3), d), derivs
 
+    def _actual_direction(self, link: Link, loc, n: int):
+        """A linear axis' direction (n,3) turned by its squareness values (first order, DESIGN §3)."""
+        d_act = np.broadcast_to(link.direction, (n, 3)).copy()
+        for src in self._location_sources[link.axis]:
+            d_act += loc[src.name][0][:, None] * np.cross(src.vector, link.direction)
+        return d_act
+
+    def _line_errors(self, link: Link, loc, n: int):
+        """A rotary axis' line errors: tilt eps (n,3) rad, offset (n,3) mm and zero-angle offset (n,) rad."""
+        eps = np.zeros((n, 3))
+        off = np.zeros((n, 3))
+        zero = np.zeros(n)
+        for src in self._location_sources[link.axis]:
+            v = loc[src.name][0]
+            if src.kind == "offset":
+                off += v[:, None] * src.vector
+            elif src.kind == "tilt":
+                eps += v[:, None] * src.vector
+            else:
+                zero = zero + v
+        return eps, off, zero
+
     def _located_motion(self, link: Link, qa, loc, want_axes, want_params):
         """L G(q + z) L^-1 as (R, t) and its derivatives by q and by each location parameter."""
         n = qa.shape[0]
         derivs = []
         sources = self._location_sources[link.axis]
         if not link.rotary:
-            d_act = np.broadcast_to(link.direction, (n, 3)).copy()
-            for src in sources:
-                d_act += loc[src.name][0][:, None] * np.cross(src.vector, link.direction)
+            d_act = self._actual_direction(link, loc, n)
             R = np.broadcast_to(np.eye(3), (n, 3, 3))
             t = qa[:, None] * d_act
             if want_axes:
@@ -351,17 +392,7 @@ class ErrorTwin:
                     derivs.append(_Deriv(np.array([self._col[src.name]]), loc[src.name][1][:, None], None, g))
             return (R, t), derivs
         c = link.pivot
-        eps = np.zeros((n, 3))
-        off = np.zeros((n, 3))
-        zero = np.zeros(n)
-        for src in sources:
-            v = loc[src.name][0]
-            if src.kind == "offset":
-                off += v[:, None] * src.vector
-            elif src.kind == "tilt":
-                eps += v[:, None] * src.vector
-            else:
-                zero = zero + v
+        eps, off, zero = self._line_errors(link, loc, n)
         # L p = (I + [eps]x)(p - c) + c + off; its exact inverse in closed form.
         RL = np.eye(3) + skew(eps)
         tL = off - np.cross(eps, c)
@@ -435,8 +466,57 @@ class ErrorTwin:
                     derivs.append(_Deriv(self._comp_cols[(link.axis, name)], weights, ("skew", w), -np.cross(e, r)))
         return (R, t), derivs
 
+    # --------------------------------------------------------------------------------- the chain, compiled ----
+    def _chain_values(self, q, force_n, motion, errors: bool, jacobian: bool):
+        """The per-pose inputs of ``chain_kernel`` (its docstring): the error values of every link, vectorised.
+
+        Returns (tilt, offset, zero, d_act, comp, ref, bed), then (dcomp, dref, dbed) when jacobian. Without errors
+        every value is zero and each linear axis moves along its nominal direction: the nominal chain.
+        """
+        n, n_links = q.shape[0], len(self.links)
+        tilt, offset, d_act, ref = (np.zeros((n_links, n, 3)) for _ in range(4))
+        zero = np.zeros((n_links, n))
+        comp = np.zeros((n_links, n, 6))
+        bed = np.zeros((n, 3))
+        if jacobian:
+            dcomp, dref, dbed = np.empty((n_links, n, 6)), np.empty((n_links, n, 3)), np.zeros((n, 3, self.n_axes))
+        for k, link in enumerate(self.links):
+            if not errors:
+                if not link.rotary:
+                    d_act[k] = link.direction
+                continue
+            qa = q[:, link.column]
+            loc = self._location_values(link.axis, force_n, n)
+            if link.rotary:
+                tilt[k], offset[k], zero[k] = self._line_errors(link, loc, n)
+            else:
+                d_act[k] = self._actual_direction(link, loc, n)
+            comp[k], dc, _ = self._component_values(link, qa, force_n, n, deriv=jacobian)
+            ref[k], dr = self._reference_point(link, qa)
+            if jacobian:
+                dcomp[k], dref[k] = dc, dr
+        if errors:
+            bed, dd = self._bed_deflection(q, force_n, motion, n)
+            if jacobian:
+                for c, v in dd.items():
+                    dbed[:, :, c] = v
+        values = (tilt, offset, zero, d_act, comp, ref, bed)
+        return values + (dcomp, dref, dbed) if jacobian else values
+
+    def _compose(self, q, force_n, motion, errors: bool, jacobian: bool):
+        """Tip (n,3), unit axis (n,3) and, with jacobian, the axis Jacobian (n, 6, n_axes) (else None), by the
+        compiled chain: the numbers of ``_evaluate(..., cols="axes")`` up to round-off."""
+        q = np.ascontiguousarray(q)
+        values = self._chain_values(q, force_n, motion, errors, jacobian)
+        if jacobian:
+            return chain_kernel.pose_and_axis_jacobian(q, *self._layout, *values)
+        return (*chain_kernel.pose(q, *self._layout, *values), None)
+
+    # ------------------------------------------------------------------------------------ the chain, in numpy ----
     def _evaluate(self, q, force_n, motion, errors: bool, jacobian: bool, cols: str = "all"):
-        """Tip (n,3), unit axis (n,3), and the Jacobian (n, 6, k) over the requested columns (or None)."""
+        """Tip (n,3), unit axis (n,3), and the Jacobian (n, 6, k) over the requested columns (or None).
+
+        The parameter Jacobian's path, and the reference of the compiled ``_compose``."""
         n = q.shape[0]
         factors = self._factors(q, force_n, motion, errors, jacobian, cols)
         # Prefix rotations (part side) and the total transform.

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import re
+from array import array
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Mapping, Sequence
@@ -521,7 +522,9 @@ class _Interpreter:
         # row accumulators (flat lists; converted to arrays at the end)
         # Row accumulators: flat lists, turned into arrays once at the end. What rarely changes between rows
         # (feed, modes, tool, offsets) is stored once per distinct state and indexed per row.
-        r_start, r_end, r_line, r_motion, r_kind, r_words, r_state = [], [], [], [], [], [], []
+        # start / end points as packed doubles (8 bytes a number, not a float object each: a million-block program)
+        r_start, r_end = array("d"), array("d")
+        r_line, r_motion, r_kind, r_words, r_state = [], [], [], [], []
         r_arc = {}  # row -> (centre (3,), plane, turns)
         states: dict = {}
         cur_state = [0]

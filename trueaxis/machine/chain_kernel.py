@@ -1,0 +1,312 @@
+"""The error twin's kinematic chain composed pose by pose, compiled with numba.
+
+Why hand-written: the actual pose is a product of about a dozen small factors per pose (the part placement, two per
+axis, the bed deflection). In numpy every factor is a handful of operations on (n, 3, 3) stacks, and with 3x3 matrices
+the per-call overhead and the temporaries cost far more than the arithmetic. Here each pose's chain is built and
+composed in compiled loops over a small workspace.
+
+This module is pure maths on arrays. The twin (``twin.ErrorTwin``) evaluates the error values vectorised (it knows the
+error-function kinds, the loaded-set blend, compliance and response surfaces) and passes them in per pose; the formulas
+are those of ``ErrorTwin._evaluate``, which stays the reference and computes the parameter Jacobian. Per pose, with L
+links in chain order (workpiece branch from the part to the bed, then the tool branch outwards):
+
+    T = P^-1 . [workpiece links: F_k E_k] . B . [tool links: E_k F_k]
+
+* P^-1 = (I, -origin): the part placement. B = (I, bed): the bed deflection, before the first tool-branch link.
+* F_k, rotary: L G(q + z) L^-1 with L p = (I + [eps]x)(p - c) + c + off (tilt eps, offset off, pivot c, zero offset z)
+  and G the turn by q + z about the line through c along the axis direction; L^-1 is exact, in closed form.
+  F_k, linear: (I, q d_act), the axis moving along its actual (squareness-turned) direction d_act.
+* E_k = (I + [e]x, delta - e x r): the axis' component errors (delta, e) at its reference point r.
+
+The tool tip is T applied to the origin, the tool axis T's rotation applied to +z, normalised (the small-angle factors
+are not exactly orthonormal). Units: mm and rad; derivatives per mm or rad of the axis.
+
+Arguments shared by the kernels (n poses, L links, n_axes columns of q):
+
+    q          (n, n_axes)  poses
+    column     (L,) int     the link's column in q
+    rotary     (L,) bool    rotary link (else linear)
+    tool       (L,) bool    tool-branch link (else workpiece branch)
+    direction  (L, 3)       unit direction of motion / rotation axis, nominal
+    pivot      (L, 3) mm    a point of a rotary axis' line (all axes at zero)
+    origin     (3,) mm      part origin in the machine frame
+    bed_at     int          the bed factor sits before link bed_at (L: after the last link)
+    tilt       (L, n, 3)    rad, a rotary link's line tilt eps            (ignored for linear links)
+    offset     (L, n, 3)    mm,  a rotary link's line offset               (ignored for linear links)
+    zero       (L, n)       rad, a rotary link's zero-angle offset         (ignored for linear links)
+    d_act      (L, n, 3)    a linear link's actual direction               (ignored for rotary links)
+    comp       (L, n, 6)    component errors (dx, dy, dz mm; ex, ey, ez rad)
+    ref        (L, n, 3) mm the component errors' reference point
+    bed        (n, 3) mm    bed deflection
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+# Inside the per-pose loop, 3-vectors and 3x3 matrices are tuples (3 floats; 9 floats, row-major): the compiled code
+# keeps them in registers, with no array views (and their reference counting). The functions that take arrays are
+# inlined into the kernels (numba IR), those on tuples are left to LLVM; compiling takes about 10 s, once: cache=True.
+_EYE = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+_ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+_ZERO3 = (0.0, 0.0, 0.0)
+_Z = (0.0, 0.0, 1.0)
+
+_jit = numba.njit(cache=True)
+_jit_inline = numba.njit(cache=True, inline="always")
+
+
+# ------------------------------------------------------------------------------------------- 3-vector and 3x3 ----
+@_jit
+def _mm(A, B):
+    """A B."""
+    return (
+        A[0] * B[0] + A[1] * B[3] + A[2] * B[6], A[0] * B[1] + A[1] * B[4] + A[2] * B[7],
+        A[0] * B[2] + A[1] * B[5] + A[2] * B[8],
+        A[3] * B[0] + A[4] * B[3] + A[5] * B[6], A[3] * B[1] + A[4] * B[4] + A[5] * B[7],
+        A[3] * B[2] + A[4] * B[5] + A[5] * B[8],
+        A[6] * B[0] + A[7] * B[3] + A[8] * B[6], A[6] * B[1] + A[7] * B[4] + A[8] * B[7],
+        A[6] * B[2] + A[7] * B[5] + A[8] * B[8],
+    )
+
+
+@_jit
+def _mv(A, x):
+    """A x."""
+    return (A[0] * x[0] + A[1] * x[1] + A[2] * x[2], A[3] * x[0] + A[4] * x[1] + A[5] * x[2],
+            A[6] * x[0] + A[7] * x[1] + A[8] * x[2])
+
+
+@_jit
+def _madd(A, s, B):
+    """A + s B."""
+    return (A[0] + s * B[0], A[1] + s * B[1], A[2] + s * B[2], A[3] + s * B[3], A[4] + s * B[4], A[5] + s * B[5],
+            A[6] + s * B[6], A[7] + s * B[7], A[8] + s * B[8])
+
+
+@_jit
+def _skew(v):
+    """[v]x: [v]x w = v x w."""
+    return (0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0)
+
+
+@_jit
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@_jit
+def _add(a, b):
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+@_jit
+def _sub(a, b):
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+@_jit_inline
+def _vec(arr, i, j, k0):
+    """arr[i, j, k0:k0 + 3] of a 3-d array, as a vector."""
+    return (arr[i, j, k0], arr[i, j, k0 + 1], arr[i, j, k0 + 2])
+
+
+@_jit_inline
+def _row(arr, i):
+    """arr[i, :3] of a 2-d array, as a vector."""
+    return (arr[i, 0], arr[i, 1], arr[i, 2])
+
+
+@_jit_inline
+def _row9(arr, i):
+    """arr[i, :9] of a 2-d array, as a matrix."""
+    return (arr[i, 0], arr[i, 1], arr[i, 2], arr[i, 3], arr[i, 4], arr[i, 5], arr[i, 6], arr[i, 7], arr[i, 8])
+
+
+@_jit_inline
+def _store(arr, i, x):
+    """arr[i, :len(x)] = x."""
+    for j in range(len(x)):
+        arr[i, j] = x[j]
+
+
+# ----------------------------------------------------------------------------------------------- the factors ----
+@_jit
+def _located_rotary(q, a, c, eps, off, z, deriv):
+    """F = L G(q + z) L^-1 of a rotary link as (R, t), and dF/dq as (dR, dt) (zeros unless deriv).
+
+    a : unit axis; c : pivot (mm); eps : tilt (rad); off : offset (mm); z : zero offset (rad).
+    """
+    # L p = (I + [eps]x)(p - c) + c + off;  L^-1 = ((I - [eps]x + eps eps^T) / (1 + |eps|^2), -L^-1 tL), exact.
+    RL = _madd(_EYE, 1.0, _skew(eps))
+    tL = _sub(off, _cross(eps, c))
+    s = 1.0 + (eps[0] * eps[0] + eps[1] * eps[1] + eps[2] * eps[2])
+    RLi = ((1.0 + eps[0] * eps[0]) / s, (eps[2] + eps[0] * eps[1]) / s, (-eps[1] + eps[0] * eps[2]) / s,
+           (-eps[2] + eps[1] * eps[0]) / s, (1.0 + eps[1] * eps[1]) / s, (eps[0] + eps[1] * eps[2]) / s,
+           (eps[1] + eps[2] * eps[0]) / s, (-eps[0] + eps[2] * eps[1]) / s, (1.0 + eps[2] * eps[2]) / s)
+    tLi = _mv(RLi, tL)
+    tLi = (-tLi[0], -tLi[1], -tLi[2])
+    # G(theta) by Rodrigues: R = I + sin K + (1 - cos) K K, t = c - R c, with K = [a]x.
+    K = _skew(a)
+    theta = q + z
+    RG = _madd(_madd(_EYE, np.sin(theta), K), 1.0 - np.cos(theta), _mm(K, K))
+    tG = _sub(c, _mv(RG, c))
+    # F = (RL RG RLi, RL (RG tLi + tG) + tL)
+    R = _mm(_mm(RL, RG), RLi)
+    t = _add(_mv(RL, _add(_mv(RG, tLi), tG)), tL)
+    if not deriv:
+        return R, t, _ZERO9, _ZERO3
+    # dF/dq = L G' L^-1 = (RL dRG RLi, RL (dRG tLi + dtG)), with dG/dtheta = ([a]x RG, -[a]x RG c).
+    dRG = _mm(K, RG)
+    dR = _mm(_mm(RL, dRG), RLi)
+    dt = _mv(RL, _sub(_mv(dRG, tLi), _mv(dRG, c)))
+    return R, t, dR, dt
+
+
+@_jit
+def _component(delta, e, r, ddelta, de, dr, deriv):
+    """E = (I + [e]x, delta - e x r), and dE/dq = ([de]x, ddelta - de x r - e x dr) (zeros unless deriv)."""
+    R = _madd(_EYE, 1.0, _skew(e))
+    t = _sub(delta, _cross(e, r))
+    if not deriv:
+        return R, t, _ZERO9, _ZERO3
+    return R, t, _skew(de), _sub(_sub(ddelta, _cross(de, r)), _cross(e, dr))
+
+
+@_jit_inline
+def _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, ref,
+                 bed, dcomp, dref, deriv, R, t, dR, dt, col):
+    """Fill the K = 2 L + 2 factors of pose i in chain order: R (K, 9), t (K, 3); with deriv their d/dq (dR, dt) and
+    the q column each depends on (col; -1: none, the bed's derivative being the caller's). Returns the bed's index."""
+    n_links = column.shape[0]
+    _store(R, 0, _EYE)
+    _store(t, 0, (-origin[0], -origin[1], -origin[2]))
+    col[0] = -1
+    k = 1
+    k_bed = -1
+    for link in range(n_links + 1):
+        if link == bed_at:
+            _store(R, k, _EYE)
+            _store(t, k, _row(bed, i))
+            col[k] = -1
+            k_bed = k
+            k += 1
+        if link == n_links:
+            break
+        qa = q[i, column[link]]
+        if rotary[link]:
+            RF, tF, dRF, dtF = _located_rotary(qa, _row(direction, link), _row(pivot, link), _vec(tilt, link, i, 0),
+                                               _vec(offset, link, i, 0), zero[link, i], deriv)
+        else:
+            d = _vec(d_act, link, i, 0)
+            RF, tF, dRF, dtF = _EYE, (qa * d[0], qa * d[1], qa * d[2]), _ZERO9, d
+        if deriv:
+            RE, tE, dRE, dtE = _component(_vec(comp, link, i, 0), _vec(comp, link, i, 3), _vec(ref, link, i, 0),
+                                          _vec(dcomp, link, i, 0), _vec(dcomp, link, i, 3), _vec(dref, link, i, 0),
+                                          True)
+        else:
+            RE, tE, dRE, dtE = _component(_vec(comp, link, i, 0), _vec(comp, link, i, 3), _vec(ref, link, i, 0),
+                                          _ZERO3, _ZERO3, _ZERO3, False)
+        # Tool branch: E then F; workpiece branch: F then E.
+        kf, ke = (k + 1, k) if tool[link] else (k, k + 1)
+        _store(R, kf, RF)
+        _store(t, kf, tF)
+        _store(dR, kf, dRF)
+        _store(dt, kf, dtF)
+        _store(R, ke, RE)
+        _store(t, ke, tE)
+        _store(dR, ke, dRE)
+        _store(dt, ke, dtE)
+        col[kf] = column[link]
+        col[ke] = column[link]
+        k += 2
+    return k_bed
+
+
+@_jit_inline
+def _tip_and_axis(R, t, p_after, u_after):
+    """Apply the factors right to left to the origin and to +z: the tip and the raw (unnormalised) tool axis.
+    p_after[k], u_after[k] get the point and the axis seen on the right of factor k."""
+    p, u = _ZERO3, _Z
+    for k in range(R.shape[0] - 1, -1, -1):
+        _store(p_after, k, p)
+        _store(u_after, k, u)
+        Rk = _row9(R, k)
+        p = _add(_mv(Rk, p), _row(t, k))
+        u = _mv(Rk, u)
+    return p, u
+
+
+@_jit
+def _unit(u):
+    """u / |u| and |u|."""
+    norm = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    return (u[0] / norm, u[1] / norm, u[2] / norm), norm
+
+
+# ------------------------------------------------------------------------------------------------- the kernels ----
+@numba.njit(cache=True)
+def pose(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, ref, bed):
+    """Tool tip (n, 3) mm and unit tool axis (n, 3), part frame (arguments: module docstring)."""
+    n = q.shape[0]
+    K = 2 * column.shape[0] + 2
+    R, t, dR, dt = np.empty((K, 9)), np.empty((K, 3)), np.empty((K, 9)), np.empty((K, 3))
+    col = np.empty(K, np.int64)
+    p_after, u_after = np.empty((K, 3)), np.empty((K, 3))
+    tip, axis = np.empty((n, 3)), np.empty((n, 3))
+    for i in range(n):
+        # No derivatives: comp and ref stand in for dcomp and dref, unread.
+        _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
+                     ref, bed, comp, ref, False, R, t, dR, dt, col)
+        p, u_raw = _tip_and_axis(R, t, p_after, u_after)
+        _store(tip, i, p)
+        _store(axis, i, _unit(u_raw)[0])
+    return tip, axis
+
+
+@numba.njit(cache=True)
+def pose_and_axis_jacobian(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act,
+                           comp, ref, bed, dcomp, dref, dbed):
+    """Tool tip (n, 3) mm, unit tool axis (n, 3) and d(tip, unit axis)/dq (n, 6, n_axes), per mm or rad.
+
+    dcomp (L, n, 6), dref (L, n, 3) : d comp / dq and d ref / dq along the link's own axis.
+    dbed (n, 3, n_axes) : d bed / dq per q column.
+    The tip and axis are the same numbers ``pose`` gives.
+    """
+    n, n_axes = q.shape
+    K = 2 * column.shape[0] + 2
+    R, t, dR, dt = np.empty((K, 9)), np.empty((K, 3)), np.empty((K, 9)), np.empty((K, 3))
+    col = np.empty(K, np.int64)
+    p_after, u_after = np.empty((K, 3)), np.empty((K, 3))
+    tip, axis, J = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 6, n_axes))
+    for i in range(n):
+        k_bed = _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act,
+                             comp, ref, bed, dcomp, dref, True, R, t, dR, dt, col)
+        p, u_raw = _tip_and_axis(R, t, p_after, u_after)
+        u, norm = _unit(u_raw)
+        _store(tip, i, p)
+        _store(axis, i, u)
+        # d(chain)/dq through factor k: RA (dR_k p_after_k + dt_k) and RA dR_k u_after_k, RA the rotations before k.
+        RA = _EYE
+        for k in range(K):
+            c = col[k]
+            if c >= 0:
+                dRk = _row9(dR, k)
+                dp = _mv(RA, _add(_mv(dRk, _row(p_after, k)), _row(dt, k)))
+                du = _mv(RA, _mv(dRk, _row(u_after, k)))
+                for j in range(3):
+                    J[i, j, c] += dp[j]
+                    J[i, 3 + j, c] += du[j]
+            elif k == k_bed:
+                for c2 in range(n_axes):
+                    dp = _mv(RA, (dbed[i, 0, c2], dbed[i, 1, c2], dbed[i, 2, c2]))
+                    for j in range(3):
+                        J[i, j, c2] += dp[j]
+            RA = _mm(RA, _row9(R, k))
+        # The unit axis u = raw / |raw|: du = (I - u u^T) d raw / |raw|.
+        for c in range(n_axes):
+            s = u[0] * J[i, 3, c] + u[1] * J[i, 4, c] + u[2] * J[i, 5, c]
+            for j in range(3):
+                J[i, 3 + j, c] = (J[i, 3 + j, c] - u[j] * s) / norm
+    return tip, axis, J
