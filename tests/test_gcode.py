@@ -50,6 +50,13 @@ def test_comments_line_numbers_and_block_delete_are_tokenized():
     np.testing.assert_allclose(prog.end[:, 0], [1.0, 2.0])  # after the closing % nothing is interpreted
 
 
+def test_distance_modes_are_recorded_per_row_and_comments_do_not_set_them():
+    prog = parse_program("G21 G90\nG1 X1 F100 (G91 in a comment)\nG91 G1 X1 ; G90\nX2\nG90.1 G90 G91 G90 X3\n"
+                         "G2 X4 I3.5 J0 ; G91.1\nG91.1 g91 G1 X1\n")
+    assert prog.incremental.tolist() == [False, True, True, False, False, True]
+    assert prog.arc_incremental.tolist() == [True, True, True, False, False, True]
+
+
 def test_arc_centre_from_ijk_and_r_agree():
     ijk = parse_program("G21 G17 F100\nG0 X0 Y0\nG2 X10 Y0 I5 J0\n")
     r = parse_program("G21 G17 F100\nG0 X0 Y0\nG2 X10 Y0 R5\n")

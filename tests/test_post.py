@@ -18,9 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from trueaxis.postproc import post as post_module
-from trueaxis.postproc.post import (
-    _DISTANCE, PostError, _modal_per_line, _rewrite_plain, _rewrite_tokens, compensate,
-)
+from trueaxis.postproc.post import PostError, _rewrite_plain, _rewrite_tokens, compensate
 
 XH714 = MACHINES / "xh714.toml"
 
@@ -187,12 +185,6 @@ def test_the_writers_fast_path_writes_what_the_token_walk_writes(n, g, letters, 
     plain = _rewrite_plain(code, motion, new, arc, sep)
     assert plain is not None, code
     assert plain == _rewrite_tokens(code, motion, new, arc, True, sep)
-
-
-def test_distance_mode_per_line_ignores_comments_and_follows_the_last_word():
-    lines = ["G21 G90\n", "G1 X1 (G91 in a comment)\n", "G91 G1 X1 ; G90\n", "X2\n", "N5 G90 G91 G90 X3\n", "G\n",
-             "91 X4\n", "g91\n"]
-    assert _modal_per_line(lines, _DISTANCE, default="0") == ["0", "0", "1", "1", "0", "0", "0", "1"]
 
 
 def test_the_post_in_small_chunks_writes_what_it_writes_in_one(xh714, monkeypatch):

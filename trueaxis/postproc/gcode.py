@@ -200,6 +200,8 @@ class Program:
     inch : (M,) bool, G20 active (the row's lengths are in inches)
     cutter_comp : (M,) int8, 40 off, 41 left, 42 right
     tool : (M,) int32, tool in the spindle (after M6); 0 when none
+    incremental : (M,) bool, G91 (incremental axis words) active
+    arc_incremental : (M,) bool, G91.1 (incremental arc centres, the default) active; False under G90.1
     line_index : (M,) int32, 0-based index into ``lines`` of the block that made the row
     words : (M,) uint16, bit mask of the words the block had (bit i for ``WORD_BITS[i]``, XYZABCIJKRPF); 0 for
         rows of expanded cycles and G28/G30's second move
@@ -225,6 +227,8 @@ class Program:
     inch: np.ndarray
     cutter_comp: np.ndarray
     tool: np.ndarray
+    incremental: np.ndarray
+    arc_incremental: np.ndarray
     line_index: np.ndarray
     words: np.ndarray
     lines: list
@@ -257,11 +261,7 @@ class Program:
         """How the input writes numbers (decimals per word letter, leading zero, trailing point, separator)."""
         # One pass of regular expressions over the program's code (its comments cut out), not one per line.
         code = _COMMENT_TO_EOL.sub("", "".join(self.lines))
-        seen = {(letter.upper(), len(frac)) for letter, frac in _DECIMALS.findall(code)}
-        decimals: dict = {}
-        for letter, n in seen:
-            decimals[letter] = max(n, decimals.get(letter, -1))
-        trailing_point = any((letter, 0) in seen for letter in "XYZABCF")
+        decimals, trailing_point = _number_style(code)
         m = _LEADING_ZERO.search(code)
         leading_zero = m.group(1) == "0" if m else True
         separator = ""
@@ -270,6 +270,41 @@ class Program:
                 separator = " "
                 break
         return FormatInfo(decimals, leading_zero, trailing_point, separator)
+
+
+def _number_style(code: str) -> tuple[dict, bool]:
+    """Over every word ``letter [sign] digits . digits`` of ``code`` (what ``_DECIMALS`` matches): the most digits
+    after the point per letter (upper case), and whether a length or feed word is written with a bare trailing point.
+
+    Vectorised over the text's bytes, one pass per character class (a million-line program has millions of numbers;
+    a regex match per number costs more than the whole post of its block)."""
+    b = np.frombuffer(code.encode("latin-1", "replace"), np.uint8)
+    digit = (b >= 48) & (b <= 57)
+    dots = np.nonzero(b == 46)[0]
+    if dots.size == 0:
+        return {}, False
+    other = np.nonzero(~digit)[0]  # includes every dot
+    # digits after the point: up to the next non-digit
+    k = np.searchsorted(other, dots, side="right")
+    frac = np.where(k < other.size, other[np.minimum(k, other.size - 1)], b.size) - dots - 1
+    # before the point: digits, then an optional sign, then spaces or tabs, then the letter
+    before = np.searchsorted(other, dots, side="left") - 1  # the last non-digit before the point
+    pos = np.where(before >= 0, other[np.maximum(before, 0)], -1)
+    signed = (pos >= 0) & np.isin(b[np.maximum(pos, 0)], (43, 45))
+    pos = np.where(signed, pos - 1, pos)
+    blank = (b == 32) | (b == 9)
+    nonblank = np.nonzero(~blank)[0]
+    j = np.searchsorted(nonblank, pos, side="right") - 1  # last non-blank at or before pos
+    ok = (pos >= 0) & (j >= 0)
+    pos = np.where(ok, nonblank[np.maximum(j, 0)], -1)
+    letter_b = np.where(ok, b[np.maximum(pos, 0)], 0)
+    upper = np.where((letter_b >= 97) & (letter_b <= 122), letter_b - 32, letter_b)
+    ok &= (upper >= 65) & (upper <= 90)
+    decimals: dict = {}
+    for code_point in np.unique(upper[ok]).tolist():
+        decimals[chr(code_point)] = int(frac[ok & (upper == code_point)].max())
+    bare = ok & (frac == 0) & np.isin(upper, np.frombuffer(b"XYZABCF", np.uint8))
+    return decimals, bool(bare.any())
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -533,7 +568,7 @@ class _Interpreter:
             return g5x[active] + g92 + tlo
 
         def refresh_state():
-            key = (feed, inverse, inch, cutter, tool, tuple(off_now[0]))
+            key = (feed, inverse, inch, cutter, tool, not absolute, not arc_abs, tuple(off_now[0]))
             cur_state[0] = states.setdefault(key, len(states))
 
         def emit(motion, kind, target, li, words=0, center=None, pl=0, turns=0):
@@ -1035,8 +1070,9 @@ class _Interpreter:
         state_rows = list(states)  # dicts keep insertion order: index == state id
         sid = np.array(r_state, np.int64)
         st_feed = np.array([k[0] for k in state_rows] or [0.0], float)
-        st_flags = np.array([k[1:5] for k in state_rows] or [(False, False, 40, 0)], np.int64).reshape(-1, 4)
-        st_off = np.array([k[5] for k in state_rows] or [(0.0,) * 6], float).reshape(-1, 6)
+        st_flags = np.array([k[1:7] for k in state_rows] or [(False, False, 40, 0, False, True)],
+                            np.int64).reshape(-1, 6)
+        st_off = np.array([k[7] for k in state_rows] or [(0.0,) * 6], float).reshape(-1, 6)
         arc_center = np.full((m, 3), np.nan)
         arc_plane = np.zeros(m, np.int8)
         arc_turns = np.zeros(m, np.int16)
@@ -1074,6 +1110,8 @@ class _Interpreter:
             inch=st_flags[sid, 1].astype(bool).reshape(m),
             cutter_comp=st_flags[sid, 2].astype(np.int8).reshape(m),
             tool=st_flags[sid, 3].astype(np.int32).reshape(m),
+            incremental=st_flags[sid, 4].astype(bool).reshape(m),
+            arc_incremental=st_flags[sid, 5].astype(bool).reshape(m),
             line_index=np.array(r_line, np.int32),
             words=words,
             lines=lines,

@@ -55,8 +55,6 @@ from .solver import solve_commanded
 MODES = ("none", "geometric", "comprehensive")
 AXES = "XYZABC"
 _CONDITIONS = re.compile(r"\(\s*trueaxis:([^)]*)\)", re.IGNORECASE)
-_DISTANCE = re.compile(r"G\s*0*9([01])(?![0-9.])", re.IGNORECASE)
-_ARC_DISTANCE = re.compile(r"G\s*0*9([01])\.1", re.IGNORECASE)
 _MOTION_WORD = re.compile(r"^G0*([0-3])$", re.IGNORECASE)
 _NUM = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)"
 # A plain motion block: N G X Y Z A B C I J K R F, each optional, in this order, nothing else (the writer's fast path)
@@ -71,8 +69,6 @@ _R_BIT = 1 << WORD_BITS.index("R")
 # at a 200 mm lever arm, 0.02 um): both come off the split tolerance.
 SOLVE_TOL_UM, SOLVE_TOL_URAD = 0.01, 0.02
 WRITE_ROUNDING_UM, WRITE_ROUNDING_URAD = 0.03, 0.18
-_COMMENT_START = re.compile(r"[(;]")
-_LINE_BREAK = re.compile(r"[\r\n]")
 ROW_CHUNK = 8_000  # moves compensated together: bounds memory (an arc samples 17 poses) at little cost in speed
 
 
@@ -689,8 +685,6 @@ class _Poster:
         if self.m.kind == "lathe":
             axes_out = [a for a in axes_out if a in p.axes_present or a in "XZ"]
         numbers = _Numbers(info)
-        incremental = _modal_per_line(p.lines, _DISTANCE, default="0")  # "1" = G91
-        arc_incremental = _modal_per_line(p.lines, _ARC_DISTANCE, default="1")  # "1" = G91.1 (default)
         is_cycle = p.kind[rows] == ROW_CYCLE
         # The end point written for every program row (program coordinates): compensated moves' corrected ends,
         # everything else (and canned cycles, rewritten from their hole and R level) as programmed. A block's
@@ -719,6 +713,7 @@ class _Poster:
         rows_l, motion_l, inch_l = rows.tolist(), p.motion.tolist(), p.inch.tolist()
         inverse_l, r_form_l = p.inverse_time.tolist(), (p.words & _R_BIT).astype(bool).tolist()
         cycle_l = is_cycle.tolist()
+        incremental_l = p.incremental.tolist()
         formatters = {False: numbers.formatter(False), True: numbers.formatter(True)}
         out = list(p.lines)
         extra = 0
@@ -727,9 +722,9 @@ class _Poster:
             li = int(line_of[k0])
             body, ending = _split_ending(p.lines[li])
             fmt = formatters[inch_l[r0]]
-            inc = incremental[li]
+            inc = incremental_l[r0]
             if cycle_l[k0]:
-                if inc == "1":
+                if inc:
                     raise PostError(p.source, li + 1, "incremental (G91) canned cycles are not compensated: write "
                                                       "the cycle in G90, or post with --mode none")
                 out[li] = self._cycle_line(body, list(range(k0, k1)), rows, delta_prog, fmt, sep) + ending
@@ -739,7 +734,8 @@ class _Poster:
             motion = motion_l[r]
             arc_kept = arc_mode.get(k) == "arc"
             split = k in piece_first
-            if inc == "1" or split or arc_kept:
+            inc = incremental_l[r]
+            if inc or split or arc_kept:
                 r_prev = int(first_row_of_line[li]) - 1
                 last_written = written_end[r_prev] if r_prev >= 0 else np.zeros(6)
             rest = []
@@ -756,22 +752,22 @@ class _Poster:
                 piece_f = p.feed[r] / np.diff(self.fractions.get(r, np.linspace(0.0, 1.0, n + 1)))
                 if inverse_l[r]:
                     body = _replace_feed(body, piece_f[0], fmt, sep)
-                if inc == "1":
+                if inc:
                     words = [fmt(a, _out_value(pts[0], last_written, a, inc)) for a in axes_out]
                     last_written = pts[0]
                 else:
                     words = [piece_words[a][o] for a in axes_out]
                 rest = range(1, n)
-            elif inc == "1":
+            elif inc:
                 words = [fmt(a, _out_value(target[k], last_written, a, inc)) for a in axes_out]
             else:
                 words = [axis_words[a][k] for a in axes_out]
             if arc_kept and not r_form_l[r]:
-                words += self._centre_words(r, delta_prog[k], last_written, arc_incremental[li], fmt)
+                words += self._centre_words(r, delta_prog[k], last_written, fmt)
             texts = [self._rewrite_motion(body, motion, words, arc_kept, r, sep), ending]
             word = "G0" if motion == RAPID else "G1"
             for j in rest:
-                if inc == "1":
+                if inc:
                     piece = [word] + [fmt(a, _out_value(pts[j], last_written, a, inc)) for a in axes_out]
                     last_written = pts[j]
                 else:
@@ -784,13 +780,13 @@ class _Poster:
         self.rep.blocks_out = len(p.lines) + extra
         return "".join(out), self.rep
 
-    def _centre_words(self, r, delta_end, last_written, arc_incremental, fmt):
+    def _centre_words(self, r, delta_end, last_written, fmt):
         """I J K of a kept arc: its centre moved by the end's correction (constant along the arc), incremental from
         the start (G91.1, the default) or absolute (G90.1)."""
         p = self.p
         letters = {17: "IJ", 18: "IK", 19: "JK"}[int(p.arc_plane[r])]
         center = p.arc_center[r] + delta_end[:3]
-        origin = last_written[:3] if arc_incremental == "1" else np.zeros(3)
+        origin = last_written[:3] if p.arc_incremental[r] else np.zeros(3)
         return [fmt(c, center["IJK".index(c)] - origin["IJK".index(c)]) for c in letters]
 
     def _rewrite_motion(self, body, motion, words, arc, row, sep):
@@ -925,9 +921,9 @@ def _motion_text(word: str, motion: int) -> str:
     return f"G0{motion}" if word[1:].strip() in ("00", "01", "02", "03") else f"G{motion}"
 
 
-def _out_value(target6, last6, letter, inc):
+def _out_value(target6, last6, letter, incremental: bool):
     j = AXES.index(letter)
-    return target6[j] - last6[j] if inc == "1" else target6[j]
+    return target6[j] - last6[j] if incremental else target6[j]
 
 
 def _split_ending(line: str):
@@ -970,29 +966,6 @@ def _replace_feed(body, feed, fmt, sep):
     toks = tokenize_line(code)
     out = [fmt("F", feed, inch=False) if (t[0] == "word" and t[1][0].upper() == "F") else t[1] for t in toks]
     return sep.join(out) + comment
-
-
-def _modal_per_line(lines, pattern, default):
-    """Per line, the modal value of a two-state G group after the line (regex group 1); comments ignored.
-
-    One search over the whole text (the group's words are rare), each hit placed on its line by offset."""
-    text = "".join(lines)
-    hits = [(m.start(), m.group(1)) for m in pattern.finditer(text) if not _LINE_BREAK.search(m.group())]
-    if not hits:
-        return [default] * len(lines)
-    line_start = np.cumsum([0] + [len(ln) for ln in lines[:-1]])
-    state = np.full(len(lines), -1)
-    values = [default]
-    for pos, value in hits:
-        li = int(np.searchsorted(line_start, pos, side="right")) - 1
-        column = pos - int(line_start[li])
-        if _COMMENT_START.search(lines[li], 0, column):
-            continue  # inside a comment (or after one on its line)
-        values.append(value)
-        state[li] = len(values) - 1
-    # forward fill: each line takes the last value set on or before it
-    idx = np.maximum.accumulate(np.where(state >= 0, state, 0))
-    return [values[i] for i in idx.tolist()]
 
 
 def _arc_sweep(p: Program, r: int) -> float:
