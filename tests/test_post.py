@@ -188,10 +188,11 @@ def test_the_writers_fast_path_writes_what_the_token_walk_writes(n, g, letters, 
 
 
 def test_the_post_in_small_chunks_writes_what_it_writes_in_one(xh714, monkeypatch):
-    # Moves are compensated chunk by chunk (bounded memory): chunk borders must not change what is written
+    # Moves are compensated and written chunk by chunk (bounded memory): chunk borders must not change what is written
     # beyond the solver's own tolerance (its batch decides how many Newton steps each pose gets).
     whole = compensate(PROGRAM, xh714, "geometric")
     monkeypatch.setattr(post_module, "ROW_CHUNK", 3)
+    monkeypatch.setattr(post_module, "WRITE_WINDOW", 2)
     chunked = compensate(PROGRAM, xh714, "geometric")
     a, b = parse_program(whole), parse_program(chunked)
     assert len(a.lines) == len(b.lines)

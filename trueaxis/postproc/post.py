@@ -70,6 +70,7 @@ _R_BIT = 1 << WORD_BITS.index("R")
 SOLVE_TOL_UM, SOLVE_TOL_URAD = 0.01, 0.02
 WRITE_ROUNDING_UM, WRITE_ROUNDING_URAD = 0.03, 0.18
 ROW_CHUNK = 8_000  # moves compensated together: bounds memory (an arc samples 17 poses) at little cost in speed
+WRITE_WINDOW = 50_000  # moves whose axis words are formatted together
 
 
 class PostError(GcodeError):
@@ -693,11 +694,13 @@ class _Poster:
         written_end[rows[~is_cycle]] += delta_prog[~is_cycle]
         first_row_of_line = np.full(len(p.lines), -1)
         first_row_of_line[p.line_index[::-1]] = np.arange(len(p))[::-1]
-        # The bulk of the axis words, formatted in one pass per axis: each compensated move's own corrected end, and
-        # the ends of the pieces of split moves and linearised arcs (the block's own end last).
+        # The bulk of the axis words, formatted in one pass per axis and window of moves (memory stays bounded): each
+        # compensated move's own corrected end, and the ends of the pieces of split moves and linearised arcs (the
+        # block's own end last).
         target = p.end[rows] + delta_prog
         inch_rows = p.inch[rows]
-        axis_words = {a: numbers.words(a, target[:, AXES.index(a)], inch_rows) for a in axes_out}
+        window = [0, 0]  # the moves [k_lo, k_hi) whose axis words are in axis_words
+        axis_words = {}
         piece_keys = [k for k in pieces if arc_mode.get(k) != "arc"]
         piece_pts = [pieces[k] if arc_mode.get(k) == "lines" else np.vstack([pieces[k], target[k]]) for k in piece_keys]
         piece_first = dict(zip(piece_keys, np.cumsum([0] + [len(x) for x in piece_pts]).tolist()))
@@ -718,6 +721,10 @@ class _Poster:
         out = list(p.lines)
         extra = 0
         for k0, k1 in zip(starts.tolist(), ends.tolist()):
+            if k1 > window[1]:
+                window[:] = k0, min(rows.size, max(k1, k0 + WRITE_WINDOW))
+                sl = slice(*window)
+                axis_words = {a: numbers.words(a, target[sl, AXES.index(a)], inch_rows[sl]) for a in axes_out}
             r0 = rows_l[k0]
             li = int(line_of[k0])
             body, ending = _split_ending(p.lines[li])
@@ -761,7 +768,7 @@ class _Poster:
             elif inc:
                 words = [fmt(a, _out_value(target[k], last_written, a, inc)) for a in axes_out]
             else:
-                words = [axis_words[a][k] for a in axes_out]
+                words = [axis_words[a][k - window[0]] for a in axes_out]
             if arc_kept and not r_form_l[r]:
                 words += self._centre_words(r, delta_prog[k], last_written, fmt)
             texts = [self._rewrite_motion(body, motion, words, arc_kept, r, sep), ending]
