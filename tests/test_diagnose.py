@@ -127,8 +127,45 @@ def test_thermal_z_is_named(slots):
 
 
 def test_force_deflection_is_named(slots):
+    # An anisotropic machine compliance (X 0.04, Y 0.03 um/N) on the three-axis slot block: tool bending matches the
+    # gap's shape almost as well, but a round tool bends alike in X and Y, so it is ruled out, and said so.
     diag, _ = _named(slots, {"force": {"compliance_um_per_n": [[0.04, 0, 0], [0, 0.03, 0], [0, 0, 0.02]]}})
     assert diag.chosen == ["force_deflection"]
+    f = diag.chosen_fit
+    assert f.value[0] > f.value[1] > 0
+    assert "tool_deflection" not in diag.tied.get("force_deflection", [])
+    assert f.difference_z("compliance_X", "compliance_Y") > 4.0
+
+
+def _fake_fit(name, params, value, cov, pred, n_parameters):
+    from trueaxis.diagnose.analysis import Fit
+
+    return Fit(name=name, members=[name], parameters=params, units=["um/N"] * len(params), value=np.array(value),
+               std=np.sqrt(np.diag(cov)), held_out_pred_um=pred, gain_um2=1.0, z=10.0, f_stat=1.0, f_p=0.0,
+               plausible=True, rank=len(params), n_parameters=n_parameters, cov=np.array(cov))
+
+
+@pytest.mark.parametrize("anisotropic,vertical", [(True, True), (False, True), (True, False)])
+def test_tool_ruled_out_only_by_a_significant_anisotropy_on_a_vertical_tool(anisotropic, vertical):
+    # Two fits that match the gap equally: tool bending (2 parameters) is preferred by parsimony unless the machine
+    # compliance found differs between X and Y by more than Z_SIGNATURE sigma while the tool stands along machine Z.
+    from trueaxis.diagnose.analysis import _prefer
+
+    g = np.random.default_rng(0).normal(0, 1, 300)
+    pred = 0.9 * g
+    cx, cy = (0.05, 0.03) if anisotropic else (0.05, 0.048)
+    cov = np.diag([0.002**2, 0.002**2, 0.01**2])  # X - Y: 7 sigma, or 0.7 sigma
+    force = _fake_fit("force_deflection", ["compliance_X", "compliance_Y", "compliance_Z"], [cx, cy, 0.0], cov,
+                      pred.copy(), 3)
+    tool = _fake_fit("tool_deflection", ["tip_compliance", "compliance_slope"], [0.04, 0.0],
+                     np.diag([0.002**2, 0.001**2]), pred.copy(), 2)
+    notes = []
+    chosen, tied = _prefer(tool, [tool, force], g, vertical, notes)
+    if anisotropic and vertical:
+        assert chosen is force and tied == []
+        assert notes and notes[0].startswith("tool_deflection ruled out") and "7.1 standard deviations" in notes[0]
+    else:
+        assert chosen is tool and tied == [force] and notes == []
 
 
 def test_control_says_none_of_the_candidates(slots):
@@ -184,3 +221,54 @@ def test_cli_refuses_bad_input_with_exit_2(tmp_path, capsys, extra, msg):
     if msg:
         assert msg in err
     assert not (tmp_path / "r").exists()
+
+
+def _synthetic(slots, parts, noise=1.0, seed=0):
+    """The slot block's twin state with a gap made of the candidates' own columns (name -> parameter vector) plus
+    noise: a check of the judgement alone, without the shop's richer forms."""
+    m, prog, base = slots
+    st = twin_state(base.points, base.normals, m, prog.text, "slots", want_force=False)
+    names = ["backlash_x", "backlash_y", "thermal_x", "thermal_y", "thermal_z", "twin_parameters"]
+    cands, _ = build_all(names, st)
+    by = {c.name: c for c in cands}
+    g = np.random.default_rng(seed).normal(0.0, noise, len(st))
+    for name, theta in parts.items():
+        g = g + by[name].columns @ np.asarray(theta, float)
+    st.gap_um = g
+    return st, cands
+
+
+def test_second_effect_kept_only_when_it_clearly_helps(slots):
+    # Backlash Y of 8 um with a Z drift: a drift of a few tenths of a um is below what a second effect must add
+    # (a share of the first one's gain and Z_PAIR on held-out points), one of several um is named with it.
+    st, cands = _synthetic(slots, {"backlash_y": [8.0], "thermal_z": [0.3, 0.6, 0.9]})
+    diag = diagnose_state(st, cands, noise_um=1.0)
+    assert diag.chosen == ["backlash_y"]
+    st, cands = _synthetic(slots, {"backlash_y": [8.0], "thermal_z": [3.0, 6.0, 9.0]})
+    diag = diagnose_state(st, cands, noise_um=1.0)
+    assert sorted(diag.chosen) == ["backlash_y", "thermal_z"]
+    f = diag.chosen_fit
+    last = [i for i, p in enumerate(f.parameters) if p.startswith("drift_Z")][-1]
+    assert f.value[last] == pytest.approx(9.0, abs=3 * f.std[last] + 0.5)
+
+
+def test_compliances_are_bounded_to_physical_signs(slots):
+    # A gap that a *negative* lateral compliance would mimic: the bounded fit stays at zero and the candidate is
+    # flagged not plausible (the tool would be pulled into the material).
+    from trueaxis.diagnose.analysis import fit_candidate, make_folds
+
+    m, prog, base = slots
+    st = twin_state(base.points, base.normals, m, prog.text, "slots", force_stride=200)
+    force = build("force_deflection", st)
+    tool = build("tool_deflection", st)
+    assert force.parameters == ["compliance_X", "compliance_Y", "compliance_Z"]
+    assert force.plausible[0][0] == 0.0 and force.plausible[1][0] == 0.0 and tool.plausible[0][0] == 0.0
+    g = force.columns @ np.array([-0.05, -0.05, 0.0]) + np.random.default_rng(1).normal(0, 0.3, len(st))
+    f = fit_candidate([force], g, make_folds(st))
+    assert not f.plausible
+    assert np.all(f.value[:2] >= -1e-12) and np.all(f.value[:2] < 0.01)
+    # A positive, anisotropic one is fitted inside the bounds, and its X - Y difference is seen.
+    g = force.columns @ np.array([0.04, 0.02, 0.0]) + np.random.default_rng(2).normal(0, 1.0, len(st))
+    f = fit_candidate([force], g, make_folds(st))
+    assert f.plausible
+    assert f.difference_z("compliance_X", "compliance_Y") > 4.0

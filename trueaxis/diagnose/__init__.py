@@ -10,7 +10,7 @@ Candidate effect names (``--candidates all`` or a comma-separated list of these)
 
 - ``backlash_x``, ``backlash_y``, ``backlash_z``: lost motion of a linear axis, a step with the direction of motion.
 - ``servo_lag``: following error velocity / kv of every moving axis (one lag time per axis).
-- ``force_deflection``: machine compliance (lateral X = Y, axial Z) times the estimated cutting force.
+- ``force_deflection``: machine compliance (diagonal: X, Y and Z apart) times the estimated cutting force.
 - ``tool_deflection``: tool bending, force normal to the tool times a compliance linear in the contact height.
 - ``thermal_x``, ``thermal_y``, ``thermal_z``: drift along a machine direction, a linear spline of time from zero.
 - ``rotary_periodic_c``, ``rotary_periodic_b``, ``rotary_periodic_a``: once/twice-per-turn harmonics of a rotary

@@ -18,12 +18,19 @@ Bounded fits. Every fit, the held-out ones included, keeps the parameters inside
 plausible values; a fit that wanted to leave its bounds is flagged not plausible.
 
 Choice and ambiguity. Candidates are ranked by held-out gain. Tied with the best are those whose gain is at least
-``TIE`` of its gain or not significantly below it (paired held-out z of the deficit < ``Z_TIE``); among the tied ones
-the plausible, then a new effect rather than a re-identification of the twin, then fewer parameters is preferred
-(parsimony, plausibility), and the others are reported as indistinguishable on this part (``Diagnosis.tied``, with
-the measurement that would separate them). A second effect: all pairs of the ``PAIR_POOL`` leading significant
-candidates are fitted; the pairs whose held-out gain over the best single candidate is significant and material (more
-than ``MIN_GAIN_OF_NOISE`` sigma^2 and ``PAIR_MIN_SHARE`` of that candidate's gain) compete with the same tie rule.
+``TIE`` of its gain or not significantly below it (paired held-out z of the deficit < ``Z_TIE``). A tied candidate is
+dropped when the fitted values of another tied one show a physical signature it cannot produce (``ruled_out``: a
+machine compliance significantly different in X and Y while the tool stands along machine Z, which a round tool's
+bending cannot give). Among the remaining tied ones the plausible, then a new effect rather than a re-identification
+of the twin, then fewer parameters is preferred (parsimony, plausibility), and the others are reported as
+indistinguishable on this part (``Diagnosis.tied``, with the measurement that would separate them).
+
+Two effects against one (a nested test). All pairs of the ``PAIR_POOL`` leading significant candidates are fitted; a
+pair is kept only when its held-out gain over the best single candidate is significant at the stricter ``Z_PAIR``
+(up to fifteen pairs are tried, and a strong effect's residual of form is structured, so a plain ``Z_MIN`` lets a
+second candidate nibble at it) and material (more than ``MIN_GAIN_OF_NOISE`` sigma^2 and ``PAIR_MIN_SHARE`` of that
+candidate's gain). The kept pairs compete with the same tie rule.
+
 Confidence: 0.3 + 0.7 min(1, separation / 0.5), separation = 1 - (runner-up's gain / chosen's gain), at most
 1 / (1 + k) when k candidates are tied with the chosen ones, halved when fitted values wanted to leave their bounds.
 Candidates whose gain is at least ``ALMOST`` of the chosen's, and the tied ones, are listed as alternatives.
@@ -48,7 +55,9 @@ ALMOST = 0.9
 TIE = 0.97
 Z_TIE = 2.0
 PAIR_POOL = 6
-PAIR_MIN_SHARE = 0.1
+PAIR_MIN_SHARE = 0.05
+Z_PAIR = 5.0
+Z_SIGNATURE = 4.0
 
 SEPARATING_MEASUREMENT = {
     frozenset({"force_deflection", "tool_deflection"}): "a cut with a different tool stick-out or radial engagement "
@@ -186,6 +195,14 @@ class Fit:
     explained_share: float = 0.0
     significant: bool = False
     extra: dict = field(default_factory=dict)
+    cov: np.ndarray | None = None
+
+    def difference_z(self, a: str, b: str) -> float:
+        """(value[a] - value[b]) / its standard deviation (with the covariance of the fit on all points)."""
+        i, j = self.parameters.index(a), self.parameters.index(b)
+        var = self.cov[i, i] + self.cov[j, j] - 2 * self.cov[i, j] if self.cov is not None else \
+            self.std[i] ** 2 + self.std[j] ** 2
+        return float((self.value[i] - self.value[j]) / max(math.sqrt(max(var, 0.0)), 1e-300))
 
 
 def _solve_bounded(S, g, bounds):
@@ -239,7 +256,7 @@ def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray, boun
     return Fit(name="+".join(c.name for c in cands), members=[c.name for c in cands],
                parameters=[x for c in cands for x in c.parameters], units=[x for c in cands for x in c.units],
                value=theta, std=std, held_out_pred_um=pred, gain_um2=gain, z=float(z), f_stat=float(f_stat), f_p=f_p,
-               plausible=plausible, rank=rank, n_parameters=p)
+               plausible=plausible, rank=rank, n_parameters=p, cov=cov_unit * s2)
 
 
 def gap_figures(r: np.ndarray) -> dict:
@@ -325,15 +342,42 @@ class Diagnosis:
     split: str
     skipped: list
     tied: dict = field(default_factory=dict)
+    ruled_out: list = field(default_factory=list)
 
 
-def _prefer(best: Fit, pool: list, g: np.ndarray) -> tuple[Fit, list]:
+def tool_along_machine_z(state: TwinState, tol: float = 0.995) -> bool:
+    """True when the tool axis lies along machine Z at every cut (a three-axis part, or a five-axis one cut with the
+    head straight): machine X and Y then both lie in the plane in which a round tool bends."""
+    from .candidates import _machine_direction
+
+    return bool(np.all(np.abs(np.einsum("ij,ij->i", state.axis, _machine_direction(state, 2))) > tol))
+
+
+def ruled_out(fit: Fit, tool_vertical: bool) -> dict:
+    """{member of ``fit``: [candidates that cannot stand in for it]}: physical signatures in the fitted values that
+    another candidate, however well it matches the gap's shape, cannot produce.
+
+    - A machine compliance that differs significantly between X and Y (|c_X - c_Y| > ``Z_SIGNATURE`` standard
+      deviations) while the tool lies along machine Z: a round tool bends equally in every direction normal to its
+      axis, so tool deflection cannot be that anisotropic. (An isotropic fit proves nothing: the two stay tied.)"""
+    out = {}
+    if tool_vertical and "force_deflection" in fit.members and {"compliance_X", "compliance_Y"} <= set(fit.parameters):
+        z = fit.difference_z("compliance_X", "compliance_Y")
+        fit.extra["anisotropy_z"] = z
+        if abs(z) > Z_SIGNATURE:
+            out["force_deflection"] = ["tool_deflection"]
+    return out
+
+
+def _prefer(best: Fit, pool: list, g: np.ndarray, tool_vertical: bool = False, notes: list | None = None
+            ) -> tuple[Fit, list]:
     """(the preferred fit, the others tied with it) among ``pool`` (``best`` has the largest held-out gain).
 
     Tied with the best: a gain of at least ``TIE`` of its gain, or a gain not significantly below it on the held-out
-    points (paired z of the deficit < ``Z_TIE``). Among the tied ones the plausible (fitted values inside their
-    bounds), then the one that is a new effect rather than a re-identification of the twin, then the one with fewer
-    parameters, then the larger gain is preferred."""
+    points (paired z of the deficit < ``Z_TIE``). A tied fit that only swaps a member of another tied fit for a
+    candidate that fit's values rule out (``ruled_out``: a physical signature it cannot produce) is dropped. Among
+    the tied ones the plausible (fitted values inside their bounds), then the one that is a new effect rather than a
+    re-identification of the twin, then the one with fewer parameters, then the larger gain is preferred."""
     tied = [best]
     for f in pool:
         if f is best:
@@ -342,6 +386,21 @@ def _prefer(best: Fit, pool: list, g: np.ndarray) -> tuple[Fit, list]:
         zz = float(d.mean()) / max(float(d.std(ddof=1)) / math.sqrt(g.size), 1e-300)
         if f.gain_um2 >= TIE * best.gain_um2 or zz < Z_TIE:
             tied.append(f)
+    drop = set()
+    for f in tied:
+        for member, excluded in ruled_out(f, tool_vertical).items():
+            rest = sorted(m for m in f.members if m != member)
+            for h in tied:
+                if h is not f and id(h) not in drop and any(sorted(h.members) == sorted(rest + [x])
+                                                              for x in excluded):
+                    drop.add(id(h))
+                    h.extra["ruled_out_by"] = f.name
+                    if notes is not None:
+                        notes.append(f"{h.name} ruled out against {f.name}: the fitted machine compliance differs "
+                                     f"between X and Y by {abs(f.extra['anisotropy_z']):.1f} standard deviations, "
+                                     f"which a round tool's bending (equal in every direction normal to the tool) "
+                                     f"cannot produce")
+    tied = [f for f in tied if id(f) not in drop]
     tied.sort(key=lambda f: (not f.plausible, "twin_parameters" in f.members, f.n_parameters, -f.gain_um2))
     return tied[0], tied[1:]
 
@@ -366,16 +425,17 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         f.significant = _significant(f.gain_um2, f.z, sigma)
     fits.sort(key=lambda f: -f.gain_um2)
     sig = [f for f in fits if f.significant]
-    chosen_fit, alternatives, confidence, sep, tied = None, [], 0.0, None, {}
+    chosen_fit, alternatives, confidence, sep, tied, notes = None, [], 0.0, None, {}, []
     if sig:
         best = sig[0]
-        chosen_fit, tie_fits = _prefer(best, sig, g)
+        vertical = tool_along_machine_z(state)
+        chosen_fit, tie_fits = _prefer(best, sig, g, vertical, notes)
         # A second effect: every pair of the leading significant candidates (a pair need not contain the best single
         # one: one candidate with many columns can mimic two effects at once, and a second effect hidden under the
         # first need not be the runner-up alone). A pair is taken when it beats the best single candidate on held-out
-        # points significantly and materially (by more than the noise floor and a tenth of that candidate's gain: the
-        # candidates' forms are poorer than the real effects, and a strong effect leaves a residual of form that a
-        # second candidate can always nibble at).
+        # points significantly (paired z > Z_PAIR: up to fifteen pairs are tried) and materially (by more than the
+        # noise floor and PAIR_MIN_SHARE of that candidate's gain: the candidates' forms are poorer than the real
+        # effects, and a strong effect leaves a residual of form that a second candidate can always nibble at).
         by_name = {c.name: c for c in candidates}
         top = [f.name for f in sig[:PAIR_POOL]]
         pairs = []
@@ -385,7 +445,7 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
                 d = (g - best.held_out_pred_um) ** 2 - (g - pair.held_out_pred_um) ** 2
                 extra = float(d.mean())
                 zz = extra / max(float(d.std(ddof=1)) / math.sqrt(g.size), 1e-300)
-                if zz > Z_MIN and extra > max(MIN_GAIN_OF_NOISE * sigma**2, PAIR_MIN_SHARE * best.gain_um2):
+                if zz > Z_PAIR and extra > max(MIN_GAIN_OF_NOISE * sigma**2, PAIR_MIN_SHARE * best.gain_um2):
                     pair.z, pair.extra = zz, {"gain_over_single_um2": extra, "over": best.name}
                     pairs.append(pair)
         if pairs:
@@ -394,15 +454,15 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
                 pf.rms_after_um = float(np.sqrt(np.mean((g - pf.held_out_pred_um) ** 2)))
                 pf.explained_share = pf.gain_um2 / max(ms_before - sigma**2, 1e-12)
                 pf.significant = True
-            chosen_fit, tie_fits = _prefer(pairs[0], pairs, g)
-            rivals = [f for f in pairs if f is not chosen_fit]
+            chosen_fit, tie_fits = _prefer(pairs[0], pairs, g, vertical, notes)
+            rivals = [f for f in pairs if f is not chosen_fit and "ruled_out_by" not in f.extra]
             # Each member's ties: the candidates that can replace it in a pair tied with the chosen one.
             for m in chosen_fit.members:
                 other = [x for x in chosen_fit.members if x != m]
                 tied[m] = [n for f in tie_fits for n in f.members
                            if set(other) <= set(f.members) and n not in chosen_fit.members]
         else:
-            rivals = [f for f in sig if f is not chosen_fit]
+            rivals = [f for f in sig if f is not chosen_fit and "ruled_out_by" not in f.extra]
             tied[chosen_fit.name] = [f.name for f in tie_fits]
         runner = rivals[0] if rivals else None
         alternatives = [f.name for f in sig if f.name not in chosen_fit.members
@@ -437,4 +497,4 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
     return Diagnosis(sigma, estimated, where(state, folds, sigma), fits,
                      [] if chosen_fit is None else chosen_fit.members, chosen_fit, float(round(confidence, 3)),
                      alternatives, sep, verdict, before, after, float(shrink_raw), float(shrink_noise), split,
-                     list(skipped), tied)
+                     list(skipped), tied, list(dict.fromkeys(notes)))

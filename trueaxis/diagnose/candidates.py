@@ -20,11 +20,13 @@ deliberately poorer, so that a fit is a test and not an identity):
 - ``servo_lag``: steady-state following error of a first-order loop, e_j = -qdot_j / kv_j, from the *commanded*
   segment velocity; one lag time per axis. The shop steps a discrete position loop with acceleration limits
   (transients at starts, stops and corners, saturation).
-- ``force_deflection``: a diagonal machine-frame compliance with one lateral value (X = Y) and one axial (Z),
-  times the force the twin's simulation estimated at the cut sample. The shop uses a full 3x3 matrix (and/or the
-  machine's own force model) with the force recomputed on the deflected path at every sample.
-- ``tool_deflection``: a straight lever, deflection = F_perp (c0 + c1 h) at contact height h. The shop bends a
-  carbide cantilever (cubic in the load position, load at the centre of the engaged flute) and tilts the tool.
+- ``force_deflection``: a diagonal machine-frame compliance (c_X, c_Y >= 0 and an axial c_Z whose sign is free, as
+  it also takes up the X/Y-Z coupling of a real matrix), times the force the twin's simulation estimated at the cut
+  sample. The shop uses a full 3x3 matrix (and/or the machine's own force model) with the force recomputed on the
+  deflected path at every sample.
+- ``tool_deflection``: a straight lever, deflection = F_perp (c0 + c1 h) at contact height h, c0 >= 0: isotropic in
+  the plane normal to the tool (a round tool). The shop bends a carbide cantilever (cubic in the load position, load
+  at the centre of the engaged flute) and tilts the tool.
 - ``thermal_x/y/z``: drift along one machine direction as a linear spline of program time through zero at the start,
   knots at T/3, 2T/3 and T (the parameters are the drift there, um). The shop interpolates a measured thermal series.
 - ``rotary_periodic_c/_b/_a``: once- and twice-per-turn harmonics of the commanded angle, as a first-order axis
@@ -114,18 +116,18 @@ def servo_lag(state: TwinState) -> Candidate | None:
 def force_deflection(state: TwinState) -> Candidate | None:
     if not state.has_force:
         return None
-    lateral = np.zeros(len(state))
-    axial = np.zeros(len(state))
+    cols = []
     for k in range(3):
         e = _machine_direction(state, k)
-        term = np.einsum("ij,ij->i", state.normals, e) * np.einsum("ij,ij->i", state.force_n, e)  # um per um/N
-        if k < 2:
-            lateral += term
-        else:
-            axial += term
-    return Candidate("force_deflection", np.column_stack([lateral, axial]),
-                     ["compliance_lateral", "compliance_axial"], ["um/N", "um/N"], [(-0.5, 0.5), (-0.5, 0.5)],
-                     "machine compliance (X = Y lateral, Z axial) times the estimated cutting force")
+        cols.append(np.einsum("ij,ij->i", state.normals, e) * np.einsum("ij,ij->i", state.force_n, e))  # um per um/N
+    # A compliance matrix is positive semi-definite: its diagonal terms are >= 0 (the tool yields along the force).
+    # The axial term also takes up the X/Y-Z coupling of a real matrix (on a floor, c_zx F_x can outweigh c_zz F_z),
+    # so its sign is left free.
+    return Candidate("force_deflection", np.column_stack(cols),
+                     ["compliance_X", "compliance_Y", "compliance_Z"], ["um/N"] * 3,
+                     [(0.0, 0.5), (0.0, 0.5), (-0.5, 0.5)],
+                     "machine compliance (diagonal in the machine frame, X, Y and Z apart) times the estimated "
+                     "cutting force")
 
 
 def tool_deflection(state: TwinState) -> Candidate | None:
@@ -135,7 +137,7 @@ def tool_deflection(state: TwinState) -> Candidate | None:
     f_perp = F - np.einsum("ij,ij->i", F, u)[:, None] * u
     c0 = np.einsum("ij,ij->i", state.normals, f_perp)
     return Candidate("tool_deflection", np.column_stack([c0, c0 * state.height_mm]),
-                     ["tip_compliance", "compliance_slope"], ["um/N", "um/N/mm"], [(-0.5, 0.5), (-0.05, 0.05)],
+                     ["tip_compliance", "compliance_slope"], ["um/N", "um/N/mm"], [(0.0, 0.5), (-0.05, 0.05)],
                      "tool bending: force normal to the tool times a compliance linear in the contact height")
 
 

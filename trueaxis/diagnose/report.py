@@ -101,6 +101,7 @@ def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None
         "chosen": chosen,
         "alternatives": diag.alternatives,
         "separating_measurement": diag.separating_measurement,
+        "ruled_out": diag.ruled_out,
         "candidates": [_fit_dict(f) for f in diag.fits],
         "candidates_not_applicable": diag.skipped,
         "gap_um": {"before": diag.gap_before, "after": diag.gap_after},
@@ -194,6 +195,7 @@ def _html(data: dict, pngs: dict) -> str:
     if data["alternatives"]:
         alt = (f"<p>Almost as good: {e(', '.join(data['alternatives']))}. "
                f"To separate them: {e(data['separating_measurement'] or 'a second placement')}.</p>")
+    alt += "".join(f"<p>Ruled out: {e(r)}.</p>" for r in data.get("ruled_out", []))
     b, a = data["gap_um"]["before"], data["gap_um"]["after"]
     imgs = "".join(f'<h3>{e(k)}</h3><img src="data:image/png;base64,{base64.b64encode(v).decode()}">'
                    for k, v in pngs.items())
