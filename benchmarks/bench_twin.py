@@ -50,9 +50,15 @@ def main():
     t = time.perf_counter()
     tw.pose_and_axis_jacobian(q, force_n=force)
     t_pose_ja = time.perf_counter() - t
+    t = time.perf_counter()
+    tw.actual_pose(q, force_n=force)
+    t_pose = time.perf_counter() - t
+    us = 1e6 / args.poses
     print(f"volumetric error, full transforms:        {t_full:7.2f} s")
     print(f"volumetric error, differential form:      {t_diff:7.2f} s")
-    print(f"actual pose + axis Jacobian (compiled):   {t_pose_ja:7.2f} s  (the post's solver step)")
+    print(f"actual pose + axis Jacobian (compiled):   {t_pose_ja:7.2f} s  ({t_pose_ja * us:.2f} us per pose, "
+          "the post's solver step)")
+    print(f"actual pose (compiled):                   {t_pose:7.2f} s  ({t_pose * us:.2f} us per pose)")
     print(f"error + axis and parameter Jacobians:     {t_all:7.2f} s  (streamed in chunks; goal < 1 s)")
     print(f"peak memory:                              {peak:7.0f} MB")
 

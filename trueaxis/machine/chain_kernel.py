@@ -5,8 +5,9 @@ axis, the bed deflection). In numpy every factor is a handful of operations on (
 the per-call overhead and the temporaries cost far more than the arithmetic. Here each pose's chain is built and
 composed in compiled loops over a small workspace.
 
-This module is pure maths on arrays. The twin (``twin.ErrorTwin``) evaluates the error values vectorised (it knows the
-error-function kinds, the loaded-set blend, compliance and response surfaces) and passes them in per pose; the formulas
+This module is pure maths on arrays. The twin (``twin.ErrorTwin``) evaluates the error values (the component functions
+compiled too, by ``error_kernel``; it knows the loaded-set blend, compliance and response surfaces) and passes them in
+per pose; the formulas
 are those of ``ErrorTwin._evaluate``, which stays the reference and computes the parameter Jacobian. Per pose, with L
 links in chain order (workpiece branch from the part to the bed, then the tool branch outwards):
 
@@ -16,7 +17,9 @@ links in chain order (workpiece branch from the part to the bed, then the tool b
 * F_k, rotary: L G(q + z) L^-1 with L p = (I + [eps]x)(p - c) + c + off (tilt eps, offset off, pivot c, zero offset z)
   and G the turn by q + z about the line through c along the axis direction; L^-1 is exact, in closed form.
   F_k, linear: (I, q d_act), the axis moving along its actual (squareness-turned) direction d_act.
-* E_k = (I + [e]x, delta - e x r): the axis' component errors (delta, e) at its reference point r.
+* E_k = (I + [e]x, delta - e x r): the axis' component errors (delta, e) at its reference point r: for a tool-branch
+  link the tool tip moved by the link's nominal motion alone, G(q) applied to the origin (computed here), for a
+  workpiece-branch link the origin.
 
 The tool tip is T applied to the origin, the tool axis T's rotation applied to +z, normalised (the small-angle factors
 are not exactly orthonormal). Units: mm and rad; derivatives per mm or rad of the axis.
@@ -36,8 +39,10 @@ Arguments shared by the kernels (n poses, L links, n_axes columns of q):
     zero       (L, n)       rad, a rotary link's zero-angle offset         (ignored for linear links)
     d_act      (L, n, 3)    a linear link's actual direction               (ignored for rotary links)
     comp       (L, n, 6)    component errors (dx, dy, dz mm; ex, ey, ez rad)
-    ref        (L, n, 3) mm the component errors' reference point
     bed        (n, 3) mm    bed deflection
+
+Each of these per-pose inputs may instead have 1 for its pose dimension (n): the same value for every pose (location
+errors without a loaded set, the nominal chain's zeros), passed without being repeated.
 """
 
 from __future__ import annotations
@@ -175,11 +180,33 @@ def _component(delta, e, r, ddelta, de, dr, deriv):
 
 
 @_jit_inline
-def _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, ref,
-                 bed, dcomp, dref, deriv, R, t, dR, dt, col):
+def _at(arr, i):
+    """Pose i's row of a per-pose input whose pose dimension is its second (L, n|1, ...): row 0 if shared."""
+    return i if arr.shape[1] > 1 else 0
+
+
+@_jit
+def _reference_point(q, a, c, rotary, tool):
+    """The component errors' reference point r and dr/dq: G(q) applied to the origin for a tool-branch link (linear:
+    q a; rotary: c - R c, R the turn by q about the line through c along a), the origin for a workpiece link."""
+    if not tool:
+        return _ZERO3, _ZERO3
+    if not rotary:
+        return (q * a[0], q * a[1], q * a[2]), a
+    K = _skew(a)
+    RG = _madd(_madd(_EYE, np.sin(q), K), 1.0 - np.cos(q), _mm(K, K))
+    dRc = _mv(_mm(K, RG), c)
+    return _sub(c, _mv(RG, c)), (-dRc[0], -dRc[1], -dRc[2])
+
+
+@_jit_inline
+def _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed,
+                 dcomp, deriv, R, t, dR, dt, col):
     """Fill the K = 2 L + 2 factors of pose i in chain order: R (K, 9), t (K, 3); with deriv their d/dq (dR, dt) and
     the q column each depends on (col; -1: none, the bed's derivative being the caller's). Returns the bed's index."""
     n_links = column.shape[0]
+    il, ic = _at(tilt, i), _at(comp, i)
+    ib = i if bed.shape[0] > 1 else 0
     _store(R, 0, _EYE)
     _store(t, 0, (-origin[0], -origin[1], -origin[2]))
     col[0] = -1
@@ -188,26 +215,27 @@ def _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, t
     for link in range(n_links + 1):
         if link == bed_at:
             _store(R, k, _EYE)
-            _store(t, k, _row(bed, i))
+            _store(t, k, _row(bed, ib))
             col[k] = -1
             k_bed = k
             k += 1
         if link == n_links:
             break
         qa = q[i, column[link]]
+        a, c = _row(direction, link), _row(pivot, link)
         if rotary[link]:
-            RF, tF, dRF, dtF = _located_rotary(qa, _row(direction, link), _row(pivot, link), _vec(tilt, link, i, 0),
-                                               _vec(offset, link, i, 0), zero[link, i], deriv)
+            RF, tF, dRF, dtF = _located_rotary(qa, a, c, _vec(tilt, link, il, 0), _vec(offset, link, il, 0),
+                                               zero[link, il], deriv)
         else:
-            d = _vec(d_act, link, i, 0)
+            d = _vec(d_act, link, il, 0)
             RF, tF, dRF, dtF = _EYE, (qa * d[0], qa * d[1], qa * d[2]), _ZERO9, d
+        r, dr = _reference_point(qa, a, c, rotary[link], tool[link])
         if deriv:
-            RE, tE, dRE, dtE = _component(_vec(comp, link, i, 0), _vec(comp, link, i, 3), _vec(ref, link, i, 0),
-                                          _vec(dcomp, link, i, 0), _vec(dcomp, link, i, 3), _vec(dref, link, i, 0),
-                                          True)
+            RE, tE, dRE, dtE = _component(_vec(comp, link, ic, 0), _vec(comp, link, ic, 3), r,
+                                          _vec(dcomp, link, ic, 0), _vec(dcomp, link, ic, 3), dr, True)
         else:
-            RE, tE, dRE, dtE = _component(_vec(comp, link, i, 0), _vec(comp, link, i, 3), _vec(ref, link, i, 0),
-                                          _ZERO3, _ZERO3, _ZERO3, False)
+            RE, tE, dRE, dtE = _component(_vec(comp, link, ic, 0), _vec(comp, link, ic, 3), r, _ZERO3, _ZERO3,
+                                          _ZERO3, False)
         # Tool branch: E then F; workpiece branch: F then E.
         kf, ke = (k + 1, k) if tool[link] else (k, k + 1)
         _store(R, kf, RF)
@@ -247,7 +275,7 @@ def _unit(u):
 
 # ------------------------------------------------------------------------------------------------- the kernels ----
 @numba.njit(cache=True)
-def pose(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, ref, bed):
+def pose(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed):
     """Tool tip (n, 3) mm and unit tool axis (n, 3), part frame (arguments: module docstring)."""
     n = q.shape[0]
     K = 2 * column.shape[0] + 2
@@ -256,9 +284,9 @@ def pose(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset
     p_after, u_after = np.empty((K, 3)), np.empty((K, 3))
     tip, axis = np.empty((n, 3)), np.empty((n, 3))
     for i in range(n):
-        # No derivatives: comp and ref stand in for dcomp and dref, unread.
+        # No derivatives: comp stands in for dcomp, unread.
         _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
-                     ref, bed, comp, ref, False, R, t, dR, dt, col)
+                     bed, comp, False, R, t, dR, dt, col)
         p, u_raw = _tip_and_axis(R, t, p_after, u_after)
         _store(tip, i, p)
         _store(axis, i, _unit(u_raw)[0])
@@ -267,11 +295,11 @@ def pose(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset
 
 @numba.njit(cache=True)
 def pose_and_axis_jacobian(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act,
-                           comp, ref, bed, dcomp, dref, dbed):
+                           comp, bed, dcomp, dbed):
     """Tool tip (n, 3) mm, unit tool axis (n, 3) and d(tip, unit axis)/dq (n, 6, n_axes), per mm or rad.
 
-    dcomp (L, n, 6), dref (L, n, 3) : d comp / dq and d ref / dq along the link's own axis.
-    dbed (n, 3, n_axes) : d bed / dq per q column.
+    dcomp (L, n|1, 6) : d comp / dq along the link's own axis.
+    dbed (n|1, 3, n_axes) : d bed / dq per q column.
     The tip and axis are the same numbers ``pose`` gives.
     """
     n, n_axes = q.shape
@@ -282,7 +310,8 @@ def pose_and_axis_jacobian(q, column, rotary, tool, direction, pivot, origin, be
     tip, axis, J = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 6, n_axes))
     for i in range(n):
         k_bed = _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act,
-                             comp, ref, bed, dcomp, dref, True, R, t, dR, dt, col)
+                             comp, bed, dcomp, True, R, t, dR, dt, col)
+        idb = i if dbed.shape[0] > 1 else 0
         p, u_raw = _tip_and_axis(R, t, p_after, u_after)
         u, norm = _unit(u_raw)
         _store(tip, i, p)
@@ -300,7 +329,7 @@ def pose_and_axis_jacobian(q, column, rotary, tool, direction, pivot, origin, be
                     J[i, 3 + j, c] += du[j]
             elif k == k_bed:
                 for c2 in range(n_axes):
-                    dp = _mv(RA, (dbed[i, 0, c2], dbed[i, 1, c2], dbed[i, 2, c2]))
+                    dp = _mv(RA, (dbed[idb, 0, c2], dbed[idb, 1, c2], dbed[idb, 2, c2]))
                     for j in range(3):
                         J[i, j, c2] += dp[j]
             RA = _mm(RA, _row9(R, k))

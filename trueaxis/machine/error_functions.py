@@ -4,6 +4,10 @@ Every form is linear in its parameters (table values, series coefficients), so e
 ``basis(q) @ values == value(q)``. The basis is what makes the twin's parameter Jacobian exact and cheap, and what the
 identifier solves for. Positions ``q`` are in internal units (mm for linear axes, rad for rotary axes); values are in
 the machine file's units (um or urad).
+
+``__call__`` and ``derivative`` are the reference evaluation (numpy and scipy, one function at a time).
+``value_and_derivative`` gives the same numbers in one compiled pass; the twin packs all its functions together the
+same way (``error_kernel.CompiledErrors``, from each function's ``compiled_form``).
 """
 
 from __future__ import annotations
@@ -13,6 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.polynomial import legendre as npleg
 from scipy.interpolate import CubicSpline, PPoly
+
+from . import error_kernel
 
 TWO_PI = 2.0 * np.pi
 
@@ -42,7 +48,8 @@ class ErrorFunction:
         """Value at positions q (N,): (N,) in um or urad."""
         q = np.asarray(q, dtype=float)
         if self.kind == "linear":
-            return np.interp(self._wrap(q), self.at, self.values)
+            # A periodic table's last node is its first one a turn later: it carries the first value (as in basis).
+            return np.interp(self._wrap(q), self.at, self._folded_values())
         if self.kind == "cubic":
             # The spline of the values themselves (the unit splines' coefficients contracted with the values): the
             # same function as basis(q) @ values without the (N, n) basis.
@@ -71,6 +78,49 @@ class ErrorFunction:
             d = npleg.legval(np.clip(u, -1.0, 1.0), npleg.legder(self.values)) if self.values.size > 1 else 0.0 * u
             return d * (2.0 / (hi - lo)) * (np.abs(u) <= 1.0)
         return self.basis_derivative(q) @ self.values
+
+    def value_and_derivative(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Value and d value / d q at q in one compiled pass: the numbers of ``__call__`` and ``derivative`` (to
+        round-off, a few ulps), the table search, Fourier basis or Legendre mapping shared by both."""
+        q = np.asarray(q, dtype=float)
+        packed = self.__dict__.get("_compiled_cache")
+        if packed is None:
+            packed = error_kernel.CompiledErrors([(self, 0, 0, 0, 1.0)], (1, 1))
+            object.__setattr__(self, "_compiled_cache", packed)
+        v, dv = packed.evaluate(q.reshape(-1, 1), derivative=True)
+        return v.reshape(q.shape), dv.reshape(q.shape)
+
+    def compiled_form(self) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+        """(kind code, grid, coefficients, derivative coefficients): the plain arrays ``error_kernel`` evaluates
+        (cached; see its group functions for the layouts).
+
+        linear : grid = table positions; node values (periodic: the last carrying the first), then the interval slopes.
+        cubic : grid = table positions; the value spline's PPoly coefficients (n - 1, 4), then its derivative's
+                (n - 1, 3).
+        legendre : grid = the domain (lo, hi); the series, then its derivative series (empty for a constant).
+        fourier : grid = the harmonics; [a1, b1, a2, b2, ...], no derivative coefficients (they come from the basis).
+        """
+        form = self.__dict__.get("_form_cache")
+        if form is not None:
+            return form
+        empty = np.empty(0)
+        if self.kind == "linear":
+            at, v = self.at, self._folded_values()
+            # The slopes as np.interp computes them.
+            form = (error_kernel.LINEAR, at, v, (v[1:] - v[:-1]) / (at[1:] - at[:-1]))
+        elif self.kind == "cubic":
+            sp = self._value_spline()
+            form = (error_kernel.CUBIC, self.at, sp.c.T.ravel(), sp.derivative().c.T.ravel())
+        elif self.kind == "legendre":
+            d = npleg.legder(self.values) if self.values.size > 1 else empty
+            form = (error_kernel.LEGENDRE, np.asarray(self.domain, dtype=float), self.values, d)
+        elif self.kind == "fourier":
+            form = (error_kernel.FOURIER, np.asarray(self.harmonics, dtype=float), self.values, empty)
+        else:
+            raise ValueError(f"unknown error-function kind {self.kind!r}")
+        form = tuple(np.ascontiguousarray(f, dtype=float) if isinstance(f, np.ndarray) else f for f in form)
+        object.__setattr__(self, "_form_cache", form)
+        return form
 
     def _folded_values(self):
         """Values per table node, the last node of a periodic table carrying the first value."""

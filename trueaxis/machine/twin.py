@@ -22,8 +22,10 @@ differential-motion form of the differential-motion-matrix paper (each error twi
 the tool tip and summed). They agree up to second order in the errors.
 
 The full product is computed twice over, by design: the poses and axis Jacobians go through the compiled kernel of
-``chain_kernel`` (the error values are evaluated here, vectorised, and passed in per pose); ``_evaluate`` composes the
-same chain in numpy with the derivatives by every parameter, for the parameter Jacobian, and is the kernel's reference.
+``chain_kernel`` (the component errors and their slopes evaluated beforehand for all links at once, compiled too, by
+``error_kernel``); ``_evaluate`` composes the same chain in numpy with the derivatives by every parameter, for the
+parameter Jacobian, from each error function's reference evaluation (``__call__``, ``derivative``, ``basis``), and is
+the compiled path's reference.
 
 Units: poses q in mm and rad; positions in mm; error parameters in um and urad (machine file units).
 """
@@ -31,10 +33,12 @@ Units: poses q in mm and rad; positions in mm; error parameters in um and urad (
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from . import chain_kernel
+from .error_kernel import CompiledErrors
 from .kinematics import Z_TOOL, Link, axis_motion, chain_links, validate_poses
 from .model import ERROR_DIRECTIONS, SQUARENESS, Machine, is_angle_name
 from .transforms import UNIT, skew
@@ -114,6 +118,14 @@ class ErrorTwin:
             np.asarray(machine.workpiece_origin, dtype=float),
             tool_links[0] if tool_links else len(self.links),
         )
+        # The compiled path's inputs that do not depend on the poses (``_chain_values``; the packed component
+        # functions too, on first use: ``_components``).
+        L = len(self.links)
+        self._constant_location = self._location_arrays(None, 1)
+        d_nominal = np.array([lk.direction for lk in self.links], dtype=float).reshape(L, 1, 3)
+        self._nominal_values = (np.zeros((L, 1, 3)), np.zeros((L, 1, 3)), np.zeros((L, 1)), d_nominal,
+                                np.zeros((L, 1, 6)), np.zeros((1, 3)))
+        self._zero_derivatives = (np.zeros((L, 1, 6)), np.zeros((1, 3, self.n_axes)))
 
     # ----------------------------------------------------------------------------------------------- public API ----
     def nominal_pose(self, q):
@@ -467,41 +479,85 @@ class ErrorTwin:
         return (R, t), derivs
 
     # --------------------------------------------------------------------------------- the chain, compiled ----
-    def _chain_values(self, q, force_n, motion, errors: bool, jacobian: bool):
-        """The per-pose inputs of ``chain_kernel`` (its docstring): the error values of every link, vectorised.
+    @cached_property
+    def _components(self) -> CompiledErrors:
+        return self._compiled(self.machine.errors.components)
 
-        Returns (tilt, offset, zero, d_act, comp, ref, bed), then (dcomp, dref, dbed) when jacobian. Without errors
-        every value is zero and each linear axis moves along its nominal direction: the nominal chain.
-        """
-        n, n_links = q.shape[0], len(self.links)
-        tilt, offset, d_act, ref = (np.zeros((n_links, n, 3)) for _ in range(4))
-        zero = np.zeros((n_links, n))
-        comp = np.zeros((n_links, n, 6))
-        bed = np.zeros((n, 3))
-        if jacobian:
-            dcomp, dref, dbed = np.empty((n_links, n, 6)), np.empty((n_links, n, 3)), np.zeros((n, 3, self.n_axes))
+    @cached_property
+    def _loaded_components(self) -> CompiledErrors | None:
+        return self._compiled(self.machine.loaded.components) if self.machine.loaded is not None else None
+
+    def _compiled(self, components) -> CompiledErrors:
+        """An error set's component functions packed for ``error_kernel``: the value of component j (EX.. EC..) of
+        link k, in mm or rad, goes to slot (k, j)."""
+        entries = []
         for k, link in enumerate(self.links):
-            if not errors:
-                if not link.rotary:
-                    d_act[k] = link.direction
-                continue
-            qa = q[:, link.column]
+            comps = components.get(link.axis, {})
+            for j, d in enumerate(ERROR_DIRECTIONS):
+                fn = comps.get(f"E{d}{link.axis}")
+                if fn is not None:
+                    entries.append((fn, link.column, k, j, URAD if d in "ABC" else UM))
+        return CompiledErrors(entries, (len(self.links), 6))
+
+    def _location_arrays(self, force_n, n: int):
+        """Every link's location errors as ``chain_kernel`` takes them: tilt (L, n, 3), offset (L, n, 3), zero (L, n)
+        and d_act (L, n, 3) (zero where they do not apply)."""
+        L = len(self.links)
+        tilt, offset, d_act = np.zeros((L, n, 3)), np.zeros((L, n, 3)), np.zeros((L, n, 3))
+        zero = np.zeros((L, n))
+        for k, link in enumerate(self.links):
             loc = self._location_values(link.axis, force_n, n)
             if link.rotary:
                 tilt[k], offset[k], zero[k] = self._line_errors(link, loc, n)
             else:
                 d_act[k] = self._actual_direction(link, loc, n)
-            comp[k], dc, _ = self._component_values(link, qa, force_n, n, deriv=jacobian)
-            ref[k], dr = self._reference_point(link, qa)
-            if jacobian:
-                dcomp[k], dref[k] = dc, dr
-        if errors:
+        return tilt, offset, zero, d_act
+
+    def _chain_values(self, q, force_n, motion, errors: bool, jacobian: bool):
+        """The per-pose inputs of ``chain_kernel`` (its docstring): the error values of every link.
+
+        Returns (tilt, offset, zero, d_act, comp, bed), then (dcomp, dbed) when jacobian. Inputs that are the same for
+        every pose come with 1 for their pose dimension: the location errors unless a loaded set blends them with the
+        force, the bed without force, its derivative without response surfaces, and every error value of the nominal
+        chain (zero, each linear axis moving along its nominal direction).
+        """
+        n = q.shape[0]
+        if not errors:
+            return self._nominal_values + (self._zero_derivatives if jacobian else ())
+        m = self.machine
+        blended = force_n is not None and m.loaded is not None
+        location = self._location_arrays(force_n, n) if blended and m.loaded.location else self._constant_location
+        comp, dcomp = self._components.evaluate(q, derivative=jacobian)
+        if blended and self._loaded_components is not None:
+            self._blend_components(q, force_n, comp, dcomp)
+        dbed = self._zero_derivatives[1]
+        if force_n is None:
+            bed = self._nominal_values[5]
+        else:
             bed, dd = self._bed_deflection(q, force_n, motion, n)
-            if jacobian:
+            if jacobian and dd:
+                dbed = np.zeros((n, 3, self.n_axes))
                 for c, v in dd.items():
                     dbed[:, :, c] = v
-        values = (tilt, offset, zero, d_act, comp, ref, bed)
-        return values + (dcomp, dref, dbed) if jacobian else values
+        values = (*location, comp, bed)
+        return values + (dcomp, dbed) if jacobian else values
+
+    def _blend_components(self, q, force_n, comp, dcomp):
+        """Blend, in place, the component values (and slopes, unless None) of the axes with a loaded set towards it:
+        value(F) = unloaded + s (loaded - unloaded), s the force's share of the loaded-set force along the axis, as
+        ``_component_values``."""
+        n = q.shape[0]
+        comp_l, dcomp_l = self._loaded_components.evaluate(q, derivative=dcomp is not None)
+        for k, link in enumerate(self.links):
+            loaded = self.machine.loaded.components.get(link.axis, {})
+            s = self._blend(link.axis, force_n, n)
+            if s is None or not loaded:
+                continue
+            for j, d in enumerate(ERROR_DIRECTIONS):
+                if f"E{d}{link.axis}" in loaded:
+                    comp[k, :, j] += s * (comp_l[k, :, j] - comp[k, :, j])
+                    if dcomp is not None:
+                        dcomp[k, :, j] += s * (dcomp_l[k, :, j] - dcomp[k, :, j])
 
     def _compose(self, q, force_n, motion, errors: bool, jacobian: bool):
         """Tip (n,3), unit axis (n,3) and, with jacobian, the axis Jacobian (n, 6, n_axes) (else None), by the
