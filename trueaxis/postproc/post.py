@@ -71,6 +71,9 @@ SOLVE_TOL_UM, SOLVE_TOL_URAD = 0.01, 0.02
 WRITE_ROUNDING_UM, WRITE_ROUNDING_URAD = 0.03, 0.18
 ROW_CHUNK = 8_000  # moves compensated together: bounds memory (an arc samples 17 poses) at little cost in speed
 WRITE_WINDOW = 50_000  # moves whose axis words are formatted together
+# An arc's correction is sampled at least this often (mm of arc) to decide whether it stays an arc: the error
+# tables' knots lie 10 mm or more apart, so a cubic's variation between them is followed closely.
+ARC_SAMPLE_MM = 2.0
 
 
 class PostError(GcodeError):
@@ -631,14 +634,20 @@ class _Poster:
         p = self.p
         out, modes = {}, {}
         arc_idx = np.asarray(arc_idx, int)
-        # Stage 1: 17 samples per arc; the spread of the correction along it decides arc or lines.
-        n_s = 16
-        pts6 = _arcs_points(p, rows[arc_idx], np.full(arc_idx.size, n_s))
+        # Stage 1: samples every ARC_SAMPLE_MM along each arc (4 to 16 intervals); the spread of the correction along
+        # it decides arc or lines.
+        r_arcs = rows[arc_idx]
+        _, _, _, _, sweep, radius, _ = _arcs_geometry(p, r_arcs)
+        length = sweep * radius * np.where(p.inch[r_arcs], MM_PER_INCH, 1.0)
+        n_s = np.clip(np.ceil(length / ARC_SAMPLE_MM), 4, 16).astype(int)
+        pts6 = _arcs_points(p, r_arcs, n_s)
         owner = np.repeat(np.arange(arc_idx.size), n_s + 1)
         q_c, q_pts = self._solve_arc_points(rows, arc_idx, owner, pts6, force)
         lin = [j for j, a in enumerate(self.names) if not self.m.axes[a].is_rotary]
-        d = (q_c - q_pts)[:, lin].reshape(arc_idx.size, n_s + 1, len(lin))
-        spread = np.abs(d - d[:, -1:, :]).max(axis=(1, 2))
+        d = (q_c - q_pts)[:, lin]
+        last = np.cumsum(n_s + 1) - 1
+        spread = np.zeros(arc_idx.size)
+        np.maximum.at(spread, owner, np.abs(d - d[last[owner]]).max(axis=1))
         kept = spread <= self.tol_mm / 2
         for i in arc_idx[kept]:
             modes[int(i)] = "arc"
@@ -648,13 +657,12 @@ class _Poster:
             return out, modes
         # Stage 2: straight pieces, enough that the chord sagitta stays within half the tolerance; the correction's
         # variation is then followed point by point.
-        counts = []
-        for i in lin:
-            r = rows[i]
-            radius = np.linalg.norm(p.start[r, :3] - p.arc_center[r]) * (MM_PER_INCH if p.inch[r] else 1.0)
-            step = 2 * np.arccos(max(0.0, 1 - (self.tol_mm / 2) / max(radius, 1e-9)))
-            counts.append(max(2, int(np.ceil(_arc_sweep(p, r) / step))))
-        pts6 = _arcs_points(p, rows[lin], np.asarray(counts, int))
+        r_lin = rows[lin]
+        _, _, _, _, sweep, radius, _ = _arcs_geometry(p, r_lin)
+        radius = radius * np.where(p.inch[r_lin], MM_PER_INCH, 1.0)
+        step = 2 * np.arccos(np.maximum(0.0, 1 - (self.tol_mm / 2) / np.maximum(radius, 1e-9)))
+        counts = np.maximum(2, np.ceil(sweep / step)).astype(int)
+        pts6 = _arcs_points(p, r_lin, counts)
         owner = np.repeat(np.arange(lin.size), np.asarray(counts) + 1)
         q_c, q_pts = self._solve_arc_points(rows, lin, owner, pts6, force)
         self.check(q_pts, q_c, rows[lin][owner])
@@ -1015,16 +1023,12 @@ def _arc_points(p: Program, r: int, n: int) -> np.ndarray:
 _PLANE_AXES = {17: (0, 1), 18: (2, 0), 19: (1, 2)}
 
 
-def _arcs_points(p: Program, rs, counts) -> np.ndarray:
-    """``_arc_points`` of many arcs at once: (sum(counts + 1), 6), the same numbers arc after arc."""
-    rs = np.asarray(rs, int)
-    counts = np.asarray(counts, int)
-    if rs.size == 0:
-        return np.zeros((0, 6))
+def _arcs_geometry(p: Program, rs):
+    """Per arc row in ``rs``: in-plane axis indices i, j and the normal one, start angle (rad), sweep (rad, turns
+    included, as ``_arc_sweep``), start and end radius (program units)."""
     plane = p.arc_plane[rs].astype(int)
     ii = np.select([plane == 17, plane == 18], [0, 2], 1)
     jj = np.select([plane == 17, plane == 18], [1, 0], 2)
-    nn = 3 - ii - jj
     c, s, e = p.arc_center[rs], p.start[rs], p.end[rs]
     ar = np.arange(rs.size)
     ci, cj = c[ar, ii], c[ar, jj]
@@ -1035,9 +1039,21 @@ def _arcs_points(p: Program, rs, counts) -> np.ndarray:
     sweep = np.where(ccw, (a1 - a0) % (2 * np.pi), (a0 - a1) % (2 * np.pi))
     sweep = np.where(sweep < 1e-12, 2 * np.pi, sweep)
     sweep = sweep + 2 * np.pi * (np.maximum(p.arc_turns[rs].astype(int), 1) - 1)
+    return ii, jj, 3 - ii - jj, a0, sweep, np.hypot(si - ci, sj - cj), np.hypot(ei - ci, ej - cj)
+
+
+def _arcs_points(p: Program, rs, counts) -> np.ndarray:
+    """``_arc_points`` of many arcs at once: (sum(counts + 1), 6), the same numbers arc after arc."""
+    rs = np.asarray(rs, int)
+    counts = np.asarray(counts, int)
+    if rs.size == 0:
+        return np.zeros((0, 6))
+    ar = np.arange(rs.size)
+    ii, jj, nn, a0, sweep, rad0, rad1 = _arcs_geometry(p, rs)
+    c, s, e = p.arc_center[rs], p.start[rs], p.end[rs]
+    ci, cj = c[ar, ii], c[ar, jj]
+    ccw = p.motion[rs] == ARC_CCW
     sign = np.where(ccw, 1.0, -1.0)
-    rad0 = np.hypot(si - ci, sj - cj)
-    rad1 = np.hypot(ei - ci, ej - cj)
     npts = counts + 1
     owner = np.repeat(ar, npts)
     first = np.r_[0, np.cumsum(npts)[:-1]]
