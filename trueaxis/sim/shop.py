@@ -155,11 +155,14 @@ def simulate(
             text = Path(program).read_text(encoding="utf-8", errors="replace")
         prog = parse_program(text, source)
     part_data = load_part(part, part_json, part_dir) if probe is None or part_json is not None else {"part": part}
-    traj = interpolate(prog, machine, dt, rapid_mm_min=rapid_mm_min)
+    # The in-position hold after each rapid: 0.2 s, or longer if the servo loop needs it to plan the rapid within its
+    # acceleration limits and settle (``ServoLag.settle_time``), so that no rapid's lag is carried into the cut.
+    settle = 0.2 if effects.servo is None else max(0.2, effects.servo.settle_time(machine, rapid_mm_min))
+    traj = interpolate(prog, machine, dt, rapid_mm_min=rapid_mm_min, rapid_settle_s=settle)
     timings["interpolate_s"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    q_act = effects.apply_axes(traj.q, machine, dt)
+    q_act = effects.apply_axes(traj.q, machine, dt, traj=traj)
     twin = ErrorTwin(machine)
     tip, u = _pose_chunked(twin, q_act)
     cutting = traj.motion != 0
