@@ -144,7 +144,7 @@ def profile_post(prog: Path, mach: Path, top: int = 25):
     print(buf.getvalue())
     buf = io.StringIO()
     pstats.Stats(prof, stream=buf).sort_stats("tottime").print_stats(top)
-    print(f"--- same, by own time ---")
+    print("--- same, by own time ---")
     print(buf.getvalue())
 
 

@@ -233,7 +233,6 @@ def test_workplane_conveniences_refuse_unknown_names_and_place_on_a_workplane():
 
 def test_slot_block_step_and_stl_volumes(written):
     paths, doc, mesh = written["slots"]
-    p = SlotBlockParams()
     solid = cq.importers.importStep(str(paths["step"])).val()
     assert solid.isValid()
     # Swept outline of one slot: 2 rho L + pi rho^2, plus at each 45 deg bend rho^2 (phi/2 - tan(phi/2)).

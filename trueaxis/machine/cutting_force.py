@@ -621,7 +621,7 @@ def fit_report_markdown(result: FitResult, alternatives: Sequence[FitResult] = (
         f" helix {a['helix_deg']:g} deg (right-hand); {a['mode']} milling"
         f" ({'material on the -y side' if a['mode'] == 'down' else 'material on the +y side'}, spindle clockwise"
         " seen from the spindle); fz, ap, ae as printed (ae = 1 mm inferred for groups 1 and 16);",
-        f"- the paper's Fx_max, Fy_max are the peaks of |Fx| and |Fy| over a tooth period, x along the feed and y"
+        "- the paper's Fx_max, Fy_max are the peaks of |Fx| and |Fy| over a tooth period, x along the feed and y"
         " across it (the feed frame); residual = model - measured, unweighted, in N;",
         "- Kac and Kae do not act on Fx, Fy and cannot be fitted; they stay at the typical C45 values"
         f" ({', '.join(f'{n} = {v:g} {_UNITS[n]}' for n, v in a['fixed'].items())});"

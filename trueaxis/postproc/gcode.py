@@ -723,7 +723,6 @@ class _Interpreter:
             gcodes = []
             mcodes = []
             vals = {}  # letter -> value text (non-G/M)
-            axis_words = None
             refuse = None
             macro_nonmoving = None
             block_delete = False
