@@ -50,6 +50,7 @@ from .gcode import (
     write_numbers,
     write_number,
 )
+from . import fast_write
 from .solver import solve_commanded
 
 MODES = ("none", "geometric", "comprehensive")
@@ -71,6 +72,7 @@ SOLVE_TOL_UM, SOLVE_TOL_URAD = 0.01, 0.02
 WRITE_ROUNDING_UM, WRITE_ROUNDING_URAD = 0.03, 0.18
 ROW_CHUNK = 8_000  # moves compensated together: bounds memory (an arc samples 17 poses) at little cost in speed
 WRITE_WINDOW = 50_000  # moves whose axis words are formatted together
+FAST_WRITE = True  # the compiled writer (fast_write) for plain blocks; False: every line by the Python path
 # An arc's correction is sampled at least this often (mm of arc) to decide whether it stays an arc: the error
 # tables' knots lie 10 mm or more apart, so a cubic's variation between them is followed closely.
 ARC_SAMPLE_MM = 2.0
@@ -707,7 +709,7 @@ class _Poster:
         # block's own end last).
         target = p.end[rows] + delta_prog
         inch_rows = p.inch[rows]
-        window = [0, 0]  # the moves [k_lo, k_hi) whose axis words are in axis_words
+        window = [0, 0]  # the loop's lines [j_lo, j_hi) whose axis words are in axis_words
         axis_words = {}
         piece_keys = [k for k in pieces if arc_mode.get(k) != "arc"]
         piece_pts = [pieces[k] if arc_mode.get(k) == "lines" else np.vstack([pieces[k], target[k]]) for k in piece_keys]
@@ -720,19 +722,29 @@ class _Poster:
         line_of = p.line_index[rows]
         starts = np.r_[0, np.nonzero(np.diff(line_of))[0] + 1]
         ends = np.r_[starts[1:], rows.size]
+        # The compiled writer (fast_write) takes the plain blocks with absolute axis words, not split, not canned
+        # cycles; every other compensated line goes through the loop below.
+        fast = self._fast_lines(rows, starts, ends, target, inch_rows, piece_first, arc_mode, axes_out, numbers,
+                                delta_prog, written_end, first_row_of_line)
+        if fast is not None:
+            keep = ~fast["handled"]
+            starts, ends = starts[keep], ends[keep]
         # Python scalars for the per-line loop (numpy scalar access costs more than the rewrite itself).
         rows_l, motion_l, inch_l = rows.tolist(), p.motion.tolist(), p.inch.tolist()
         inverse_l, r_form_l = p.inverse_time.tolist(), (p.words & _R_BIT).astype(bool).tolist()
         cycle_l = is_cycle.tolist()
         incremental_l = p.incremental.tolist()
         formatters = {False: numbers.formatter(False), True: numbers.formatter(True)}
-        out = list(p.lines)
+        out = list(p.lines) if fast is None else {}
         extra = 0
-        for k0, k1 in zip(starts.tolist(), ends.tolist()):
-            if k1 > window[1]:
-                window[:] = k0, min(rows.size, max(k1, k0 + WRITE_WINDOW))
-                sl = slice(*window)
-                axis_words = {a: numbers.words(a, target[sl, AXES.index(a)], inch_rows[sl]) for a in axes_out}
+        # The bulk of the axis words, formatted in one pass per axis and window of the loop's lines (memory stays
+        # bounded): each line's corrected end (its last row's).
+        last_k = ends - 1
+        for j, (k0, k1) in enumerate(zip(starts.tolist(), ends.tolist())):
+            if j >= window[1]:
+                window[:] = j, min(last_k.size, j + WRITE_WINDOW)
+                ks = last_k[window[0] : window[1]]
+                axis_words = {a: numbers.words(a, target[ks, AXES.index(a)], inch_rows[ks]) for a in axes_out}
             r0 = rows_l[k0]
             li = int(line_of[k0])
             body, ending = _split_ending(p.lines[li])
@@ -776,7 +788,7 @@ class _Poster:
             elif inc:
                 words = [fmt(a, _out_value(target[k], last_written, a, inc)) for a in axes_out]
             else:
-                words = [axis_words[a][k - window[0]] for a in axes_out]
+                words = [axis_words[a][j - window[0]] for a in axes_out]
             if arc_kept and not r_form_l[r]:
                 words += self._centre_words(r, delta_prog[k], last_written, fmt)
             texts = [self._rewrite_motion(body, motion, words, arc_kept, r, sep), ending]
@@ -793,7 +805,104 @@ class _Poster:
             extra += len(rest)
             out[li] = "".join(texts)
         self.rep.blocks_out = len(p.lines) + extra
-        return "".join(out), self.rep
+        if fast is None:
+            return "".join(out), self.rep
+        return self._fast_assemble(fast, out), self.rep
+
+    def _fast_lines(self, rows, starts, ends, target, inch_rows, piece_first, arc_mode, axes_out, numbers,
+                    delta_prog, written_end, first_row_of_line):
+        """The lines the compiled writer takes, or None (FAST_WRITE off, a program that is not ASCII, a separator it
+        does not write): a dict with ``handled`` (per group of rows ``starts``/``ends``, bool) and what ``assemble``
+        needs. Candidates: not canned cycles, absolute axis words, not split; ``fast_write.scan`` keeps the plain ones
+        whose numbers it writes exactly. A kept arc's centre words (``_centre_words``) are computed here, for all
+        kept arcs at once."""
+        p = self.p
+        info = p.format_info
+        sep = fast_write.separator_code(info.separator)
+        if not FAST_WRITE or sep is None or starts.size == 0:
+            return None
+        text = "".join(p.lines)
+        if not text.isascii():
+            return None
+        src = np.frombuffer(text.encode("ascii"), np.uint8)
+        line_start = np.zeros(len(p.lines) + 1, np.int64)
+        np.cumsum(np.fromiter(map(len, p.lines), np.int64, len(p.lines)), out=line_start[1:])
+        last = ends - 1
+        excluded = np.zeros(rows.size, bool)
+        excluded[list(piece_first)] = True
+        kept = np.zeros(rows.size, bool)
+        kept[[k for k, v in arc_mode.items() if v == "arc"]] = True
+        # (a kept arc outside the G17/G18/G19 planes is left to the Python path, which refuses it)
+        excluded |= kept & ~np.isin(p.arc_plane[rows], (17, 18, 19))
+        cand = np.nonzero((p.kind[rows[starts]] != ROW_CYCLE) & ~p.incremental[rows[last]] & ~excluded[last])[0]
+        cand_r0 = rows[starts[cand]]
+        cand_line = p.line_index[cand_r0].astype(np.int64)
+        cand_k = last[cand].astype(np.int64)
+        cand_motion = p.motion[rows[cand_k]].astype(np.int64)
+        cols = np.array([AXES.index(a) for a in axes_out], np.int64)
+        dec = np.array([[numbers.decimals(a, inch) for a in axes_out] for inch in (False, True)], np.int64)
+        dec = dec.reshape(2, len(axes_out))
+        target = np.ascontiguousarray(target, float)
+        inch = np.ascontiguousarray(inch_rows, np.bool_)
+        # Kept arcs: the R word stays; without it, the centre words I J / I K / J K as _centre_words writes them.
+        keep_r = kept[cand_k]
+        n_extra = np.zeros(cand.size, np.int64)
+        extra_val = np.zeros((cand.size, 2))
+        extra_letter = np.zeros((cand.size, 2), np.uint8)
+        extra_dec = np.zeros((cand.size, 2), np.int64)
+        arcs = np.nonzero(keep_r & ((p.words[rows[cand_k]] & _R_BIT) == 0))[0]
+        if arcs.size:
+            r = rows[cand_k[arcs]]
+            r_prev = first_row_of_line[cand_line[arcs]] - 1
+            last_written = written_end[np.maximum(r_prev, 0)]
+            last_written[r_prev < 0] = 0.0
+            center = p.arc_center[r] + delta_prog[cand_k[arcs], :3]
+            origin = np.where(p.arc_incremental[r][:, None], last_written[:, :3], 0.0)
+            value = center - origin
+            inch0 = p.inch[cand_r0[arcs]]
+            n_extra[arcs] = 2
+            for plane, letters in ((17, "IJ"), (18, "IK"), (19, "JK")):
+                sel = p.arc_plane[r] == plane
+                for j, c in enumerate(letters):
+                    extra_val[arcs[sel], j] = value[sel, "IJK".index(c)]
+                    extra_letter[arcs[sel], j] = ord(c)
+                    extra_dec[arcs[sel], j] = np.where(inch0[sel], numbers.decimals(c, True),
+                                                       numbers.decimals(c, False))
+        ok, spans = fast_write.scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch,
+                                    n_extra, extra_val, extra_dec)
+        handled = np.zeros(starts.size, bool)
+        handled[cand[ok]] = True
+        return {"handled": handled, "src": src, "line_start": line_start, "line": cand_line[ok], "k": cand_k[ok],
+                "motion": cand_motion[ok], "spans": spans[ok], "target": target, "cols": cols, "dec": dec,
+                "inch": inch, "sep": sep, "letters": np.frombuffer("".join(axes_out).encode("ascii"), np.uint8),
+                "n_extra": n_extra[ok], "extra_val": extra_val[ok], "extra_letter": extra_letter[ok],
+                "extra_dec": extra_dec[ok], "keep_r": keep_r[ok]}
+
+    def _fast_assemble(self, fast, texts):
+        """The output text: the compiled writer's lines, the Python path's ``texts`` {line index: text}, every other
+        line as it was (``"".join`` of them all, line by line)."""
+        n_lines = len(self.p.lines)
+        info = self.p.format_info
+        mode = np.zeros(n_lines, np.int8)
+        cand_of_line = np.zeros(n_lines, np.int64)
+        mode[fast["line"]] = 1
+        cand_of_line[fast["line"]] = np.arange(fast["line"].size)
+        blob_start = np.zeros(n_lines, np.int64)
+        blob_end = np.zeros(n_lines, np.int64)
+        lis = sorted(texts)
+        parts = [texts[li].encode("utf-8") for li in lis]
+        if lis:
+            lengths = np.fromiter(map(len, parts), np.int64, len(parts))
+            mode[lis] = 2
+            blob_end[lis] = np.cumsum(lengths)
+            blob_start[lis] = blob_end[lis] - lengths
+        blob = np.frombuffer(b"".join(parts), np.uint8)
+        out = fast_write.assemble(fast["src"], fast["line_start"], mode, cand_of_line, fast["k"], fast["motion"],
+                                  fast["spans"], fast["target"], fast["cols"], fast["letters"], fast["dec"],
+                                  fast["inch"], fast["n_extra"], fast["extra_val"], fast["extra_letter"],
+                                  fast["extra_dec"], fast["keep_r"], bool(info.leading_zero), bool(info.trailing_point),
+                                  fast["sep"], blob, blob_start, blob_end)
+        return out.tobytes().decode("utf-8")
 
     def _centre_words(self, r, delta_end, last_written, fmt):
         """I J K of a kept arc: its centre moved by the end's correction (constant along the arc), incremental from

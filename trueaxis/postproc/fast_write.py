@@ -1,0 +1,412 @@
+"""The writer's compiled fast path: the bulk of the compensated motion blocks, rewritten straight into bytes.
+
+What it does. Most compensated blocks of a program are *plain* (``post._PLAIN``: optional N, optional motion word
+G0..G3, axis and centre words X Y Z A B C I J K in this order, optional R, optional F, blanks, nothing else) and are
+written with absolute axis words, not split, not canned cycles. For those the writer's output is
+``sep.join([N] + [G word] + axis words + [centre words] + [R] + [F]) + line ending`` (``post._rewrite_plain``: the
+block's own centre words always go, its R word stays and new centre words are written only for a kept arc).
+``scan`` checks that grammar for every candidate line of the program's text (bytes) and
+finds the spans of its N and F words and the style of its G word (``G01`` when written with a leading zero, see
+``post._motion_text``); lines it does not accept go through the Python path. ``assemble`` then writes the whole output
+program in one pass: untouched lines copied, lines the Python path rewrote copied from their text, and the fast lines
+built from their spans and the target values, each number formatted as ``gcode.write_number`` formats it.
+
+Why hand-written (numba). The Python writer spends its time per line and per number: splitting the line ending,
+matching the block, building and joining lists of words, and ``"%.5f" % x`` with its trailing-zero and sign rules for
+every axis word -- about 14 us a five-axis block, which alone took a third of the whole post. Vectorising it with
+numpy does not remove the per-line string work; a compiled loop over the bytes does. ``cache=True`` keeps the compile
+(a few seconds) out of every run but the first.
+
+Exactness of the numbers. ``write_number`` writes ``"%.{d}f" % x``: the exact binary value of ``x`` correctly rounded
+to ``d`` decimals, ties to even. Here, for |x| 10**d < 2**53 and d <= 22 (else the line goes to the Python path):
+s = 10**d is exact as a double (5**22 < 2**53); p = fl(|x| s) and the error-free product (Dekker's two-product with
+Veltkamp's split -- numba has no fma -- exact since nothing overflows or underflows in this range) gives
+|x| s = p + e exactly, |e| <= ulp(p)/2. With n = floor(p) and t = (p - n) - 0.5 (both exact), the exact fraction of
+|x| s lies above, on or below one half as t + e does; when t != 0 it is a multiple of ulp(p) (p >= 1/4 here) and so
+outweighs e: the sign of t decides; when t == 0 the sign of e decides, and e == 0 is an exact tie (then to even).
+Below p < 1/4 the number rounds to 0. The rounded integer q (< 2**53 + 1) is then written in decimal with ``d``
+digits after the point, trailing zeros dropped, no ``-0``, the program's leading-zero and trailing-point style.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+MAX_DECIMALS = 22
+_TWO53 = 9007199254740992.0
+_P10 = np.array([float(10**i) for i in range(MAX_DECIMALS + 1)])  # exact: 10**i = 2**i 5**i, 5**22 < 2**53
+_AXIS_ORDER = np.frombuffer(b"XYZABCIJK", np.uint8).copy()
+_WORD_MAX = 32  # bytes a written axis word can take: separator, letter, sign, 23 digits, point
+
+
+@numba.njit(cache=True)
+def _two_product_error(a, b, p):
+    """e with a b = p + e exactly (p = fl(a b)); Dekker / Veltkamp, no fma."""
+    c = 134217729.0 * a  # 2**27 + 1
+    ah = c - (c - a)
+    al = a - ah
+    c = 134217729.0 * b
+    bh = c - (c - b)
+    bl = b - bh
+    return ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+@numba.njit(cache=True)
+def _fits(x, d):
+    """The compiled formatter writes ``x`` at ``d`` decimals exactly (finite, d <= 22, |x| 10**d < 2**53)."""
+    if d < 0 or d > MAX_DECIMALS or not np.isfinite(x):
+        return False
+    return abs(x) * _P10[d] < _TWO53
+
+
+@numba.njit(cache=True)
+def _rounded(x, d):
+    """round(|x| 10**d) of the exact binary |x|, ties to even, as an int64 (``_fits(x, d)`` assumed)."""
+    ax = abs(x)
+    s = _P10[d]
+    p = ax * s
+    if p < 0.25:
+        return np.int64(0)
+    n = np.floor(p)
+    t = (p - n) - 0.5
+    q = np.int64(n)
+    if t > 0.0:
+        return q + 1
+    if t < 0.0:
+        return q
+    e = _two_product_error(ax, s, p)
+    if e > 0.0:
+        return q + 1
+    if e < 0.0:
+        return q
+    return q + (q & 1)  # an exact tie: to even
+
+
+@numba.njit(cache=True)
+def _put_digits(buf, pos, q, width):
+    """Write the int64 q >= 0 as ``width`` decimal digits (zero-padded on the left) at ``pos``."""
+    for i in range(width - 1, -1, -1):
+        buf[pos + i] = 48 + q % 10
+        q //= 10
+    return pos + width
+
+
+@numba.njit(cache=True)
+def _n_digits(q):
+    n = 1
+    while q >= 10:
+        q //= 10
+        n += 1
+    return n
+
+
+@numba.njit(cache=True)
+def _put_number(buf, pos, x, d, leading_zero, trailing_point):
+    """``write_number(x, d, leading_zero=.., trailing_point=..)`` at ``buf[pos:]``; returns the new position.
+    ``_fits(x, d)`` assumed; ``buf`` has room for 26 more bytes."""
+    q = _rounded(x, d)
+    de = d
+    if q == 0:
+        de = 0
+    else:
+        while de > 0 and q % 10 == 0:  # trailing zeros of the fraction
+            q //= 10
+            de -= 1
+    if q != 0 and x < 0.0:
+        buf[pos] = 45  # "-"
+        pos += 1
+    nd = _n_digits(q)
+    if de == 0:
+        pos = _put_digits(buf, pos, q, nd)
+        if trailing_point:
+            buf[pos] = 46
+            pos += 1
+        return pos
+    if nd > de:
+        p10 = np.int64(1)
+        for _ in range(de):
+            p10 *= 10
+        pos = _put_digits(buf, pos, q // p10, nd - de)
+        buf[pos] = 46
+        pos += 1
+        return _put_digits(buf, pos, q % p10, de)
+    if leading_zero:
+        buf[pos] = 48
+        pos += 1
+    buf[pos] = 46
+    pos += 1
+    return _put_digits(buf, pos, q, de)  # (de - nd) leading zeros, then q
+
+
+@numba.njit(cache=True)
+def _blanks(src, i, e):
+    while i < e and (src[i] == 32 or src[i] == 9):
+        i += 1
+    return i
+
+
+@numba.njit(cache=True)
+def _digits(src, i, e):
+    while i < e and 48 <= src[i] <= 57:
+        i += 1
+    return i
+
+
+@numba.njit(cache=True)
+def _number(src, i, e):
+    """End of ``post._NUM`` ([-+]? (digits [.] digits* | . digits)) starting at i, or -1."""
+    if i < e and (src[i] == 43 or src[i] == 45):
+        i += 1
+    j = _digits(src, i, e)
+    if j > i:
+        if j < e and src[j] == 46:
+            j = _digits(src, j + 1, e)
+        return j
+    if i < e and src[i] == 46:
+        j = _digits(src, i + 1, e)
+        if j > i + 1:
+            return j
+    return -1
+
+
+@numba.njit(cache=True)
+def _upper(c):
+    return c - 32 if 97 <= c <= 122 else c
+
+
+@numba.njit(cache=True)
+def _body_end(src, s, e):
+    """End of a line's text without its line ending (``rstrip("\\r\\n")``)."""
+    while e > s and (src[e - 1] == 10 or src[e - 1] == 13):
+        e -= 1
+    return e
+
+
+@numba.njit(cache=True)
+def _scan_line(src, s, e, out):
+    """Match ``post._PLAIN`` on src[s:e]: True and out = (N start, N end, F start, F end, G style, R start, R end)
+    (-1: none; G style 1: ``G01``-like, 0: other), or False."""
+    for j in range(7):
+        out[j] = -1
+    i = _blanks(src, s, e)
+    if i < e and _upper(src[i]) == 78:  # N digits
+        j = _digits(src, i + 1, e)
+        if j == i + 1:
+            return False
+        out[0] = i
+        out[1] = j
+        i = _blanks(src, j, e)
+    if i < e and _upper(src[i]) == 71:  # G 0* [0-3], not followed by a digit or point
+        j = _digits(src, i + 1, e)
+        nd = j - i - 1
+        if nd == 0 or (j < e and src[j] == 46) or not (48 <= src[j - 1] <= 51):
+            return False
+        for t in range(i + 1, j - 1):
+            if src[t] != 48:
+                return False
+        out[4] = 1 if nd == 2 else 0
+        i = _blanks(src, j, e)
+    last = -1
+    while i < e:  # X Y Z A B C I J K, each at most once, in this order
+        c = _upper(src[i])
+        a = -1
+        for t in range(last + 1, 9):
+            if _AXIS_ORDER[t] == c:
+                a = t
+                break
+        if a < 0:
+            break
+        j = _number(src, _blanks(src, i + 1, e), e)
+        if j < 0:
+            return False
+        last = a
+        i = _blanks(src, j, e)
+    if i < e and _upper(src[i]) == 82:  # R: kept as written when the block stays an arc
+        j = _number(src, _blanks(src, i + 1, e), e)
+        if j < 0:
+            return False
+        out[5] = i
+        out[6] = j
+        i = _blanks(src, j, e)
+    if i < e and _upper(src[i]) == 70:  # F: kept as written
+        j = _number(src, _blanks(src, i + 1, e), e)
+        if j < 0:
+            return False
+        out[2] = i
+        out[3] = j
+        i = _blanks(src, j, e)
+    return i == e
+
+
+@numba.njit(cache=True)
+def scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch, n_extra, extra_val, extra_dec):
+    """Which candidate lines the compiled writer takes: (ok (n,) bool, spans (n, 7) int64, see ``_scan_line``).
+
+    src: the program's bytes; line_start (L+1,): byte offset of every line; candidate c is line cand_line[c], its
+    axis words the values target[cand_k[c], cols] at decimals dec[inch[cand_k[c]]] (per output axis), then
+    n_extra[c] words more (a kept arc's centre) of values extra_val[c] at decimals extra_dec[c]; its motion word
+    cand_motion[c] (0..3). A line is taken when it is plain and every number can be written exactly."""
+    n = cand_line.size
+    ok = np.zeros(n, np.bool_)
+    spans = np.full((n, 7), -1, np.int64)
+    row = np.empty(7, np.int64)
+    for c in range(n):
+        li = cand_line[c]
+        s = line_start[li]
+        e = _body_end(src, s, line_start[li + 1])
+        m = cand_motion[c]
+        if m < 0 or m > 9 or not _scan_line(src, s, e, row):
+            continue
+        k = cand_k[c]
+        good = True
+        for a in range(cols.size):
+            if not _fits(target[k, cols[a]], dec[1 if inch[k] else 0, a]):
+                good = False
+                break
+        for a in range(n_extra[c]):
+            if not _fits(extra_val[c, a], extra_dec[c, a]):
+                good = False
+        if good:
+            ok[c] = True
+            spans[c, :] = row
+    return ok, spans
+
+
+@numba.njit(cache=True)
+def _grow(buf, pos, need):
+    if pos + need <= buf.size:
+        return buf
+    out = np.empty(max(2 * buf.size, pos + need), np.uint8)
+    out[:pos] = buf[:pos]
+    return out
+
+
+@numba.njit(cache=True)
+def _copy(buf, pos, src, s, e):
+    for i in range(e - s):
+        buf[pos + i] = src[s + i]
+    return pos + e - s
+
+
+@numba.njit(cache=True)
+def assemble(src, line_start, mode, cand_of_line, cand_k, cand_motion, spans, target, cols, letters, dec, inch,
+             n_extra, extra_val, extra_letter, extra_dec, keep_r, leading_zero, trailing_point, sep, blob, blob_start,
+             blob_end):
+    """The output program's bytes. Per line li: mode 0, src's line as it is; 1, candidate cand_of_line[li] rewritten
+    (``scan`` accepted it): [N sep] G word, sep letter number per output axis, the extra words (a kept arc's
+    centre), [sep R] (when keep_r), [sep F], the line ending; 2, the text blob[blob_start[li]:blob_end[li]] (the
+    Python path's). ``sep``: separator byte, or -1 for none."""
+    n_lines = mode.size
+    n_out = cols.size
+    buf = np.empty(src.size + blob.size + 16 * n_lines + 64, np.uint8)
+    pos = 0
+    for li in range(n_lines):
+        s = line_start[li]
+        e = line_start[li + 1]
+        md = mode[li]
+        if md == 0:
+            buf = _grow(buf, pos, e - s)
+            pos = _copy(buf, pos, src, s, e)
+            continue
+        if md == 2:
+            buf = _grow(buf, pos, blob_end[li] - blob_start[li])
+            pos = _copy(buf, pos, blob, blob_start[li], blob_end[li])
+            continue
+        c = cand_of_line[li]
+        k = cand_k[c]
+        buf = _grow(buf, pos, (e - s) + _WORD_MAX * (n_out + n_extra[c] + 1))
+        if spans[c, 0] >= 0:
+            pos = _copy(buf, pos, src, spans[c, 0], spans[c, 1])
+            if sep >= 0:
+                buf[pos] = sep
+                pos += 1
+        buf[pos] = 71  # "G"
+        pos += 1
+        if spans[c, 4] == 1:
+            buf[pos] = 48
+            pos += 1
+        buf[pos] = 48 + cand_motion[c]
+        pos += 1
+        row = 1 if inch[k] else 0
+        for a in range(n_out):
+            if sep >= 0:
+                buf[pos] = sep
+                pos += 1
+            buf[pos] = letters[a]
+            pos = _put_number(buf, pos + 1, target[k, cols[a]], dec[row, a], leading_zero, trailing_point)
+        for a in range(n_extra[c]):
+            if sep >= 0:
+                buf[pos] = sep
+                pos += 1
+            buf[pos] = extra_letter[c, a]
+            pos = _put_number(buf, pos + 1, extra_val[c, a], extra_dec[c, a], leading_zero, trailing_point)
+        if keep_r[c] and spans[c, 5] >= 0:
+            if sep >= 0:
+                buf[pos] = sep
+                pos += 1
+            pos = _copy(buf, pos, src, spans[c, 5], spans[c, 6])
+        if spans[c, 2] >= 0:
+            if sep >= 0:
+                buf[pos] = sep
+                pos += 1
+            pos = _copy(buf, pos, src, spans[c, 2], spans[c, 3])
+        pos = _copy(buf, pos, src, _body_end(src, s, e), e)
+    return buf[:pos]
+
+
+# ------------------------------------------------------------------------------------ Python entry points -----
+
+
+def separator_code(sep: str) -> int | None:
+    """The separator as ``assemble`` takes it (-1 for none, else its byte), or None when the fast path cannot write
+    it (anything but no separator or one ASCII character)."""
+    if sep == "":
+        return -1
+    if len(sep) == 1 and sep.isascii():
+        return ord(sep)
+    return None
+
+
+def format_number(value: float, decimals: int, *, leading_zero: bool = True, trailing_point: bool = False):
+    """``gcode.write_number`` by the compiled formatter, or None where it does not write the number (non-finite,
+    decimals > 22, |value| 10**decimals >= 2**53)."""
+    if not _fits(float(value), int(decimals)):
+        return None
+    buf = np.empty(64, np.uint8)
+    n = _put_number(buf, 0, float(value), int(decimals), bool(leading_zero), bool(trailing_point))
+    return buf[:n].tobytes().decode("ascii")
+
+
+def rewrite_line(line: str, motion: int, values, letters: str, decimals, *, leading_zero: bool = True,
+                 trailing_point: bool = False, sep: str = " ", arc: bool = False, centre=()):
+    """One line rewritten by the compiled writer, as the post's Python path rewrites a plain block (``rewrite_block``
+    with the words ``letter + write_number(value, decimals)``, then for a kept arc (``arc``) its centre words
+    ``centre``: (letter, value, decimals) each, at most two), line ending kept; None when the compiled writer does not
+    take the line (not plain, not ASCII, a number it does not write)."""
+    code = separator_code(sep)
+    if code is None or not line.isascii():
+        return None
+    src = np.frombuffer(line.encode("ascii"), np.uint8)
+    n_out = len(letters)
+    target = np.asarray(values, float).reshape(1, n_out)
+    cols = np.arange(n_out, dtype=np.int64)
+    dec = np.asarray(decimals, np.int64).reshape(1, n_out).repeat(2, axis=0)
+    line_start = np.array([0, src.size], np.int64)
+    one = np.zeros(1, np.int64)
+    motion_a = np.array([motion], np.int64)
+    inch = np.zeros(1, np.bool_)
+    n_extra = np.array([len(centre)], np.int64)
+    extra_val = np.zeros((1, 2))
+    extra_letter = np.zeros((1, 2), np.uint8)
+    extra_dec = np.zeros((1, 2), np.int64)
+    for j, (c, v, d) in enumerate(centre):
+        extra_letter[0, j], extra_val[0, j], extra_dec[0, j] = ord(c), v, d
+    ok, spans = scan(src, line_start, one, one, motion_a, target, cols, dec, inch, n_extra, extra_val, extra_dec)
+    if not ok[0]:
+        return None
+    out = assemble(src, line_start, np.ones(1, np.int8), one, one, motion_a, spans, target, cols,
+                   np.frombuffer(letters.encode("ascii"), np.uint8), dec, inch, n_extra, extra_val, extra_letter,
+                   extra_dec, np.array([bool(arc)]), bool(leading_zero), bool(trailing_point), code,
+                   np.frombuffer(b"", np.uint8), one, one)
+    return out.tobytes().decode("ascii")
