@@ -54,6 +54,8 @@ __all__ = ["ClData", "ClError", "cl_format", "read_cl", "cl_to_program", "cl_pro
 _REQUIRED = ("x", "y", "z", "i", "j", "k")
 _FEED_NAMES = ("f", "feed")
 _GOTO = re.compile(r"^\s*GOTO\s*/", re.IGNORECASE)
+_GOTO_LINE = re.compile(r"^[^\S\r\n]*GOTO\s*/", re.IGNORECASE | re.MULTILINE)  # _GOTO at any line start
+_TEXT_LINE = re.compile(r"[^\r\n]+")
 _APT_STATEMENT = re.compile(r"^\s*([A-Za-z][A-Za-z0-9_]*)\s*(?:/(.*))?$", re.DOTALL)
 _MOVING_APT = {"GODLTA": "GODLTA (relative move)", "CIRCLE": "CIRCLE (arc)", "MOVARC": "MOVARC (arc)",
                "GOFWD": "GOFWD (drive-surface motion)", "GOLFT": "GOLFT (drive-surface motion)",
@@ -89,13 +91,11 @@ class ClData:
 def cl_format(text: str) -> str | None:
     """"apt" when a line starts with ``GOTO/``, "csv" when the first data line is a header naming x y z i j k (or a
     comma/semicolon separated header naming at least x y z), else None (G-code)."""
-    head = None
-    for line in text.splitlines():
-        if _GOTO.match(line):
-            return "apt"
-        s = line.strip()
-        if head is None and s and not s.startswith("#"):
-            head = s
+    # One search over the text, not a match per line: a G-code program of a million lines passes through here.
+    if _GOTO_LINE.search(text):
+        return "apt"
+    head = next((s for s in (m.group().strip() for m in _TEXT_LINE.finditer(text)) if s and not s.startswith("#")),
+                None)
     cols = _header_columns(head) if head is not None else None
     # A separated header naming x, y and z is CL data too (read_cl then says which column is missing).
     if cols is not None and (all(c in cols for c in _REQUIRED) or (_separator(head) and {"x", "y", "z"} <= set(cols))):
