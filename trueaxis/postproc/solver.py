@@ -88,11 +88,14 @@ def solve_commanded(
         it += 1
         todo, qa, p, u, Ja, fr = todo[keep], qa[keep], p[keep], u[keep], Ja[keep], fr[keep]
         r = np.hstack([p - p_nom[todo], u - u_nom[todo]]) @ M.T
-        J = np.einsum("rs,nsi->nri", M, Ja) * fr[:, None, :]
-        # Normal equations, batched; held axes get a unit diagonal so their step is zero.
-        A = np.einsum("nri,nrj->nij", J, J) + np.einsum("ni,ij->nij", ~fr, np.eye(k))
-        b = np.einsum("nri,nr->ni", J, r)
-        q[todo] = qa - np.linalg.solve(A, b[..., None])[..., 0]
+        J = (M @ Ja) * fr[:, None, :]
+        # Normal equations, batched (matmul on stacks of small matrices); held axes get a unit diagonal so their step
+        # is zero.
+        Jt = J.transpose(0, 2, 1)
+        A = Jt @ J
+        A[:, np.arange(k), np.arange(k)] += ~fr
+        b = Jt @ r[..., None]
+        q[todo] = qa - np.linalg.solve(A, b)[..., 0]
     ok = pos_err <= tol_um
     if orientation:
         ok &= (ax_err <= tol_urad) | ~free.all(1)
