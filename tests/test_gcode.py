@@ -178,6 +178,18 @@ def test_format_info_reports_input_precision():
     assert info.decimals["X"] == 4 and not info.leading_zero and info.trailing_point and info.separator == ""
 
 
+def test_format_info_is_the_same_read_in_blocks(monkeypatch):
+    # The dialect is measured block by block (memory): the answer must not depend on where the blocks end.
+    from trueaxis.postproc import gcode
+
+    text = "G21 G90\nG1 X.5 Y1.25 F100\n" + "G1 X1.5 Y2.\n" * 7 + "G1 X1.123456 (Y9.1234567)\nG1 Z-.5\n"
+    whole = parse_program(text).format_info
+    monkeypatch.setattr(gcode, "_STYLE_BLOCK_LINES", 2)
+    blocks = parse_program(text).format_info
+    assert whole == blocks
+    assert whole.decimals["X"] == 6 and whole.decimals["Y"] == 2 and not whole.leading_zero and whole.trailing_point
+
+
 def test_word_spans_locate_coordinates_in_the_raw_line():
     prog = parse_program("N10 G1 X1.5 Y-2 F100\n")
     line = prog.lines[0]

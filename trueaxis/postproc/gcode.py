@@ -260,16 +260,28 @@ class Program:
     def format_info(self) -> FormatInfo:
         """How the input writes numbers (decimals per word letter, leading zero, trailing point, separator)."""
         # One pass of regular expressions over the program's code (its comments cut out), not one per line.
-        code = _COMMENT_TO_EOL.sub("", "".join(self.lines))
-        decimals, trailing_point = _number_style(code)
-        m = _LEADING_ZERO.search(code)
-        leading_zero = m.group(1) == "0" if m else True
+        # In blocks of lines (a word never spans a line), so that the byte-wise pass stays small in memory.
+        decimals: dict = {}
+        trailing_point = False
+        leading_zero = None  # judged on the first number below 1
+        for i in range(0, len(self.lines), _STYLE_BLOCK_LINES):
+            code = _COMMENT_TO_EOL.sub("", "".join(self.lines[i : i + _STYLE_BLOCK_LINES]))
+            block_decimals, block_point = _number_style(code)
+            for letter, n in block_decimals.items():
+                decimals[letter] = max(n, decimals.get(letter, -1))
+            trailing_point |= block_point
+            if leading_zero is None and (m := _LEADING_ZERO.search(code)):
+                leading_zero = m.group(1) == "0"
+        leading_zero = True if leading_zero is None else leading_zero
         separator = ""
         for i in self.line_index[:50]:
             if re.search(r"[0-9.][ \t]+[A-Za-z]", self.lines[int(i)].split("(", 1)[0]):
                 separator = " "
                 break
         return FormatInfo(decimals, leading_zero, trailing_point, separator)
+
+
+_STYLE_BLOCK_LINES = 50_000
 
 
 def _number_style(code: str) -> tuple[dict, bool]:
