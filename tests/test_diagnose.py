@@ -272,3 +272,44 @@ def test_compliances_are_bounded_to_physical_signs(slots):
     f = fit_candidate([force], g, make_folds(st))
     assert f.plausible
     assert f.difference_z("compliance_X", "compliance_Y") > 4.0
+
+
+def test_servo_filters_reproduce_a_first_order_loop_transient():
+    # A step of the commanded velocity (a move starting from rest, or the component of a corner): the candidate's
+    # filtered velocity is v0 (1 - exp(-t/tau)) exactly, and a first-order loop (the shop's, without limits) follows
+    # with the error tau w, to within dt/2 of tau.
+    from types import SimpleNamespace
+
+    from trueaxis.diagnose.state import lag_filtered_velocity
+    from trueaxis.sim.effects import _servo_axis
+
+    dt, v0, k0, T = 1e-3, 16.7, 50, 400
+    v = np.where(np.arange(T) >= k0, v0, 0.0)
+    q = np.cumsum(v) * dt  # q[k] - q[k-1] = v0 dt from k0 on
+    traj = SimpleNamespace(q=q[:, None], dt=dt, motion=np.ones(T, int))
+    taus = (0.004, 0.0125, 0.035)
+    w = lag_filtered_velocity(traj, taus)[:, 0, :]
+    t = np.arange(T) * dt - (k0 - 1) * dt  # time since the velocity step (held over the period ending at k0)
+    for m, tau in enumerate(taus):
+        expect = np.where(t > 0, v0 * (1.0 - np.exp(-np.maximum(t, 0.0) / tau)), 0.0)
+        np.testing.assert_allclose(w[:, m], expect, atol=1e-9 * v0)
+    # The loop of lag time 12.5 ms (Kv 80 /s): following error against tau w over the transient.
+    e = q - _servo_axis(q, 80.0, None, dt)
+    np.testing.assert_allclose(e, taus[1] * w[:, 1], atol=0.05 * v0 * taus[1])
+    # A rapid's velocity is taken as settled.
+    traj.motion = np.where(np.arange(T) < 200, 0, 1)
+    assert np.all(lag_filtered_velocity(traj, taus)[:200] == 0.0)
+
+
+def test_servo_lag_corner_transient_is_named(slots):
+    # The shop's loop (acceleration-limited, rapids planned) with equal gains but Y 10 % slower: the corners of the
+    # slots are cut inside by ln2 sin(theta/2) v/Kv, the diagonal leg shows the mismatch. Named servo_lag, the lag
+    # time and the mismatch recovered.
+    kv = {"X": 80.0, "Y": 80.0 / 1.1, "Z": 80.0}
+    diag, state = _named(slots, {"servo": {"kv_per_s": kv, "accel": {"X": 2000.0, "Y": 2000.0, "Z": 2000.0}}})
+    assert diag.chosen == ["servo_lag"]
+    assert diag.shrink_above_noise > 0.8
+    fit = diag.chosen_fit
+    lag = sum(v for p, v in zip(fit.parameters, fit.value) if p.startswith("lag_") and "mismatch" not in p)
+    assert 9.0 < lag < 16.0  # ms; the loop's is 12.5
+    assert fit.value[fit.parameters.index("lag_mismatch_Y")] == pytest.approx(1.25, abs=0.6)

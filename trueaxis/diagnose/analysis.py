@@ -15,7 +15,9 @@ reported too.
 
 Bounded fits. Every fit, the held-out ones included, keeps the parameters inside the candidates' plausible bounds
 (``lsq_linear`` when the free solution leaves them), so a candidate is judged by what it explains with physically
-plausible values; a fit that wanted to leave its bounds is flagged not plausible.
+plausible values; a fit that wanted to leave its bounds is flagged not plausible -- except for bounds that are the
+candidate's form (``Candidate.form``: the non-negative weights of servo lag's mixture of loops, whose nearly
+collinear columns a free fit may weight with opposite signs).
 
 Choice and ambiguity. Candidates are ranked by held-out gain. Tied with the best are those whose gain is at least
 ``TIE`` of its gain or not significantly below it (paired held-out z of the deficit < ``Z_TIE``). A tied candidate is
@@ -252,7 +254,8 @@ def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray, boun
     z = gain / max(float(d.std(ddof=1)) / math.sqrt(n), 1e-300)
     # At a bound the unbounded fit wanted a value outside the plausible range: the candidate is stretched.
     theta_free = _solve(S, g)[0] if at_bound else theta
-    plausible = all(b is None or (b[0] <= v <= b[1]) for v, b in zip(theta_free, bounds))
+    form = [c.form_bound(i) for c in cands for i in range(c.n_parameters)]
+    plausible = all(b is None or f or (b[0] <= v <= b[1]) for v, b, f in zip(theta_free, bounds, form))
     return Fit(name="+".join(c.name for c in cands), members=[c.name for c in cands],
                parameters=[x for c in cands for x in c.parameters], units=[x for c in cands for x in c.units],
                value=theta, std=std, held_out_pred_um=pred, gain_um2=gain, z=float(z), f_stat=float(f_stat), f_p=f_p,

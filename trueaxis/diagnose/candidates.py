@@ -17,9 +17,22 @@ deliberately poorer, so that a fit is a test and not an identity):
 - ``backlash_x/y/z``: a pure step, -(b/2) sign(velocity) (the last direction while the axis stands), applied at the
   cut sample. The shop takes the lost motion up smoothly (tanh over a transition travel) after every reversal, on the
   servo-lagged axes, and the envelope picks the deepest cut of any tool instance.
-- ``servo_lag``: steady-state following error of a first-order loop, e_j = -qdot_j / kv_j, from the *commanded*
-  segment velocity; one lag time per axis. The shop steps a discrete position loop with acceleration limits
-  (transients at starts, stops and corners, saturation).
+- ``servo_lag``: the following error of a first-order position loop per axis, e_j = -tau_j (h_tau_j * v_j), v_j the
+  commanded axis velocity, h_tau(t) = exp(-t/tau)/tau (unit DC gain), tau_j = 1/Kv_j the lag time. It is not only the
+  steady lag v/Kv (along the path on a straight wall, invisible with equal gains) but its transient, which is what a
+  real loop leaves on the part: the inside of every corner (ln2 sin(theta/2) v/Kv for a turn by theta), the stops.
+  Linear in its parameters: the shared loop is a positive mixture of loops with fixed lag times tau_m (4, 12, 35 ms,
+  ``state.LAG_TAUS_S``), weights c_m >= 0 in ms, so that the response's DC gain, the lag time, is sum_m c_m (a loop of
+  lag tau_m is c_m = tau_m exactly; one in between is bracketed by its neighbours); and a gain mismatch, each further
+  moving axis' lag time minus the first one's (d_j ms, first order, on the 12 ms loop), which is what a contour shows
+  at steady speed. 3 + (moving axes - 1) parameters rather than a mixture per axis (3 per axis): the corner transient
+  is shared by the axes when their gains are alike, the mismatch is a steady effect, and fewer columns keep the
+  held-out fit honest and the candidate from mimicking others. Each loop is evaluated where its lagged tool cuts the
+  point (``state.lagged_cut``): the loop's tool is the twin's tool tau earlier plus a small transient, so the twin's
+  own instances, shifted in time and moved by the transient to first order, give the envelope. The shop steps a
+  discrete loop per axis with its own gain, acceleration limits (saturation at corners when Kv |dv| > a) and rapids
+  planned within them; the candidate has no limits, no rapids (taken as settled), one shared dynamics and a
+  first-order mismatch.
 - ``force_deflection``: a diagonal machine-frame compliance (c_X, c_Y >= 0 and an axial c_Z whose sign is free, as
   it also takes up the X/Y-Z coupling of a real matrix), times the force the twin's simulation estimated at the cut
   sample. The shop uses a full 3x3 matrix (and/or the machine's own force model) with the force recomputed on the
@@ -66,6 +79,13 @@ class Candidate:
     units: list
     plausible: list = field(default_factory=list)
     describe: str = ""
+    form: list = field(default_factory=list)
+
+    def form_bound(self, i: int) -> bool:
+        """True when parameter i's bounds are a constraint of the candidate's form (the weights of a positive
+        mixture), not a physical plausibility: a free fit outside them only says that the mixture's columns are
+        nearly collinear, and the fit is judged plausible on the bounded values."""
+        return bool(self.form and self.form[i])
 
     @property
     def n_parameters(self) -> int:
@@ -98,19 +118,28 @@ def backlash(state: TwinState, axis: str) -> Candidate | None:
 
 
 def servo_lag(state: TwinState) -> Candidate | None:
-    cols, names, units, bounds = [], [], [], []
-    for j, a in enumerate(state.axis_names):
-        v = state.qdot[:, j]
-        if np.ptp(v) < 1e-9 and abs(v[0]) < 1e-9:
-            continue  # the axis does not move while cutting: its lag cannot be seen
-        cols.append(-v * _axis_response(state, a))  # um per ms of lag time (mm/s * 1e-3 s * 1e3 um/mm)
-        names.append(f"lag_time_{a}")
-        units.append("ms")
-        bounds.append((-5.0, 200.0))
-    if not cols:
+    if state.lag_deviation is None or not len(state.lag_taus_s):
         return None
-    return Candidate("servo_lag", np.column_stack(cols), names, units, bounds,
-                     "following error of each axis' position loop, velocity / kv (lag time 1000 / kv ms)")
+    taus_ms = 1e3 * np.asarray(state.lag_taus_s, float)
+    mid = len(taus_ms) // 2
+    ax = state.lag_axis
+    moving = [j for j in range(len(state.axis_names)) if np.ptp(ax[:, j, :]) > 1e-9 or abs(ax[0, j, 0]) > 1e-9]
+    if not moving:
+        return None  # no axis' lag moves the surface: no lag can be seen
+    # The loop shared by all axes, a positive mixture of first-order loops of lag tau_m: the deviation of loop m per
+    # ms of lag (c_m = tau_m gives loop m exactly; the lag time is sum c_m).
+    cols = [state.lag_deviation[:, m] for m in range(len(taus_ms))]
+    names = [f"lag_{t:.0f}ms" for t in taus_ms]
+    bounds = [(0.0, 100.0)] * len(taus_ms)
+    # A gain mismatch, to first order: each further moving axis' lag time minus the first one's, d_j, on the middle
+    # filter (the first moving axis is the reference: a common change of all lag times is the shared loop's).
+    cols += [ax[:, j, mid] for j in moving[1:]]
+    names += [f"lag_mismatch_{state.axis_names[j]}" for j in moving[1:]]
+    bounds += [(-30.0, 30.0)] * (len(moving) - 1)
+    return Candidate("servo_lag", np.column_stack(cols), names, ["ms"] * len(names), bounds,
+                     "following error of the position loops (first order, lag time 1000 / kv ms): a positive mixture "
+                     "of first-order loops shared by all axes, plus each axis' mismatch of lag time",
+                     form=[True] * len(taus_ms) + [False] * (len(names) - len(taus_ms)))
 
 
 def force_deflection(state: TwinState) -> Candidate | None:
@@ -217,7 +246,7 @@ def visible(c: Candidate, min_um: float = 0.5) -> Candidate | None:
         return None
     idx = np.nonzero(keep)[0]
     return Candidate(c.name, c.columns[:, idx], [c.parameters[i] for i in idx], [c.units[i] for i in idx],
-                     [c.plausible[i] for i in idx], c.describe)
+                     [c.plausible[i] for i in idx], c.describe, [c.form_bound(i) for i in idx])
 
 
 def build_all(names, state: TwinState) -> tuple[list[Candidate], list[str]]:

@@ -23,6 +23,7 @@ truth file.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,6 +48,9 @@ class TwinState:
     force_n : (N, 3) cutting force on the tool estimated by the twin's simulation, part frame, N (zeros when the
         machine file has no [cutting] coefficients; ``has_force`` says which).
     axis_jacobian : (N, 6, n_axes) d(tip mm, unit axis)/d(q) at the cut (``ErrorTwin.axis_jacobian``).
+    lag_deviation : (N, M) the deviation a first-order position loop of lag time tau_m (``lag_taus_s``, the same on
+        every axis) adds at each point, per ms of lag (um/ms), read at the lagged tool's deepest cut (``lagged_cut``).
+    lag_axis : (N, n_axes, M) the deviation per ms of a further lag of one axis alone there (um/ms): a gain mismatch.
     axis_names, rotary : the machine's axis names and its rotary ones.  machine : the twin (placed as the program says).
     part : "nas979" | "slots".  dropped : number of measured points the twin's program did not cut.
     """
@@ -72,6 +76,9 @@ class TwinState:
     machine: Machine
     part: str
     dropped: int = 0
+    lag_deviation: np.ndarray | None = None
+    lag_axis: np.ndarray | None = None
+    lag_taus_s: tuple = ()
     timings: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
@@ -117,6 +124,136 @@ def _last_direction(qdot_all: np.ndarray) -> np.ndarray:
     return np.where(d == 0, first_sign[None, :], d)
 
 
+#: Time constants (s) of the servo-lag candidate's filters. A position loop's lag time 1/Kv is 6-60 ms on real
+#: machine tools (Kv 1-10 (m/min)/mm = 17-170 /s) and the benchmark's scaled loops reach down to ~1.5 ms; three
+#: filters spaced by about 3x bracket that range: a loop with a lag time between two of them is matched by a positive
+#: mixture of the two to a few per cent of its corner transient, and below the shortest one (or above the longest)
+#: the transient is short (long) compared with the others and the nearest one still takes it up. More filters would
+#: add parameters whose columns differ only at the few points cut within ~3 tau of a velocity change.
+LAG_TAUS_S = (0.004, 0.012, 0.035)
+#: How far from the twin's cut sample a lagged tool's cut is looked for (s): 4 tau_max.
+LAG_WINDOW_S = 4.0 * max(LAG_TAUS_S)
+
+
+def lag_filtered_velocity(traj, taus_s=LAG_TAUS_S) -> np.ndarray:
+    """(T, n_axes, M) the commanded axis velocity of ``traj`` through first-order filters of unit DC gain,
+    h_tau(t) = exp(-t/tau)/tau, one per time constant in ``taus_s``.
+
+    The velocity over the period ending at sample k is (q[k] - q[k-1]) / dt (what a position loop closed at dt sees);
+    the filter is the exact sampled form of h_tau for a velocity held over each period,
+    w[k] = a w[k-1] + (1 - a) v[k], a = exp(-dt/tau). A first-order loop de/dt = v - e/tau then follows with the error
+    e = -tau w (to within dt/2 of tau at the sampled times).
+
+    Rapids are taken as settled: their velocity is set to zero, as a control holds the axes in position after a
+    rapid before the next feed move (the twin's rapids are unplanned steps at the rapid rate; their lag is not in the
+    cut). The filter's state decays through the rapid and the hold like a loop coming to rest."""
+    from scipy.signal import lfilter
+
+    q = np.asarray(traj.q, float)
+    dt = float(traj.dt)
+    v = np.zeros_like(q)
+    v[1:] = np.diff(q, axis=0) / dt
+    rapid = np.asarray(traj.motion) == 0
+    v[rapid] = 0.0
+    out = np.empty(q.shape + (len(taus_s),))
+    for m, tau in enumerate(taus_s):
+        a = math.exp(-dt / float(tau))
+        out[:, :, m] = lfilter([1.0 - a], [1.0, -a], v, axis=0)
+    return out
+
+
+def lagged_cut(points, normals, traj, anchors, tips, axes, radius, length, move, taus_s=LAG_TAUS_S,
+               window_s: float | None = None):
+    """Where a first-order loop of each lag time tau_m cuts each point, to first order in its transient.
+
+    The machined surface is the envelope of the tool instances (the deepest cut along the normal), so a lagged tool
+    need not cut a point at the twin's cut sample. The loop's tool at sample k is q_c(k) - tau w(k): the twin's
+    commanded pose tau earlier, q_c(k - n) (n = tau / dt; rapids taken as settled), plus the transient
+    rho(k) = q_c(k) - q_c(k - n) - tau w(k), which vanishes at steady speed and is the corner transient at a corner,
+    the remaining travel at a stop. So the lagged tool's instances are the twin's own (exact geometry, the same
+    instances shifted in time), each moved by the small rho; instance j of the twin, moved by rho(j + n), cuts the
+    point at s_j + (m_j . M rho) / (m_j . n) (s_j its exact depth by line-solid intersection, m_j the tool's outward
+    surface normal where the line enters it, M the axes' tool displacement at the twin's cut). The deepest over the
+    samples within ``window_s`` (default 4 tau_max) of the anchors (the twin's first and last tied cut samples: a
+    point on a pass boundary is cut as deep by two passes) is the lagged cut.
+
+    points, normals : (N, 3).  traj : the twin's ``Trajectory``.  anchors : (N, A) sample indices, the first the
+        twin's cut sample.  tips, axes : (T, 3) the twin's tool tip and axis at every sample (part frame; only those
+        within the windows are read).  radius, length : the tool's.
+    move : (N, 3, n_axes) (J_p + h J_u) at the cut sample, tool displacement (mm) per mm / rad of each axis, taken as
+        constant over the window.
+    Returns, per filter m, at the lagged cut: the loop's deviation there divided by tau_m, um per ms (N, M); and the
+    deviation per ms of a further lag of each axis alone there, -(m . M_j) / (m . n) w_j, um per ms (N, n_axes, M).
+    """
+    from ..sim.envelope import line_tool_intersection
+
+    wv = lag_filtered_velocity(traj, taus_s)
+    T, n_ax = traj.q.shape
+    dt = float(traj.dt)
+    # The commanded motion with the rapids removed (taken as settled, as in ``lag_filtered_velocity``).
+    v = np.zeros_like(traj.q)
+    v[1:] = np.diff(traj.q, axis=0) / dt
+    v[np.asarray(traj.motion) == 0] = 0.0
+    qf = np.cumsum(v, axis=0) * dt
+    half = int(math.ceil((window_s if window_s is not None else 4.0 * max(taus_s)) / dt))
+    offs = np.arange(-half, half + 1)
+    anchors = np.asarray(anchors, int).reshape(len(points), -1)
+    N, A = anchors.shape
+    W = A * offs.size
+    M = len(taus_s)
+    out_dev = np.empty((N, M))
+    out_axis = np.empty((N, n_ax, M))
+    cutting = np.asarray(traj.motion) != 0
+    chunk = max(1, 200_000 // W)
+    for a0 in range(0, N, chunk):
+        sl = slice(a0, min(N, a0 + chunk))
+        K = np.clip(anchors[sl, :, None] + offs[None, None, :], 0, T - 1).reshape(-1, W)
+        n = K.shape[0]
+        P = np.repeat(points[sl], W, 0)
+        Nn = np.repeat(normals[sl], W, 0)
+        s_in, _ = line_tool_intersection(P, Nn, tips[K.ravel()], axes[K.ravel()], radius, length)
+        s_k = np.where(cutting[K], s_in.reshape(n, W), np.inf)
+        s0 = s_k[:, half]  # the first anchor: the twin's cut sample
+        rel = np.where(np.isfinite(s0)[:, None], s_k - np.where(np.isfinite(s0), s0, 0.0)[:, None], np.inf)
+        rel[:, half] = 0.0
+        # The tool's outward surface normal where the line enters instance j: a move delta of the tool changes the
+        # entry by (m . delta) / (m . n) (= n . delta at the twin's cut, where m = -n on a flank).
+        x = P + np.where(np.isfinite(s_in), s_in, 0.0)[:, None] * Nn
+        tp, ax = tips[K.ravel()], axes[K.ravel()]
+        wrel = x - tp
+        h = np.einsum("ij,ij->i", wrel, ax)
+        rad = wrel - h[:, None] * ax
+        rn = np.linalg.norm(rad, axis=1)
+        side = rn >= radius * (1.0 - 1e-6)
+        mvec = np.where(side[:, None], rad / np.maximum(rn, 1e-12)[:, None],
+                        np.where((h <= 0.5 * length)[:, None], -ax, ax))
+        mn = np.minimum(np.einsum("ij,ij->i", mvec, Nn), -0.2)  # grazing entries: a bounded gain
+        resp = (np.einsum("ik,ikj->ij", mvec, np.repeat(move[sl], W, 0)) / mn[:, None]).reshape(n, W, n_ax)
+        rows = np.arange(n)
+        for m, tau in enumerate(taus_s):
+            sh = int(round(float(tau) / dt))
+            Ks = np.minimum(K + sh, T - 1)
+            rho = qf[Ks] - qf[K] - float(tau) * wv[Ks, :, m]  # (n, W, n_axes), mm / rad
+            part = resp * rho * 1e3  # um
+            tot = np.where(np.isfinite(rel), rel * 1e3 + part.sum(axis=2), np.inf)
+            kk = np.argmin(tot, axis=1)
+            out_dev[sl, m] = tot[rows, kk] / (1e3 * float(tau))
+            out_axis[sl, :, m] = -resp[rows, kk] * wv[Ks[rows, kk], :, m]
+    return out_dev, out_axis
+
+
+def _last_tied_sample(res, points, normals, twin, machine) -> np.ndarray:
+    """(N,) the last sample whose twin tool cuts each point as deep as its deepest cut (the envelope reports the
+    first); -1 where none."""
+    from ..sim.envelope import envelope_deviation
+
+    traj = res.trajectory
+    ci = np.nonzero(np.asarray(traj.motion) != 0)[0][::-1]
+    tip, u = twin.actual_pose(traj.q[ci])
+    env = envelope_deviation(points, normals, tip, u, machine.tool.radius, machine.tool.flute_length)
+    return np.where(env.instance >= 0, ci[np.maximum(env.instance, 0)], -1)
+
+
 def twin_state(points, normals, machine: Machine, program_text: str, part: str, *, want_force: bool = True,
                force_stride: int = 10) -> TwinState:
     """Simulate the twin ``machine`` cutting ``program_text`` and read the gap and the state at ``points``.
@@ -156,10 +293,25 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
     tip, u = twin.actual_pose(q)
     height = np.einsum("ij,ij->i", points[cut] - tip, u)
     direction = _last_direction(traj.qdot)[s]
+    jac = twin.axis_jacobian(q)
+    move = jac[:, :3] + height[:, None, None] * jac[:, 3:]  # (N, 3, n_axes) tool displacement per axis
+    response = np.einsum("ij,ijk->ik", normals[cut], move)
+    # The lagged cut (see ``lagged_cut``) around the twin's first and last tied cut samples.
+    last = _last_tied_sample(res, points[cut], normals[cut], twin, machine)
+    anchors = np.column_stack([s, np.where(last >= 0, last, s)])
+    half = int(math.ceil(LAG_WINDOW_S / traj.dt))
+    ks = np.unique(np.clip(anchors.ravel()[:, None] + np.arange(-half, half + 1)[None, :], 0, len(traj) - 1))
+    tips_all = np.zeros((len(traj), 3))
+    axes_all = np.tile([0.0, 0.0, 1.0], (len(traj), 1))
+    tips_all[ks], axes_all[ks] = twin.actual_pose(traj.q[ks])
+    lag_dev, lag_axis = lagged_cut(points[cut], normals[cut], traj, anchors, tips_all, axes_all, machine.tool.radius,
+                                   machine.tool.flute_length, move, LAG_TAUS_S, LAG_WINDOW_S)
     return TwinState(
         points=points[cut], normals=normals[cut], gap_um=-res.deviations_um[cut], t_s=traj.t[s],
         t_end_s=float(traj.t[-1]), q=q, qdot=traj.qdot[s], direction=direction,
         feed_mm_min=traj.feed_mm_min[s], block_line=res.block_line[cut], tip=tip, axis=u, height_mm=height,
-        force_n=res.force_n[cut], has_force=has_force, axis_jacobian=twin.axis_jacobian(q),
+        force_n=res.force_n[cut], has_force=has_force, axis_jacobian=jac,
         axis_names=tuple(machine.axis_names), rotary=tuple(machine.rotary_axes), machine=machine, part=part,
-        dropped=int((~cut).sum()), timings={"twin_simulation_s": time.perf_counter() - t0, **res.timings})
+        dropped=int((~cut).sum()), lag_deviation=lag_dev, lag_axis=lag_axis,
+        lag_taus_s=tuple(LAG_TAUS_S),
+        timings={"twin_simulation_s": time.perf_counter() - t0, **res.timings})
