@@ -113,6 +113,10 @@ _OTHER_BREAKS = re.compile("[\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
 # A canned cycle block that would expand into more moves than this is refused (a tiny Q or a huge L: the table
 # would not fit in memory, and no real program drills that way).
 MAX_CYCLE_MOVES = 100_000
+# The reader's compiled pre-scan of plain blocks (fast_read); False: the regular expression and float() on every line
+# (the same results, slower). FAST_READ_BLOCK lines are scanned at a time (their values as Python floats).
+FAST_READ = True
+FAST_READ_BLOCK = 4096
 # Word values (coordinates, offsets, feeds) must stay below this in size: 1000 km, or 25,400 km in inches, is no
 # machine's travel, and bounded values keep every sum, square and unit conversion downstream finite. The fast path's
 # regular expression takes at most 9 digits before the point, so larger values go through the checked general path.
@@ -571,7 +575,9 @@ class _Interpreter:
         # (feed, modes, tool, offsets) is stored once per distinct state and indexed per row.
         # start / end points as packed doubles (8 bytes a number, not a float object each: a million-block program)
         r_start, r_end = array("d"), array("d")
-        r_line, r_motion, r_kind, r_words, r_state = [], [], [], [], []
+        # and the per-row integers packed too (no list of a million references for every full garbage collection
+        # to walk)
+        r_line, r_motion, r_kind, r_words, r_state = array("q"), array("q"), array("q"), array("q"), array("q")
         r_arc = {}  # row -> (centre (3,), plane, turns)
         states: dict = {}
         cur_state = [0]
@@ -601,63 +607,116 @@ class _Interpreter:
         token_findall = _TOKEN.findall
         axis_index = _AXIS_INDEX
         ended = False
+        nan = math.nan
+
+        # The compiled pre-scan (fast_read): which lines are plain blocks, their G digit and values, read exactly as
+        # the regular expression and float() read them; FAST_READ_BLOCK lines at a time.
+        pre = None
+        if FAST_READ and lines:
+            from . import fast_read
+
+            pre = fast_read.scan_text(self.text)
+            if pre is not None and len(pre[0]) != len(lines) + 1:
+                pre = None  # not split as split_lines splits (cannot happen for ASCII text): no pre-scan
+        blk_lo = blk_hi = 0
+        blk_code = blk_vals = None
+        n_lines = len(lines)
 
         for li, raw in enumerate(lines):
             if ended:
                 break
             # Fast path: a plain G0/G1 block ("N300G1X4.6526Z-.0007", "X1 Y2 F300") in G0/G1 mode.
-            fm = fast_match(raw)
-            if fm is not None:
-                g, x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = fm.groups()
-                if g is None and x is None and y is None and z is None and a_ is None and b_ is None and c_ is None:
-                    fm = None  # no motion word and no axis word: not a move (general path)
-            if fm is not None:
-                mode = motion_mode if g is None else int(g) * 10
-                if f_ is not None:
-                    new_feed = float(f_)
+            if pre is not None:
+                if li >= blk_hi:
+                    blk_lo, blk_hi = li, min(n_lines, li + FAST_READ_BLOCK)
+                    b_status, b_g, b_vals = fast_read.scan_lines(pre[1], pre[0], blk_lo, blk_hi)
+                    # code: the G digit (-1: none) for a block read here, 4: by the regex, 5: not a fast block
+                    blk_code = np.where(b_status == fast_read.LINE_FAST, b_g,
+                                        np.where(b_status == fast_read.LINE_SLOW, 4, 5)).tolist()
+                    # one flat list of floats (no list per line: fewer objects for the garbage collector)
+                    blk_vals = b_vals.ravel().tolist()
+                g = blk_code[li - blk_lo]
+                if g < 4:
+                    fast = True
+                    o = (li - blk_lo) * 11
+                    x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = blk_vals[o:o + 11]
+                else:
+                    fast = False
+                    if g == 4:  # a number with more digits than the pre-scan reads exactly: the regex path
+                        fast = None
+            else:
+                fast = None
+            if fast is None:
+                fm = fast_match(raw)
+                if fm is not None:
+                    g, x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = fm.groups()
+                    if g is None and x is None and y is None and z is None and a_ is None and b_ is None \
+                            and c_ is None:
+                        fast = False  # no motion word and no axis word: not a move (general path)
+                    else:
+                        fast = True
+                        g = -1 if g is None else int(g)
+                        x = nan if x is None else float(x)
+                        y = nan if y is None else float(y)
+                        z = nan if z is None else float(z)
+                        a_ = nan if a_ is None else float(a_)
+                        b_ = nan if b_ is None else float(b_)
+                        c_ = nan if c_ is None else float(c_)
+                        i_ = nan if i_ is None else float(i_)
+                        j_ = nan if j_ is None else float(j_)
+                        k_ = nan if k_ is None else float(k_)
+                        r_ = nan if r_ is None else float(r_)
+                        f_ = nan if f_ is None else float(f_)
+                else:
+                    fast = False
+            # (values: NaN where the block has no such word; g: -1 where it has no G word)
+            if fast:
+                mode = motion_mode if g < 0 else g * 10
+                if f_ == f_:
+                    new_feed = f_
                     if new_feed < 0.0:
-                        raise self.err(li + 1, f"negative feed rate F{f_}")
+                        raise self.err(li + 1, f"negative feed rate F{fast_match(raw).group(12)}")
                     if new_feed != feed:
                         feed = new_feed
                         refresh_state()
-                if mode == 0 or (mode <= 30 and feed != 0.0 and (f_ is not None or not inverse)):
+                if mode == 0 or (mode <= 30 and feed != 0.0 and (f_ == f_ or not inverse)):
                     target = pos[:]
                     seen = 0
                     if absolute:
-                        if x is not None:
-                            target[0] = float(x)
+                        if x == x:
+                            target[0] = x
                             seen = 1
-                        if y is not None:
-                            target[1] = float(y)
+                        if y == y:
+                            target[1] = y
                             seen |= 2
-                        if z is not None:
-                            target[2] = float(z)
+                        if z == z:
+                            target[2] = z
                             seen |= 4
                     else:
-                        if x is not None:
-                            target[0] += float(x)
+                        if x == x:
+                            target[0] += x
                             seen = 1
-                        if y is not None:
-                            target[1] += float(y)
+                        if y == y:
+                            target[1] += y
                             seen |= 2
-                        if z is not None:
-                            target[2] += float(z)
+                        if z == z:
+                            target[2] += z
                             seen |= 4
-                    if a_ is not None or b_ is not None or c_ is not None:
+                    if a_ == a_ or b_ == b_ or c_ == c_:
                         for n, v in ((3, a_), (4, b_), (5, c_)):
-                            if v is not None:
-                                target[n] = float(v) if absolute else target[n] + float(v)
+                            if v == v:
+                                target[n] = v if absolute else target[n] + v
                                 seen |= 1 << n
-                    if f_ is not None:
+                    if f_ == f_:
                         seen |= 2048
-                    arcw = i_ is not None or j_ is not None or k_ is not None or r_ is not None
-                    if g is not None:
+                    arcw = i_ == i_ or j_ == j_ or k_ == k_ or r_ == r_
+                    if g >= 0:
                         cycle["il_flag"] = False
                     if mode <= 10 and not arcw:
                         motion_mode = mode
                         # emit(), inlined: this line is the hot path
-                        r_start.extend(pos)
-                        r_end.extend(target)
+                        r_start.fromlist(pos)
+                        r_end.fromlist(target)
                         r_line.append(li)
                         r_motion.append(mode // 10)
                         r_kind.append(ROW_PROGRAMMED)
@@ -665,14 +724,14 @@ class _Interpreter:
                         r_state.append(cur_state[0])
                         pos = target
                         continue
-                    if mode >= 20 and r_ is None:
+                    if mode >= 20 and r_ != r_:
                         # I J K arc, inlined (the other hot path); R arcs and odd cases go through arc_to
                         a0, a1, an = _PLANE_AXES[plane]
                         ijk = (i_, j_, k_)
                         w0, w1 = ijk[a0], ijk[a1]
-                        if w0 is not None or w1 is not None:
-                            o0 = float(w0) if w0 is not None else 0.0
-                            o1 = float(w1) if w1 is not None else 0.0
+                        if w0 == w0 or w1 == w1:
+                            o0 = w0 if w0 == w0 else 0.0
+                            o1 = w1 if w1 == w1 else 0.0
                             if arc_abs:
                                 c0, c1 = o0, o1
                             else:
@@ -682,14 +741,14 @@ class _Interpreter:
                             dr = abs(rad1 - rad2)
                             if rad1 > 0.0 and (dr <= arc_tol or dr <= 0.001 * max(rad1, rad2)):
                                 for letter, v in (("I", i_), ("J", j_), ("K", k_)):
-                                    if v is not None:
+                                    if v == v:
                                         seen |= word_bit[letter]
                                 center = [0.0, 0.0, 0.0]
                                 center[a0], center[a1], center[an] = c0, c1, pos[an]
                                 motion_mode = mode
                                 r_arc[len(r_line)] = (center, plane, 1)
-                                r_start.extend(pos)
-                                r_end.extend(target)
+                                r_start.fromlist(pos)
+                                r_end.fromlist(target)
                                 r_line.append(li)
                                 r_motion.append(2 if mode == 20 else 3)
                                 r_kind.append(ROW_PROGRAMMED)
@@ -701,8 +760,8 @@ class _Interpreter:
                         motion_mode = mode
                         extra = {}
                         for letter, v in (("I", i_), ("J", j_), ("K", k_), ("R", r_)):
-                            if v is not None:
-                                extra[letter] = float(v)
+                            if v == v:
+                                extra[letter] = v
                                 seen |= word_bit[letter]
                         try:
                             self.arc_to(li + 1, li, mode, extra, target, pos, plane, arc_abs, inch, emit, seen)

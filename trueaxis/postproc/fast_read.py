@@ -1,0 +1,215 @@
+"""A compiled pre-scan for the G-code reader's fast path (:mod:`trueaxis.postproc.gcode`).
+
+The reader's fast path takes plain blocks ("N300G1X4.6526Z-.0007", "X1 Y2 F300") that its regular expression
+``_FAST`` matches: optional leading blanks, an optional ``N`` number, an optional ``G0``..``G3`` (also
+``G00``..``G03``), then the words X Y Z A B C I J K R F in this order, each at most once, upper case, blanks and tabs
+between. Matching that expression and calling ``float()`` on the values is a large share of the time the reader
+spends on such lines. This module does both for all lines of a program at once, in compiled code:
+
+- :func:`line_starts` splits the program's bytes at ``\\n``, ``\\r\\n`` and a lone ``\\r``, as ``split_lines`` does;
+- :func:`scan_lines` decides for every line whether it matches ``_FAST`` exactly, and reads the G digit and the
+  values of X..F.
+
+Values are read exactly as Python's ``float()`` reads them, or not at all: a decimal whose digits make an integer
+mantissa below 2**53 with at most 22 digits after the point is ``mantissa / 10**digits`` -- both numbers exact in a
+double, so the one correctly rounded division is the correctly rounded value of the decimal (Clinger's fast path),
+which is what ``float()`` returns. Any other number (more significant digits than that) marks its line
+:data:`LINE_SLOW`, and the reader handles that line with the regular expression and ``float()`` as before.
+
+Only ASCII text is scanned (the reader skips the pre-scan otherwise).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+__all__ = ["LINE_NO_MATCH", "LINE_NO_MOTION", "LINE_FAST", "LINE_SLOW", "WORDS", "line_starts", "scan_lines",
+           "scan_text"]
+
+# per-line status
+LINE_NO_MATCH = 0  # the line is not a _FAST block (general path)
+LINE_NO_MOTION = 1  # matches _FAST but has no G0-G3 and no axis word (the reader's general path too)
+LINE_FAST = 2  # matches, values read here (exactly as float() would)
+LINE_SLOW = 3  # matches, but a value has too many digits for the exact fast conversion: regex and float() in Python
+
+WORDS = "XYZABCIJKRF"
+_WORD_CODES = np.array([ord(c) for c in WORDS], np.uint8)
+# 10**k, k = 0..22: all exact in a double
+_POW10 = np.array([1e0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7, 1e8, 1e9, 1e10, 1e11, 1e12, 1e13, 1e14, 1e15, 1e16, 1e17,
+                   1e18, 1e19, 1e20, 1e21, 1e22], np.float64)
+_TWO53 = 2**53
+_MAX_INT_DIGITS = 9  # _FAST's [0-9]{1,9}
+
+_CR, _LF, _SP, _TAB = 13, 10, 32, 9
+_DOT, _PLUS, _MINUS = 46, 43, 45
+_D0, _D3, _D9 = 48, 51, 57
+_N, _G = 78, 71
+
+
+@numba.njit(cache=True, nogil=True)
+def line_starts(buf):
+    """Start offsets of the lines of ``buf`` (uint8) and, last, ``len(buf)``: lines end at \\n, \\r\\n or a lone \\r.
+
+    Line ``i`` is ``buf[starts[i]:starts[i + 1]]`` with its ending.
+    """
+    n = buf.shape[0]
+    count = 0
+    i = 0
+    while i < n:
+        c = buf[i]
+        if c == _LF:
+            count += 1
+        elif c == _CR:
+            if i + 1 < n and buf[i + 1] == _LF:
+                i += 1
+            count += 1
+        i += 1
+    if n > 0 and buf[n - 1] != _LF and buf[n - 1] != _CR:
+        count += 1
+    out = np.empty(count + 1, np.int64)
+    k = 0
+    out[0] = 0
+    i = 0
+    while i < n:
+        c = buf[i]
+        if c == _LF:
+            k += 1
+            out[k] = i + 1
+        elif c == _CR:
+            if i + 1 < n and buf[i + 1] == _LF:
+                i += 1
+            k += 1
+            out[k] = i + 1
+        i += 1
+    out[count] = n
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _scan_line(buf, s, e, vals, row):
+    """Match buf[s:e] (one line, with its ending) against _FAST; fill vals[row] (NaN = absent) and return
+    (status, g) with g = -1 when the line has no G word."""
+    # the ending: _FAST's \r?\n?\Z (line_starts leaves no other \r or \n inside a line)
+    if e > s and buf[e - 1] == _LF:
+        e -= 1
+    if e > s and buf[e - 1] == _CR:
+        e -= 1
+    for k in range(11):
+        vals[row, k] = np.nan
+    p = s
+    while p < e and (buf[p] == _SP or buf[p] == _TAB):
+        p += 1
+    # N[0-9]+[ \t]*
+    if p < e and buf[p] == _N:
+        p += 1
+        if p >= e or buf[p] < _D0 or buf[p] > _D9:
+            return LINE_NO_MATCH, -1
+        while p < e and _D0 <= buf[p] <= _D9:
+            p += 1
+        while p < e and (buf[p] == _SP or buf[p] == _TAB):
+            p += 1
+    # G0?([0-3])(?![0-9.])[ \t]*
+    g = -1
+    if p < e and buf[p] == _G:
+        c1 = buf[p + 1] if p + 1 < e else 0
+        c2 = buf[p + 2] if p + 2 < e else 0
+        c3 = buf[p + 3] if p + 3 < e else 0
+        if c1 == _D0 and _D0 <= c2 <= _D3 and not (_D0 <= c3 <= _D9 or c3 == _DOT):
+            g = c2 - _D0
+            p += 3
+        elif _D0 <= c1 <= _D3 and not (_D0 <= c2 <= _D9 or c2 == _DOT):
+            g = c1 - _D0
+            p += 2
+        else:
+            return LINE_NO_MATCH, -1
+        while p < e and (buf[p] == _SP or buf[p] == _TAB):
+            p += 1
+    status = LINE_FAST
+    motion = g >= 0
+    # (?:L[ \t]*([-+]?(?:[0-9]{1,9}(?:\.[0-9]*)?|\.[0-9]+))[ \t]*)? for L in X Y Z A B C I J K R F
+    for k in range(11):
+        if p >= e:
+            break
+        if buf[p] != _WORD_CODES[k]:
+            continue
+        p += 1
+        while p < e and (buf[p] == _SP or buf[p] == _TAB):
+            p += 1
+        neg = False
+        if p < e and (buf[p] == _PLUS or buf[p] == _MINUS):
+            neg = buf[p] == _MINUS
+            p += 1
+        mant = 0
+        n_int = 0
+        while p < e and _D0 <= buf[p] <= _D9:
+            mant = mant * 10 + (buf[p] - _D0)
+            n_int += 1
+            p += 1
+            if n_int > _MAX_INT_DIGITS:
+                return LINE_NO_MATCH, -1
+        frac = 0
+        n_frac = 0
+        exact = True
+        if p < e and buf[p] == _DOT:
+            p += 1
+            pending = 0  # zeros after the point not yet multiplied in (trailing zeros do not change the value)
+            while p < e and _D0 <= buf[p] <= _D9:
+                d = buf[p] - _D0
+                n_frac += 1
+                p += 1
+                if d == 0:
+                    pending += 1
+                elif exact:
+                    for _ in range(pending + 1):
+                        mant *= 10
+                        if mant >= _TWO53:
+                            exact = False
+                            break
+                    if exact:
+                        mant += d
+                        frac += pending + 1
+                        if mant >= _TWO53 or frac > 22:
+                            exact = False
+                    pending = 0
+            if n_int == 0 and n_frac == 0:
+                return LINE_NO_MATCH, -1  # "." alone
+        elif n_int == 0:
+            return LINE_NO_MATCH, -1  # no number
+        while p < e and (buf[p] == _SP or buf[p] == _TAB):
+            p += 1
+        if not exact:
+            status = LINE_SLOW
+        else:
+            v = np.float64(mant) / _POW10[frac]
+            vals[row, k] = -v if neg else v
+        if k < 6:
+            motion = True
+    if p != e:
+        return LINE_NO_MATCH, -1
+    if not motion:
+        return LINE_NO_MOTION, -1
+    return status, g
+
+
+@numba.njit(cache=True, nogil=True)
+def scan_lines(buf, starts, lo, hi):
+    """Scan lines lo..hi-1: status (int8: LINE_*), g (int8, -1 = no G word) and vals ((hi - lo, 11) float64, the
+    values of X Y Z A B C I J K R F, NaN when absent; only meaningful where status == LINE_FAST)."""
+    m = hi - lo
+    status = np.empty(m, np.int8)
+    gs = np.empty(m, np.int8)
+    vals = np.empty((m, 11), np.float64)
+    for r in range(m):
+        st, g = _scan_line(buf, starts[lo + r], starts[lo + r + 1], vals, r)
+        status[r] = st
+        gs[r] = g
+    return status, gs, vals
+
+
+def scan_text(text: str):
+    """(starts, buf) for an ASCII ``text``, or None when it is not ASCII."""
+    if not text.isascii():
+        return None
+    buf = np.frombuffer(text.encode("ascii"), np.uint8)
+    return line_starts(buf), buf
