@@ -13,6 +13,7 @@ from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from conftest import MACHINES, ROOT
+from test_post import PROGRAM as POST_PROGRAM
 from trueaxis.machine import load_machine, parse_machine
 from trueaxis.postproc import fast_write
 from trueaxis.postproc import post as post_module
@@ -184,26 +185,10 @@ def test_lines_it_does_not_take():
 
 # ------------------------------------------------------------------------------------------------ end to end ---
 
-PROGRAM = """%
-(test program: plunge, lines, arcs, incremental move, canned cycle)
-G21 G90 G17 G94
-N10 G0 X0 Y0 Z-10
-N20 G1 Z-105 F300 (plunge)
-N30 G1 X150 Y80
-N40 G2 X100 Y30 I-50 J0
-N50 X50 Y80 I0 J50
-N55 G1 X60 Y70 R5
-N56 g01 x61 y71 f200
-N57 G00X62Y72Z-100
-N58 X63 Y73 Z-101 M8
-N60 G91 G1 X-20 Y-10
-N70 G90 G0 Z-20
-N80 G98 G81 X10 Y10 Z-103 R-98
-N90 X20 Y15
-N100 G80
-M2
-%
-"""
+# The post's test program (tests/test_post.py) with more plain-block spellings: R on a line, lower case, no separator,
+# a non-plain word (M8).
+PROGRAM = POST_PROGRAM.replace("N60 G91", "N55 G1 X60 Y70 R5\nN56 g01 x61 y71 f200\nN57 G00X62Y72Z-100\n"
+                                          "N58 X63 Y73 Z-101 M8\nN60 G91")
 
 
 def _both(text, machine, monkeypatch, **kw):
