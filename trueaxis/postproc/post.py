@@ -60,7 +60,7 @@ _MOTION_WORD = re.compile(r"^G0*([0-3])$", re.IGNORECASE)
 _NUM = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)"
 # A plain motion block: N G X Y Z A B C I J K R F, each optional, in this order, nothing else (the writer's fast path)
 _PLAIN = re.compile(
-    rf"[ \t]*(?P<n>[Nn][0-9]+)?[ \t]*(?P<g>[Gg]0*[0-3](?![0-9.]))?[ \t]*"
+    r"[ \t]*(?P<n>[Nn][0-9]+)?[ \t]*(?P<g>[Gg]0*[0-3](?![0-9.]))?[ \t]*"
     + "".join(rf"(?:[{c}{c.lower()}][ \t]*{_NUM}[ \t]*)?" for c in "XYZABCIJK")
     + rf"(?P<r>[Rr][ \t]*{_NUM})?[ \t]*(?P<f>[Ff][ \t]*{_NUM})?[ \t]*\Z"
 )
@@ -704,13 +704,10 @@ class _Poster:
         written_end[rows[~is_cycle]] += delta_prog[~is_cycle]
         first_row_of_line = np.full(len(p.lines), -1)
         first_row_of_line[p.line_index[::-1]] = np.arange(len(p))[::-1]
-        # The bulk of the axis words, formatted in one pass per axis and window of moves (memory stays bounded): each
-        # compensated move's own corrected end, and the ends of the pieces of split moves and linearised arcs (the
-        # block's own end last).
+        # Each compensated move's corrected end; the axis words of the pieces of split moves and linearised arcs (the
+        # block's own end last), formatted in one pass per axis.
         target = p.end[rows] + delta_prog
         inch_rows = p.inch[rows]
-        window = [0, 0]  # the loop's lines [j_lo, j_hi) whose axis words are in axis_words
-        axis_words = {}
         piece_keys = [k for k in pieces if arc_mode.get(k) != "arc"]
         piece_pts = [pieces[k] if arc_mode.get(k) == "lines" else np.vstack([pieces[k], target[k]]) for k in piece_keys]
         piece_first = dict(zip(piece_keys, np.cumsum([0] + [len(x) for x in piece_pts]).tolist()))
@@ -739,6 +736,8 @@ class _Poster:
         extra = 0
         # The bulk of the axis words, formatted in one pass per axis and window of the loop's lines (memory stays
         # bounded): each line's corrected end (its last row's).
+        window = [0, 0]  # the loop's lines [j_lo, j_hi) whose axis words are in axis_words
+        axis_words = {}
         last_k = ends - 1
         for j, (k0, k1) in enumerate(zip(starts.tolist(), ends.tolist())):
             if j >= window[1]:
@@ -763,8 +762,7 @@ class _Poster:
             split = k in piece_first
             inc = incremental_l[r]
             if inc or split or arc_kept:
-                r_prev = int(first_row_of_line[li]) - 1
-                last_written = written_end[r_prev] if r_prev >= 0 else np.zeros(6)
+                last_written = _written_before(np.array([li]), written_end, first_row_of_line)[0]
             rest = []
             if split:
                 # The block itself goes to the first piece's end, so that its other words (F, S, M, N) act where
@@ -793,14 +791,14 @@ class _Poster:
                 words += self._centre_words(r, delta_prog[k], last_written, fmt)
             texts = [self._rewrite_motion(body, motion, words, arc_kept, r, sep), ending]
             word = "G0" if motion == RAPID else "G1"
-            for j in rest:
+            for i_piece in rest:
                 if inc:
-                    piece = [word] + [fmt(a, _out_value(pts[j], last_written, a, inc)) for a in axes_out]
-                    last_written = pts[j]
+                    piece = [word] + [fmt(a, _out_value(pts[i_piece], last_written, a, inc)) for a in axes_out]
+                    last_written = pts[i_piece]
                 else:
-                    piece = [word] + [piece_words[a][o + j] for a in axes_out]
+                    piece = [word] + [piece_words[a][o + i_piece] for a in axes_out]
                 if inverse_l[r]:
-                    piece.append(fmt("F", piece_f[j], inch=False))
+                    piece.append(fmt("F", piece_f[i_piece], inch=False))
                 texts += [sep.join(piece), ending]
             extra += len(rest)
             out[li] = "".join(texts)
@@ -852,22 +850,14 @@ class _Poster:
         extra_dec = np.zeros((cand.size, 2), np.int64)
         arcs = np.nonzero(keep_r & ((p.words[rows[cand_k]] & _R_BIT) == 0))[0]
         if arcs.size:
-            r = rows[cand_k[arcs]]
-            r_prev = first_row_of_line[cand_line[arcs]] - 1
-            last_written = written_end[np.maximum(r_prev, 0)]
-            last_written[r_prev < 0] = 0.0
-            center = p.arc_center[r] + delta_prog[cand_k[arcs], :3]
-            origin = np.where(p.arc_incremental[r][:, None], last_written[:, :3], 0.0)
-            value = center - origin
+            last_written = _written_before(cand_line[arcs], written_end, first_row_of_line)
+            letters, values = self._centre_values(rows[cand_k[arcs]], delta_prog[cand_k[arcs]], last_written)
             inch0 = p.inch[cand_r0[arcs]]
             n_extra[arcs] = 2
-            for plane, letters in ((17, "IJ"), (18, "IK"), (19, "JK")):
-                sel = p.arc_plane[r] == plane
-                for j, c in enumerate(letters):
-                    extra_val[arcs[sel], j] = value[sel, "IJK".index(c)]
-                    extra_letter[arcs[sel], j] = ord(c)
-                    extra_dec[arcs[sel], j] = np.where(inch0[sel], numbers.decimals(c, True),
-                                                       numbers.decimals(c, False))
+            extra_val[arcs] = values
+            for j in range(2):
+                extra_letter[arcs, j] = [ord(c) for c in letters[:, j]]
+                extra_dec[arcs, j] = [numbers.decimals(c, bool(i)) for c, i in zip(letters[:, j], inch0)]
         ok, spans = fast_write.scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch,
                                     n_extra, extra_val, extra_dec)
         handled = np.zeros(starts.size, bool)
@@ -905,13 +895,22 @@ class _Poster:
         return out.tobytes().decode("utf-8")
 
     def _centre_words(self, r, delta_end, last_written, fmt):
-        """I J K of a kept arc: its centre moved by the end's correction (constant along the arc), incremental from
-        the start (G91.1, the default) or absolute (G90.1)."""
+        """The centre words of one kept arc (``_centre_values``), formatted."""
+        letters, values = self._centre_values(np.array([r]), delta_end[None], last_written[None])
+        return [fmt(c, v) for c, v in zip(letters[0], values[0])]
+
+    def _centre_values(self, r, delta_end, last_written):
+        """Kept arcs' centre words: letters (K, 2) (I J, I K or J K by plane) and values (K, 2), program units. The
+        centre moves by the end's correction (constant along a kept arc); incremental from the start (G91.1, the
+        default) or absolute (G90.1). r : (K,) program rows; delta_end : (K, 6); last_written : (K, 6)."""
         p = self.p
-        letters = {17: "IJ", 18: "IK", 19: "JK"}[int(p.arc_plane[r])]
-        center = p.arc_center[r] + delta_end[:3]
-        origin = last_written[:3] if p.arc_incremental[r] else np.zeros(3)
-        return [fmt(c, center["IJK".index(c)] - origin["IJK".index(c)]) for c in letters]
+        value = p.arc_center[r] + delta_end[:, :3] - np.where(p.arc_incremental[r][:, None], last_written[:, :3], 0.0)
+        plane = p.arc_plane[r]
+        first = np.where(plane == 19, 1, 0)  # G17: I J, G18: I K, G19: J K
+        second = np.where(plane == 17, 1, 2)
+        k = np.arange(r.size)
+        letters = np.array(list("IJK"))[np.stack([first, second], axis=1)]
+        return letters, np.stack([value[k, first], value[k, second]], axis=1)
 
     def _rewrite_motion(self, body, motion, words, arc, row, sep):
         """A motion block with new axis words ``words`` (formatted): see ``rewrite_block``."""
@@ -1038,6 +1037,15 @@ def _rewrite_tokens(code, motion, words, arc, was_arc, sep):
         keep.insert(_after_line_number(keep), f"G{motion}")
     pos = _word_position(keep)
     return sep.join(keep[:pos] + words + keep[pos:])
+
+
+def _written_before(lines, written_end, first_row_of_line):
+    """(K, 6) the end point written before each line of ``lines`` (K,) (program coordinates, zeros before the first
+    move): the written end of the row before the line's first row."""
+    r_prev = first_row_of_line[lines] - 1
+    out = written_end[np.maximum(r_prev, 0)]
+    out[r_prev < 0] = 0.0
+    return out
 
 
 def _motion_text(word: str, motion: int) -> str:
