@@ -26,14 +26,12 @@ def machine_rows(program, machine, kinds=(ROW_PROGRAMMED,)):
 def nominal_polyline(program, machine, arc_points=4000):
     """The nominal tool-tip path of a program as dense points (K, 3) mm in the part frame: straight moves as their
     end points, arcs sampled densely (sagitta of 50 mm arcs at 4000 points: 1e-5 um)."""
-    from trueaxis.postproc.post import _arc_points
-
     twin = ErrorTwin(machine)
     pts = []
     cols = [AXES.index(a) for a in machine.axis_names]
     for r in range(len(program)):
         if program.motion[r] in (ARC_CW, ARC_CCW):
-            six = _arc_points(program, r, arc_points)
+            six = points_on_arc(program, r, arc_points)
         else:
             six = np.vstack([program.start[r], program.end[r]])
         six = six + program.offset[r]
@@ -82,3 +80,42 @@ def actual_points(program_text, machine, force_n=None):
     prog = parse_program(program_text)
     q, rows = machine_rows(prog, machine)
     return ErrorTwin(machine).actual_pose(q, force_n)[0], prog, rows
+
+
+def _arc_sweep(p, r: int) -> float:
+    """Sweep (rad) of the arc of row r, turns included."""
+    plane = int(p.arc_plane[r])
+    i, j = {17: (0, 1), 18: (2, 0), 19: (1, 2)}[plane]
+    c = p.arc_center[r]
+    s, e = p.start[r], p.end[r]
+    a0 = np.arctan2(s[j] - c[j], s[i] - c[i])
+    a1 = np.arctan2(e[j] - c[j], e[i] - c[i])
+    ccw = p.motion[r] == ARC_CCW
+    sweep = (a1 - a0) % (2 * np.pi) if ccw else (a0 - a1) % (2 * np.pi)
+    if sweep < 1e-12:
+        sweep = 2 * np.pi
+    return float(sweep + 2 * np.pi * (max(int(p.arc_turns[r]), 1) - 1))
+
+
+def points_on_arc(p, r: int, n: int) -> np.ndarray:
+    """(n+1, 6) points along the arc of row r (program coordinates), from its start to its end; helical axis linear.
+    One arc at a time: the tests' own reference, written apart from the post's vectorised ``_arcs_points``."""
+    plane = int(p.arc_plane[r])
+    i, j = {17: (0, 1), 18: (2, 0), 19: (1, 2)}[plane]
+    normal = 3 - i - j
+    c = p.arc_center[r]
+    s, e = p.start[r], p.end[r]
+    a0 = np.arctan2(s[j] - c[j], s[i] - c[i])
+    sweep = _arc_sweep(p, r)
+    sign = 1.0 if p.motion[r] == ARC_CCW else -1.0
+    rad0 = np.hypot(s[i] - c[i], s[j] - c[j])
+    rad1 = np.hypot(e[i] - c[i], e[j] - c[j])
+    t = np.linspace(0.0, 1.0, n + 1)
+    ang = a0 + sign * sweep * t
+    rad = rad0 + (rad1 - rad0) * t
+    pts = s[None, :] + t[:, None] * (e - s)[None, :]
+    pts[:, i] = c[i] + rad * np.cos(ang)
+    pts[:, j] = c[j] + rad * np.sin(ang)
+    pts[:, normal] = s[normal] + t * (e[normal] - s[normal])
+    pts[-1] = e
+    return pts

@@ -1100,49 +1100,10 @@ def _replace_feed(body, feed, fmt, sep):
     return sep.join(out) + comment
 
 
-def _arc_sweep(p: Program, r: int) -> float:
-    plane = int(p.arc_plane[r])
-    i, j = {17: (0, 1), 18: (2, 0), 19: (1, 2)}[plane]
-    c = p.arc_center[r]
-    s, e = p.start[r], p.end[r]
-    a0 = np.arctan2(s[j] - c[j], s[i] - c[i])
-    a1 = np.arctan2(e[j] - c[j], e[i] - c[i])
-    ccw = p.motion[r] == ARC_CCW
-    sweep = (a1 - a0) % (2 * np.pi) if ccw else (a0 - a1) % (2 * np.pi)
-    if sweep < 1e-12:
-        sweep = 2 * np.pi
-    return float(sweep + 2 * np.pi * (max(int(p.arc_turns[r]), 1) - 1))
-
-
-def _arc_points(p: Program, r: int, n: int) -> np.ndarray:
-    """(n+1, 6) points along an arc (program coordinates), from its start to its end; helical axis linear."""
-    plane = int(p.arc_plane[r])
-    i, j = {17: (0, 1), 18: (2, 0), 19: (1, 2)}[plane]
-    normal = 3 - i - j
-    c = p.arc_center[r]
-    s, e = p.start[r], p.end[r]
-    a0 = np.arctan2(s[j] - c[j], s[i] - c[i])
-    sweep = _arc_sweep(p, r)
-    sign = 1.0 if p.motion[r] == ARC_CCW else -1.0
-    rad0 = np.hypot(s[i] - c[i], s[j] - c[j])
-    rad1 = np.hypot(e[i] - c[i], e[j] - c[j])
-    t = np.linspace(0.0, 1.0, n + 1)
-    ang = a0 + sign * sweep * t
-    rad = rad0 + (rad1 - rad0) * t
-    pts = s[None, :] + t[:, None] * (e - s)[None, :]
-    pts[:, i] = c[i] + rad * np.cos(ang)
-    pts[:, j] = c[j] + rad * np.sin(ang)
-    pts[:, normal] = s[normal] + t * (e[normal] - s[normal])
-    pts[-1] = e
-    return pts
-
-
-_PLANE_AXES = {17: (0, 1), 18: (2, 0), 19: (1, 2)}
-
-
 def _arcs_geometry(p: Program, rs):
-    """Per arc row in ``rs``: in-plane axis indices i, j and the normal one, start angle (rad), sweep (rad, turns
-    included, as ``_arc_sweep``), start and end radius (program units)."""
+    """Per arc row in ``rs``: in-plane axis indices i, j and the normal one, start angle (rad), sweep (rad, from start
+    to end in the arc's sense, a full turn when they coincide, plus the extra turns of P), start and end radius
+    (program units)."""
     plane = p.arc_plane[rs].astype(int)
     ii = np.select([plane == 17, plane == 18], [0, 2], 1)
     jj = np.select([plane == 17, plane == 18], [1, 0], 2)
@@ -1160,7 +1121,8 @@ def _arcs_geometry(p: Program, rs):
 
 
 def _arcs_points(p: Program, rs, counts) -> np.ndarray:
-    """``_arc_points`` of many arcs at once: (sum(counts + 1), 6), the same numbers arc after arc."""
+    """(sum(counts + 1), 6) points along the arcs ``rs`` (program coordinates), counts[i] + 1 from each one's start to
+    its end, angle and radius linear in the fraction, the helical axis linear."""
     rs = np.asarray(rs, int)
     counts = np.asarray(counts, int)
     if rs.size == 0:
