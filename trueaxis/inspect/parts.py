@@ -92,12 +92,13 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
+
+from ..fileio import atomic_path, atomic_write
 
 PART_NAMES = ("nas979", "slots")
 COMPENSATION_MODES = ("none", "geometric", "comprehensive")
@@ -663,24 +664,6 @@ def slot_block_description(params: SlotBlockParams | None = None) -> dict:
 # ----------------------------------------------------------------------------------------------------------------------
 
 
-def _atomic_target(path: Path):
-    """A temp file name in ``path``'s folder (closed), for writing then ``os.replace``."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    return tmp
-
-
-def _write_atomic(path: Path, write) -> None:
-    tmp = _atomic_target(path)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def _angular_span(angles: np.ndarray) -> np.ndarray:
     """(T,) largest circular difference among each row of (T, 3) angles, rad (the triangle's span about an axis)."""
     a = np.sort(np.mod(angles, 2 * np.pi), axis=1)
@@ -781,16 +764,16 @@ def write_part(
 
     import cadquery as cq
 
-    _write_atomic(paths["step"], lambda tmp: cq.exporters.export(solid, tmp, exportType="STEP"))
+    with atomic_path(paths["step"]) as tmp:
+        cq.exporters.export(solid, str(tmp), exportType="STEP")
 
-    stl_tmp = _atomic_target(paths["stl"])
-    try:
+    with atomic_path(paths["stl"]) as stl_tmp:
         # Absolute (not relative) deflection: cadquery's exporter scales the tolerance by edge size by default.
-        ok = solid.exportStl(stl_tmp, tolerance=chord_tolerance_mm, angularTolerance=angular_tolerance_rad,
+        ok = solid.exportStl(str(stl_tmp), tolerance=chord_tolerance_mm, angularTolerance=angular_tolerance_rad,
                              ascii=False, relative=False)
         if not ok:
             raise OSError(f"could not write STL for part {name!r}")
-        mesh = trimesh.load_mesh(stl_tmp, file_type="stl")
+        mesh = trimesh.load_mesh(str(stl_tmp), file_type="stl")
         vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
         if name == "nas979":
             bound, dphi = _nas979_chord_bound(vertices, faces, doc["surfaces"][0])
@@ -809,14 +792,9 @@ def write_part(
             "triangles": int(len(mesh.faces)),
             "format": "binary STL, part frame, mm",
         }
-        os.replace(stl_tmp, paths["stl"])
-    except BaseException:
-        if os.path.exists(stl_tmp):
-            os.unlink(stl_tmp)
-        raise
 
     text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
-    _write_atomic(paths["json"], lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+    atomic_write(paths["json"], text)
     return paths
 
 
