@@ -50,6 +50,30 @@ def _parse_vector(text: str, option: str, n: int = 3) -> np.ndarray:
     return v
 
 
+def _number(kind=float, *, low=None, high=None, low_open=False):
+    """An argparse type: a finite ``kind`` within [low, high] (``low_open``: strictly above low). NaN, infinities and
+    out-of-range values are usage errors (exit 2) before any work starts; a NaN bound would otherwise switch a safety
+    check off silently."""
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {'a whole number' if kind is int else 'a number'}") \
+                from None
+        if not np.isfinite(v):
+            raise argparse.ArgumentTypeError(f"{text!r} must be finite")
+        if low is not None and (v <= low if low_open else v < low):
+            raise argparse.ArgumentTypeError(f"{text!r} must be {'>' if low_open else '>='} {low:g}")
+        if high is not None and v > high:
+            raise argparse.ArgumentTypeError(f"{text!r} must be <= {high:g}")
+        return v
+    return parse
+
+
+POSITIVE = _number(low=0.0, low_open=True)
+NON_NEGATIVE = _number(low=0.0)
+
+
 # ---------------------------------------------------------------------------------------------------- commands ----
 def cmd_machine_check(args) -> int:
     from .machine import load_machine
@@ -289,19 +313,19 @@ def build_parser() -> argparse.ArgumentParser:
     po.add_argument("-o", "--output", required=True, help="compensated program (written atomically)")
     po.add_argument("--machine", required=True, help="machine file (TOML)")
     po.add_argument("--mode", default="geometric", choices=["none", "geometric", "comprehensive"])
-    po.add_argument("--tol-um", type=float, default=1.0, help="path tolerance, um (default 1)")
-    po.add_argument("--max-correction-mm", type=float, default=0.5, help="largest correction allowed (default 0.5)")
-    po.add_argument("--singular-deg", type=float, default=1.0,
+    po.add_argument("--tol-um", type=_number(low=1e-4), default=1.0, help="path tolerance, um (default 1)")
+    po.add_argument("--max-correction-mm", type=POSITIVE, default=0.5, help="largest correction allowed (default 0.5)")
+    po.add_argument("--singular-deg", type=_number(low=0.0, high=90.0), default=1.0,
                     help="tilt below which the free rotary axis is held (default 1 deg)")
     po.add_argument("--report", help="write the report JSON here")
     po.add_argument("--passthrough-unsupported", action="store_true",
                     help="leave blocks the reader does not understand as they are (counted in the report)")
     for key, what in (("ap", "axial depth, mm"), ("ae", "radial engagement, mm"), ("fz", "feed per tooth, mm"),
                       ("n", "spindle speed, rpm"), ("d", "tool diameter, mm"), ("z", "flutes")):
-        po.add_argument(f"--{key}", type=float if key != "z" else int, help=f"cutting conditions: {what} "
+        po.add_argument(f"--{key}", type=POSITIVE if key != "z" else _number(int, low=1), help=f"cutting conditions: {what} "
                         "(overrides the program's structured comments)")
     po.add_argument("--cut-mode", choices=["down", "up"], help="cutting conditions: down or up milling")
-    po.add_argument("--cl-feed", type=float, help="CL data: feed, mm/min, for cuts before the data gives one")
+    po.add_argument("--cl-feed", type=POSITIVE, help="CL data: feed, mm/min, for cuts before the data gives one")
     po.add_argument("--cl-branch", choices=["nearest", "+1", "-1"], default="nearest",
                     help="CL data: sign of the tilt axis (default: kept along the path, the one farthest inside "
                          "its travel to start)")
@@ -320,14 +344,14 @@ def build_parser() -> argparse.ArgumentParser:
     pg.add_argument("-o", "--output", required=True, help="program file (written atomically)")
     pg.add_argument("--compensate", choices=["none", "geometric", "comprehensive"],
                     help="nas979: compensation of the program (default geometric); slots: each slot has its own")
-    pg.add_argument("--tool-diameter", type=float, default=10.0, help="nas979: flat end mill diameter, mm (10)")
-    pg.add_argument("--stock-um", type=float, default=200.0,
+    pg.add_argument("--tool-diameter", type=POSITIVE, default=10.0, help="nas979: flat end mill diameter, mm (10)")
+    pg.add_argument("--stock-um", type=POSITIVE, default=200.0,
                     help="nas979: radial stock on the cone before flank milling, um (200)")
-    pg.add_argument("--finish-um", type=float, default=100.0,
+    pg.add_argument("--finish-um", type=POSITIVE, default=100.0,
                     help="nas979: stock the finishing pass removes; more stock adds a semi-finishing pass, um (100)")
-    pg.add_argument("--step-deg", type=float, default=1.0,
+    pg.add_argument("--step-deg", type=_number(low=0.0, high=90.0, low_open=True), default=1.0,
                     help="nas979: largest angle about the cone axis per block, deg (1; refined to --chord-tol-um)")
-    pg.add_argument("--chord-tol-um", type=float, default=0.05,
+    pg.add_argument("--chord-tol-um", type=POSITIVE, default=0.05,
                     help="nas979: largest mid-block departure of the interpolated tool from the offset surface, um")
     pg.add_argument("--placement-mm", help="part origin X,Y off the C axis (off the machine zero without C), mm "
                     "(default: the machine file's [workpiece] origin)")
@@ -342,8 +366,8 @@ def build_parser() -> argparse.ArgumentParser:
     sm.add_argument("--part", required=True, choices=["nas979", "slots"])
     sm.add_argument("--part-dir", help="folder holding <part>.json (default: the default part parameters)")
     sm.add_argument("-o", "--output", required=True, help="CMM cloud (PLY, part frame); <name>.truth.json beside it")
-    sm.add_argument("--points", type=int, default=200_000, help="probe points (200000)")
-    sm.add_argument("--noise-um", type=float, default=0.0, help="probe noise sigma, um (0)")
+    sm.add_argument("--points", type=_number(int, low=1), default=200_000, help="probe points (200000)")
+    sm.add_argument("--noise-um", type=NON_NEGATIVE, default=0.0, help="probe noise sigma, um (0)")
     sm.add_argument("--seed", type=int, default=0, help="noise seed (0)")
     sm.set_defaults(func=cmd_simulate)
 
@@ -362,7 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--candidates", default="all", help="all, or a comma-separated list of candidate effects")
     dg.add_argument("--split", default="region", choices=["region", "time", "random"],
                     help="how held-out points are kept apart from the fitted ones (default region)")
-    dg.add_argument("--noise-um", type=float, help="probe noise sigma, um (default: estimated from the data)")
+    dg.add_argument("--noise-um", type=POSITIVE, help="probe noise sigma, um (default: estimated from the data)")
     dg.add_argument("-o", "--output", default="diagnosis", help="report folder (default ./diagnosis)")
     dg.set_defaults(func=cmd_diagnose)
 
@@ -390,19 +414,109 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _paths(args) -> tuple[list, list]:
+    """The command's input files and outputs, for the output gate: ([(option, path)], [(option, path, is_folder)])."""
+    g = lambda name: getattr(args, name, None)  # noqa: E731 (options a subcommand does not have are None)
+    cmd = args.command
+    if cmd == "post":
+        return [("input", g("input")), ("--machine", g("machine"))], \
+            [("-o", g("output"), False), ("--report", g("report"), False)]
+    if cmd == "program":
+        return [("--machine", g("machine"))], [("-o", g("output"), False), ("--cl", g("cl"), False)]
+    if cmd == "part":
+        return [], [("-o", g("output"), True)]
+    if cmd == "simulate":
+        from .sim.cmm import truth_path
+
+        out = g("output")
+        return [("program", g("program")), ("--machine", g("machine")), ("--effects", g("effects"))], \
+            [("-o", out, False), ("the truth file", None if out is None else truth_path(out), False)]
+    if cmd == "diagnose":
+        return [("--cloud", g("cloud")), ("--machine", g("machine")), ("--program", g("program"))], \
+            [("-o", g("output"), True)]
+    if cmd == "inspect":
+        out = g("output") or Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
+        return [("cloud", g("cloud")), ("--cad", g("cad")), ("--machine", g("machine")), ("--program", g("program"))], \
+            [("-o", out, True), ("--write", g("write"), False)]
+    if cmd == "demo":
+        return [], [("--out", g("out"), True)]
+    return [], []
+
+
+class _Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that ``finally`` blocks and the atomic writers clean up."""
+
+
+def _on_sigterm(signum, frame):
+    raise _Terminated()
+
+
+def _interruption(exc: BaseException | None) -> BaseException | None:
+    """The KeyboardInterrupt or SIGTERM behind ``exc``, or None (a compiled kernel reports a KeyboardInterrupt raised
+    while it ran as a SystemError whose context is the KeyboardInterrupt)."""
+    for _ in range(10):
+        if exc is None or isinstance(exc, (KeyboardInterrupt, _Terminated)):
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+EXIT_FAILURE = 1
+EXIT_SIGINT = 130
+EXIT_SIGTERM = 143
+
+
 def main(argv=None) -> int:
+    """Run one command. Exit status: 0 done; 2 bad input or usage (one line per problem on stderr, nothing written);
+    1 the system refused (a file that cannot be read or written: one line); 130 / 143 interrupted by SIGINT /
+    SIGTERM (one line; earlier outputs intact, no temporary file left)."""
+    import signal
+
+    from .fileio import OutputPathError, check_outputs
     from .machine import MachineFileError
     from .postproc.gcode import GcodeError
 
     args = build_parser().parse_args(argv)
+    if threading_main():
+        signal.signal(signal.SIGTERM, _on_sigterm)
     try:
+        inputs, outputs = _paths(args)
+        for option, path in inputs:
+            if path is not None and Path(path).is_dir():
+                raise UsageError(f"{option} {path}: is a folder; name a file")
+        check_outputs(inputs, outputs)
         return int(args.func(args) or 0)
     except (MachineFileError, GcodeError) as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (UsageError, ValueError, FileNotFoundError) as exc:
+    except (UsageError, OutputPathError, ValueError, FileNotFoundError) as exc:
         print(f"trueaxis {args.command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except (KeyboardInterrupt, _Terminated) as exc:
+        return _report_interruption(args.command, exc)
+    except OSError as exc:  # permissions, a full disk, a read-only file system: the system's word, one line
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"trueaxis {args.command}: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    except SystemError as exc:
+        cause = _interruption(exc)
+        if cause is None:
+            raise
+        return _report_interruption(args.command, cause)
+
+
+def _report_interruption(command: str, exc: BaseException) -> int:
+    term = isinstance(exc, _Terminated)
+    print(f"trueaxis {command}: {'terminated' if term else 'interrupted'}; outputs not finished were not written",
+          file=sys.stderr)
+    return EXIT_SIGTERM if term else EXIT_SIGINT
+
+
+def threading_main() -> bool:
+    """True in the main thread, where signal handlers may be installed (not when a host calls ``main`` elsewhere)."""
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
 
 
 def inspect_main(argv=None) -> int:

@@ -1,26 +1,121 @@
-"""Writing files so that nothing half-written is ever left behind: a temporary file in the same folder, then
-``os.replace`` (atomic on POSIX file systems)."""
+"""Writing files so that nothing half-written is ever left behind, and nothing the user did not name is overwritten.
+
+The output gate, used by every writer and by the CLI before any work starts:
+
+- a file is written as a temporary file in the same folder, then ``os.replace`` (atomic on POSIX file systems); on any
+  error, ``KeyboardInterrupt`` included, the temporary file is removed and the old file is left as it was;
+- a symbolic link is written *through*: its target is replaced and the link kept (as editors do), never the link;
+- a device, FIFO or socket, or a folder where a file is expected (and a file where a folder is expected), is refused;
+- a new file gets the permissions the user's umask gives (``mkstemp`` alone would leave 0600); a replaced file keeps
+  its own permissions;
+- :func:`check_outputs` refuses an output that is one of the inputs or another output, before anything is written.
+"""
 
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
+
+
+class OutputPathError(ValueError):
+    """An output path the gate refuses (a device, a folder for a file, an input named as output, ...)."""
+
+
+def _umask() -> int:
+    """The process' umask (read without changing it for longer than the call)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def new_file_mode() -> int:
+    """Permission bits of a file created now by ``open(path, 'w')``: 0666 less the umask."""
+    return 0o666 & ~_umask()
+
+
+def new_folder_mode() -> int:
+    """Permission bits of a folder created now by ``mkdir``: 0777 less the umask."""
+    return 0o777 & ~_umask()
+
+
+def resolve_output(path: str | os.PathLike, *, folder: bool = False) -> Path:
+    """Where an output named ``path`` really goes (symbolic links followed), after checking it may be written there.
+
+    folder : the output is a folder (a report folder) rather than a file.
+    Raises OutputPathError for a device, FIFO or socket, a folder where a file is expected or the other way round, and
+    a parent that exists but is not a folder.
+    """
+    given = Path(path)
+    if str(path) == "":
+        raise OutputPathError("an output path is empty")
+    real = Path(os.path.realpath(given))
+    if real.exists():
+        mode = real.stat().st_mode
+        if folder:
+            if not stat.S_ISDIR(mode):
+                raise OutputPathError(f"{given}: exists and is not a folder")
+        elif stat.S_ISDIR(mode):
+            raise OutputPathError(f"{given}: is a folder; name a file to write")
+        elif not stat.S_ISREG(mode):
+            raise OutputPathError(f"{given}: is not a regular file (a device, FIFO or socket); refusing to write it")
+    parent = real.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputPathError(f"{given}: {parent} is not a folder")
+    return real
+
+
+def _same(a: Path, b: Path) -> bool:
+    if a.exists() and b.exists():
+        return os.path.samefile(a, b)
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_outputs(inputs: Iterable[tuple[str, str | os.PathLike | None]],
+                  outputs: Iterable[tuple[str, str | os.PathLike | None, bool]]) -> None:
+    """Refuse, before any work, outputs that would destroy an input or each other.
+
+    inputs : (option name, path or None) pairs; outputs : (option name, path or None, is_folder) triples. None entries
+    (options not given) are skipped. An output folder may not contain an input file either (the old report folder is
+    replaced whole). Raises OutputPathError naming both options.
+    """
+    ins = [(name, Path(p)) for name, p in inputs if p is not None and str(p) != "-"]
+    outs = [(name, Path(p), folder) for name, p, folder in outputs if p is not None and str(p) != "-"]
+    for name, out, folder in outs:
+        resolve_output(out, folder=folder)
+        for in_name, inp in ins:
+            inside = folder and out.exists() and inp.exists() and \
+                Path(os.path.realpath(inp)).is_relative_to(Path(os.path.realpath(out)))
+            if _same(out, inp) or inside:
+                raise OutputPathError(f"{name} {out} would overwrite the input {in_name} {inp}; name another output")
+    for i, (name_a, a, _) in enumerate(outs):
+        for name_b, b, _ in outs[i + 1:]:
+            if _same(a, b):
+                raise OutputPathError(f"{name_a} and {name_b} name the same file {a}; name two outputs")
 
 
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary file beside ``path`` for writers that want a file name (exporters): when the block ends without an
-    error the temporary file replaces ``path``; on an error it is removed and ``path`` is left as it was."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, temp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    error the temporary file replaces ``path`` (through a symbolic link, with the permissions described above); on an
+    error it is removed and ``path`` is left as it was."""
+    target = resolve_output(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    mode = stat.S_IMODE(target.stat().st_mode) if target.exists() else new_file_mode()
+    try:
+        fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    except OSError as exc:  # name the user's path, not the temporary one
+        raise OSError(exc.errno, f"cannot write here: {exc.strerror}", str(path)) from None
     os.close(fd)
     try:
         yield Path(temp)
-        os.replace(temp, path)
+        os.chmod(temp, mode)
+        os.replace(temp, target)
     except BaseException:
         if os.path.exists(temp):
             os.unlink(temp)
@@ -37,3 +132,25 @@ def atomic_write(path: str | os.PathLike, data: bytes | str, encoding: str = "ut
             f.flush()
             os.fsync(f.fileno())
     return Path(path)
+
+
+def publish_folder(temp: Path, out: Path) -> None:
+    """Move a finished temporary folder ``temp`` into place as ``out`` (an old ``out`` is replaced whole), with the
+    umask's permissions (``mkdtemp`` makes 0700)."""
+    out = resolve_output(out, folder=True)
+    os.chmod(temp, new_folder_mode())
+    old = None
+    if out.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+        os.rmdir(old)
+        os.replace(out, old)
+    try:
+        os.replace(temp, out)
+    except BaseException:
+        if old is not None:
+            os.replace(old, out)
+        raise
+    if old is not None:
+        import shutil
+
+        shutil.rmtree(old, ignore_errors=True)

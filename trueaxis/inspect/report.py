@@ -44,7 +44,6 @@ import dataclasses
 import html
 import json
 import math
-import os
 import shutil
 import tempfile
 from dataclasses import dataclass, field
@@ -52,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..fileio import OutputPathError, publish_folder, resolve_output
 from . import deviation as dv
 from . import form
 from .cloud import Cloud, CloudError, check_extent, read_cloud
@@ -541,10 +541,11 @@ def write_report(inspection: Inspection, out_dir) -> Path:
     The folder is built as a temporary sibling and renamed into place; an existing ``out_dir`` (a previous report)
     is moved aside first and removed once the new one is in place. Returns the folder.
     """
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise dv.InspectionError(f"{out}: exists and is not a folder")
-    parent = out.parent if str(out.parent) else Path(".")
+    try:
+        out = resolve_output(out_dir, folder=True)  # a link to a folder: the folder it names
+    except OutputPathError as exc:
+        raise dv.InspectionError(str(exc)) from None
+    parent = out.parent
     parent.mkdir(parents=True, exist_ok=True)
     temp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
     try:
@@ -553,14 +554,7 @@ def write_report(inspection: Inspection, out_dir) -> Path:
         report["files"] = ["report.json", "report.html"] + [name for name, _ in images]
         (temp / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         (temp / "report.html").write_text(_html(report, images, temp), encoding="utf-8")
-        old = None
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=parent))
-            os.rmdir(old)
-            os.replace(out, old)
-        os.replace(temp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        publish_folder(temp, out)
     except BaseException:
         shutil.rmtree(temp, ignore_errors=True)
         raise

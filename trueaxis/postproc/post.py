@@ -23,6 +23,7 @@ direction normal to it, y = z x x. Rapids and plunges carry no force.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -174,8 +175,12 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     blocks of the report then name lines of the CL file."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
-    if not (tol_um > 0):
-        raise ValueError(f"tolerance must be positive, got {tol_um} um")
+    if not (math.isfinite(tol_um) and tol_um > 0):
+        raise ValueError(f"tolerance must be a finite number > 0, got {tol_um} um")
+    if not (math.isfinite(max_correction_mm) and max_correction_mm > 0):  # NaN would switch the safety bound off
+        raise ValueError(f"the largest correction allowed must be a finite number > 0, got {max_correction_mm} mm")
+    if not (math.isfinite(singular_deg) and 0 <= singular_deg <= 90):
+        raise ValueError(f"the singular tilt must be within [0, 90] deg, got {singular_deg}")
     from .cl import cl_format
 
     if cl_format(text) is not None:

@@ -1,0 +1,174 @@
+"""The command line's gates: numeric options, output paths that would destroy something, signals, system errors.
+Every refusal is one line on stderr, no traceback, and nothing written."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import DATA, MACHINES
+
+BC = str(DATA / "bc_table.toml")
+PROGRAM = "G21 G90 G17\nG0 X0 Y0 Z10 B0 C0\nG1 X10 Y5 Z-1 F500\nG1 X20 Y-5 B10 C30\nM30\n"
+
+
+def run(*args, cwd=None, umask=None):
+    pre = (lambda: os.umask(umask)) if umask is not None else None
+    return subprocess.run([sys.executable, "-m", "trueaxis.cli", *args], capture_output=True, text=True, cwd=cwd,
+                          preexec_fn=pre)
+
+
+def one_line_refusal(r, code=2, words=""):
+    assert r.returncode == code, (r.returncode, r.stderr)
+    assert "Traceback" not in r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 or r.stderr.startswith("usage:"), r.stderr
+    assert words in r.stderr, r.stderr
+
+
+@pytest.fixture()
+def program(tmp_path):
+    p = tmp_path / "in.ngc"
+    p.write_text(PROGRAM)
+    return p
+
+
+@pytest.mark.parametrize("option, value", [
+    ("--max-correction-mm", "nan"), ("--max-correction-mm", "inf"), ("--max-correction-mm", "0"),
+    ("--tol-um", "-1"), ("--tol-um", "nan"), ("--singular-deg", "nan"), ("--fz", "-0.1"), ("--z", "0"),
+    ("--cl-feed", "inf")])
+def test_post_refuses_non_finite_or_out_of_range_options_before_any_work(tmp_path, program, option, value):
+    out = tmp_path / "out.ngc"
+    r = run("post", str(program), "-o", str(out), "--machine", BC, option, value)
+    assert r.returncode == 2 and option in r.stderr and "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+def test_post_library_refuses_a_nan_correction_bound_too(program):
+    """The CLI's number gate has a twin in the library, for the hosts (CadQuery, FreeCAD) that call it directly."""
+    from trueaxis.machine import load_machine
+    from trueaxis.postproc.post import post_text
+
+    with pytest.raises(ValueError, match="largest correction"):
+        post_text(PROGRAM, load_machine(BC), max_correction_mm=float("nan"))
+
+
+@pytest.mark.parametrize("args", [
+    ["program", "nas979", "--step-deg", "0"], ["program", "nas979", "--tool-diameter", "nan"],
+    ["simulate", "x.ngc", "--machine", BC, "--part", "nas979", "--points", "0"],
+    ["simulate", "x.ngc", "--machine", BC, "--part", "nas979", "--noise-um", "inf"]])
+def test_other_commands_refuse_zero_and_non_finite_options(tmp_path, args):
+    r = run(*args, "-o", str(tmp_path / "o"))
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "must be" in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_report_naming_the_output_or_the_input_is_refused_and_the_input_kept(tmp_path, program):
+    out = tmp_path / "out.ngc"
+    r = run("post", str(program), "-o", str(out), "--machine", BC, "--report", str(out))
+    one_line_refusal(r, 2, "same file")
+    assert not out.exists()
+    r = run("post", str(program), "-o", str(tmp_path / "o2.ngc"), "--machine", BC, "--report", str(program))
+    one_line_refusal(r, 2, "would overwrite the input")
+    r = run("post", str(program), "-o", str(program), "--machine", BC)
+    one_line_refusal(r, 2, "would overwrite the input")
+    assert program.read_text() == PROGRAM
+
+
+def test_an_output_through_a_symbolic_link_replaces_the_target_and_keeps_the_link(tmp_path, program):
+    target = tmp_path / "real.ngc"
+    target.write_text("old")
+    link = tmp_path / "link.ngc"
+    link.symlink_to(target)
+    r = run("post", str(program), "-o", str(link), "--machine", BC)
+    assert r.returncode == 0, r.stderr
+    assert link.is_symlink() and link.resolve() == target
+    assert target.read_text().startswith("G21") or "G1" in target.read_text()
+    # a link to the input is the input
+    link_in = tmp_path / "link_in.ngc"
+    link_in.symlink_to(program)
+    one_line_refusal(run("post", str(program), "-o", str(link_in), "--machine", BC), 2, "overwrite the input")
+    assert program.read_text() == PROGRAM
+
+
+def test_device_files_and_folders_are_refused_as_outputs_and_folders_as_inputs(tmp_path, program):
+    one_line_refusal(run("post", str(program), "-o", "/dev/null", "--machine", BC), 2, "not a regular file")
+    assert Path("/dev/null").is_char_device()
+    one_line_refusal(run("post", str(program), "-o", str(tmp_path), "--machine", BC), 2, "is a folder")
+    one_line_refusal(run("post", str(tmp_path), "-o", str(tmp_path / "o.ngc"), "--machine", BC), 2, "is a folder")
+    # a report folder that is a file
+    cloud_like = tmp_path / "c.ply"
+    cloud_like.write_text("ply\n")
+    one_line_refusal(run("inspect", str(program), "--part", "nas979", "-o", str(program)), 2)
+    assert program.read_text() == PROGRAM
+
+
+@pytest.mark.parametrize("umask, mode", [(0o022, 0o644), (0o027, 0o640)])
+def test_new_outputs_honour_the_umask_and_replaced_ones_keep_their_mode(tmp_path, program, umask, mode):
+    out = tmp_path / "out.ngc"
+    r = run("post", str(program), "-o", str(out), "--machine", BC, "--report", str(tmp_path / "r.json"), umask=umask)
+    assert r.returncode == 0, r.stderr
+    assert out.stat().st_mode & 0o777 == mode
+    assert (tmp_path / "r.json").stat().st_mode & 0o777 == mode
+    out.chmod(0o600)
+    assert run("post", str(program), "-o", str(out), "--machine", BC, umask=umask).returncode == 0
+    assert out.stat().st_mode & 0o777 == 0o600
+
+
+def test_a_destination_the_system_refuses_is_one_line_exit_1_naming_the_users_path(program):
+    # /sys refuses new files even to root (a chmod'ed folder would not stop root)
+    r = run("post", str(program), "-o", "/sys/trueaxis_out.ngc", "--machine", BC)
+    one_line_refusal(r, 1, "/sys/trueaxis_out.ngc")
+    assert ".tmp" not in r.stderr
+
+
+def _big_program(path: Path, blocks: int):
+    import numpy as np
+
+    t = np.linspace(0, 40 * np.pi, blocks)
+    lines = ["G21 G90 G17", "G0 X0 Y0 Z10 B0 C0", "G1 F800"]
+    lines += [f"X{40 * np.cos(a):.4f} Y{40 * np.sin(a):.4f} Z{-5 + np.sin(3 * a):.4f} B{20 * np.sin(a / 7):.3f} "
+              f"C{np.degrees(a) % 360:.3f}" for a in t]
+    path.write_text("\n".join(lines + ["M30", ""]))
+
+
+def _wait_until_computing(proc, timeout=60.0):
+    """Until the process has imported the compiled kernels (it is past start-up and inside the post)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            if "llvmlite" in Path(f"/proc/{proc.pid}/maps").read_text():
+                return
+        except OSError:
+            pass
+        time.sleep(0.05)
+    pytest.fail("the post never loaded its compiled kernels")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_ends_the_post_quickly_with_one_line_and_leaves_the_previous_output(tmp_path, sig, code):
+    prog = tmp_path / "big.ngc"
+    _big_program(prog, 150_000)
+    out = tmp_path / "out.ngc"
+    out.write_text("previous output")
+    proc = subprocess.Popen([sys.executable, "-m", "trueaxis.cli", "post", str(prog), "-o", str(out),
+                             "--machine", str(MACHINES / "nmv1500dcg.toml")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_until_computing(proc)
+    time.sleep(0.5)
+    sent = time.monotonic()
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    took = time.monotonic() - sent
+    assert proc.returncode == code, (proc.returncode, err)
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert took < 3.0, took  # the issue asks for a second; margin for a loaded CI machine
+    assert out.read_text() == "previous output"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["big.ngc", "out.ngc"]
