@@ -99,3 +99,28 @@ def test_machine_check_accepts_the_fixtures():
                          capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert ": ok:" in run.stdout
+
+
+@pytest.mark.parametrize("key, section, value", [
+    ("XOC", "location", "1e308"), ("AOC", "location", "2e5"), ("length", "tool", "1e308"),
+    ("origin", "workpiece", "[0.0, 0.0, 1e308]")])
+def test_values_beyond_the_physical_range_are_refused_naming_the_key(tmp_path, key, section, value):
+    """1e308 is finite, but no machine has it; let through, it overflows in the twin far from its key (a post then
+    wrote a Z without correction)."""
+    from trueaxis.machine import MachineFileError, load_machine
+
+    lines = [line for line in GOOD.splitlines() if line.split("=")[0].strip() != key]  # the file's own value out
+    at = lines.index(f"[{section}]")
+    lines.insert(at + 1, f"{key} = {value}")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(MachineFileError, match=rf"{section}\.{key}.*physical range"):
+        load_machine(bad)
+
+
+def test_a_byte_order_mark_is_read_as_the_utf8_signature_it_is(tmp_path):
+    from trueaxis.machine import load_machine
+
+    bom = tmp_path / "bom.toml"
+    bom.write_bytes(b"\xef\xbb\xbf" + (DATA / "bc_table.toml").read_bytes())
+    assert load_machine(bom).name == load_machine(DATA / "bc_table.toml").name

@@ -24,6 +24,7 @@ from .model import (
     ResponseSurface,
     Tool,
     rotary_location_names,
+    unit_of,
 )
 from .transforms import UNIT
 
@@ -38,6 +39,16 @@ class MachineFileError(ValueError):
         self.source = source
         self.problems = list(problems)
         super().__init__("\n".join(f"{source}: {p}" for p in self.problems))
+
+
+# Physical ranges: a value beyond these is a typing error, not a machine (DESIGN §4 units). They keep 1e308 and the
+# like from reaching the twin, where they would overflow to infinity far from the key that caused it.
+LIMIT_LENGTH_MM = 10_000.0          # travel, pivots, part origin, tool sizes: no machine tool is 10 m from its origin
+LIMIT_ERROR_UM = 10_000.0           # a location or component error of 10 mm is a wrong file, not a machine
+LIMIT_ERROR_URAD = 100_000.0        # 0.1 rad = 5.7 deg
+LIMIT_COMPLIANCE_UM_PER_N = 100.0   # 0.01 N/um: softer than any machine tool structure
+LIMIT_FORCE_N = 100_000.0
+LIMIT_CUTTING = 100_000.0           # N/mm2 or N/mm
 
 
 class _Checker:
@@ -61,12 +72,16 @@ class _Checker:
                 self.fail(f"{path}.{key}" if path else key, "missing")
         return data
 
-    def number(self, value, path, positive=False, nonnegative=False, default=None):
+    def number(self, value, path, positive=False, nonnegative=False, default=None, limit=None):
+        """A finite number (within +-limit when given); else the problem is recorded and ``default`` returned."""
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             self.fail(path, f"expected a number, got {type(value).__name__} {value!r}")
             return default
         if not math.isfinite(value):
             self.fail(path, f"must be finite, got {value}")
+            return default
+        if limit is not None and abs(value) > limit:
+            self.fail(path, f"{value:g} is beyond the physical range +-{limit:g}")
             return default
         if positive and value <= 0:
             self.fail(path, f"must be positive, got {value}")
@@ -76,14 +91,14 @@ class _Checker:
             return default
         return float(value)
 
-    def numbers(self, value, path, length=None):
+    def numbers(self, value, path, length=None, limit=None):
         if not isinstance(value, list):
             self.fail(path, f"expected an array of numbers, got {type(value).__name__}")
             return None
         if length is not None and len(value) != length:
             self.fail(path, f"expected {length} numbers, got {len(value)}")
             return None
-        out = [self.number(v, f"{path}[{i}]") for i, v in enumerate(value)]
+        out = [self.number(v, f"{path}[{i}]", limit=limit) for i, v in enumerate(value)]
         return None if any(v is None for v in out) else np.asarray(out, dtype=float)
 
     def string(self, value, path, choices=None):
@@ -100,7 +115,7 @@ def load_machine(path: str | Path) -> Machine:
     """Read a machine file; raise MachineFileError listing every problem (key path in each line)."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark, as some Windows editors write, is not TOML
     except FileNotFoundError:
         raise MachineFileError(str(path), ["file not found"]) from None
     except (OSError, UnicodeDecodeError) as exc:
@@ -146,14 +161,15 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
         ck.fail("tool.flutes", f"expected a positive whole number, got {flutes!r}")
         flutes = 4
     tool = Tool(
-        length=ck.number(t.get("length", 100.0), "tool.length", positive=True, default=100.0),
-        radius=ck.number(t.get("radius", 5.0), "tool.radius", positive=True, default=5.0),
+        length=ck.number(t.get("length", 100.0), "tool.length", positive=True, default=100.0, limit=LIMIT_LENGTH_MM),
+        radius=ck.number(t.get("radius", 5.0), "tool.radius", positive=True, default=5.0, limit=LIMIT_LENGTH_MM),
         flutes=flutes,
-        flute_length=ck.number(t.get("flute_length", 30.0), "tool.flute_length", positive=True, default=30.0),
-        helix_deg=ck.number(t.get("helix_deg", 30.0), "tool.helix_deg", nonnegative=True, default=30.0),
+        flute_length=ck.number(t.get("flute_length", 30.0), "tool.flute_length", positive=True, default=30.0,
+                               limit=LIMIT_LENGTH_MM),
+        helix_deg=ck.number(t.get("helix_deg", 30.0), "tool.helix_deg", nonnegative=True, default=30.0, limit=89.0),
     )
     w = ck.table(data.get("workpiece", {}), "workpiece", {"origin"})
-    origin = ck.numbers(w.get("origin", [0.0, 0.0, 0.0]), "workpiece.origin", 3)
+    origin = ck.numbers(w.get("origin", [0.0, 0.0, 0.0]), "workpiece.origin", 3, limit=LIMIT_LENGTH_MM)
     origin = np.zeros(3) if origin is None else origin
 
     layout = Machine(name, kind, axes, wp, tl, tool, origin, ErrorSet(), source=source)
@@ -162,7 +178,7 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
     loaded = loaded_force = None
     if "loaded" in data:
         ld = ck.table(data["loaded"], "loaded", {"force_n", "location", "component"}, ("force_n",))
-        loaded_force = ck.numbers(ld.get("force_n", [0.0, 0.0, 0.0]), "loaded.force_n", 3)
+        loaded_force = ck.numbers(ld.get("force_n", [0.0, 0.0, 0.0]), "loaded.force_n", 3, limit=LIMIT_FORCE_N)
         loaded = _read_error_set(ld, "loaded.", layout, ck)
 
     compliance, surfaces = None, ()
@@ -173,7 +189,7 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
             if not isinstance(rows, list) or len(rows) != 3:
                 ck.fail("force.compliance_um_per_n", "expected a 3x3 array (rows of 3 numbers)")
             else:
-                got = [ck.numbers(r, f"force.compliance_um_per_n[{i}]", 3) for i, r in enumerate(rows)]
+                got = [ck.numbers(r, f"force.compliance_um_per_n[{i}]", 3, limit=LIMIT_COMPLIANCE_UM_PER_N) for i, r in enumerate(rows)]
                 if all(g is not None for g in got):
                     compliance = np.vstack(got)
         surfaces = tuple(_read_surfaces(f.get("surface", []), axes, ck))
@@ -184,7 +200,7 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
         cutting = {"material": ck.string(c.get("material", ""), "cutting.material") or ""}
         for key in CUTTING_KEYS:
             if key in c:
-                cutting[key] = ck.number(c[key], f"cutting.{key}", nonnegative=True, default=0.0)
+                cutting[key] = ck.number(c[key], f"cutting.{key}", nonnegative=True, default=0.0, limit=LIMIT_CUTTING)
 
     return Machine(
         name=name,
@@ -220,7 +236,8 @@ def _read_axes(data, ck: _Checker) -> dict[str, Axis]:
             ck.fail(f"{path}.type", f"axis {name} is a linear axis letter; rotary axes are A, B, C")
         travel = None
         if "travel" in spec:
-            tr = ck.numbers(spec["travel"], f"{path}.travel", 2)
+            tr = ck.numbers(spec["travel"], f"{path}.travel", 2,
+                            limit=36_000.0 if name in "ABC" else LIMIT_LENGTH_MM)
             if tr is not None:
                 if tr[0] >= tr[1]:
                     ck.fail(f"{path}.travel", f"must be [low, high] with low < high, got {list(tr)}")
@@ -231,7 +248,7 @@ def _read_axes(data, ck: _Checker) -> dict[str, Axis]:
         if kind == "rotary":
             about = ck.string(spec.get("about", DEFAULT_ABOUT.get(name, "Z")), f"{path}.about", ("X", "Y", "Z")) or "Z"
             if "pivot" in spec:
-                p = ck.numbers(spec["pivot"], f"{path}.pivot", 3)
+                p = ck.numbers(spec["pivot"], f"{path}.pivot", 3, limit=LIMIT_LENGTH_MM)
                 pivot = p if p is not None else pivot
             direction = UNIT[about]
         else:
@@ -277,7 +294,8 @@ def _read_error_set(data, prefix: str, layout: Machine, ck: _Checker) -> ErrorSe
                 if key in _all_location_names():
                     ck.fail(f"{prefix}location.{key}", f"{key} does not exist for this machine's axes ({_layout_word(layout)})")
                 continue
-            v = ck.number(value, f"{prefix}location.{key}")
+            v = ck.number(value, f"{prefix}location.{key}",
+                          limit=_error_limit(key))
             if v is not None and v != 0.0:
                 location[key] = v
     components = {}
@@ -292,6 +310,11 @@ def _read_error_set(data, prefix: str, layout: Machine, ck: _Checker) -> ErrorSe
             continue
         components[axis_name] = _read_components(spec, path, layout.axes[axis_name], ck)
     return ErrorSet(location=location, components=components)
+
+
+def _error_limit(name: str) -> float:
+    """Physical range of an error parameter's value in the file's unit (um or urad)."""
+    return LIMIT_ERROR_URAD if unit_of(name) == "urad" else LIMIT_ERROR_UM
 
 
 def _all_location_names() -> set[str]:
@@ -346,7 +369,7 @@ def _read_components(spec, path: str, axis: Axis, ck: _Checker):
                 ck.fail(f"{path}.interpolation", "cubic interpolation needs at least 3 positions")
                 ok = False
             for n in table_names:
-                vals = ck.numbers(spec[n], f"{path}.{n}")
+                vals = ck.numbers(spec[n], f"{path}.{n}", limit=_error_limit(n))
                 if vals is None or not ok:
                     continue
                 if vals.size != at.size:
@@ -374,7 +397,7 @@ def _read_components(spec, path: str, axis: Axis, ck: _Checker):
                 ck.fail(p, f"{n} is given twice (as a table and as a series)")
                 continue
             if form == "legendre":
-                c = ck.numbers(coeffs, p)
+                c = ck.numbers(coeffs, p, limit=_error_limit(n))
                 if c is None or c.size == 0:
                     continue
                 if axis.travel is None and not axis.is_rotary:
@@ -386,7 +409,7 @@ def _read_components(spec, path: str, axis: Axis, ck: _Checker):
                 if not isinstance(coeffs, list) or not coeffs:
                     ck.fail(p, "expected rows [k, cos amplitude, sin amplitude]")
                     continue
-                rows = [ck.numbers(r, f"{p}[{i}]", 3) for i, r in enumerate(coeffs)]
+                rows = [ck.numbers(r, f"{p}[{i}]", 3, limit=max(_error_limit(n), 360.0)) for i, r in enumerate(coeffs)]
                 if any(r is None for r in rows):
                     continue
                 k = np.array([r[0] for r in rows])
