@@ -298,6 +298,10 @@ def test_posted_cl_lands_on_the_cl_poses_and_stays_on_the_cl_path(name):
     out = compensate(CL_APT, m, "geometric", tol_um=TOL_UM, report=report)
     assert report["input_format"] == "cl-apt" and report["cl_points"] == len(cl)
     q, _ = machine_rows(parse_program(out), m)
+    # The last move is the APT END's retract of Z, not a CL pose: the rest must be on the CL path.
+    assert abs(q[-1, 2] - (m.axes["Z"].travel[1] - 1.0)) < 0.05 and np.allclose(q[-1, [0, 1, 3, 4]], q[-2, [0, 1, 3, 4]],
+                                                                                 atol=0.05)
+    q = q[:-1]
     twin = ErrorTwin(m)
     pa, ua = twin.actual_pose(q)
     # Every CL pose is reached (nearest output pose within 0.1 um and 1 urad).
@@ -338,10 +342,47 @@ def _slerp(a, b, t):
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-def test_csv_and_apt_post_to_the_same_program(nmv):
+def test_csv_and_apt_post_to_the_same_moves_and_apt_keeps_its_setup(nmv):
     a = compensate(CL_CSV, nmv, "geometric").splitlines()
     b = compensate(CL_APT, nmv, "geometric").splitlines()
-    assert a[:1] + a[2:] == b[:1] + b[2:]  # line 2 is the comment naming the source
+    # The APT file's setup, where it stands: PARTNO, CUTTER, LOADTL, SPINDL before the first move; END after the last.
+    head = ["(PARTNO CONE FLANK)", "(trueaxis: d=10)", "T1 M6", "G43 H1", "S5000 M3"]
+    assert b[3:8] == head
+    end = b.index("M5")
+    assert b[end - 1].startswith("G0 ") and b[end + 1] == "M9" and b[end + 2:] == ["G94", "M30", "%"]
+    z = float(next(w for w in b[end - 1].split() if w.startswith("Z"))[1:])
+    assert z == pytest.approx(100.0 - 1.0, abs=0.01)  # Z travel's top less the margin, then compensated
+    # Every other line the same as the CSV's (line 2 is the comment naming the source)
+    assert a[:1] + a[2:-3] == b[:1] + b[2:3] + b[8:end - 2]
+
+
+@pytest.mark.parametrize("statement, words", [
+    ("SPINDL/RPM,1200,CCLW", ["S1200 M4"]), ("SPINDL/OFF", ["M5"]), ("COOLNT/MIST", ["M7"]), ("COOLNT/OFF", ["M9"]),
+    ("LOADTL/3,ADJUST,13", ["T3 M6", "G43 H13"]), ("PPRINT/ROUGH (SIDE)", ["(PPRINT ROUGH [SIDE])"])])
+def test_apt_setup_statements_become_the_controls_words_before_the_next_move(nmv, statement, words):
+    text = CL_APT.read_text().replace("RAPID\n", f"RAPID\n{statement}\n", 1)
+    out = cl_to_program(read_cl(text), nmv).splitlines()
+    first_move = next(i for i, s in enumerate(out) if s.startswith("G94 G0"))
+    assert out[first_move - len(words):first_move] == words
+
+
+@pytest.mark.parametrize("statement, message", [
+    ("TURRET/2", "APT statement TURRET is not read"), ("SPINDL/200,SFM", "surface speed"),
+    ("COOLNT/THRU", "ON, FLOOD, MIST or OFF"), ("LOADTL/1.5", "whole numbers"), ("CUTTER/0", "tool diameter")])
+def test_apt_statements_not_read_are_refused_with_their_line(statement, message):
+    text = CL_APT.read_text().replace("RAPID\n", f"RAPID\n{statement}\n", 1)
+    line = text.splitlines().index(statement) + 1
+    with pytest.raises(ClError, match=rf":{line}: .*{message}"):
+        read_cl(text, "cl.apt")
+
+
+def test_apt_end_needs_a_z_travel_for_its_retract(bc_machine):
+    import dataclasses
+
+    z = dataclasses.replace(bc_machine.axes["Z"], travel=None)
+    m = dataclasses.replace(bc_machine, axes={**bc_machine.axes, "Z": z})
+    with pytest.raises(ClError, match="END retracts Z"):
+        cl_to_program(read_cl(CL_APT), m)
 
 
 def test_the_cl_path_keeps_its_branch_and_winds_the_shortest_way(nmv):

@@ -8,10 +8,15 @@ Two formats, told apart by content (:func:`cl_format`):
   with a rapid; every other row is a cutting move.
 - **APT** (CL print style): ``GOTO/x,y,z,i,j,k`` (``GOTO/x,y,z`` keeps the previous tool axis, +Z at the start),
   ``FEDRAT/f`` (mm/min; ``FEDRAT/f,MMPM``, ``FEDRAT/MMPM,f``, ``IPM`` in inch/min), ``RAPID`` (the next GOTO is a rapid),
-  ``FROM/x,y,z[,i,j,k]`` (a rapid to the start), ``UNITS/MM`` or ``UNITS/INCHES``; ``$$`` starts a comment and a
-  trailing ``$`` continues a statement on the next line. Other statements that do not move the tool (PARTNO, CUTTER,
-  LOADTL, SPINDL, COOLNT, MULTAX, END, FINI, ...) are skipped; statements that move it in ways not read here
-  (GODLTA, CIRCLE, MOVARC, per-revolution feeds) are refused with ``file:line: reason``.
+  ``FROM/x,y,z[,i,j,k]`` (a rapid to the start), ``UNITS/MM`` or ``UNITS/INCHES``, ``TLAXIS/i,j,k`` (the tool axis of
+  the GOTOs that follow); ``$$`` starts a comment and a trailing ``$`` continues a statement on the next line.
+  The program's setup is written as the control's words where it stands (:data:`APT_SETUP`): ``LOADTL/n[,ADJUST,h]``
+  -> ``T n M6`` and ``G43 H n`` (or ``H h``), ``SPINDL/[RPM,]s[,CLW|CCLW]`` -> ``S s M3`` / ``M4``, ``SPINDL/OFF`` ->
+  ``M5``, ``COOLNT/ON|FLOOD|MIST|OFF`` -> ``M8`` / ``M7`` / ``M9``, ``CUTTER/d`` -> the structured comment
+  ``(trueaxis: d=...)`` the post's force model reads, ``GOHOME`` -> ``G28``, ``END`` -> a rapid retract of Z to 1 mm below the top of
+  its travel, then spindle and coolant off, ``PARTNO`` / ``PPRINT`` -> comments. ``MULTAX``, ``FINI``, ``INTOL``,
+  ``OUTTOL`` and ``TOLER`` change nothing. Any other statement is refused with ``file:line: reason``: a statement
+  skipped silently could be a setup the machine then lacks.
 
 Lengths in mm in the part frame (APT ``UNITS/INCHES`` is converted), tool axis from tip towards the spindle (it is
 normalised).
@@ -32,7 +37,8 @@ normalised).
   each piece of a split segment takes its share of the segment's time. A move with no tip motion (a pure
   reorientation) takes the time the tool's gauge point (tool length away from the tip) needs at the feed.
 
-Output: ``%``, a comment, ``G21 G90 G17``, rapids as ``G94 G0``, cuts as ``G93 G1 ... F``, ``G94 M30 %``; 6 decimals.
+Output: ``%``, a comment, ``G21 G90 G17``, rapids as ``G94 G0``, cuts as ``G93 G1 ... F``, the setup statements'
+blocks before the move that follows them, ``G94 M30 %``; 6 decimals.
 """
 
 from __future__ import annotations
@@ -68,6 +74,18 @@ class ClError(PostError):
     """Bad CL data: ``file:line: reason`` (a PostError, so callers and the CLI report it like any refused input)."""
 
 
+@dataclass(frozen=True)
+class SetupBlock:
+    """A block of the program's setup (tool change, spindle, coolant, ...) written before CL point ``before``
+    (``before`` = number of points: after the last move). words: the G-code words; retract: a rapid of Z to the top
+    of its travel (APT END), which needs the machine; line: the APT line it comes from."""
+
+    before: int
+    words: str
+    line: int
+    retract: bool = False
+
+
 @dataclass
 class ClData:
     """CL poses, part frame.  tip (N,3) mm; axis (N,3) unit vectors; feed (N,) mm/min (NaN: none given yet);
@@ -80,6 +98,7 @@ class ClData:
     line: np.ndarray
     source: str
     format: str
+    setup: tuple = ()  # SetupBlock, in program order
 
     def __len__(self) -> int:
         return int(self.tip.shape[0])
@@ -137,7 +156,7 @@ def read_cl(text_or_path, source: str | None = None) -> ClData:
     return cl
 
 
-def _finish(tip, axis, feed, rapid, line, source, fmt) -> ClData:
+def _finish(tip, axis, feed, rapid, line, source, fmt, setup=()) -> ClData:
     tip = np.asarray(tip, float).reshape(-1, 3)
     axis = np.asarray(axis, float).reshape(-1, 3)
     line = np.asarray(line, int)
@@ -156,7 +175,7 @@ def _finish(tip, axis, feed, rapid, line, source, fmt) -> ClData:
     given = np.where(np.isfinite(feed), np.arange(feed.size), -1)
     last = np.maximum.accumulate(given) if feed.size else given
     feed = np.where(last >= 0, feed[np.maximum(last, 0)], np.nan)
-    return ClData(tip, axis / norm[:, None], feed, np.asarray(rapid, bool), line, source, fmt)
+    return ClData(tip, axis / norm[:, None], feed, np.asarray(rapid, bool), line, source, fmt, tuple(setup))
 
 
 def _read_csv(text: str, source: str) -> ClData:
@@ -237,8 +256,73 @@ def _apt_numbers(args: str, source: str, line: int, what: str):
         raise ClError(source, line, f"{what}: expected numbers separated by commas, got {args.strip()!r}") from None
 
 
+def _comment(text: str) -> str:
+    """Text as a G-code comment (parentheses inside would end it early)."""
+    return "(" + text.replace("(", "[").replace(")", "]").strip() + ")"
+
+
+def _apt_setup(word: str, args: str | None, source: str, line: int, scale: float, state: dict) -> str:
+    """G-code blocks (lines joined by newlines) for an APT setup statement other than END (module docstring).
+    ``state`` carries the spindle speed between SPINDL statements."""
+    if word in ("PARTNO", "PPRINT"):  # free text
+        return _comment(f"{word} {args or ''}")
+    if word == "GOHOME":
+        return "G94\nG28"
+    parts = [p.strip().upper() for p in (args or "").split(",") if p.strip()]
+    names = [p for p in parts if re.fullmatch(r"[A-Z]+", p)]
+    nums = []
+    for p in parts:
+        if p not in names:
+            try:
+                nums.append(float(p))
+            except ValueError:
+                raise ClError(source, line, f"{word}/: {p!r} is neither a number nor a keyword") from None
+    if word == "LOADTL":
+        if names not in ([], ["ADJUST"]) or len(nums) != (2 if names else 1):
+            raise ClError(source, line, "LOADTL/ reads LOADTL/n or LOADTL/n,ADJUST,h; other modifiers are not read")
+        if not all(math.isfinite(v) and v == int(v) and v >= 0 for v in nums):
+            raise ClError(source, line, "LOADTL/: tool and length register are whole numbers >= 0")
+        n = nums[0]
+        h = int(nums[1]) if names else int(n)
+        return f"T{int(n)} M6\nG43 H{h}"
+    if word == "SPINDL":
+        if names == ["OFF"] and not nums:
+            return "M5"
+        direction = {"CLW": "M3", "CCLW": "M4"}
+        unknown = [p for p in names if p not in ("RPM", "ON", *direction)]
+        if unknown or len(nums) > 1:
+            raise ClError(source, line, f"SPINDL/{args.strip() if args else ''}: reads SPINDL/[RPM,]s[,CLW|CCLW], "
+                                        "SPINDL/ON and SPINDL/OFF (surface speed and ranges are not read)")
+        if nums:
+            if not (math.isfinite(nums[0]) and nums[0] > 0):
+                raise ClError(source, line, "SPINDL/: the speed must be a positive number of rpm")
+            state["rpm"] = nums[0]
+        turn = next((direction[p] for p in names if p in direction), "M3")
+        if "rpm" not in state:
+            raise ClError(source, line, "SPINDL/ON before any spindle speed")
+        return f"S{state['rpm']:g} {turn}"
+    if word == "COOLNT":
+        codes = {"ON": "M8", "FLOOD": "M8", "MIST": "M7", "OFF": "M9"}
+        if len(names) != 1 or nums or names[0] not in codes:
+            raise ClError(source, line, "COOLNT/ reads ON, FLOOD, MIST or OFF")
+        return codes[names[0]]
+    if word == "CUTTER":
+        if not nums or not (math.isfinite(nums[0]) and nums[0] > 0) or names:
+            raise ClError(source, line, "CUTTER/ needs the tool diameter (a positive number) first")
+        return f"(trueaxis: d={nums[0] * scale:g})"
+    raise AssertionError(word)  # APT_SETUP and this function list the same words
+
+
+RETRACT_MARGIN_MM = 1.0  # APT END retracts Z to this much below the top of its travel
+_APT_NOTHING = {"MULTAX", "FINI", "INTOL", "OUTTOL", "TOLER"}  # statements that change nothing in the output
+APT_SETUP = {"LOADTL", "SPINDL", "COOLNT", "CUTTER", "PARTNO", "PPRINT", "GOHOME", "END"}
+
+
 def _read_apt(text: str, source: str) -> ClData:
     tip, axis, feed, rapid, lines = [], [], [], [], []
+    setup: list[SetupBlock] = []
+    spindle: dict = {}
+    ended = False
     scale = 1.0
     f_now = math.nan
     rapid_next = False
@@ -248,6 +332,8 @@ def _read_apt(text: str, source: str) -> ClData:
         if not m:
             raise ClError(source, line, f"not an APT statement: {stmt!r}")
         word, args = m.group(1).upper(), m.group(2)
+        if ended and word != "FINI":
+            raise ClError(source, line, f"{word} after END: END ends the program")
         if word in ("GOTO", "FROM"):
             if args is None:
                 raise ClError(source, line, f"{word}/ needs x,y,z[,i,j,k]")
@@ -291,10 +377,23 @@ def _read_apt(text: str, source: str) -> ClData:
                 scale = MM_PER_INCH
             else:
                 raise ClError(source, line, f"UNITS/{u}: expected MM or INCHES")
+        elif word == "TLAXIS":
+            v = _apt_numbers(args or "", source, line, "TLAXIS")
+            if len(v) != 3:
+                raise ClError(source, line, "TLAXIS/ needs i,j,k")
+            u_now = v
+        elif word == "END":
+            setup.append(SetupBlock(len(tip), "M5\nM9", line, retract=True))
+            ended = True
+        elif word in APT_SETUP:
+            words = _apt_setup(word, args, source, line, scale, spindle)
+            setup.append(SetupBlock(len(tip), words, line))
         elif word in _MOVING_APT:
             raise ClError(source, line, f"{_MOVING_APT[word]} is not read here: give the tool path as GOTO points")
-        # anything else (PARTNO, CUTTER, LOADTL, SPINDL, COOLNT, MULTAX, TLAXIS, END, FINI, ...) moves nothing
-    return _finish(tip, axis, feed, rapid, lines, source, "apt")
+        elif word not in _APT_NOTHING:
+            raise ClError(source, line, f"APT statement {word} is not read here (read: GOTO, FROM, FEDRAT, RAPID, "
+                                        f"UNITS, TLAXIS, {', '.join(sorted(APT_SETUP | _APT_NOTHING))})")
+    return _finish(tip, axis, feed, rapid, lines, source, "apt", setup)
 
 
 # ------------------------------------------------------------------------------------------- machine axes -----
@@ -564,8 +663,27 @@ def cl_program(cl: ClData, machine: Machine, *, tol_um: float = 1.0, linearise: 
     line_map = [int(cl.line[0])] * 3
     words = [" ".join(f"{a}{v:.{_DIGITS}f}" for a, v in zip(names, row)) for row in vals]
     g93 = False
+    first_piece = np.r_[True, seg[1:] != seg[:-1]]
+    pending = list(cl.setup)
+
+    def write_setup(before: int):
+        nonlocal g93
+        while pending and pending[0].before <= before:
+            block = pending.pop(0)
+            text = block.words
+            if block.retract:  # out of the material before the spindle stops
+                text = _retract(machine, cl, block) + "\n" + text
+            if g93 and ("G0" in text.split() or "G28" in text.split()):
+                text = "G94\n" + text.removeprefix("G94\n")
+                g93 = False
+            for w in text.split("\n"):
+                out.append(w)
+                line_map.append(block.line)
+
     for m in range(q_out.shape[0]):
         src = int(cl.line[seg[m]])
+        if first_piece[m]:
+            write_setup(int(seg[m]))
         if rapid[m]:
             out.append(f"G94 G0 {words[m]}" if g93 or m == 0 else f"G0 {words[m]}")
             g93 = False
@@ -576,9 +694,20 @@ def cl_program(cl: ClData, machine: Machine, *, tol_um: float = 1.0, linearise: 
                 g93 = True
             out.append(f"G1 {words[m]} F{inv_time[m]:.4f}")
         line_map.append(src)
+    write_setup(n)
     out += ["G94", "M30", "%"]
     line_map += [int(cl.line[-1])] * 3
     return "\n".join(out) + "\n", line_map
+
+
+def _retract(machine: Machine, cl: ClData, block: SetupBlock) -> str:
+    """APT END's retract: a rapid of Z alone (the tool axis of a table machine) to 1 mm below the top of its travel,
+    which leaves room for the compensation of the move (it is corrected like any other)."""
+    z = machine.axes.get("Z")
+    if z is None or z.travel is None:
+        raise ClError(cl.source, block.line, "END retracts Z to the top of its travel: the machine file gives no Z "
+                                             "travel")
+    return f"G0 Z{z.travel[1] - RETRACT_MARGIN_MM:.{_DIGITS}f}"
 
 
 def cl_to_program(cl, machine: Machine, **kwargs) -> str:
