@@ -172,3 +172,20 @@ def test_a_signal_ends_the_post_quickly_with_one_line_and_leaves_the_previous_ou
     assert took < 3.0, took  # the issue asks for a second; margin for a loaded CI machine
     assert out.read_text() == "previous output"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["big.ngc", "out.ngc"]
+
+
+def test_version_and_plain_numbers_in_machine_show():
+    from trueaxis import __version__
+
+    r = run("--version")
+    assert r.returncode == 0 and r.stdout.strip() == f"trueaxis {__version__}"
+    r = run("machine", "show", str(MACHINES / "nmv1500dcg.toml"))
+    assert r.returncode == 0 and "np.float64" not in r.stdout
+    assert "pivot [0, 0, -100] mm" in r.stdout and "part origin in M: [0, 0, 50] mm" in r.stdout
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly():
+    """`trueaxis machine show M | head -1`: no 'Broken pipe' message, SIGPIPE's status."""
+    p = subprocess.run(f"{sys.executable} -m trueaxis.cli machine show {MACHINES / 'lathe.toml'} | head -c 10; "
+                       "exit ${PIPESTATUS[0]}", shell=True, executable="/bin/bash", capture_output=True, text=True)
+    assert p.stderr == "" and p.returncode in (0, 141)

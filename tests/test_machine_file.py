@@ -124,3 +124,24 @@ def test_a_byte_order_mark_is_read_as_the_utf8_signature_it_is(tmp_path):
     bom = tmp_path / "bom.toml"
     bom.write_bytes(b"\xef\xbb\xbf" + (DATA / "bc_table.toml").read_bytes())
     assert load_machine(bom).name == load_machine(DATA / "bc_table.toml").name
+
+
+def test_updating_a_machine_file_keeps_its_comments_and_gives_the_new_parameters_bit_for_bit():
+    """An identified machine written back: every comment of the user's file stays, the parameters are exact."""
+    from trueaxis.machine.machine_file import dump_machine, update_machine_text
+
+    path = MACHINES / "nmv1500dcg.toml"
+    text = path.read_text()
+    m = load_machine(path)
+    names = m.parameter_names()
+    values = m.parameter_values()
+    rng = np.random.default_rng(3)
+    values = values + rng.normal(0, 2.0, values.size)
+    values[names.index("ZOB")] = 0.0  # a parameter that becomes zero keeps its line and comment
+    new = m.with_parameters(values)
+    updated, kept = update_machine_text(text, new)
+    assert kept
+    comments = [ln.split("#", 1)[1] for ln in text.splitlines() if "#" in ln]
+    assert comments and all(c in updated for c in comments)
+    assert dump_machine(parse_machine(updated)) == dump_machine(new)
+    np.testing.assert_array_equal(parse_machine(updated).parameter_values(), values)

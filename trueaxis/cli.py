@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -38,6 +39,11 @@ def _parse_at(text: str, axis_names, rotary) -> np.ndarray:
             raise UsageError(f"--at: {name} must be finite")
         pose[axis_names.index(name)] = np.radians(v) if name in rotary else v
     return pose
+
+
+def _plain(values, unit: str = "") -> str:
+    """Numbers as a reader writes them: '[0, 0, -100] mm', not numpy's reprs."""
+    return "[" + ", ".join(f"{float(v):g}" for v in np.ravel(values)) + "]" + (f" {unit}" if unit else "")
 
 
 def _parse_vector(text: str, option: str, n: int = 3) -> np.ndarray:
@@ -100,13 +106,13 @@ def cmd_machine_show(args) -> int:
         ax = m.axes[a]
         if ax.is_rotary:
             tr = "unlimited" if ax.travel is None else f"[{np.degrees(ax.travel[0]):g}, {np.degrees(ax.travel[1]):g}] deg"
-            print(f"  {a}: rotary about {ax.about}, pivot {list(ax.pivot)} mm, travel {tr}")
+            print(f"  {a}: rotary about {ax.about}, pivot {_plain(ax.pivot, 'mm')}, travel {tr}")
         else:
             tr = "unlimited" if ax.travel is None else f"[{ax.travel[0]:g}, {ax.travel[1]:g}] mm"
             print(f"  {a}: linear, travel {tr}")
     t = m.tool
     print(f"  tool: length {t.length:g} mm, radius {t.radius:g} mm, {t.flutes} flutes")
-    print(f"  part origin in M: {list(m.workpiece_origin)} mm")
+    print(f"  part origin in M: {_plain(m.workpiece_origin, 'mm')}")
     print("  location errors:")
     for n in m.location_names():
         print(f"    {n:6s} {m.errors.location.get(n, 0.0):10.3f} {unit_of(n)}")
@@ -114,9 +120,9 @@ def cmd_machine_show(args) -> int:
         for comp, fn in comps:
             print(f"  {comp}: {fn.kind}, {fn.values.size} values ({unit_of(comp)})")
     if m.compliance_um_per_n is not None:
-        print(f"  compliance (um/N): {m.compliance_um_per_n.tolist()}")
+        print(f"  compliance (um/N): {', '.join(_plain(row) for row in m.compliance_um_per_n)}")
     if m.loaded is not None:
-        print(f"  loaded parameter set at {m.loaded_force_n.tolist()} N")
+        print(f"  loaded parameter set at {_plain(m.loaded_force_n, 'N')}")
     for s in m.surfaces:
         print(f"  response surface: E{s.axis} vs {s.position_axis}, P{s.force_direction.lower()} "
               f"(load {'+' if s.load_sign > 0 else '-'}, {'forward' if s.motion > 0 else 'backward'})")
@@ -288,7 +294,13 @@ def cmd_inspect(args) -> int:
 
 # ------------------------------------------------------------------------------------------------------ parser ----
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="trueaxis", description="Machine-tool error compensation: post, inspect, diagnose.")
+    from . import __version__
+
+    p = argparse.ArgumentParser(prog="trueaxis", description="Machine-tool error compensation: post, inspect, diagnose.",
+                                epilog="Exit status: 0 done; 1 the system refused (a file that cannot be read or "
+                                       "written); 2 bad input or usage, nothing written; 130 / 143 interrupted "
+                                       "(SIGINT / SIGTERM).")
+    p.add_argument("--version", action="version", version=f"trueaxis {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     mach = sub.add_parser("machine", help="check or show a machine file")
@@ -464,6 +476,7 @@ def _interruption(exc: BaseException | None) -> BaseException | None:
 EXIT_FAILURE = 1
 EXIT_SIGINT = 130
 EXIT_SIGTERM = 143
+EXIT_BROKEN_PIPE = 141  # as a shell reports a process ended by SIGPIPE
 
 
 def main(argv=None) -> int:
@@ -494,6 +507,9 @@ def main(argv=None) -> int:
         return EXIT_BAD_INPUT
     except (KeyboardInterrupt, _Terminated) as exc:
         return _report_interruption(args.command, exc)
+    except BrokenPipeError:  # the reader went away (`trueaxis machine show M | head`): nothing to say to it
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except OSError as exc:  # permissions, a full disk, a read-only file system: the system's word, one line
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"trueaxis {args.command}: {where}{exc.strerror or exc}", file=sys.stderr)

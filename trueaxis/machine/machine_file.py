@@ -460,7 +460,7 @@ def dump_machine(machine: Machine) -> str:
     Geometry is written in mm and degrees, error values in um and urad (DESIGN §4). Component errors keep their form:
     tables (one ``at`` and ``interpolation`` per axis, as the reader wants them), Legendre and Fourier series. A
     periodic rotary table is written with its last value equal to its first (the model never uses the last one).
-    Comments of the original file are not kept.
+    Comments of the original file are not kept: :func:`update_machine_text` keeps them.
     """
     out = ["[machine]", f"name = {_toml_str(machine.name)}", f"kind = {_toml_str(machine.kind)}", "format = 1"]
     if machine.note:
@@ -503,6 +503,62 @@ def dump_machine(machine: Machine) -> str:
         for key, value in machine.cutting.items():
             out.append(f"{key} = {_toml_str(value) if isinstance(value, str) else _toml_float(value)}")
     return "\n".join(out) + "\n"
+
+
+def update_machine_text(text: str, machine: Machine) -> tuple[str, bool]:
+    """``text`` (a machine file) with its error parameters replaced by ``machine``'s, the user's comments, order and
+    layout kept (tomlkit edits the document in place; only values that changed are rewritten).
+
+    Only the error sections change: ``[location]``, ``[component.*]``, ``[loaded]`` (a parameter that became 0 is
+    written as 0, with its comment). The result is checked by reading it back: when it does not give ``machine``'s
+    parameters bit for bit (a form the edit cannot express, e.g. a Legendre series replaced by a table), the complete
+    :func:`dump_machine` text is returned instead. Returns (text, comments_kept).
+    """
+    import tomlkit
+
+    fresh = dump_machine(machine)
+    try:
+        doc = tomlkit.parse(text)
+        new = tomllib.loads(fresh)
+        for section in ("location", "component", "loaded"):
+            if section in new or section in doc:
+                _merge_values(doc, new, section)
+        edited = tomlkit.dumps(doc)
+        same = dump_machine(parse_machine(edited, source=machine.source)) == fresh
+    except (tomlkit.exceptions.TOMLKitError, tomllib.TOMLDecodeError, MachineFileError, ValueError):
+        same = False
+    return (edited, True) if same else (fresh, False)
+
+
+def _merge_values(doc, new: dict, key: str) -> None:
+    """Set ``doc[key]`` to ``new[key]`` in place, recursing into tables so that the comments of the keys kept stay."""
+    if key not in new:  # the section is all zero now: zero its numbers, keep its keys and comments
+        _zero(doc[key])
+        return
+    value = new[key]
+    if key not in doc or not isinstance(value, dict) or not hasattr(doc[key], "keys"):
+        if key not in doc or doc[key] != value:
+            doc[key] = value
+        return
+    for sub in value:
+        _merge_values(doc[key], value, sub)
+    for sub in [k for k in doc[key] if k not in value]:
+        _zero_key(doc[key], sub)
+
+
+def _zero_key(table, key) -> None:
+    v = table[key]
+    if hasattr(v, "keys"):
+        _zero(v)
+    elif isinstance(v, (int, float)) and not isinstance(v, bool):
+        table[key] = 0.0
+    elif isinstance(v, list) and all(isinstance(x, (int, float)) for x in v) and key != "at":
+        table[key] = [0.0] * len(v)
+
+
+def _zero(table) -> None:
+    for k in list(table.keys()):
+        _zero_key(table, k)
 
 
 def _dump_error_set(machine: Machine, errors: ErrorSet, prefix: str) -> list[str]:
