@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.polynomial import legendre as npleg
-from scipy.interpolate import CubicSpline, PPoly
 
 from . import error_kernel
 
@@ -134,6 +133,8 @@ class ErrorFunction:
         sp = self.__dict__.get("_spline_cache")
         if sp is None:
             unit = _unit_spline(self.at.tobytes(), self.periodic)
+            from scipy.interpolate import PPoly  # imported where used: scipy takes ~1 s to import, linear tables need none
+
             c = np.tensordot(unit.c, self._folded_values(), axes=([2], [0]))
             sp = PPoly(c, unit.x, extrapolate=True)
             object.__setattr__(self, "_spline_cache", sp)
@@ -209,10 +210,13 @@ class ErrorFunction:
 _SPLINES: dict = {}
 
 
-def _unit_spline(at_bytes: bytes, periodic: bool) -> CubicSpline:
+def _unit_spline(at_bytes: bytes, periodic: bool):
     """A vector-valued cubic spline through the identity: its value at x is the cubic basis row at x (cached)."""
     key = (at_bytes, periodic)
     if key not in _SPLINES:
+        from scipy.interpolate import CubicSpline
+
+
         at = np.frombuffer(at_bytes, dtype=float)
         unit = np.eye(at.size)
         if periodic:
