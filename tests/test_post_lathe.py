@@ -207,3 +207,31 @@ def test_freecad_post_script_compensates_a_turning_program_in_comprehensive_mode
     monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
     opts, _ = post.split_arguments(f"--machine {MACHINES / 'lathe.toml'} --mode comprehensive")
     assert post.compensate(TURNING, opts) == compensate(TURNING, lathe, "comprehensive")
+
+
+def _in_diameter_mode(program: str) -> str:
+    """The program with G7 after its first line and every X word doubled (the same moves in diameter mode)."""
+    lines = program.splitlines(keepends=True)
+    body = [re.sub(r"X(-?[\d.]+)", lambda m: f"X{2 * float(m.group(1)):.6f}", line) for line in lines[1:]]
+    return lines[0] + "G7\n" + "".join(body)
+
+
+@pytest.mark.parametrize("mode", ["geometric", "comprehensive"])
+def test_diameter_mode_program_is_compensated_like_its_radius_mode_twin(lathe, tmp_path, mode):
+    # G7: X words are diameters (LinuxCNC halves them). The same moves written in G7 and in G8 must come out as the
+    # same positions: the G7 output's X words are the G8 output's doubled (to the written digits).
+    g7 = _in_diameter_mode(TURNING)
+    out_g7 = compensate(g7, lathe, mode)
+    out_g8 = compensate(TURNING, lathe, mode)
+    read_g7, read_g8 = parse_program(out_g7), parse_program(out_g8)
+    assert read_g7.diameter[-1] and not read_g8.diameter.any()
+    np.testing.assert_allclose(read_g7.end, read_g8.end, rtol=0, atol=1e-6)
+    xs7 = [float(x) for x in re.findall(r"X(-?[\d.]+)", out_g7)]
+    xs8 = [float(x) for x in re.findall(r"X(-?[\d.]+)", out_g8)]
+    assert len(xs7) == len(xs8) and max(abs(a - 2 * b) for a, b in zip(xs7, xs8)) <= 1.5e-6
+    assert_rs274_reads_as_we_do(out_g7, tmp_path, name="lathe_g7.ngc")
+
+
+def test_arcs_in_diameter_mode_are_refused_with_the_block(lathe):
+    with pytest.raises(PostError, match=r":6: arcs and canned cycles in lathe diameter mode \(G7\)"):
+        compensate(_in_diameter_mode(PROGRAM), lathe, "geometric")

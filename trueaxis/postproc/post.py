@@ -459,6 +459,10 @@ class _Poster:
         bar.close()
         self._summarise(mx, np.sqrt(sq / max(rows.size, 1)))
         self._residual_check()
+        if p.diameter.any():
+            from .turning import diameter_words  # G7: X written as a diameter again
+
+            self.p, delta_prog, pieces = diameter_words(p, rows, delta_prog, pieces)
         return self._write(rows, delta_prog, pieces, arc_mode)
 
     def _compensate(self, rows):

@@ -170,3 +170,40 @@ def lathe_loads(poster, rows) -> np.ndarray:
             raise PostError(p.source, int(p.line_no[rows[ks[0]]]), f"turning force: {exc}") from None
         force[ks] = force_on_tool(components, d_xz[ks])
     return np.hstack([force, signs[rows]])
+
+
+def diameter_words(prog, rows, delta_prog, pieces):
+    """The program as the writer must write it when blocks are in G7 (lathe diameter mode): the reader keeps X as the
+    radius (LinuxCNC halves a G7 X word), so the X of those rows' ends, corrections and split pieces is doubled back.
+
+    prog : Program;  rows : (K,) the compensated rows;  delta_prog : (K, 6) their corrections, program units;
+    pieces : {k: (n, 6)} split pieces of rows[k]. Returns (program, delta_prog, pieces) to write. Refuses (PostError)
+    what it would not write right: arcs and canned cycles in G7 (their centre words and cycle words are radii or
+    positions the writer computes from the written ends), and incremental moves in a program that uses G7 (an
+    increment across a G7/G8 switch mixes radius and diameter)."""
+    from dataclasses import replace
+
+    from .gcode import ROW_CYCLE
+
+    diameter = prog.diameter
+    bad = diameter & ((prog.motion == ARC_CW) | (prog.motion == ARC_CCW) | (prog.kind == ROW_CYCLE))
+    if bad.any():
+        r = int(np.argmax(bad))
+        raise PostError(prog.source, int(prog.line_no[r]), "arcs and canned cycles in lathe diameter mode (G7) are not "
+                                                           "compensated: program them in radius mode (G8)")
+    if prog.incremental.any():
+        r = int(np.argmax(prog.incremental))
+        raise PostError(prog.source, int(prog.line_no[r]), "incremental moves (G91) in a program that uses lathe "
+                                                           "diameter mode (G7) are not compensated: write it in G90")
+    scale = np.where(diameter, 2.0, 1.0)
+    start, end = prog.start.copy(), prog.end.copy()
+    start[:, 0] *= scale
+    end[:, 0] *= scale
+    delta = delta_prog.copy()
+    delta[:, 0] *= scale[rows]
+    out = {}
+    for k, pts in pieces.items():
+        pts = np.array(pts, dtype=float)
+        pts[:, 0] *= scale[rows[k]]
+        out[k] = pts
+    return replace(prog, start=start, end=end), delta, out
