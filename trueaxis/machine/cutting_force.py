@@ -552,10 +552,11 @@ def fit_coefficients(
     keep their values in ``fixed``.
 
     The peak is the force at its maximising angle, which jumps as the coefficients change: the sum of squares is
-    piecewise quadratic with several local minima (three on the L16 data with the default assumptions). So the solver runs from
-    the values in ``fixed`` and from ``starts`` more points, a Latin hypercube (scipy.stats.qmc, seeded with ``seed``)
-    over ``PLAUSIBLE_BOX``; the ends are grouped into distinct minima (``FitResult.minima``), and the best is returned.
-    With 64 starts every L16 fit of the docs reaches its best minimum from more than a quarter of them.
+    piecewise quadratic with several local minima (three on the L16 data with the default assumptions). So the solver
+    runs from the values in ``fixed`` and from ``starts`` more points, a Latin hypercube (scipy.stats.qmc, seeded with
+    ``seed``) over ``PLAUSIBLE_BOX``; the ends are grouped into distinct minima (``FitResult.minima``), and the best is
+    returned.
+    With 64 starts each L16 fit of docs/force_fit.md reaches its best minimum from 12 or more of them.
     Standard errors: sqrt(diag(s^2 (J^T J)^-1)), s^2 = SSR / (2G - p), with J the exact Jacobian (the force basis at
     each peak's maximising angle) at the best minimum. The spread of each coefficient over the minima that the data
     cannot tell from the best is in ``FitResult.spread`` and ``poorly_identified``. Deterministic: the same input
@@ -614,7 +615,8 @@ def fit_coefficients(
         costs.append(float(np.sqrt(np.mean(residuals(sol.x) ** 2))))
         statuses.append(int(sol.status))
     ends_arr, rms_arr = np.array(ends), np.array(costs)
-    reps, counts = _distinct_minima(ends_arr, rms_arr, upper - lower, tol=0.01, rms_tol_n=1e-3 * max(rms_arr.min(), 1.0))
+    reps, counts = _distinct_minima(ends_arr, rms_arr, upper - lower, tol=0.01,
+                                    rms_tol_n=1e-3 * max(rms_arr.min(), 1.0))
     best = reps[0]
     p = ends_arr[best]
     minima = tuple(
