@@ -235,3 +235,58 @@ def test_diameter_mode_program_is_compensated_like_its_radius_mode_twin(lathe, t
 def test_arcs_in_diameter_mode_are_refused_with_the_block(lathe):
     with pytest.raises(PostError, match=r":6: arcs and canned cycles in lathe diameter mode \(G7\)"):
         compensate(_in_diameter_mode(PROGRAM), lathe, "geometric")
+
+
+def test_comprehensive_corrections_along_a_lathe_arc_follow_its_tangent(lathe):
+    # A half circle (G18) cut towards the tailstock: the feed direction turns through 180 deg, so the force along Z and X's direction of
+    # motion change along the arc. At every written point of the linearised arc the comprehensive minus geometric Z
+    # is minus the paper's surface at that point's X and the force of the tangent there, worked by hand: the point's
+    # angle on the circle (the written point projected on it: the corrections move it by microns, which changes the
+    # force's direction by 1e-3 rad at most), the tangent along the travel, Kienzle's force split into feed and
+    # passive parts along and across it. Points where the force or the tangent's X part nearly vanish (where a model
+    # switch could fall either side of a point) are left out.
+    program = """G18 G21 G90 G94
+(trueaxis: ap=1 f=0.15 vc=150)
+G0 X40.000000 Z-5.000000
+G1 Z-60.000000 F100
+G2 X40.000000 Z-40.000000 I0 K10.000000
+G0 X90.000000 Z-5.000000
+M30
+"""
+    geo = compensate(program, lathe, "geometric", tol_um=0.2)
+    com = compensate(program, lathe, "comprehensive", tol_um=0.2)
+    pg, pc = _written_xz(geo), _written_xz(com)
+    assert pg.shape == pc.shape and len(pg) > 100  # the arc linearised into the same points in both modes
+    centre = np.array([40.0, -50.0])
+    # The G2 block's pieces: the written points on the circle (within the corrections' microns), after the line's end
+    # (the arc's start, which carries the line's load).
+    on_circle = np.nonzero(np.abs(np.linalg.norm(pg - centre, axis=1) - 10.0) < 1e-2)[0]
+    assert np.all(np.diff(on_circle) == 1) and pg[on_circle[0], 1] < -59.9
+    arc = on_circle[1:]
+    rel = pg[arc] - centre
+    radius = np.linalg.norm(rel, axis=1)
+    unit = rel / radius[:, None]
+    nominal_x = centre[0] + 10.0 * unit[:, 0]
+    # The travel's sense from the order of the points: the tangent turns the radius by +-90 deg.
+    turn = np.sign(rel[:-1, 0] * rel[1:, 1] - rel[:-1, 1] * rel[1:, 0])
+    assert np.all(turn == turn[0])
+    tangent = turn[0] * np.stack([-unit[:, 1], unit[:, 0]], axis=1)  # (X, Z)
+    cutting = tomllib.loads((MACHINES / "lathe.toml").read_text())["cutting"]
+    fc = cutting["kc11"] * 1.0 * 0.15 ** (1.0 - cutting["mc"])
+    ff, fp = cutting["feed_ratio"] * fc, cutting["passive_ratio"] * fc
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    normal[normal.sum(axis=1) < 0] *= -1.0  # off the material: the side of +X +Z
+    fz_n = -ff * tangent[:, 1] + fp * normal[:, 1]
+    models = _paper_models()
+    P = fz_n / 1000.0
+    expected_um = np.array([
+        -1000.0 * (lambda c: c[0] + c[1] * x + c[2] * p + c[3] * x**2 + c[4] * x * p + c[5] * p**2)(
+            models[("+" if p >= 0 else "-", "forward" if tx > 0 else "backward")])
+        for x, p, tx in zip(nominal_x, P, tangent[:, 0])
+    ])
+    clear = (np.abs(fz_n) > 5.0) & (np.abs(tangent[:, 0]) > 0.05)
+    assert clear.sum() > 0.8 * clear.size
+    kinds = {("+" if p >= 0 else "-", tx > 0) for p, tx in zip(P[clear], tangent[clear, 0])}
+    assert len(kinds) >= 3  # the arc goes through several of the paper's models
+    dz_um = (pc[arc, 1] - pg[arc, 1]) * 1000.0
+    np.testing.assert_allclose(dz_um[clear], expected_um[clear], rtol=0, atol=0.01)

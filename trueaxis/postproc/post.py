@@ -700,6 +700,10 @@ class _Poster:
         r = rows[arc_idx][owner]
         q_pts = self.to_machine(pts6 + p.offset[r], p.inch[r])
         f = None if force is None else force[arc_idx][owner]
+        if f is not None and f.shape[1] > 3:  # a lathe's loads: force and motion follow the arc (see .turning)
+            from .turning import arc_point_loads
+
+            f = arc_point_loads(self, r, pts6, f)
         q_c, _ = self.solve(q_pts, f, r)
         return q_c, q_pts
 

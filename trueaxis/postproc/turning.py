@@ -7,10 +7,10 @@ caliper (the machine file's ``[[force.surface]]``, evaluated by the twin). What 
 - the force of each block: Kienzle's turning force (``trueaxis.machine.turning_force``) from the machine file's
   ``[cutting]`` (kc11, mc, force ratios) and the program's conditions ``(trueaxis: ap=2 f=0.2 vc=180)``, valid from
   where they stand (the command line's ``--ap`` overrides ap), directed by the block's feed direction in the XZ plane
-  (an arc's: its tangent at the end, as the milling post does). Rapids carry no force (the surfaces are then
-  evaluated at P = 0, the "+" loading models);
+  (an arc's: its tangent at the end for the block's end; along the arc, the tangent at each sampled point,
+  ``arc_point_loads``). Rapids carry no force (the surfaces are then evaluated at P = 0, the "+" loading models);
 - the direction of motion of each axis for each block: the sign of the block's displacement along it (an arc's: of its
-  end tangent); a block that does not move an axis keeps that axis' last direction (the caliper rests against the
+  tangent, at the end or at the sampled point); a block that does not move an axis keeps that axis' last direction (the caliper rests against the
   side it last moved towards), forward before its first move. The surfaces pick their model by the direction of
   their position axis (``inputs[0]``), the load sign by the sign of their force component.
 
@@ -207,3 +207,31 @@ def diameter_words(prog, rows, delta_prog, pieces):
         pts[:, 0] *= scale[rows[k]]
         out[k] = pts
     return replace(prog, start=start, end=end), delta, out
+
+
+def arc_point_loads(poster, rows, points6, loads) -> np.ndarray:
+    """(n, 3 + n_axes) loads at points on arcs: the force and the direction of motion follow the arc's tangent there.
+
+    rows : (n,) the arc row of each point;  points6 : (n, 6) the points, program coordinates;  loads : (n, 3 + n_axes)
+    the rows' block loads (``lathe_loads``: taken at the end tangent), whose direction of motion stays where the
+    tangent has no component along an axis."""
+    p, m = poster.p, poster.m
+    rows = np.asarray(rows)
+    plane = p.arc_plane[rows]
+    normal = np.select([plane[:, None] == 17, plane[:, None] == 18, plane[:, None] == 19],
+                       [np.array([0, 0, 1.0]), np.array([0, 1.0, 0]), np.array([1.0, 0, 0])])
+    sense = np.where(p.motion[rows] == ARC_CCW, 1.0, -1.0)
+    tangent = np.cross(normal, points6[:, :3] - p.arc_center[rows]) * sense[:, None]
+    out = np.array(loads, dtype=float)
+    d_xz = tangent[:, [0, 2]]
+    moving = np.linalg.norm(d_xz, axis=1) > 0.0
+    if np.any(moving):
+        coeffs = TurningCoefficients.from_mapping(m.cutting)
+        conditions = poster._turning_state[0]
+        for c in set(conditions[rows[moving]].tolist()):
+            sel = moving & (conditions[rows] == c)
+            out[sel, :3] = force_on_tool(turning_force_components(coeffs, c), d_xz[sel])
+    cols = ["XYZ".index(a) for a in poster.names]
+    signs = np.sign(tangent[:, cols])
+    out[:, 3:] = np.where(signs != 0, signs, out[:, 3:])
+    return out
