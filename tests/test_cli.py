@@ -64,3 +64,45 @@ def test_inspect_console_script_is_trueaxis_inspect(tmp_path, capsys):
 
     assert inspect_main([str(tmp_path / "none.xyz"), "--part", "slots"]) == 2
     assert "trueaxis inspect:" in capsys.readouterr().err
+
+
+def _caliper_models():
+    """The lathe paper's four printed response surfaces, read from the paper's CSV: {(load sign, motion): coeffs}."""
+    import csv
+
+    from conftest import ROOT
+
+    lines = (ROOT / "fixtures" / "papers" / "lathe_caliper_models.csv").read_text().splitlines()
+    rows = csv.DictReader(line for line in lines if not line.startswith("#"))
+    return {(r["load_sign"], r["motion"]): [float(r[k]) for k in ("c0", "c1_x", "c2_p", "c3_x2", "c4_xp", "c5_p2")]
+            for r in rows}
+
+
+@pytest.mark.parametrize("sign", ["+", "-"])
+@pytest.mark.parametrize("direction", ["forward", "backward"])
+def test_error_direction_reaches_each_of_the_lathe_papers_four_models(sign, direction):
+    # The lathe's Z error under a load Pz minus its Z error without load is the paper's printed surface, evaluated by
+    # hand here: dZ (mm) = c0 + c1 X + c2 P + c3 X^2 + c4 X P + c5 Pz^2, P = +-Pz in kN (the CSV's own rule).
+    from conftest import MACHINES
+
+    lathe = str(MACHINES / "lathe.toml")
+    x, pz = 120.0, 0.8
+    P = pz if sign == "+" else -pz
+    c = _caliper_models()[(sign, direction)]
+    expected_um = 1000.0 * (c[0] + c[1] * x + c[2] * P + c[3] * x**2 + c[4] * x * P + c[5] * pz**2)
+    loaded = run("error", "--machine", lathe, "--at", f"X={x:g},Z=-200", f"--force-n=0,0,{1000 * P:g}",
+                 "--direction", direction, "--json")
+    free = run("error", "--machine", lathe, "--at", f"X={x:g},Z=-200", "--direction", direction, "--json")
+    assert loaded.returncode == 0 and free.returncode == 0, loaded.stderr + free.stderr
+    dz = json.loads(loaded.stdout)["position_error_um"][2] - json.loads(free.stdout)["position_error_um"][2]
+    assert dz == pytest.approx(expected_um, abs=1e-9)
+    # The four models differ by microns here, so the wrong one cannot pass.
+    others = [1000.0 * (k[0] + k[1] * x + k[2] * (pz if s == "+" else -pz) + k[3] * x**2
+                        + k[4] * x * (pz if s == "+" else -pz) + k[5] * pz**2)
+              for (s, m), k in _caliper_models().items() if (s, m) != (sign, direction)]
+    assert min(abs(dz - o) for o in others) > 0.5
+
+
+def test_error_direction_is_refused_when_not_forward_or_backward():
+    r = run("error", "--machine", BC, "--at", "X=1", "--direction", "sideways")
+    assert r.returncode == 2 and "Traceback" not in r.stderr

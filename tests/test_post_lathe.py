@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
+import csv
+import dataclasses
+import importlib.util
+import re
+import subprocess
+import sys
+import tomllib
+
 import numpy as np
 import pytest
 
-from conftest import MACHINES
+from conftest import MACHINES, ROOT
 from post_checks import actual_points, distance_to_polyline, nominal_polyline
 from rs274_helpers import assert_rs274_reads_as_we_do
 from trueaxis.machine import load_machine
@@ -48,6 +56,237 @@ def test_lathe_output_lands_on_the_nominal_path_in_xz(lathe, tmp_path):
     assert_rs274_reads_as_we_do(out, tmp_path, name="lathe.ngc")
 
 
-def test_comprehensive_mode_on_a_lathe_without_milling_coefficients_is_refused(lathe):
-    with pytest.raises(PostError, match="cutting"):
+def test_comprehensive_mode_on_a_lathe_refuses_milling_conditions(lathe):
+    with pytest.raises(PostError, match="turning takes the cutting conditions ap, f, vc"):
         compensate(PROGRAM, lathe, "comprehensive", conditions={"ap": 1, "ae": 1, "fz": 0.1})
+
+
+def test_comprehensive_mode_on_a_lathe_without_turning_coefficients_is_refused(lathe):
+    bare = dataclasses.replace(lathe, cutting=None)
+    with pytest.raises(PostError, match="needs the turning coefficients"):
+        compensate(TURNING, bare, "comprehensive")
+
+
+def test_comprehensive_mode_on_a_lathe_without_conditions_names_the_block(lathe):
+    with pytest.raises(PostError, match=r":3: comprehensive mode needs turning conditions"):
+        compensate(PROGRAM, lathe, "comprehensive")
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# Comprehensive mode: the paper's response surfaces under the estimated turning force
+# ---------------------------------------------------------------------------------------------------------------------
+
+# Every combination of load sign and direction of motion of X (the surfaces' position axis), at 6 decimals (the
+# written numbers then round by 0.0005 um). Conditions change midway.
+TURNING = """G18 G21 G90 G94
+(trueaxis: ap=2 f=0.2 vc=180)
+G0 X40.000000 Z-5.000000
+G1 Z-50.000000 F100
+G1 X60.000000
+G1 Z-30.000000
+G1 X50.000000
+G1 Z-70.000000
+G1 Z-60.000000
+(trueaxis: ap=1 f=0.1 vc=200)
+G1 X55.000000 Z-65.000000
+G1 X45.000000 Z-55.000000
+G0 X90.000000 Z-5.000000
+M30
+"""
+
+
+def _paper_models():
+    """The four printed surfaces from the paper's CSV (mm, X in mm, P in kN): {(load sign, motion): c0..c5}."""
+    lines = (ROOT / "fixtures" / "papers" / "lathe_caliper_models.csv").read_text().splitlines()
+    rows = csv.DictReader(line for line in lines if not line.startswith("#"))
+    return {(r["load_sign"], r["motion"]): [float(r[k]) for k in ("c0", "c1_x", "c2_p", "c3_x2", "c4_xp", "c5_p2")]
+            for r in rows}
+
+
+def _written_xz(text):
+    """(X, Z) of every motion block of a program we wrote (one per input block: nothing is split here)."""
+    out = []
+    for line in text.splitlines():
+        if re.match(r"G[01]\b", line):
+            x = re.search(r"X(-?[\d.]+)", line)
+            z = re.search(r"Z(-?[\d.]+)", line)
+            out.append((float(x.group(1)), float(z.group(1))))
+    return np.array(out)
+
+
+def test_comprehensive_z_corrections_equal_the_papers_surface_at_the_blocks_x_and_force(lathe):
+    # Hand evaluation, independent of the twin and of the post's force code: Kienzle's main force
+    # Fc = kc1.1 * ap * f^(1 - mc) (kappa_r 90 deg: h = f, b = ap), the feed and passive forces as the machine file's
+    # fractions of it; the Z component of the force on the tool worked out block by block; the paper's printed
+    # polynomial dZ = c0 + c1 X + c2 P + c3 X^2 + c4 X P + c5 Pz^2 (mm; P = +-Pz in kN) of the model of that load sign
+    # and X's direction of motion. The comprehensive post's Z minus the geometric post's Z is -dZ.
+    cutting = tomllib.loads((MACHINES / "lathe.toml").read_text())["cutting"]
+    assert cutting["kappa_deg"] == 90.0
+
+    def forces(ap, f):
+        fc = cutting["kc11"] * ap * f ** (1.0 - cutting["mc"])
+        return cutting["feed_ratio"] * fc, cutting["passive_ratio"] * fc
+
+    ff, fp = forces(2.0, 0.2)
+    ff2, fp2 = forces(1.0, 0.1)
+    r = np.sqrt(0.5)
+    # (X at the block's end mm, Z force on the tool N, direction of motion of X)
+    blocks = [
+        (40.0, 0.0, "forward"),  # rapid from X0: no force
+        (40.0, +ff, "forward"),  # feed towards the chuck (-Z): the feed force pushes the tool +Z; X last moved +
+        (60.0, +fp, "forward"),  # facing outwards (+X): the passive force pushes the tool off the face, +Z
+        (60.0, -ff, "forward"),  # feed towards the tailstock (+Z): feed force -Z
+        (50.0, +fp, "backward"),  # facing inwards (-X): passive force +Z; X moves -
+        (50.0, +ff, "backward"),  # -Z feed; X last moved -
+        (50.0, -ff, "backward"),  # +Z feed
+        (55.0, r * (ff2 + fp2), "forward"),  # chamfer (+X, -Z): feed force (+Z part) and passive force (+Z part)
+        (45.0, r * (fp2 - ff2), "backward"),  # (-X, +Z): the feed force's -Z part outweighs the passive force's +Z
+        (90.0, 0.0, "forward"),  # rapid
+    ]
+    models = _paper_models()
+    expected_um = []
+    for x, fz_n, motion in blocks:
+        P = fz_n / 1000.0
+        c = models[("+" if P >= 0 else "-", motion)]
+        expected_um.append(-1000.0 * (c[0] + c[1] * x + c[2] * P + c[3] * x**2 + c[4] * x * P + c[5] * P**2))
+    # Every model is used, with loads of tens to hundreds of newtons, so a wrong choice or force cannot pass.
+    assert {("+" if f >= 0 else "-", m) for _, f, m in blocks} == set(models)
+    assert min(abs(f) for _, f, _ in blocks if f) > 30.0
+
+    # A loose split tolerance keeps one written block per programmed one (the ends do not depend on it).
+    geometric = _written_xz(compensate(TURNING, lathe, "geometric", tol_um=50.0))
+    report = {}
+    comprehensive = _written_xz(compensate(TURNING, lathe, "comprehensive", tol_um=50.0, report=report))
+    assert report["moves_split"] == 0 and geometric.shape == comprehensive.shape == (len(blocks), 2)
+    dz_um = (comprehensive[:, 1] - geometric[:, 1]) * 1000.0
+    np.testing.assert_allclose(dz_um, expected_um, rtol=0, atol=0.01)
+    # The surfaces are in Z only: X corrections agree (to the written digits and second-order cross terms).
+    np.testing.assert_allclose(comprehensive[:, 0], geometric[:, 0], rtol=0, atol=2e-6)
+
+
+def test_comprehensive_lathe_output_lands_on_the_nominal_path_under_the_load(lathe, tmp_path):
+    # Put through the twin with each block's load, the written end points land on the programmed ones in XZ (a loose
+    # split tolerance: one written block per programmed one).
+    out = compensate(TURNING, lathe, "comprehensive", tol_um=50.0)
+    written = _written_xz(out)
+    from trueaxis.machine import ErrorTwin
+    from trueaxis.postproc.turning import MotionTwin, lathe_loads
+
+    class _Poster:  # what lathe_loads reads of the post
+        def __init__(self):
+            self.p, self.m, self.conditions, self.names = parse_program(TURNING), lathe, {}, lathe.axis_names
+
+    poster = _Poster()
+    loads = lathe_loads(poster, np.arange(len(poster.p)))
+    p_act, _ = MotionTwin(ErrorTwin(lathe)).actual_pose(written, loads)
+    p_nom, _ = ErrorTwin(lathe).nominal_pose(poster.p.end[:, [0, 2]])
+    err_um = np.abs((p_act - p_nom)[:, [0, 2]]) * 1e3
+    assert err_um.max() < 0.01, err_um.max()
+    assert_rs274_reads_as_we_do(out, tmp_path, name="lathe_comprehensive.ngc")
+
+
+def test_trueaxis_post_cli_compensates_a_turning_program_in_comprehensive_mode(lathe, tmp_path):
+    src, dst = tmp_path / "turn.ngc", tmp_path / "turn_out.ngc"
+    src.write_text(TURNING)
+    r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", str(src), "-o", str(dst), "--machine",
+                        str(MACHINES / "lathe.toml"), "--mode", "comprehensive"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert dst.read_text() == compensate(TURNING, lathe, "comprehensive")
+
+
+def test_freecad_post_script_compensates_a_turning_program_in_comprehensive_mode(lathe, tmp_path, monkeypatch):
+    # FreeCAD's post script runs the trueaxis command; here the real one, on a hand-written turning program.
+    from trueaxis.postproc.hosts.freecad import post_script_path
+
+    spec = importlib.util.spec_from_file_location("trueaxis_post", post_script_path())
+    post = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(post)
+    exe = tmp_path / "trueaxis"
+    exe.write_text(f"#!{sys.executable}\nimport sys\nfrom trueaxis.cli import main\nsys.exit(main())\n")
+    exe.chmod(0o755)
+    monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+    opts, _ = post.split_arguments(f"--machine {MACHINES / 'lathe.toml'} --mode comprehensive")
+    assert post.compensate(TURNING, opts) == compensate(TURNING, lathe, "comprehensive")
+
+
+def _in_diameter_mode(program: str) -> str:
+    """The program with G7 after its first line and every X word doubled (the same moves in diameter mode)."""
+    lines = program.splitlines(keepends=True)
+    body = [re.sub(r"X(-?[\d.]+)", lambda m: f"X{2 * float(m.group(1)):.6f}", line) for line in lines[1:]]
+    return lines[0] + "G7\n" + "".join(body)
+
+
+@pytest.mark.parametrize("mode", ["geometric", "comprehensive"])
+def test_diameter_mode_program_is_compensated_like_its_radius_mode_twin(lathe, tmp_path, mode):
+    # G7: X words are diameters (LinuxCNC halves them). The same moves written in G7 and in G8 must come out as the
+    # same positions: the G7 output's X words are the G8 output's doubled (to the written digits).
+    g7 = _in_diameter_mode(TURNING)
+    out_g7 = compensate(g7, lathe, mode)
+    out_g8 = compensate(TURNING, lathe, mode)
+    read_g7, read_g8 = parse_program(out_g7), parse_program(out_g8)
+    assert read_g7.diameter[-1] and not read_g8.diameter.any()
+    np.testing.assert_allclose(read_g7.end, read_g8.end, rtol=0, atol=1e-6)
+    xs7 = [float(x) for x in re.findall(r"X(-?[\d.]+)", out_g7)]
+    xs8 = [float(x) for x in re.findall(r"X(-?[\d.]+)", out_g8)]
+    assert len(xs7) == len(xs8) and max(abs(a - 2 * b) for a, b in zip(xs7, xs8)) <= 1.5e-6
+    assert_rs274_reads_as_we_do(out_g7, tmp_path, name="lathe_g7.ngc")
+
+
+def test_arcs_in_diameter_mode_are_refused_with_the_block(lathe):
+    with pytest.raises(PostError, match=r":6: arcs and canned cycles in lathe diameter mode \(G7\)"):
+        compensate(_in_diameter_mode(PROGRAM), lathe, "geometric")
+
+
+def test_comprehensive_corrections_along_a_lathe_arc_follow_its_tangent(lathe):
+    # A half circle (G18) cut towards the tailstock: the feed direction turns through 180 deg, so the force along Z and X's direction of
+    # motion change along the arc. At every written point of the linearised arc the comprehensive minus geometric Z
+    # is minus the paper's surface at that point's X and the force of the tangent there, worked by hand: the point's
+    # angle on the circle (the written point projected on it: the corrections move it by microns, which changes the
+    # force's direction by 1e-3 rad at most), the tangent along the travel, Kienzle's force split into feed and
+    # passive parts along and across it. Points where the force or the tangent's X part nearly vanish (where a model
+    # switch could fall either side of a point) are left out.
+    program = """G18 G21 G90 G94
+(trueaxis: ap=1 f=0.15 vc=150)
+G0 X40.000000 Z-5.000000
+G1 Z-60.000000 F100
+G2 X40.000000 Z-40.000000 I0 K10.000000
+G0 X90.000000 Z-5.000000
+M30
+"""
+    geo = compensate(program, lathe, "geometric", tol_um=0.2)
+    com = compensate(program, lathe, "comprehensive", tol_um=0.2)
+    pg, pc = _written_xz(geo), _written_xz(com)
+    assert pg.shape == pc.shape and len(pg) > 100  # the arc linearised into the same points in both modes
+    centre = np.array([40.0, -50.0])
+    # The G2 block's pieces: the written points on the circle (within the corrections' microns), after the line's end
+    # (the arc's start, which carries the line's load).
+    on_circle = np.nonzero(np.abs(np.linalg.norm(pg - centre, axis=1) - 10.0) < 1e-2)[0]
+    assert np.all(np.diff(on_circle) == 1) and pg[on_circle[0], 1] < -59.9
+    arc = on_circle[1:]
+    rel = pg[arc] - centre
+    radius = np.linalg.norm(rel, axis=1)
+    unit = rel / radius[:, None]
+    nominal_x = centre[0] + 10.0 * unit[:, 0]
+    # The travel's sense from the order of the points: the tangent turns the radius by +-90 deg.
+    turn = np.sign(rel[:-1, 0] * rel[1:, 1] - rel[:-1, 1] * rel[1:, 0])
+    assert np.all(turn == turn[0])
+    tangent = turn[0] * np.stack([-unit[:, 1], unit[:, 0]], axis=1)  # (X, Z)
+    cutting = tomllib.loads((MACHINES / "lathe.toml").read_text())["cutting"]
+    fc = cutting["kc11"] * 1.0 * 0.15 ** (1.0 - cutting["mc"])
+    ff, fp = cutting["feed_ratio"] * fc, cutting["passive_ratio"] * fc
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    normal[normal.sum(axis=1) < 0] *= -1.0  # off the material: the side of +X +Z
+    fz_n = -ff * tangent[:, 1] + fp * normal[:, 1]
+    models = _paper_models()
+    P = fz_n / 1000.0
+    expected_um = np.array([
+        -1000.0 * (lambda c: c[0] + c[1] * x + c[2] * p + c[3] * x**2 + c[4] * x * p + c[5] * p**2)(
+            models[("+" if p >= 0 else "-", "forward" if tx > 0 else "backward")])
+        for x, p, tx in zip(nominal_x, P, tangent[:, 0])
+    ])
+    clear = (np.abs(fz_n) > 5.0) & (np.abs(tangent[:, 0]) > 0.05)
+    assert clear.sum() > 0.8 * clear.size
+    kinds = {("+" if p >= 0 else "-", tx > 0) for p, tx in zip(P[clear], tangent[clear, 0])}
+    assert len(kinds) >= 3  # the arc goes through several of the paper's models
+    dz_um = (pc[arc, 1] - pg[arc, 1]) * 1000.0
+    np.testing.assert_allclose(dz_um[clear], expected_um[clear], rtol=0, atol=0.01)

@@ -137,7 +137,9 @@ def cmd_error(args) -> int:
     m = load_machine(args.machine)
     pose = _parse_at(args.at, m.axis_names, m.rotary_axes)
     force = None if args.force_n is None else _parse_vector(args.force_n, "--force-n")
-    dp, du = ErrorTwin(m).volumetric_error(pose[None, :], force_n=force)
+    # Direction of motion of every axis (+1 forward, -1 backward): it chooses among the lathe paper's response surfaces.
+    motion = np.full((1, len(m.axis_names)), 1 if args.direction == "forward" else -1)
+    dp, du = ErrorTwin(m).volumetric_error(pose[None, :], force_n=force, motion=motion)
     if args.json:
         print(json.dumps({"position_error_um": dp[0].tolist(), "tool_axis_error_urad": du[0].tolist()}))
     else:
@@ -316,6 +318,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--machine", required=True, help="machine file (TOML)")
     e.add_argument("--at", required=True, help="pose, e.g. X=10,Y=20,Z=-5,B=30,C=45 (mm, deg)")
     e.add_argument("--force-n", help="force of the workpiece on the tool, FX,FY,FZ in N (machine frame)")
+    e.add_argument("--direction", choices=["forward", "backward"], default="forward",
+                   help="direction of motion of the axes: chooses the response surfaces of that motion (the lathe "
+                        "paper's models 1-2 forward, 3-4 backward; default forward)")
     e.add_argument("--json", action="store_true", help="print JSON")
     e.set_defaults(func=cmd_error)
 

@@ -47,7 +47,8 @@ over (batch, angle, slice); only the few flutes are looped over. The engaged arc
 The geometry enters only through six sums over the engaged edge (``_edge_integrals``); the force is a fixed linear
 map of those sums and the six coefficients. That makes the force exactly linear in the coefficients and makes the
 calibration against measured peaks (``fit_coefficients``) cheap: the geometry is computed once, and the Jacobian of a
-peak is the force basis at its maximising angle.
+peak is the force basis at its maximising angle; cheap enough to run the solver from many starts, which the peaks'
+local minima need.
 """
 
 from __future__ import annotations
@@ -60,6 +61,8 @@ from typing import ClassVar, Mapping, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import f as f_distribution
+from scipy.stats import qmc
 
 __all__ = [
     "CuttingCoefficients",
@@ -70,10 +73,11 @@ __all__ = [
     "peak_force",
     "MeasuredPeakForces",
     "load_l16",
+    "FitMinimum",
     "FitResult",
+    "PLAUSIBLE_BOX",
+    "TYPICAL_C45",
     "fit_coefficients",
-    "fit_report_markdown",
-    "l16_report",
 ]
 
 COEFFICIENT_NAMES = ("Ktc", "Krc", "Kac", "Kte", "Kre", "Kae")
@@ -430,13 +434,33 @@ def load_l16(path: str | Path) -> MeasuredPeakForces:
 # ../shared/data/typical_error_magnitudes.md), and so do the starting values of the fitted ones.
 TYPICAL_C45 = CuttingCoefficients(2000.0, 750.0, 400.0, 30.0, 45.0, 5.0, material="C45")
 
+# The box of plausible coefficients the multi-start fit draws its starting points from (lower, upper), N/mm^2 for the
+# cutting and N/mm for the edge coefficients: twice the typical steel figures for the cutting coefficients (Ktc of
+# steels 1500-2500 N/mm^2), and edge coefficients up to 500 N/mm, beyond any published figure (tens of N/mm) since
+# peak-force data can push the force into them (the L16 fit does: Kte ~ 250 N/mm).
+PLAUSIBLE_BOX: dict[str, tuple[float, float]] = {
+    "Ktc": (0.0, 4000.0), "Krc": (0.0, 2000.0), "Kac": (0.0, 2000.0),
+    "Kte": (0.0, 500.0), "Kre": (0.0, 500.0), "Kae": (0.0, 500.0),
+}
+
+
+@dataclass(frozen=True)
+class FitMinimum:
+    """One local minimum of the least-squares fit: the coefficients (the unfitted ones at their fixed values), the RMS
+    residual (N) there, and how many of the starting points ended in it."""
+
+    coefficients: CuttingCoefficients
+    rms_n: float
+    starts: int
+
 
 @dataclass(frozen=True, eq=False)
 class FitResult:
     """Coefficients fitted to measured peak forces, and how well they fit.
 
-    coefficients : CuttingCoefficients (the unfitted ones at their fixed values)
-    fitted : tuple of the fitted coefficient names;  std_errors : {name: standard error} in the coefficient's unit
+    coefficients : CuttingCoefficients at the best minimum found (the unfitted ones at their fixed values)
+    fitted : tuple of the fitted coefficient names;  std_errors : {name: standard error} in the coefficient's unit,
+        linearised at the best minimum
     groups : (G,) int;  measured_n, predicted_n, residuals_n : (G, 2) float, N, columns (Fx_max, Fy_max),
         residual = predicted - measured
     r2_fx, r2_fy, r2 : coefficient of determination 1 - SSR/SST (each component about its own mean; r2 over all
@@ -447,6 +471,13 @@ class FitResult:
     r2_proportional_to_ap : (2,) float, R^2 of Fx, Fy for the baseline "peak = constant * ap" (one constant per
         component), to show what the mechanistic model adds
     data : MeasuredPeakForces, the groups fitted
+    minima : the distinct local minima the starts ended in, best first (the first is the fit above)
+    near_equal_rms_n : float, N: minima with an RMS up to this are near-equal to the best: inside the data's 95 %
+        joint confidence region of the coefficients (SSR <= SSR_best (1 + p / (n - p) F(0.95; p, n - p)), Beale's
+        likelihood region, n residuals, p fitted coefficients), so the data cannot tell them from the best
+    spread : {name: (lowest, highest)} of each fitted coefficient over the near-equal minima
+    poorly_identified : names of the fitted coefficients whose spread over the near-equal minima exceeds their
+        standard error: the linearised error bar understates their uncertainty, and the data do not pin them down
     """
 
     coefficients: CuttingCoefficients
@@ -468,10 +499,35 @@ class FitResult:
     assumptions: dict[str, object]
     r2_proportional_to_ap: np.ndarray
     data: MeasuredPeakForces
+    minima: tuple[FitMinimum, ...] = ()
+    near_equal_rms_n: float = float("nan")
+    spread: dict[str, tuple[float, float]] = field(default_factory=dict)
+    poorly_identified: tuple[str, ...] = ()
 
 
 def _r2(measured: np.ndarray, residual: np.ndarray) -> float:
     return float(1.0 - np.sum(residual**2) / np.sum((measured - measured.mean()) ** 2))
+
+
+def _distinct_minima(x: np.ndarray, rms: np.ndarray, scale: np.ndarray, tol: float, rms_tol_n: float):
+    """Group the (S, p) end points ``x`` with RMS ``rms`` (S,) into distinct minima, best first.
+
+    Greedy and deterministic: the ends are taken in order of RMS; an end joins the first representative within ``tol``
+    of the box width ``scale`` (p,) in every coefficient and ``rms_tol_n`` in RMS, else it starts a new minimum (flat
+    valleys, whose ends lie a little apart at one RMS, so stay one minimum). Returns (representative indices, counts).
+    """
+    order = np.lexsort((np.arange(rms.size), rms))
+    reps: list[int] = []
+    counts: list[int] = []
+    for i in order:
+        for r, rep in enumerate(reps):
+            if abs(rms[i] - rms[rep]) <= rms_tol_n and np.all(np.abs(x[i] - x[rep]) <= tol * scale):
+                counts[r] += 1
+                break
+        else:
+            reps.append(int(i))
+            counts.append(1)
+    return reps, counts
 
 
 def fit_coefficients(
@@ -485,28 +541,44 @@ def fit_coefficients(
     fixed: CuttingCoefficients = TYPICAL_C45,
     n_angles: int = 360,
     n_slices: int | None = None,
+    starts: int = 64,
+    seed: int = 0,
 ) -> FitResult:
-    """Fit the coefficients named in ``fit`` to the measured peak |Fx|, |Fy| by bounded least squares.
+    """Fit the coefficients named in ``fit`` to the measured peak |Fx|, |Fy| by bounded least squares, from many starts.
 
     The paper's Fx, Fy are read as components in the feed frame (x along the feed, y across it); the model's peak is
     max over a tooth period of |F_x| and |F_y| (``peak_force``). Residuals are in newtons, unweighted. The fitted
     coefficients are bounded to be non-negative (scipy.optimize.least_squares, trust-region reflective); the others
-    keep their values in ``fixed``. Standard errors: sqrt(diag(s^2 (J^T J)^-1)), s^2 = SSR / (2G - p), with J the exact
-    Jacobian (the force basis at each peak's maximising angle). Deterministic: the same input gives the same result.
+    keep their values in ``fixed``.
+
+    The peak is the force at its maximising angle, which jumps as the coefficients change: the sum of squares is
+    piecewise quadratic with several local minima (three on the L16 data with the default assumptions). So the solver
+    runs from the values in ``fixed`` and from ``starts`` more points, a Latin hypercube (scipy.stats.qmc, seeded with
+    ``seed``) over ``PLAUSIBLE_BOX``; the ends are grouped into distinct minima (``FitResult.minima``), and the best is
+    returned.
+    With 64 starts each L16 fit of docs/force_fit.md reaches its best minimum from 12 or more of them.
+    Standard errors: sqrt(diag(s^2 (J^T J)^-1)), s^2 = SSR / (2G - p), with J the exact Jacobian (the force basis at
+    each peak's maximising angle) at the best minimum. The spread of each coefficient over the minima that the data
+    cannot tell from the best is in ``FitResult.spread`` and ``poorly_identified``. Deterministic: the same input
+    gives the same result.
     """
     unknown = [name for name in fit if name not in COEFFICIENT_NAMES]
     if unknown or not fit:
         raise ValueError(f"fit must name some of {list(COEFFICIENT_NAMES)}, got {list(fit)}")
+    if int(starts) != starts or starts < 0:
+        raise ValueError(f"starts must be a non-negative integer, got {starts!r}")
     conditions = CuttingConditions(
         ap_mm=groups.ap_mm, ae_mm=groups.ae_mm, fz_mm=groups.fz_mm, tool_diameter_mm=tool_diameter_mm,
         flutes=flutes, helix_deg=helix_deg, mode=mode,
     )
     _, S = _edge_integrals(conditions, n_angles, n_slices)
     unit = _unit_forces(S)[..., :2, :]  # (G, M, 2, 6): Fx, Fy per unit coefficient
+    fit = tuple(fit)
     index = [COEFFICIENT_NAMES.index(name) for name in fit]
     base = fixed.as_array()
     measured = groups.peaks_n  # (G, 2)
     G = measured.shape[0]
+    p_count = len(index)
 
     def coefficients_of(p: np.ndarray) -> np.ndarray:
         k = base.copy()
@@ -527,17 +599,50 @@ def fit_coefficients(
         # |F| at its maximising angle is linear in the coefficients there: d|F|/dK = sign(F) * unit force.
         f_at, at = peaks_and_argmax(p)
         unit_at = np.take_along_axis(unit, at[:, None, :, None], axis=1)[:, 0]  # (G, 2, 6)
-        return (np.sign(f_at)[..., None] * unit_at[..., index]).reshape(2 * G, len(index))
+        return (np.sign(f_at)[..., None] * unit_at[..., index]).reshape(2 * G, p_count)
 
-    p0 = np.maximum(base[index], 1e-3)
-    solution = least_squares(residuals, p0, jac=jacobian, bounds=(0.0, np.inf), method="trf", x_scale="jac")
-    p = solution.x
+    # Starting points: the given values first, then a Latin hypercube over the plausible box.
+    lower = np.array([PLAUSIBLE_BOX[name][0] for name in fit])
+    upper = np.array([PLAUSIBLE_BOX[name][1] for name in fit])
+    p_starts = [np.maximum(base[index], 1e-3)]
+    if starts:
+        unit_cube = qmc.LatinHypercube(d=p_count, seed=seed).random(int(starts))
+        p_starts += list(np.maximum(lower + unit_cube * (upper - lower), 1e-3))
+    ends, costs, statuses = [], [], []
+    for p0 in p_starts:
+        sol = least_squares(residuals, p0, jac=jacobian, bounds=(0.0, np.inf), method="trf", x_scale="jac")
+        ends.append(sol.x)
+        costs.append(float(np.sqrt(np.mean(residuals(sol.x) ** 2))))
+        statuses.append(int(sol.status))
+    ends_arr, rms_arr = np.array(ends), np.array(costs)
+    reps, counts = _distinct_minima(ends_arr, rms_arr, upper - lower, tol=0.01,
+                                    rms_tol_n=1e-3 * max(rms_arr.min(), 1.0))
+    best = reps[0]
+    p = ends_arr[best]
+    minima = tuple(
+        FitMinimum(CuttingCoefficients.from_array(coefficients_of(ends_arr[r]), material=fixed.material),
+                   float(rms_arr[r]), int(c))
+        for r, c in zip(reps, counts)
+    )
+
     residual = residuals(p).reshape(G, 2)
     J = jacobian(p)
-    dof = max(2 * G - len(index), 1)
-    s2 = float(np.sum(residual**2)) / dof
+    n_res = 2 * G
+    dof = max(n_res - p_count, 1)
+    ssr = float(np.sum(residual**2))
+    s2 = ssr / dof
     cov = s2 * np.linalg.pinv(J.T @ J)
     std = dict(zip(fit, np.sqrt(np.clip(np.diag(cov), 0.0, None)).tolist()))
+
+    # Near-equal minima: inside Beale's 95 % joint confidence region of the best one.
+    ssr_bound = ssr * (1.0 + p_count / dof * float(f_distribution.ppf(0.95, p_count, dof)))
+    near_equal_rms = float(np.sqrt(ssr_bound / n_res))
+    near = [mn for mn in minima if mn.rms_n <= near_equal_rms]
+    spread = {
+        name: (min(getattr(mn.coefficients, name) for mn in near), max(getattr(mn.coefficients, name) for mn in near))
+        for name in fit
+    }
+    poorly = tuple(name for name in fit if spread[name][1] - spread[name][0] > std[name])
 
     # Baseline: each peak proportional to ap alone (least squares through the origin).
     ap = groups.ap_mm[:, None]
@@ -547,8 +652,8 @@ def fit_coefficients(
     flat = np.abs(residual).ravel().argmax()
     worst_g, worst_c = divmod(int(flat), 2)
     return FitResult(
-        coefficients=CuttingCoefficients.from_array(coefficients_of(p), material=fixed.material),
-        fitted=tuple(fit),
+        coefficients=minima[0].coefficients,
+        fitted=fit,
         std_errors=std,
         groups=groups.group.copy(),
         measured_n=measured,
@@ -572,191 +677,15 @@ def fit_coefficients(
             "fixed": {name: float(base[i]) for i, name in enumerate(COEFFICIENT_NAMES) if name not in fit},
             "n_angles": int(n_angles),
             "n_slices": None if n_slices is None else int(n_slices),
-            "solver_status": int(solution.status),
+            "starts": len(p_starts),
+            "seed": int(seed),
+            "start_box": {name: PLAUSIBLE_BOX[name] for name in fit},
+            "solver_status": statuses[best],
         },
         r2_proportional_to_ap=r2_ap,
         data=groups,
+        minima=minima,
+        near_equal_rms_n=near_equal_rms,
+        spread=spread,
+        poorly_identified=poorly,
     )
-
-
-# --------------------------------------------------------------------------------------------------------------------
-# Report
-# --------------------------------------------------------------------------------------------------------------------
-
-_UNITS = {"Ktc": "N/mm²", "Krc": "N/mm²", "Kac": "N/mm²", "Kte": "N/mm", "Kre": "N/mm", "Kae": "N/mm"}
-
-
-def _ordering_violations(data: MeasuredPeakForces) -> list[tuple[str, int, int]]:
-    """Pairs (component, i, j) where group i has ap, fz, ae all >= group j's (one strictly) but a lower peak."""
-    factors = np.stack([data.ap_mm, data.fz_mm, data.ae_mm], axis=-1)  # (G, 3)
-    geq = np.all(factors[:, None, :] >= factors[None, :, :], axis=-1)
-    gt = np.any(factors[:, None, :] > factors[None, :, :], axis=-1)
-    dominates = geq & gt  # (G, G): i dominates j
-    out = []
-    for c, name in enumerate(("Fx", "Fy")):
-        peak = data.peaks_n[:, c]
-        for i, j in zip(*np.nonzero(dominates & (peak[:, None] < peak[None, :]))):
-            out.append((name, int(i), int(j)))
-    return out
-
-
-def fit_report_markdown(result: FitResult, alternatives: Sequence[FitResult] = ()) -> str:
-    """The fit as a markdown snippet for the README: assumptions, coefficients with standard errors, R², RMS, the
-    worst group, per-group residuals, optional alternative fits (other tool or mode assumptions), and a paragraph on
-    where the data limit the fit. Deterministic: regenerate docs/force_fit.md with it."""
-    data, a, k = result.data, result.assumptions, result.coefficients
-    mean_peak = float(result.measured_n.mean())
-    lines = [
-        "### Cutting-force coefficients fitted to the L16 peak forces",
-        "",
-        "Data: Table 2 of \"Comprehensive error measurement and compensation method for equivalent cutting forces\""
-        " (carbide end mill CYT ME550, 45 steel, XH714 mill, SDC-C4F dynamometer), copied with its notes to"
-        " `fixtures/papers/milling_forces_l16.csv`. Model and frame: `trueaxis/machine/cutting_force.py`"
-        " (Altintas, *Manufacturing Automation*, 2nd ed., ch. 2). Regenerate this text with"
-        " `trueaxis.machine.cutting_force.l16_report(\"fixtures/papers/milling_forces_l16.csv\")`.",
-        "",
-        "Assumptions (the paper does not give them):",
-        "",
-        f"- tool: flat end mill D = {a['tool_diameter_mm']:g} mm, z = {a['flutes']} flutes,"
-        f" helix {a['helix_deg']:g} deg (right-hand); {a['mode']} milling"
-        f" ({'material on the -y side' if a['mode'] == 'down' else 'material on the +y side'}, spindle clockwise"
-        " seen from the spindle); fz, ap, ae as printed (ae = 1 mm inferred for groups 1 and 16);",
-        "- the paper's Fx_max, Fy_max are the peaks of |Fx| and |Fy| over a tooth period, x along the feed and y"
-        " across it (the feed frame); residual = model - measured, unweighted, in N;",
-        "- Kac and Kae do not act on Fx, Fy and cannot be fitted; they stay at the typical C45 values"
-        f" ({', '.join(f'{n} = {v:g} {_UNITS[n]}' for n, v in a['fixed'].items())});"
-        " the fitted coefficients are bounded to be non-negative (scipy `least_squares`, trust-region reflective);",
-        f"- discretisation: {a['n_angles']} angles per tooth period, axial slices so that the helix lag across one"
-        " slice is at most one angle step.",
-        "",
-        "| coefficient | value | standard error | unit |",
-        "|---|---:|---:|---|",
-    ]
-    for name in COEFFICIENT_NAMES:
-        value = getattr(k, name)
-        std = f"{result.std_errors[name]:.1f}" if name in result.std_errors else "fixed"
-        lines.append(f"| {name} | {value:.1f} | {std} | {_UNITS[name]} |")
-    i_w = int(np.nonzero(result.groups == result.worst_group)[0][0])
-    c_w = ("Fx", "Fy").index(result.worst_component)
-    lines += [
-        "",
-        f"Fit over {2 * len(result.groups)} peaks ({len(result.groups)} groups x Fx, Fy), {len(result.fitted)}"
-        " fitted coefficients:",
-        "",
-        f"- R²: Fx {result.r2_fx:.3f}, Fy {result.r2_fy:.3f}, overall {result.r2:.3f}"
-        f" (baseline \"peak proportional to ap\": Fx {result.r2_proportional_to_ap[0]:.3f},"
-        f" Fy {result.r2_proportional_to_ap[1]:.3f});",
-        f"- RMS error: {result.rms_n:.1f} N overall (Fx {result.rms_fx_n:.1f} N, Fy {result.rms_fy_n:.1f} N),"
-        f" against a mean measured peak of {mean_peak:.1f} N;",
-        f"- worst: group {result.worst_group} {result.worst_component}, measured"
-        f" {result.measured_n[i_w, c_w]:.1f} N, model {result.predicted_n[i_w, c_w]:.1f} N,"
-        f" residual {result.worst_residual_n:+.1f} N.",
-        "",
-        "| group | ap mm | fz mm | ae mm | Fx meas. N | Fx model N | Fy meas. N | Fy model N |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for g in range(len(result.groups)):
-        lines.append(
-            f"| {result.groups[g]} | {data.ap_mm[g]:g} | {data.fz_mm[g]:g} | {data.ae_mm[g]:g}"
-            f"{'*' if data.ae_inferred[g] else ''} | {result.measured_n[g, 0]:.1f} | {result.predicted_n[g, 0]:.1f}"
-            f" | {result.measured_n[g, 1]:.1f} | {result.predicted_n[g, 1]:.1f} |"
-        )
-    lines.append("")
-    lines.append("\\* ae inferred.")
-    if alternatives:
-        lines += [
-            "",
-            "Sensitivity to the assumed tool and mode:",
-            "",
-            "| mode | D mm | z | helix deg | Ktc | Krc | Kte | Kre | at the zero bound | R² | RMS N |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|",
-        ]
-        for r in (result, *alternatives):
-            ra, rk = r.assumptions, r.coefficients
-            lines.append(
-                f"| {ra['mode']} | {ra['tool_diameter_mm']:g} | {ra['flutes']} | {ra['helix_deg']:g} | {rk.Ktc:.1f}"
-                f" | {rk.Krc:.1f} | {rk.Kte:.1f} | {rk.Kre:.1f}"
-                f" | {', '.join(n for n in r.fitted if getattr(rk, n) <= 1e-9) or '-'} | {r.r2:.3f} | {r.rms_n:.1f} |"
-            )
-
-    # Where the data limit the fit: figures computed from the data, so the paragraph stays true to them.
-    X = np.column_stack([np.ones(len(data.group)), np.log(data.ap_mm), np.log(data.fz_mm), np.log(data.ae_mm)])
-    exponents = np.linalg.lstsq(X, np.log(data.peaks_n), rcond=None)[0][1:]  # (3, 2): ap, fz, ae x Fx, Fy
-    typical = CuttingConditions(
-        data.ap_mm, data.ae_mm, data.fz_mm, a["tool_diameter_mm"], a["flutes"], a["helix_deg"], a["mode"]
-    )
-    typical_peak = peak_force(TYPICAL_C45, typical, n_angles=a["n_angles"])[:, :2]
-    violations = _ordering_violations(data)
-    # The largest inversions first; and how many of them the fitted model orders the expected way.
-    def inversion(v: tuple[str, int, int]) -> float:
-        c = ("Fx", "Fy").index(v[0])
-        return float(data.peaks_n[v[2], c] - data.peaks_n[v[1], c])
-
-    violations.sort(key=inversion, reverse=True)
-    model_ordered = sum(
-        result.predicted_n[i, ("Fx", "Fy").index(c)] >= result.predicted_n[j, ("Fx", "Fy").index(c)]
-        for c, i, j in violations
-    )
-    small = np.nonzero(data.ae_mm == data.ae_mm.min())[0]
-    big_fx = small[np.argmax(data.fx_max_n[small])]
-    big_fz = small[np.argmax(data.fz_mm[small])]
-    examples = "; ".join(
-        f"group {data.group[i]} ({data.ap_mm[i]:g}/{data.fz_mm[i]:g}/{data.ae_mm[i]:g}) {c} "
-        f"{data.peaks_n[i, ('Fx', 'Fy').index(c)]:.1f} N below group {data.group[j]} "
-        f"({data.ap_mm[j]:g}/{data.fz_mm[j]:g}/{data.ae_mm[j]:g}) {data.peaks_n[j, ('Fx', 'Fy').index(c)]:.1f} N"
-        for c, i, j in violations[:3]
-    )
-    fs_levels = np.unique(data.fs_hz)
-    fx_by_fs = [float(data.fx_max_n[data.fs_hz == level].mean()) for level in fs_levels]
-    low = data.group[data.fs_hz == fs_levels[0]]
-    feed_ratio = data.feed_mm_min / (data.fz_mm * data.fs_hz)
-    ktc_std = result.std_errors.get("Ktc", float("nan"))
-    paragraph = (
-        "**Where the data limit the fit.** Taken at face value (fz = "
-        f"{data.fz_mm.min():g}-{data.fz_mm.max():g} mm per tooth), the peaks are far below what the typical C45"
-        f" coefficients give (model with Ktc = {TYPICAL_C45.Ktc:g} N/mm²: up to {typical_peak.max():.0f} N, measured"
-        f" at most {data.peaks_n.max():.0f} N) and they hardly follow the chip: a log-log regression gives"
-        f" Fx ∝ ap^{exponents[0, 0]:.2f} fz^{exponents[1, 0]:.2f} ae^{exponents[2, 0]:.2f} and"
-        f" Fy ∝ ap^{exponents[0, 1]:.2f} fz^{exponents[1, 1]:.2f} ae^{exponents[2, 1]:.2f}, where the model's"
-        " chip term is proportional to ap and fz. The fit therefore puts the force into the edge coefficients"
-        f" (Kte = {k.Kte:.0f} N/mm) and leaves Ktc = {k.Ktc:.0f} ± {ktc_std:.0f} N/mm², not distinguishable from"
-        " zero: these data do not identify the cutting coefficients, and the fitted set should not be carried to"
-        f" other feeds. {len(violations)} pairs of groups break the ordering one expects of a chip-load model (a group"
-        f" with ap, fz and ae all at least as large has a lower peak; the fitted model orders {model_ordered} of them"
-        f" the expected way), the largest: {examples}. At ae = {data.ae_mm.min():g} mm, group {data.group[big_fx]}"
-        f" has Fx = {data.fx_max_n[big_fx]:.0f} N, {data.fx_max_n[big_fx] / data.fx_max_n[big_fz]:.1f} times"
-        f" group {data.group[big_fz]}'s {data.fx_max_n[big_fz]:.0f} N at fz = {data.fz_mm[big_fz]:g} mm (against"
-        f" {data.fz_mm[big_fx]:g} mm) and only {data.ap_mm[big_fx] / data.ap_mm[big_fz]:.2f} times its depth;"
-        f" the fitted model misses both ({result.residuals_n[big_fx, 0]:+.0f} N and"
-        f" {result.residuals_n[big_fz, 0]:+.0f} N), since its force per unit depth grows with the chip."
-        " The design's fourth column,"
-        f" fs, is balanced like a factor ({len(fs_levels)} levels, each {len(data.group) // len(fs_levels)} times),"
-        f" and the groups at the lowest fs ({fs_levels[0]:g} Hz: {', '.join(str(g) for g in low)}) have the lowest"
-        f" Fx (mean {fx_by_fs[0]:.0f} N against {min(fx_by_fs[1:]):.0f}-{max(fx_by_fs[1:]):.0f} N at the other"
-        " levels): an unrecorded factor (spindle speed) or peaks missed by a slow sampling rate, which no static"
-        " model can follow. The feed column does not settle it: feed / (fz · fs) ranges"
-        f" {feed_ratio.min():.2f}-{feed_ratio.max():.2f} where a fixed spindle speed per fs level would make it"
-        " constant. Measured peaks also carry runout, vibration and noise that the static model has none of, and"
-        f" D, z, helix and the milling mode are assumed (see the sensitivity table): an RMS error of"
-        f" {result.rms_n:.0f} N, {100 * result.rms_n / mean_peak:.0f} % of the mean peak, is the data's scatter as"
-        " much as the model's error."
-    )
-    lines += ["", paragraph, ""]
-    return "\n".join(lines)
-
-
-# The tool and mode assumptions the L16 report compares against the main fit (keyword arguments of fit_coefficients).
-L16_SENSITIVITY: tuple[dict[str, object], ...] = (
-    {"mode": "up"},
-    {"tool_diameter_mm": 8.0},
-    {"tool_diameter_mm": 12.0},
-    {"flutes": 3},
-    {"helix_deg": 45.0},
-)
-
-
-def l16_report(path: str | Path) -> str:
-    """docs/force_fit.md: the main fit (D = 10 mm, z = 4, helix 30 deg, down milling) of the L16 file at ``path``,
-    with the sensitivity fits of ``L16_SENSITIVITY``."""
-    data = load_l16(path)
-    return fit_report_markdown(fit_coefficients(data), [fit_coefficients(data, **kw) for kw in L16_SENSITIVITY])

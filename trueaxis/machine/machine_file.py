@@ -27,6 +27,7 @@ from .model import (
     unit_of,
 )
 from .transforms import UNIT
+from .turning_force import TURNING_KEYS, TurningCoefficients
 
 DEFAULT_ABOUT = {"A": "X", "B": "Y", "C": "Z"}
 CUTTING_KEYS = ("Ktc", "Krc", "Kac", "Kte", "Kre", "Kae")
@@ -196,11 +197,19 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
 
     cutting = None
     if "cutting" in data:
-        c = ck.table(data["cutting"], "cutting", {"material", *CUTTING_KEYS}, CUTTING_KEYS)
+        # A mill's [cutting] holds the milling coefficients (all six), a lathe's the turning ones (Kienzle's kc11
+        # and mc required; see trueaxis.machine.turning_force).
+        keys, required = (TURNING_KEYS, ("kc11", "mc")) if kind == "lathe" else (CUTTING_KEYS, CUTTING_KEYS)
+        c = ck.table(data["cutting"], "cutting", {"material", *keys}, required)
         cutting = {"material": ck.string(c.get("material", ""), "cutting.material") or ""}
-        for key in CUTTING_KEYS:
+        for key in keys:
             if key in c:
                 cutting[key] = ck.number(c[key], f"cutting.{key}", nonnegative=True, default=0.0, limit=LIMIT_CUTTING)
+        if kind == "lathe" and all(key in cutting for key in ("kc11", "mc")):
+            try:
+                TurningCoefficients.from_mapping(cutting)
+            except ValueError as exc:
+                ck.fail("cutting", str(exc))
 
     return Machine(
         name=name,

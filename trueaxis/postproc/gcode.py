@@ -150,7 +150,7 @@ _MOVING_G = {
     650: "macro call G65", 660: "modal macro call G66", 661: "modal macro call G66.1",
     330: "spindle-synchronised motion G33", 331: "rigid tapping G33.1", 760: "threading cycle G76",
     382: "probing G38.2", 383: "probing G38.3", 384: "probing G38.4", 385: "probing G38.5",
-    50: "spline G5", 51: "spline G5.1", 52: "NURBS G5.2", 70: "lathe diameter mode G7",
+    50: "spline G5", 51: "spline G5.1", 52: "NURBS G5.2",
     171: "plane G17.1", 181: "plane G18.1", 191: "plane G19.1",
 }
 _MOTION_G = (0, 10, 20, 30, 730, 740, 810, 820, 830, 840, 850, 860, 870, 880, 890)
@@ -206,6 +206,7 @@ class Program:
     tool : (M,) int32, tool in the spindle (after M6); 0 when none
     incremental : (M,) bool, G91 (incremental axis words) active
     arc_incremental : (M,) bool, G91.1 (incremental arc centres, the default) active; False under G90.1
+    diameter : (M,) bool, G7 (lathe diameter mode) active: the block's X word was a diameter, X here is the radius
     line_index : (M,) int32, 0-based index into ``lines`` of the block that made the row
     words : (M,) uint16, bit mask of the words the block had (bit i for ``WORD_BITS[i]``, XYZABCIJKRPF); 0 for
         rows of expanded cycles and G28/G30's second move
@@ -233,6 +234,7 @@ class Program:
     tool: np.ndarray
     incremental: np.ndarray
     arc_incremental: np.ndarray
+    diameter: np.ndarray
     line_index: np.ndarray
     words: np.ndarray
     lines: list
@@ -559,6 +561,7 @@ class _Interpreter:
         absolute = True
         arc_abs = False
         inverse = False
+        diameter = False  # G7 (lathe diameter mode: X words are diameters, halved as LinuxCNC does; I is not)
         feed = 0.0
         retract_r = False  # G99
         cutter = 40
@@ -586,7 +589,7 @@ class _Interpreter:
             return g5x[active] + g92 + tlo
 
         def refresh_state():
-            key = (feed, inverse, inch, cutter, tool, not absolute, not arc_abs, tuple(off_now[0]))
+            key = (feed, inverse, inch, cutter, tool, not absolute, not arc_abs, tuple(off_now[0]), diameter)
             cur_state[0] = states.setdefault(key, len(states))
 
         def emit(motion, kind, target, li, words=0, center=None, pl=0, turns=0):
@@ -669,6 +672,8 @@ class _Interpreter:
                         f_ = nan if f_ is None else float(f_)
                 else:
                     fast = False
+            if diameter and fast and x == x:
+                x = 0.5 * x  # G7: the X word is a diameter
             # (values: NaN where the block has no such word; g: -1 where it has no G word)
             if fast:
                 mode = motion_mode if g < 0 else g * 10
@@ -891,7 +896,10 @@ class _Interpreter:
                 words_mask = 0
                 for k in vals:
                     words_mask |= _WORD_BIT.get(k, 0)
-                ax = [(axis_index[k], fvals[k]) for k in "XYZABC" if k in fvals]
+                if 70 in gnums or (80 in gnums and "P" not in fvals):
+                    diameter = 70 in gnums  # G7 / G8 (LinuxCNC's lathe modes), in force for this block's words
+                ax = [(axis_index[k], 0.5 * fvals[k] if diameter and k == "X" else fvals[k])
+                      for k in "XYZABC" if k in fvals]
                 for k in "XYZABC":
                     if k in fvals:
                         used_axes.add(k)
@@ -967,6 +975,8 @@ class _Interpreter:
                         nonmodal = g
                     elif g == 530:
                         g53 = True
+                    elif g == 70:
+                        pass  # G7, lathe diameter mode: taken before the axis words (above)
                     elif g in (610, 611, 640, 960, 970):
                         pass  # path control and spindle modes: no effect on positions
                     elif g == 80:
@@ -1143,6 +1153,7 @@ class _Interpreter:
         st_flags = np.array([k[1:7] for k in state_rows] or [(False, False, 40, 0, False, True)],
                             np.int64).reshape(-1, 6)
         st_off = np.array([k[7] for k in state_rows] or [(0.0,) * 6], float).reshape(-1, 6)
+        st_diameter = np.array([k[8] for k in state_rows] or [False], bool)
         arc_center = np.full((m, 3), np.nan)
         arc_plane = np.zeros(m, np.int8)
         arc_turns = np.zeros(m, np.int16)
@@ -1182,6 +1193,7 @@ class _Interpreter:
             tool=st_flags[sid, 3].astype(np.int32).reshape(m),
             incremental=st_flags[sid, 4].astype(bool).reshape(m),
             arc_incremental=st_flags[sid, 5].astype(bool).reshape(m),
+            diameter=st_diameter[sid].reshape(m),
             line_index=np.array(r_line, np.int32),
             words=words,
             lines=lines,

@@ -16,6 +16,8 @@ Cutting conditions for comprehensive mode, in order of precedence (the first tha
 2. the program's structured comments ``(trueaxis: ap=.. ae=.. fz=.. n=.. d=.. z=.. mode=down)``, valid from where they
    stand (FreeCAD's post writes them from the job's tool controller and operation),
 3. the machine file's tool (diameter = 2 x radius, flutes).
+On a lathe the force is Kienzle's turning force from ``(trueaxis: ap=.. f=.. vc=..)`` instead, and each block's
+direction of motion chooses the response surfaces (``trueaxis.postproc.turning``).
 The force is the mechanistic model's mean force over a tooth period, in the feed frame turned to the machine frame:
 z along the tool axis (in the machine frame: machine Z unless a head tilts the tool), x along the feed
 direction normal to it, y = z x x. Rapids and plunges carry no force.
@@ -52,7 +54,7 @@ from .gcode import (
     write_number,
 )
 from . import fast_write
-from .solver import solve_commanded
+from .solver import corrected_directions, solve_commanded
 
 MODES = ("none", "geometric", "comprehensive")
 AXES = "XYZABC"
@@ -252,6 +254,10 @@ class _Poster:
         self.conditions = conditions or {}
         self.rep = rep
         self.twin = ErrorTwin(machine)
+        if machine.kind == "lathe" and mode == "comprehensive":
+            from .turning import MotionTwin  # a lathe's loads carry each axis' direction of motion (see .turning)
+
+            self.twin = MotionTwin(self.twin)
         self.names = machine.axis_names
         self.cols = [AXES.index(a) for a in self.names]
         self.orientation = any(a in prog.axes_present for a in machine.rotary_axes)
@@ -288,6 +294,10 @@ class _Poster:
         direction normal to it."""
         if self.mode != "comprehensive":
             return None
+        if self.m.kind == "lathe":
+            from .turning import lathe_loads  # Kienzle's turning force and the direction of motion (see .turning)
+
+            return lathe_loads(self, rows)
         if not self.m.cutting:
             raise PostError(self.p.source, 1, f"comprehensive mode needs the [cutting] coefficients in {self.m.source}")
         coeffs = CuttingCoefficients.from_mapping(self.m.cutting)
@@ -454,6 +464,10 @@ class _Poster:
         bar.close()
         self._summarise(mx, np.sqrt(sq / max(rows.size, 1)))
         self._residual_check()
+        if p.diameter.any():
+            from .turning import diameter_words  # G7: X written as a diameter again
+
+            self.p, delta_prog, pieces = diameter_words(p, rows, delta_prog, pieces)
         return self._write(rows, delta_prog, pieces, arc_mode)
 
     def _compensate(self, rows):
@@ -536,12 +550,16 @@ class _Poster:
         n6 = 6 if self.orientation else 3
         idx = np.asarray(feed_idx, int)
         f_all = None if force is None else force
+        # Judged is the position error along the directions the axes can correct (all three on a mill, X and Z on a
+        # lathe, whose error along Y moves the turned radius by second order only and no axis can remove).
+        correctable = corrected_directions(self.m)
+        correctable = correctable.T @ correctable
 
         def residual(i_move, fr, qc):
             q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
             pn, un = self.twin.nominal_pose(q_nom)
             pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
-            return np.hstack([pa - pn, ua - un])[:, :n6]
+            return np.hstack([(pa - pn) @ correctable, ua - un])[:, :n6]
 
         # A move's commanded start is usually the previous move's commanded end (same pose, same force): reuse it.
         q0 = np.empty((idx.size, q_start.shape[1]))
@@ -687,6 +705,10 @@ class _Poster:
         r = rows[arc_idx][owner]
         q_pts = self.to_machine(pts6 + p.offset[r], p.inch[r])
         f = None if force is None else force[arc_idx][owner]
+        if f is not None and f.shape[1] > 3:  # a lathe's loads: force and motion follow the arc (see .turning)
+            from .turning import arc_point_loads
+
+            f = arc_point_loads(self, r, pts6, f)
         q_c, _ = self.solve(q_pts, f, r)
         return q_c, q_pts
 
