@@ -60,9 +60,6 @@ from pathlib import Path
 from typing import ClassVar, Mapping, Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.stats import f as f_distribution
-from scipy.stats import qmc
 
 __all__ = [
     "CuttingCoefficients",
@@ -562,6 +559,11 @@ def fit_coefficients(
     cannot tell from the best is in ``FitResult.spread`` and ``poorly_identified``. Deterministic: the same input
     gives the same result.
     """
+    # scipy imported here, not at the top: the post imports this module and must not wait ~1 s for scipy.optimize
+    from scipy.optimize import least_squares
+    from scipy.stats import f as f_distribution
+    from scipy.stats import qmc
+
     unknown = [name for name in fit if name not in COEFFICIENT_NAMES]
     if unknown or not fit:
         raise ValueError(f"fit must name some of {list(COEFFICIENT_NAMES)}, got {list(fit)}")
