@@ -3,7 +3,6 @@ sees, the identified machine file, and the closed loop (slow)."""
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 
 import numpy as np
@@ -178,9 +177,9 @@ def test_identified_machine_file_round_trip(tmp_path, nmv, measured_cone):
     program_file = tmp_path / "cone.ngc"
     program_file.write_text(prog.text)
     out = tmp_path / "identified.toml"
-    args = argparse.Namespace(machine=str(twin_file), program=str(program_file), write=str(out), robust=False,
-                              parameters="location")
-    report = run_identification(Cloud(pts, nrm, "cmm.ply"), dev, load_part("nas979"), args)
+    report, result = run_identification(Cloud(pts, nrm, "cmm.ply"), dev, load_part("nas979"), machine=twin_file,
+                                        program=program_file, write=out, parameters="location")
+    assert result.verdict == "accepted" and report["written"] == str(out)
     written = load_machine(out)
     names = written.parameter_names()
     by_name = {p["name"]: p for p in report["parameters"]}
