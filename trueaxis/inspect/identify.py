@@ -200,6 +200,10 @@ def find_contacts(points, normals, path: ToolPath, radius: float, length: float,
     owner = np.repeat(coarse, levels.size)
     starts = max(2, min(int(starts), tree.n))
     window = stride // 2 + 1
+    # How far along the path an instance that passes the point may miss it: the largest step between consecutive
+    # instances of one pass (steps ten times the median are the jumps between passes and leave out), with margin.
+    steps = np.linalg.norm(np.diff(path.tip, axis=0), axis=1) if K > 1 else np.zeros(1)
+    reach_mm = 1.5 * float(np.max(steps[steps <= 10.0 * np.median(steps)], initial=0.0))
     tip, axis = path.tip, path.axis
     # Per instance: tip, axis and their central differences along the path (one gather of 12 numbers per query).
     d_tip = np.gradient(tip, axis=0) if K > 1 else np.zeros_like(tip)
@@ -233,11 +237,14 @@ def find_contacts(points, normals, path: ToolPath, radius: float, length: float,
         rows = np.arange(len(y))
         return cand[rows, j], d[rows, j]
 
-    def nearest(y):
+    def nearest(y, normal=None):
         # Two starts: the nearest tree sample, and the nearest one away from it along the path (more than two
         # strides). Passes that repeat a path at a small offset (semi-finishing, then finishing; a slot's depth
         # passes) lie side by side in the tree, and the right one need not be the nearest sample. The nearest axis
-        # wins; within tie_um, the latest instance (the last tool to pass).
+        # wins; within tie_um, the latest instance (the last tool to pass). For side contacts (``normal`` given)
+        # the envelope is the deepest cut: when both instances pass the point (their axes miss y along the path by
+        # no more than the path's sampling, ``reach_mm``), the one whose surface lies deeper along the normal wins,
+        # however near the other passes (a compensated pass can pass as far inside as an earlier one outside).
         _, i = tree.query(y, k=starts, workers=workers)
         own = owner[i.reshape(len(y), starts)]
         apart = np.abs(own - own[:, :1]) > 2 * stride
@@ -245,6 +252,13 @@ def find_contacts(points, normals, path: ToolPath, radius: float, length: float,
         k1, d1 = refine(y, own[:, 0])
         k2, d2 = refine(y, second)
         pick2 = (d2 < d1 - tie_um * 1e-3) | ((d2 <= d1 + tie_um * 1e-3) & (k2 > k1))
+        if normal is not None:
+            g1 = np.einsum("ij,ij->i", foot(y, k1)[0] - y, normal)
+            g2 = np.einsum("ij,ij->i", foot(y, k2)[0] - y, normal)
+            both = (np.sqrt(np.maximum(d1**2 - g1**2, 0.0)) <= reach_mm) & \
+                (np.sqrt(np.maximum(d2**2 - g2**2, 0.0)) <= reach_mm)
+            deeper2 = (g2 < g1 - tie_um * 1e-3) | ((g2 <= g1 + tie_um * 1e-3) & (k2 > k1))
+            pick2 = np.where(both, deeper2, pick2)
         return np.where(pick2, k2, k1)
 
     # In chunks that keep the temporaries in cache.
@@ -253,7 +267,7 @@ def find_contacts(points, normals, path: ToolPath, radius: float, length: float,
     for s in range(0, x.shape[0], CHUNK_POINTS):
         sl = slice(s, min(s + CHUNK_POINTS, x.shape[0]))
         xs, ns = x[sl], n[sl]
-        k = nearest(xs + radius * ns)
+        k = nearest(xs + radius * ns, ns)
         e = np.abs(np.einsum("ij,ij->i", ns, axis[k])) > math.cos(math.radians(45.0))
         if np.any(e):
             k[e] = nearest(xs[e])
@@ -667,7 +681,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
              loss: str = "soft_l1", alignment: str = "none", max_relative_std: float = 0.2, min_share: float = 0.6,
              weights=None, path: ToolPath | None = None, max_gap_mm: float = 0.5,
              irls_iterations: int = 10, significance: float = 3.0, alias_prior: bool = True,
-             holdout_blocks: int = 20, holdout_every: int = 5) -> Identification:
+             holdout_blocks: int = 20, holdout_every: int = 5, min_explained: float = 0.5) -> Identification:
     """Identify the twin's error parameters from a measured part.
 
     points : (N, 3) measured points, mm, part frame.  normals : (N, 3) unit outward normals of the nominal surface.
@@ -693,6 +707,8 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     alias_prior : include the aliasing of the held parameters (typical-size prior) in the std.
     holdout_blocks, holdout_every : the tool path (program order) is cut into ``holdout_blocks`` blocks and every
         ``holdout_every``-th block's points are held out of a second fit that checks the predicted improvement.
+    min_explained : the changes must explain at least this share of the noise (RMS, um: sqrt(before^2 - after^2))
+        to be worth a new twin; below it the verdict is "no change" and the twin's values stand.
     weights : (N,) optional row weights (relative; 1 / variance).  path : a ToolPath to reuse (nominal poses of
         the commanded axes).
     """
@@ -888,17 +904,33 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     dev_rms = float(np.sqrt(np.mean(dev[idx] ** 2)))
     before = float(np.sqrt(np.mean(b**2)))
     after = float(np.sqrt(np.mean(residual**2)))
+    noise = float(math.sqrt(spec.s2))
+    explained = math.sqrt(max(before**2 - after**2, 0.0))
     verdict, reasons = _verdict(params_chosen.size, dev_rms, before, after, heldout, significance)
+    if verdict != "no change" and explained < min_explained * noise:
+        # Statistically significant but too small to matter: a few tenths of a micrometre that the first-order
+        # model and the envelope's discretisation leave; not worth a new twin.
+        verdict, reasons = "no change", [
+            f"the changes would explain {explained:.2f} um RMS, below {min_explained:g} x the noise ({noise:.2f} um): "
+            f"the twin's values stand (residual {before:.2f} um, deviation {dev_rms:.2f} um)"]
+    if verdict == "no change":
+        for i in np.nonzero(identified)[0]:
+            not_significant[names[i]] = (float(value[i] - prior[i]), float(std_noise[i]))
+        value = prior.copy()
+        identified[:] = False
+        after = before                                           # the twin as it is
+        residual_all[idx] = b
     return Identification(
         names=names, prior=prior, value=value, std=std, identified=identified, seen_share=seen,
         no_effect=no_effect, confounded_with=confounded, poorly_determined=poorly, alignment=align,
         residual_um=residual_all, deviation_rms_um=dev_rms, predicted_rms_um=before, residual_rms_um=after,
-        noise_um=float(math.sqrt(spec.s2)), singular_values_um=sv, condition_number=cond,
+        noise_um=noise, singular_values_um=sv, condition_number=cond,
         condition_number_identified=cond_s, unseen=unseen, machine=machine.with_parameters(value),
         n_points=int(x.shape[0]), n_used=int(idx.size), n_instances=int(uniq.size),
         options={"robust": bool(robust), "loss": loss if robust else None, "alignment": alignment,
                  "max_relative_std": max_relative_std, "min_share": min_share, "parameters": parameters,
-                 "significance": significance, "alias_prior": bool(alias_prior)},
+                 "significance": significance, "alias_prior": bool(alias_prior),
+                 "min_explained": min_explained},
         std_noise=std_noise, std_alias=std_alias, not_significant=not_significant, verdict=verdict,
         reasons=reasons, heldout=heldout,
     )
