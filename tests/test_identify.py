@@ -428,3 +428,28 @@ def test_a_fit_the_held_out_points_contradict_is_refused_and_nothing_written(sho
     rep = _report(tmp_path / "rep")
     assert rep["verdict"]["status"] == "refused" and rep["written"] is None
     assert any("held-out" in r for r in rep["verdict"]["reasons"])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("part, fixture, changes, compensate, program_args", [
+    ("nas979", "nmv1500dcg.toml", CHANGES, "geometric", CONE_ARGS),
+    ("slots", "xh714.toml", {"C0Y": 25.0, "B0Z": -20.0, "A0Z": 15.0, "EXX@100": 3.0}, None, ()),
+])
+def test_users_closed_loop_converges_in_two_rounds(tmp_path, part, fixture, changes, compensate, program_args):
+    # The lean version of benchmarks/bench_closed_loop.py: program with the twin, cut on a changed machine, inspect
+    # --identify --write, program again with the written twin, cut again.
+    from trueaxis.inspect.loop import user_loop
+
+    (tmp_path / "true.toml").write_text(dump_machine(_with(load_machine(MACHINES / fixture), **changes)))
+    rounds = user_loop(tmp_path, part, MACHINES / fixture, tmp_path / "true.toml", rounds=2, compensate=compensate,
+                       points=2000, noise_um=NOISE_UM, program_args=program_args)
+    first, second = rounds
+    assert first.verdict == "accepted" and first.written and second.twin == first.written
+    assert first.misfit_rms_um > 3 * NOISE_UM and first.residual_rms_um < 1.5 * NOISE_UM
+    assert second.misfit_rms_um < 1.5 * NOISE_UM                  # the written twin explains the next part
+    assert second.rms_um <= first.rms_um
+    if part == "nas979":
+        assert second.rms_um < 1.5 * NOISE_UM                     # compensated with the written twin: the nominal cone
+    else:
+        assert second.slots_rms_um["geometric"] < 1.5 * NOISE_UM < first.slots_rms_um["geometric"]
+        assert abs(second.slots_rms_um["none"] - first.slots_rms_um["none"]) < 0.1  # slot 1 is never compensated

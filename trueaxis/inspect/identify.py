@@ -2,11 +2,19 @@
 
 The model, point by point
 -------------------------
-A point x of the machined surface (outward unit normal n, part frame) was cut by one tool instance of the program:
-the nominal tool pose whose surface touches x (*contact*). A flat end mill of radius R touches a flank point with its
-side, the tool axis passing through x + R n, at the height h = (x - tip) . u above the tip along the tool axis u; it
-touches a floor point with its end face (h = 0). To first order an error of that instance moves the surface at x
-along n by the tool's error at the contact point,
+The machine cuts with the axes the program commands, q* (for a compensated program q* != q, the axes that would
+put the *twin's* tool on the nominal path); the part it cuts is the true machine at q*. So the model of the part is
+the twin's own tool at q*: its actual pose ``ErrorTwin.actual_pose(q*)``, and the true machine differs from it by
+the change of the parameters. Who compensated the program (this twin, another one, nobody) does not enter: only
+the commanded axes do, and they are in the program. (The twin's force-induced errors are not in the model: the
+part is modelled as cut without load, as the virtual shop cuts unless its effects add the force.)
+
+A point x of the machined surface (outward unit normal n, part frame) was cut by one instance of the twin's tool
+path (*contact*). A flat end mill of radius R touches a flank point with its side, the tool axis passing through
+x + R n, at the height h = (x - tip) . u above the tip along the tool axis u; it touches a floor point with its end
+face (h = 0). Where two passes pass the point (semi-finishing and finishing; a compensated pass can pass as far
+inside as the earlier one outside), the deeper cut is the contact: the envelope. To first order an error of that
+instance moves the surface at x along n by the tool's error at the contact point,
 
     e_c = e_tip + h e_axis            (mm . urad = 1e-3 um)
 
@@ -15,13 +23,12 @@ outward, +n, leaves material outside the nominal surface, and the deviation (+ =
 With the twin's parameter Jacobian J(q) (6 x P: um of tip and urad of axis error per um / urad of each parameter,
 ``ErrorTwin.parameter_jacobian``) this is linear in the parameters theta about the twin's own values theta0:
 
-    deviation_i = gap_i + w_i . e(q_k; theta0) + w_i^T J(q_k; theta0) (theta - theta0) + noise_i,
-    w_i = (n_i, 1e-3 h_i n_i)   (6,)
+    deviation_i = gap_i + w_i^T J(q*_k; theta0) (theta - theta0) + noise_i,      w_i = (n_i, 1e-3 h_i n_i)   (6,)
 
-``gap_i`` is where the nominal tool surface of the program passes x along n (zero for an uncompensated program up
-to chord errors; minus the compensation for a compensated one) and e(q; theta0) the twin's own error at the pose:
-together they are the deviation the twin predicts for the program. The swept envelope makes this exact to first
-order: a tangential miss of the nearest tool instance does not enter ``gap`` (it is taken along n only).
+``gap_i`` is where the twin's tool surface at q*_k passes x along n: the deviation the twin predicts for the
+program (zero for a program compensated by this twin, up to chord errors; the twin's own error for an uncompensated
+one). The swept envelope makes this exact to first order: a tangential miss of the nearest tool instance does not
+enter ``gap`` (it is taken along n only).
 
 Solving
 -------
@@ -39,17 +46,34 @@ squares with every other parameter held at the twin's value (the worst dropped w
 ``max_relative_std``); only they change in the written twin. The rest are *not identifiable*: no effect on the part
 (not reached), or their effect is (mostly) a combination of others'. The component values that set each error
 function's level (``reference_parameters``) are always held: only the sum of the constant parts of all functions
-along one direction reaches the tool. Standard deviations come from the residual variance, s^2 (A_S^T W A_S)^-1;
-they measure the noise, not the bias that held parameters with true errors can leave in partly seen ones (a share
-below 1). ``robust`` re-weights the rows by the soft-L1 (or Huber) loss, iteratively re-weighted least squares: the
-stationary point of ``scipy.optimize.least_squares(loss="soft_l1")`` with ``f_scale`` from the residuals' MAD.
+along one direction reaches the tool.
+
+Standard deviations and significance. The noise part is s^2 (A_S^T W A_S)^-1. The parameters held at the twin's
+values (all with an effect on the part that are not fitted, those outside ``parameters`` included) are not known
+either: each can differ from the truth by about its typical size, and whatever of it the fitted ones can mimic, they
+absorb (a parameter seen in part takes a held one's error; the cone's YOC takes an AOC it cannot tell apart). That
+bias is C theta_h with C = N_SS^-1 N_Sh; a zero-mean Gaussian prior at the typical sizes on theta_h gives it the
+covariance C diag(typical^2) C^T, added to the noise part: the analytic form of the Monte Carlo over the unseen
+parameters that ISO/TS 15530-4 uses for CMM tasks (exact here, the model being linear). A fitted parameter keeps its
+change only when the change is at least ``significance`` (3) times its noise std (the data demand it); the others
+are dropped, least significant first, and held. ``robust`` re-weights the rows by the soft-L1 (or Huber) loss,
+iteratively re-weighted least squares: the stationary point of ``scipy.optimize.least_squares(loss="soft_l1")``
+with ``f_scale`` from the residuals' MAD.
+
+Verdict. *accepted*: the residual RMS is below the deviation RMS and below the twin's own misfit, and the
+improvement holds on held-out points (the fit repeated without every 5th of 20 blocks of the tool path in program
+order; the held-out mean square must fall by at least half of what the fit's own points gain). *no change*: no
+change is significant, or the changes would explain less than half the noise (RMS): the twin's values stand.
+*refused*: any accepted test fails; ``inspect --write`` then writes nothing and exits 3.
 
 Identifiability is reported as the singular values in typical-size units (the RMS deviation a typical-size change
 along each combination makes on the part, um), the condition numbers (all parameters with an effect; the identified
 ones), and the combinations the part cannot see, named by their largest loadings. One part at one placement cannot
 separate everything: a cone measured in the part frame sees the rotary axes' location errors mostly through one-
-and two-per-turn patterns that several parameters share; with ``alignment="rigid"`` (deviations after a best fit)
-the rigid motions are fitted as nuisance and every parameter that mimics a rigid motion of the part drops out.
+and two-per-turn patterns that several parameters share; with ``alignment="bestfit"`` (deviations after a best fit)
+the rigid motions are fitted as nuisance and every parameter that mimics a rigid motion of the part drops out;
+with "datum" (a 3-2-1 frame on the stock's uncut datum planes) nothing the machine cut is moved and the model has no
+nuisance.
 
 Units: mm and rad inside, deviations and errors in um, angles in urad; reports name their units in their keys.
 """
