@@ -65,7 +65,8 @@ def main():
     ok_all = True
     print(f"true machine = twin + {CONE_CHANGES} (cone, nmv1500dcg), + {SLOT_CHANGES} (slots, xh714); "
           f"{args.points} points, 0.5 um probe noise\n")
-    print("| case | round | part RMS um | max um | per slot RMS um (none / geo / comp) | twin misfit before -> after um "
+    print("| case | round | part RMS um | max um | per slot RMS um (none / geo / comp) "
+          "| twin misfit before -> after um "
           "| verdict |")
     print("|---|---:|---:|---:|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
