@@ -453,3 +453,29 @@ def test_users_closed_loop_converges_in_two_rounds(tmp_path, part, fixture, chan
     else:
         assert second.slots_rms_um["geometric"] < 1.5 * NOISE_UM < first.slots_rms_um["geometric"]
         assert abs(second.slots_rms_um["none"] - first.slots_rms_um["none"]) < 0.1  # slot 1 is never compensated
+
+
+def test_foreign_program_posted_elsewhere_is_modelled_at_its_commanded_axes(shop, tmp_path, capsys):
+    # A program from elsewhere: no trueaxis-setup comment, compensated by `trueaxis post` (as any post would do it).
+    # The model needs only its commanded axes; the terminal says what was assumed.
+    assert _cli("program", "nas979", "--machine", TWIN_FILE, "-o", tmp_path / "raw.ngc", "--compensate", "none",
+                *CONE_ARGS) == 0
+    raw = "\n".join(line for line in (tmp_path / "raw.ngc").read_text().splitlines()
+                    if "trueaxis-setup" not in line and "compensation:" not in line) + "\n"
+    (tmp_path / "foreign_raw.ngc").write_text(raw)
+    assert _cli("post", tmp_path / "foreign_raw.ngc", "--machine", TWIN_FILE, "-o", tmp_path / "foreign.ngc") == 0
+    assert "trueaxis-setup" not in (tmp_path / "foreign.ngc").read_text()
+    assert _cli("simulate", tmp_path / "foreign.ngc", "--machine", shop / "true.toml", "--part", "nas979", "-o",
+                tmp_path / "cmm.ply", "--points", 3000, "--noise-um", NOISE_UM, "--seed", 5) == 0
+    capsys.readouterr()
+    out = tmp_path / "new.toml"
+    assert _cli("inspect", tmp_path / "cmm.ply", "--part", "nas979", "--identify", "--machine", TWIN_FILE,
+                "--program", tmp_path / "foreign.ngc", "--write", out, "-o", tmp_path / "rep") == 0
+    printed = capsys.readouterr().out
+    assert "no trueaxis-setup comment: assumed" in printed
+    rep = _report(tmp_path / "rep")
+    assert rep["verdict"]["status"] == "accepted" and rep["program_compensation"]["mode"] is None
+    assert rep["verdict"]["residual_after_rms_um"] < 1.5 * NOISE_UM
+    truth, written = _written_values(shop / "true.toml"), _written_values(out)
+    for p in rep["parameters"]:
+        assert abs(written[p["name"]] - truth[p["name"]]) <= 3 * p.get("std_um", p.get("std_urad")), p

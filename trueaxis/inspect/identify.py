@@ -1097,8 +1097,8 @@ def program_compensation(program_text: str, twin: Machine) -> dict:
         note = ("the program has no trueaxis-setup comment: assumed its axis words are the axes commanded at the cut "
                 "(compensated or not, by whoever); the model is the twin at those axes")
     elif mode == "none":
-        note = ("the program says it is uncompensated (compensation=none): its axis words are the axes commanded at "
-                "the cut; the model is the twin at those axes")
+        note = ("the program's setup comment says compensation=none (a post run on it afterwards would not show "
+                "there); the model is the twin at the axes the program commands, compensated or not")
     elif tid is None:
         note = (f"the program says compensation={mode or 'unknown'} but not by which twin: assumed its axis words "
                 "are the axes commanded at the cut; the model is the twin at those axes")
