@@ -587,6 +587,7 @@ class Identification:
     verdict: str = "accepted"
     reasons: list = field(default_factory=list)
     heldout: dict = field(default_factory=dict)
+    considered: np.ndarray | None = None
 
     @property
     def accepted(self) -> bool:
@@ -606,12 +607,18 @@ class Identification:
                 entry[f"std_aliasing_{u}"] = _r(self.std_alias[i])
             params.append(entry)
         detail = []
+        gauge = set(reference_parameters(self.machine))
         for i in np.nonzero(~self.identified)[0]:
             name = self.names[i]
             combo = ", ".join(f"{c:+.3g} {m}" for m, c in self.confounded_with.get(name, [])[:4])
             like = f"; its effect resembles {combo}" if combo else ""
-            if self.no_effect[i]:
+            if name in gauge:
+                detail.append({"name": name, "reason": "held: the reference value (gauge) of its error function"})
+            elif self.no_effect[i]:
                 detail.append({"name": name, "reason": "no effect on this part (not reached by the program)"})
+            elif self.considered is not None and not self.considered[i]:
+                detail.append({"name": name, "reason": "held: not among the parameters asked for (it enters the "
+                                                       "aliasing part of the std)"})
             elif name in self.not_significant:
                 ch, sd = self.not_significant[name]
                 detail.append({"name": name, "seen_share": _r(self.seen_share[i], 3),
@@ -956,7 +963,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
                  "significance": significance, "alias_prior": bool(alias_prior),
                  "min_explained": min_explained},
         std_noise=std_noise, std_alias=std_alias, not_significant=not_significant, verdict=verdict,
-        reasons=reasons, heldout=heldout,
+        reasons=reasons, heldout=heldout, considered=considered,
     )
 
 
