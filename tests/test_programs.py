@@ -11,7 +11,8 @@ import pytest
 from conftest import MACHINES
 from rs274_helpers import run_rs274
 from trueaxis.inspect.parts import Nas979Params, SlotBlockParams, cone_signed_distance
-from trueaxis.inspect.programs import (ClPath, cone_flank_cl, nas979_program, read_setup, slots_program)
+from trueaxis.inspect.programs import (ClPath, cone_flank_cl, nas979_program, read_setup, slots_program,
+                                       twin_id)
 from trueaxis.machine import forward_nominal, load_machine
 from trueaxis.postproc.gcode import parse_program
 
@@ -163,8 +164,10 @@ def test_refinement_meets_the_chord_tolerance(nmv):
 
 def test_compensated_program_differs_from_the_raw_one_by_little(cone_prog, nmv):
     geo = nas979_program(nmv, compensation="geometric", step_deg=2.0, chord_tol_um=None, placement_mm=(10.0, -5.0))
+    # The setup comment names the mode and the twin that compensates (twin_id), so an identification can tell.
     assert geo.raw == cone_prog.raw.replace("compensation: none", "compensation: geometric").replace(
-        "compensation=none", "compensation=geometric")
+        "compensation=none", f"compensation=geometric twin={twin_id(nmv)}")
+    assert read_setup(geo.text)["twin"] == twin_id(nmv) != twin_id(perfect(nmv))
     names = nmv.axis_names
     raw, comp = _axis_words(geo.raw, names), _axis_words(geo.text, names)
     if len(raw) == len(comp):  # moves were not split

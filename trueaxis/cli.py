@@ -1,7 +1,8 @@
 """The command line: ``trueaxis <command>`` (and ``inspect`` = ``trueaxis inspect``).
 
 Thin glue: parse arguments, call the package, print. A bad input ends with one line per problem on stderr and exit
-status 2, never a traceback.
+status 2, never a traceback; a computed result that is refused (an identification that does not explain the part,
+with --write) ends with one line on stderr and exit status 3, nothing written.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 EXIT_BAD_INPUT = 2
+EXIT_REFUSED = 3  # a computed result refused (an identification that does not explain the part): nothing written
 
 
 class UsageError(ValueError):
@@ -277,12 +279,14 @@ def cmd_inspect(args) -> int:
         raise UsageError("--machine, --program and --write go with --identify")
     out_dir = Path(args.output) if args.output else Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
     result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align)
+    identification = None
     if args.identify:
         from .inspect.identify import run_identification
 
-        identified = run_identification(result.aligned_cloud(), result.deviation_um, result.part, args)
-        if isinstance(identified, dict):
-            result.report["identification"] = identified
+        report, identification = run_identification(result.aligned_cloud(), result.deviation_um, result.part,
+                                                    machine=args.machine, program=args.program, write=args.write,
+                                                    alignment=args.align)
+        result.report["identification"] = report
     write_report(result, out_dir)
     r = result.report
     d = r["deviation_um"]
@@ -291,6 +295,17 @@ def cmd_inspect(args) -> int:
     if r.get("cone"):
         line += f"; half angle error {r['cone']['half_angle_error_urad']:+.1f} urad"
     print(line)
+    if identification is None:
+        return 0
+    for text in identification.verdict_lines():
+        print(text)
+    print(f"  program: {r['identification']['program_compensation']['note']}")
+    if args.write and not identification.accepted:
+        print(f"trueaxis inspect: {args.write} not written: identification refused ("
+              + "; ".join(identification.reasons) + f"); see {out_dir / 'report.json'}", file=sys.stderr)
+        return EXIT_REFUSED
+    if args.write:
+        print(f"  {args.write}: written ({identification.verdict})")
     return 0
 
 
@@ -426,7 +441,8 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--identify", action="store_true", help="identify twin parameters from the deviations")
     i.add_argument("--machine", help="with --identify: the machine's error twin (TOML)")
     i.add_argument("--program", help="with --identify: the program that cut the part")
-    i.add_argument("--write", help="with --identify: write the updated machine file here")
+    i.add_argument("--write", help="with --identify: write the updated machine file here (only when the fit is "
+                   "accepted or changes nothing; a refused fit writes nothing and exits 3)")
     i.set_defaults(func=cmd_inspect)
     return p
 

@@ -2,11 +2,19 @@
 
 The model, point by point
 -------------------------
-A point x of the machined surface (outward unit normal n, part frame) was cut by one tool instance of the program:
-the nominal tool pose whose surface touches x (*contact*). A flat end mill of radius R touches a flank point with its
-side, the tool axis passing through x + R n, at the height h = (x - tip) . u above the tip along the tool axis u; it
-touches a floor point with its end face (h = 0). To first order an error of that instance moves the surface at x
-along n by the tool's error at the contact point,
+The machine cuts with the axes the program commands, q* (for a compensated program q* != q, the axes that would
+put the *twin's* tool on the nominal path); the part it cuts is the true machine at q*. So the model of the part is
+the twin's own tool at q*: its actual pose ``ErrorTwin.actual_pose(q*)``, and the true machine differs from it by
+the change of the parameters. Who compensated the program (this twin, another one, nobody) does not enter: only
+the commanded axes do, and they are in the program. (The twin's force-induced errors are not in the model: the
+part is modelled as cut without load, as the virtual shop cuts unless its effects add the force.)
+
+A point x of the machined surface (outward unit normal n, part frame) was cut by one instance of the twin's tool
+path (*contact*). A flat end mill of radius R touches a flank point with its side, the tool axis passing through
+x + R n, at the height h = (x - tip) . u above the tip along the tool axis u; it touches a floor point with its end
+face (h = 0). Where two passes pass the point (semi-finishing and finishing; a compensated pass can pass as far
+inside as the earlier one outside), the deeper cut is the contact: the envelope. To first order an error of that
+instance moves the surface at x along n by the tool's error at the contact point,
 
     e_c = e_tip + h e_axis            (mm . urad = 1e-3 um)
 
@@ -15,13 +23,12 @@ outward, +n, leaves material outside the nominal surface, and the deviation (+ =
 With the twin's parameter Jacobian J(q) (6 x P: um of tip and urad of axis error per um / urad of each parameter,
 ``ErrorTwin.parameter_jacobian``) this is linear in the parameters theta about the twin's own values theta0:
 
-    deviation_i = gap_i + w_i . e(q_k; theta0) + w_i^T J(q_k; theta0) (theta - theta0) + noise_i,
-    w_i = (n_i, 1e-3 h_i n_i)   (6,)
+    deviation_i = gap_i + w_i^T J(q*_k; theta0) (theta - theta0) + noise_i,      w_i = (n_i, 1e-3 h_i n_i)   (6,)
 
-``gap_i`` is where the nominal tool surface of the program passes x along n (zero for an uncompensated program up
-to chord errors; minus the compensation for a compensated one) and e(q; theta0) the twin's own error at the pose:
-together they are the deviation the twin predicts for the program. The swept envelope makes this exact to first
-order: a tangential miss of the nearest tool instance does not enter ``gap`` (it is taken along n only).
+``gap_i`` is where the twin's tool surface at q*_k passes x along n: the deviation the twin predicts for the
+program (zero for a program compensated by this twin, up to chord errors; the twin's own error for an uncompensated
+one). The swept envelope makes this exact to first order: a tangential miss of the nearest tool instance does not
+enter ``gap`` (it is taken along n only).
 
 Solving
 -------
@@ -39,17 +46,34 @@ squares with every other parameter held at the twin's value (the worst dropped w
 ``max_relative_std``); only they change in the written twin. The rest are *not identifiable*: no effect on the part
 (not reached), or their effect is (mostly) a combination of others'. The component values that set each error
 function's level (``reference_parameters``) are always held: only the sum of the constant parts of all functions
-along one direction reaches the tool. Standard deviations come from the residual variance, s^2 (A_S^T W A_S)^-1;
-they measure the noise, not the bias that held parameters with true errors can leave in partly seen ones (a share
-below 1). ``robust`` re-weights the rows by the soft-L1 (or Huber) loss, iteratively re-weighted least squares: the
-stationary point of ``scipy.optimize.least_squares(loss="soft_l1")`` with ``f_scale`` from the residuals' MAD.
+along one direction reaches the tool.
+
+Standard deviations and significance. The noise part is s^2 (A_S^T W A_S)^-1. The parameters held at the twin's
+values (all with an effect on the part that are not fitted, those outside ``parameters`` included) are not known
+either: each can differ from the truth by about its typical size, and whatever of it the fitted ones can mimic, they
+absorb (a parameter seen in part takes a held one's error; the cone's YOC takes an AOC it cannot tell apart). That
+bias is C theta_h with C = N_SS^-1 N_Sh; a zero-mean Gaussian prior at the typical sizes on theta_h gives it the
+covariance C diag(typical^2) C^T, added to the noise part: the analytic form of the Monte Carlo over the unseen
+parameters that ISO/TS 15530-4 uses for CMM tasks (exact here, the model being linear). A fitted parameter keeps its
+change only when the change is at least ``significance`` (3) times its noise std (the data demand it); the others
+are dropped, least significant first, and held. ``robust`` re-weights the rows by the soft-L1 (or Huber) loss,
+iteratively re-weighted least squares: the stationary point of ``scipy.optimize.least_squares(loss="soft_l1")``
+with ``f_scale`` from the residuals' MAD.
+
+Verdict. *accepted*: the residual RMS is below the deviation RMS and below the twin's own misfit, and the
+improvement holds on held-out points (the fit repeated without every 5th of 20 blocks of the tool path in program
+order; the held-out mean square must fall by at least half of what the fit's own points gain). *no change*: no
+change is significant, or the changes would explain less than half the noise (RMS): the twin's values stand.
+*refused*: any accepted test fails; ``inspect --write`` then writes nothing and exits 3.
 
 Identifiability is reported as the singular values in typical-size units (the RMS deviation a typical-size change
 along each combination makes on the part, um), the condition numbers (all parameters with an effect; the identified
 ones), and the combinations the part cannot see, named by their largest loadings. One part at one placement cannot
 separate everything: a cone measured in the part frame sees the rotary axes' location errors mostly through one-
-and two-per-turn patterns that several parameters share; with ``alignment="rigid"`` (deviations after a best fit)
-the rigid motions are fitted as nuisance and every parameter that mimics a rigid motion of the part drops out.
+and two-per-turn patterns that several parameters share; with ``alignment="bestfit"`` (deviations after a best fit)
+the rigid motions are fitted as nuisance and every parameter that mimics a rigid motion of the part drops out;
+with "datum" (a 3-2-1 frame on the stock's uncut datum planes) nothing the machine cut is moved and the model has no
+nuisance.
 
 Units: mm and rad inside, deviations and errors in um, angles in urad; reports name their units in their keys.
 """
@@ -177,8 +201,9 @@ def find_contacts(points, normals, path: ToolPath, radius: float, length: float,
     The contact instance is the one whose axis segment passes nearest to y. Search: a KD-tree holds the axes of every
     ``stride``-th instance sampled every ``level_mm`` along the flutes (a million queries on the full path would
     cost seconds); among its ``starts`` nearest samples the nearest and the nearest one elsewhere on the path give
-    two starts, and from each two Newton steps along the path on the stationarity of |y - foot(k)|^2 (foot: the
-    axis point nearest y) plus a check of the neighbours give an instance. The nearest wins; within ``tie_um``
+    two starts, and from each three Newton steps along the path on the stationarity of |y - foot(k)|^2 (foot: the
+    axis point nearest y), the best iterate kept, plus a search of the stride / 2 + 1 instances either side give an
+    instance. The nearest wins; within ``tie_um``
     the latest in the program (where passes repeat the same path, as the depth passes of a slot do, the last one to
     pass; their errors differ only through the pass depth). Points
     whose normal lies along the found instance's axis (floors) are searched again as end-face contacts. Points with
@@ -198,6 +223,11 @@ def find_contacts(points, normals, path: ToolPath, radius: float, length: float,
     tree = cKDTree((path.tip[coarse, None, :] + levels[None, :, None] * path.axis[coarse, None, :]).reshape(-1, 3))
     owner = np.repeat(coarse, levels.size)
     starts = max(2, min(int(starts), tree.n))
+    window = stride // 2 + 1
+    # How far along the path an instance that passes the point may miss it: the largest step between consecutive
+    # instances of one pass (steps ten times the median are the jumps between passes and leave out), with margin.
+    steps = np.linalg.norm(np.diff(path.tip, axis=0), axis=1) if K > 1 else np.zeros(1)
+    reach_mm = 1.5 * float(np.max(steps[steps <= 10.0 * np.median(steps)], initial=0.0))
     tip, axis = path.tip, path.axis
     # Per instance: tip, axis and their central differences along the path (one gather of 12 numbers per query).
     d_tip = np.gradient(tip, axis=0) if K > 1 else np.zeros_like(tip)
@@ -211,21 +241,34 @@ def find_contacts(points, normals, path: ToolPath, radius: float, length: float,
         return r[:, 0:3] + h[:, None] * r[:, 3:6], r[:, 6:9] + h[:, None] * r[:, 9:12]
 
     def refine(y, k):
-        for _ in range(2):
+        # Newton steps along the path index; where the samples are unevenly spaced (a block's exact end beside an
+        # interpolated sample) the index derivative is poor and the steps can swing across the minimum, so the
+        # best iterate is kept and a window of +-window instances around it is searched.
+        best_k, best_d = k, np.full(len(y), np.inf)
+        for _ in range(3):
             f, t = foot(y, k)
+            d = np.linalg.norm(y - f, axis=1)
+            better = d < best_d
+            best_k, best_d = np.where(better, k, best_k), np.where(better, d, best_d)
             dk = np.einsum("ij,ij->i", y - f, t) / np.maximum(np.einsum("ij,ij->i", t, t), 1e-18)
             k = np.clip(np.rint(k + np.clip(dk, -stride - 2, stride + 2)).astype(np.int64), 0, K - 1)
-        cand = np.stack([np.maximum(k - 1, 0), k, np.minimum(k + 1, K - 1)], axis=1)
-        d = np.stack([np.linalg.norm(y - foot(y, cand[:, j])[0], axis=1) for j in range(3)], axis=1)
+        f, _ = foot(y, k)
+        d = np.linalg.norm(y - f, axis=1)
+        k = np.where(d < best_d, k, best_k)
+        cand = np.clip(k[:, None] + np.arange(-window, window + 1)[None, :], 0, K - 1)
+        d = np.stack([np.linalg.norm(y - foot(y, cand[:, j])[0], axis=1) for j in range(cand.shape[1])], axis=1)
         j = np.argmin(d, axis=1)
         rows = np.arange(len(y))
         return cand[rows, j], d[rows, j]
 
-    def nearest(y):
+    def nearest(y, normal=None):
         # Two starts: the nearest tree sample, and the nearest one away from it along the path (more than two
         # strides). Passes that repeat a path at a small offset (semi-finishing, then finishing; a slot's depth
         # passes) lie side by side in the tree, and the right one need not be the nearest sample. The nearest axis
-        # wins; within tie_um, the latest instance (the last tool to pass).
+        # wins; within tie_um, the latest instance (the last tool to pass). For side contacts (``normal`` given)
+        # the envelope is the deepest cut: when both instances pass the point (their axes miss y along the path by
+        # no more than the path's sampling, ``reach_mm``), the one whose surface lies deeper along the normal wins,
+        # however near the other passes (a compensated pass can pass as far inside as an earlier one outside).
         _, i = tree.query(y, k=starts, workers=workers)
         own = owner[i.reshape(len(y), starts)]
         apart = np.abs(own - own[:, :1]) > 2 * stride
@@ -233,6 +276,13 @@ def find_contacts(points, normals, path: ToolPath, radius: float, length: float,
         k1, d1 = refine(y, own[:, 0])
         k2, d2 = refine(y, second)
         pick2 = (d2 < d1 - tie_um * 1e-3) | ((d2 <= d1 + tie_um * 1e-3) & (k2 > k1))
+        if normal is not None:
+            g1 = np.einsum("ij,ij->i", foot(y, k1)[0] - y, normal)
+            g2 = np.einsum("ij,ij->i", foot(y, k2)[0] - y, normal)
+            both = (np.sqrt(np.maximum(d1**2 - g1**2, 0.0)) <= reach_mm) & \
+                (np.sqrt(np.maximum(d2**2 - g2**2, 0.0)) <= reach_mm)
+            deeper2 = (g2 < g1 - tie_um * 1e-3) | ((g2 <= g1 + tie_um * 1e-3) & (k2 > k1))
+            pick2 = np.where(both, deeper2, pick2)
         return np.where(pick2, k2, k1)
 
     # In chunks that keep the temporaries in cache.
@@ -241,7 +291,7 @@ def find_contacts(points, normals, path: ToolPath, radius: float, length: float,
     for s in range(0, x.shape[0], CHUNK_POINTS):
         sl = slice(s, min(s + CHUNK_POINTS, x.shape[0]))
         xs, ns = x[sl], n[sl]
-        k = nearest(xs + radius * ns)
+        k = nearest(xs + radius * ns, ns)
         e = np.abs(np.einsum("ij,ij->i", ns, axis[k])) > math.cos(math.radians(45.0))
         if np.any(e):
             k[e] = nearest(xs[e])
@@ -493,14 +543,18 @@ class Identification:
     """What ``identify`` found. Values in the machine file's units (um / urad).
 
     names : (P,) every twin parameter.  prior, value : (P,) the twin's values before and after (only ``identified``
-    ones changed).  std : (P,) standard deviation of the identified ones (NaN for the rest).
-    identified : (P,) bool.  seen_share : (P,) share of each parameter inside the combinations the part determines
-    (1: the part sees it alone; 0: not at all; NaN: no effect).  no_effect : (P,) bool.
+    ones changed).  std : (P,) standard deviation of the identified ones (NaN for the rest): the noise part
+    ``std_noise`` and the aliasing part ``std_alias`` (what the held parameters, at their typical sizes, can push
+    into it) added in quadrature.  identified : (P,) bool: fitted and its change significant.
+    seen_share : (P,) share of each parameter inside the combinations the part determines (1: the part sees it
+    alone; 0: not at all; NaN: no effect).  no_effect : (P,) bool.
     confounded_with : name -> [(name, coefficient), ...]: the identified parameters whose combination looks most
     like it.  poorly_determined : name -> (std / typical size, std) of those dropped for their uncertainty.
-    alignment : the rigid motion fitted (alignment "rigid").  residual_um : (N,) per point after the fit (NaN where
-    no contact).  singular_values_um : RMS deviation of a typical-size change along each combination, descending.
-    unseen : the combinations the part cannot see.  machine : the twin with the identified values.
+    not_significant : name -> (change, std) of those fitted but dropped because the change was below
+    ``significance`` std.  alignment : the rigid motion fitted (alignment "bestfit").  residual_um : (N,) per point
+    after the fit (NaN where no contact).  singular_values_um : RMS deviation of a typical-size change along each
+    combination, descending.  unseen : the combinations the part cannot see.  machine : the twin with the fitted
+    values.  verdict : "accepted" | "no change" | "refused", with ``reasons`` and the held-out check ``heldout``.
     """
 
     names: list
@@ -527,6 +581,18 @@ class Identification:
     n_used: int
     n_instances: int
     options: dict = field(default_factory=dict)
+    std_noise: np.ndarray | None = None
+    std_alias: np.ndarray | None = None
+    not_significant: dict = field(default_factory=dict)
+    verdict: str = "accepted"
+    reasons: list = field(default_factory=list)
+    heldout: dict = field(default_factory=dict)
+    considered: np.ndarray | None = None
+
+    @property
+    def accepted(self) -> bool:
+        """True when the result may be written: an accepted fit, or no significant change (the twin's values)."""
+        return self.verdict != "refused"
 
     def as_report(self, max_listed: int = 12) -> dict:
         """The ``identification`` entry of report.json (DESIGN §7)."""
@@ -534,15 +600,31 @@ class Identification:
         for i in np.nonzero(self.identified)[0]:
             name = self.names[i]
             u = unit_of(name)
-            params.append({"name": name, f"value_{u}": _r(self.value[i]), f"std_{u}": _r(self.std[i]),
-                           f"change_{u}": _r(self.value[i] - self.prior[i]), "seen_share": _r(self.seen_share[i], 3)})
+            entry = {"name": name, f"value_{u}": _r(self.value[i]), f"std_{u}": _r(self.std[i]),
+                     f"change_{u}": _r(self.value[i] - self.prior[i]), "seen_share": _r(self.seen_share[i], 3)}
+            if self.std_noise is not None:
+                entry[f"std_noise_{u}"] = _r(self.std_noise[i])
+                entry[f"std_aliasing_{u}"] = _r(self.std_alias[i])
+            params.append(entry)
         detail = []
+        gauge = set(reference_parameters(self.machine))
         for i in np.nonzero(~self.identified)[0]:
             name = self.names[i]
             combo = ", ".join(f"{c:+.3g} {m}" for m, c in self.confounded_with.get(name, [])[:4])
             like = f"; its effect resembles {combo}" if combo else ""
-            if self.no_effect[i]:
+            if name in gauge:
+                detail.append({"name": name, "reason": "held: the reference value (gauge) of its error function"})
+            elif self.no_effect[i]:
                 detail.append({"name": name, "reason": "no effect on this part (not reached by the program)"})
+            elif self.considered is not None and not self.considered[i]:
+                detail.append({"name": name, "reason": "held: not among the parameters asked for (it enters the "
+                                                       "aliasing part of the std)"})
+            elif name in self.not_significant:
+                ch, sd = self.not_significant[name]
+                detail.append({"name": name, "seen_share": _r(self.seen_share[i], 3),
+                               "reason": f"change {ch:+.3g} +- {sd:.3g} {unit_of(name)} (noise std) is not "
+                                         f"significant (below {self.options.get('significance', 3.0):g} std): kept at "
+                                         "the twin's value"})
             elif name in self.poorly_determined:
                 rel, sd = self.poorly_determined[name]
                 detail.append({"name": name, "seen_share": _r(self.seen_share[i], 3),
@@ -552,13 +634,21 @@ class Identification:
                 detail.append({"name": name, "seen_share": _r(self.seen_share[i], 3),
                                "reason": f"the part sees {100 * self.seen_share[i]:.0f} % of it{like}"})
         return {
-            "method": "weighted least squares on the contact sensitivities of the parameters the part sees"
+            "method": "weighted least squares on the contact sensitivities of the parameters the part sees, the "
+                      "model being the twin at the program's commanded axes"
                       + (f" (robust: IRLS {self.options.get('loss')})" if self.options.get("robust") else ""),
+            "verdict": {"status": self.verdict, "reasons": list(self.reasons),
+                        "residual_before_rms_um": _r(self.predicted_rms_um),
+                        "residual_after_rms_um": _r(self.residual_rms_um),
+                        "deviation_rms_um": _r(self.deviation_rms_um), "heldout": self.heldout},
+            "std_method": STD_METHOD if self.options.get("alias_prior", True) else "noise only (s^2 (A^T W A)^-1)",
             "points": self.n_points,
             "points_used": self.n_used,
             "tool_instances": self.n_instances,
             "alignment_mode": self.options.get("alignment", "none"),
             "parameters": params,
+            "not_significant": [{"name": k, f"change_{unit_of(k)}": _r(v[0]), f"std_{unit_of(k)}": _r(v[1])}
+                                for k, v in self.not_significant.items()],
             "not_identifiable": [d["name"] for d in detail],
             "not_identifiable_detail": detail,
             "alignment": self.alignment,
@@ -575,7 +665,33 @@ class Identification:
             "unseen_combinations_total": len(self.unseen),
             "max_relative_std": self.options.get("max_relative_std"),
             "min_share": self.options.get("min_share"),
+            "significance": self.options.get("significance"),
         }
+
+    def verdict_lines(self) -> list[str]:
+        """The verdict as a few terminal lines: status and why, residual before / after, the changes with std."""
+        head = {"accepted": "ACCEPTED", "no change": "NO CHANGE", "refused": "REFUSED"}[self.verdict]
+        out = [f"identification {head}: " + ("; ".join(self.reasons) if self.reasons else "the fit explains the part")]
+        h = self.heldout
+        ho = (f"; held-out points {h['before_rms_um']:.2f} -> {h['after_rms_um']:.2f} um (fit predicted "
+              f"{h['fit_before_rms_um']:.2f} -> {h['fit_after_rms_um']:.2f})" if h.get("points") else "")
+        out.append(f"  residual RMS {self.predicted_rms_um:.2f} um with the twin as is -> {self.residual_rms_um:.2f} "
+                   f"um after; deviation RMS {self.deviation_rms_um:.2f} um{ho}")
+        for i in np.nonzero(self.identified)[0]:
+            u = unit_of(self.names[i])
+            out.append(f"  {self.names[i]:10s} change {self.value[i] - self.prior[i]:+9.2f} +- {self.std[i]:.2f} {u}"
+                       f" (noise {self.std_noise[i]:.2f}, aliasing {self.std_alias[i]:.2f})")
+        if self.not_significant:
+            out.append("  not significant, kept: " + ", ".join(
+                f"{k} {v[0]:+.2f} +- {v[1]:.2f}" for k, v in list(self.not_significant.items())[:8])
+                + (" ..." if len(self.not_significant) > 8 else ""))
+        return out
+
+
+STD_METHOD = ("noise (s^2 (A^T W A)^-1) plus aliasing: a zero-mean Gaussian prior at the typical magnitudes "
+              "(typical_error_magnitudes.md) on every parameter the fit holds that has an effect on the part, "
+              "propagated linearly into the fitted ones (C diag(sigma^2) C^T, C = N_ff^-1 N_fh); the analytic "
+              "counterpart of the Monte Carlo over the unseen parameters of ISO/TS 15530-4")
 
 
 def _r(v, digits=4):
@@ -584,27 +700,48 @@ def _r(v, digits=4):
 
 
 # --------------------------------------------------------------------------------------------------- identify ----
+ALIGNMENTS = ("none", "bestfit", "datum")
+# Does the inspection's alignment remove rigid motions of the part that the machine's errors made? A best fit moves
+# the cut surfaces onto the CAD, so the six rigid motions are nuisance columns of the model. A datum alignment puts
+# the part frame on the stock block's datum planes, which the program does not cut: it removes the part's placement
+# on the CMM only, and the model keeps every machine-error mode. "rigid" is the former name of "bestfit".
+_RIGID_NUISANCE = {"none": False, "datum": False, "bestfit": True, "rigid": True}
+
+
 def identify(points, normals, deviation_um, program, machine: Machine, *, parameters=None, robust=False,
              loss: str = "soft_l1", alignment: str = "none", max_relative_std: float = 0.2, min_share: float = 0.6,
              weights=None, path: ToolPath | None = None, max_gap_mm: float = 0.5,
-             irls_iterations: int = 10) -> Identification:
+             irls_iterations: int = 10, significance: float = 3.0, alias_prior: bool = True,
+             holdout_blocks: int = 20, holdout_every: int = 5, min_explained: float = 0.5) -> Identification:
     """Identify the twin's error parameters from a measured part.
 
     points : (N, 3) measured points, mm, part frame.  normals : (N, 3) unit outward normals of the nominal surface.
     deviation_um : (N,) signed deviation from the nominal surface, um (+ = material outside); the nominal point is
         points - deviation n.
-    program : the program that cut the part (text, path or ``Program``; machine axes).
+    program : the program that cut the part (text, path or ``Program``; machine axes as commanded, compensated or
+        not: the model is the twin's own tool at those axes).
     machine : the twin the identification starts from (its values are theta0), with the part placement the program
         used (``workpiece_origin``).
-    parameters : None (all), or names and the groups "location" / "component" to consider; the others stay fixed.
+    parameters : None (all), or names and the groups "location" / "component" to consider; the others stay fixed
+        (and enter the aliasing prior).
     robust : iteratively re-weighted with ``loss`` ("soft_l1" | "huber").
-    alignment : "none" (deviations in the part frame, as fixed by the fixture) | "rigid" (the deviations came from a
-        best fit: the six rigid motions are fitted as nuisance).
+    alignment : how the deviations were aligned: "none" (part frame as fixed by the fixture) | "datum" (3-2-1 on
+        the stock's datum planes: no machine-error mode removed) | "bestfit" (the six rigid motions removed: fitted
+        as nuisance here too).
     max_relative_std : a combination of parameters (in typical sizes, ``typical_magnitude``) counts as seen when
         the data determine it to better than this share of a typical size; an identified parameter must be
         determined that well too.
-    min_share : a parameter is identified when at least this share of it lies in the seen combinations.
-    weights : (N,) optional row weights (relative; 1 / variance).  path : a ToolPath to reuse.
+    min_share : a parameter is fitted when at least this share of it lies in the seen combinations.
+    significance : a fitted parameter keeps its change only when |change| >= significance x its noise std (the
+        data demand the change); the others are dropped one by one (least significant first) and held at the
+        twin's value. The reported std adds the aliasing (``alias_prior``).
+    alias_prior : include the aliasing of the held parameters (typical-size prior) in the std.
+    holdout_blocks, holdout_every : the tool path (program order) is cut into ``holdout_blocks`` blocks and every
+        ``holdout_every``-th block's points are held out of a second fit that checks the predicted improvement.
+    min_explained : the changes must explain at least this share of the noise (RMS, um: sqrt(before^2 - after^2))
+        to be worth a new twin; below it the verdict is "no change" and the twin's values stand.
+    weights : (N,) optional row weights (relative; 1 / variance).  path : a ToolPath to reuse (nominal poses of
+        the commanded axes).
     """
     x = _rows(points, "points")
     n = _rows(normals, "normals")
@@ -613,12 +750,14 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         raise ValueError(f"points {x.shape}, normals {n.shape} and deviation_um {dev.shape} must agree in length")
     if not np.all(np.isfinite(dev)):
         raise ValueError("deviation_um contains NaN or infinite values")
-    if alignment not in ("none", "rigid"):
-        raise ValueError(f"alignment must be 'none' or 'rigid', got {alignment!r}")
+    if alignment not in _RIGID_NUISANCE:
+        raise ValueError(f"alignment must be one of {', '.join(ALIGNMENTS)}, got {alignment!r}")
     if loss not in ("soft_l1", "huber"):
         raise ValueError(f"loss must be 'soft_l1' or 'huber', got {loss!r}")
     if not (max_relative_std > 0 and 0 < min_share <= 1):
         raise ValueError(f"max_relative_std must be > 0 and min_share in (0, 1]; got {max_relative_std}, {min_share}")
+    if not (significance >= 0 and holdout_blocks >= 2 and 2 <= holdout_every <= holdout_blocks):
+        raise ValueError("significance must be >= 0 and 2 <= holdout_every <= holdout_blocks")
     if np.any(np.abs(np.linalg.norm(n, axis=1) - 1.0) > 1e-3):
         raise ValueError("normals must be unit vectors")
     omega0 = np.ones(x.shape[0]) if weights is None else np.asarray(weights, float).reshape(-1)
@@ -629,8 +768,15 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     names = list(twin.parameter_names)
     prior = machine.parameter_values()
     path = path if path is not None else nominal_tool_path(program, machine)
+    # The twin's own tool at the commanded axes: what the twin says the program cut. A compensated program commands
+    # q* != q, and the part the machine cuts is the machine at q*; the twin's prediction of that part is the twin's
+    # tool at q*, and the data differ from it by J(q*) (theta - theta0). Contacts are searched on this path (the
+    # passes of a compensated program lie where the twin puts them, 100 um apart, not where q* alone would).
+    tip_a, axis_a = twin.actual_pose(path.q)
+    axis_a = axis_a / np.linalg.norm(axis_a, axis=1, keepdims=True)
+    twin_path = ToolPath(path.q, tip_a, axis_a, path.line, path.t)
     x0 = x - (dev * 1e-3)[:, None] * n
-    contacts = find_contacts(x0, n, path, machine.tool.radius, machine.tool.flute_length, max_gap_mm=max_gap_mm)
+    contacts = find_contacts(x0, n, twin_path, machine.tool.radius, machine.tool.flute_length, max_gap_mm=max_gap_mm)
     use = contacts.found & (omega0 > 0)
     if use.sum() < 10:
         raise ValueError(f"only {int(use.sum())} of {x.shape[0]} points lie on a surface the program cut "
@@ -638,20 +784,26 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     idx = np.nonzero(use)[0]
     uniq, inv = np.unique(contacts.sample[idx], return_inverse=True)
     w = contact_weights(n[idx], contacts.lever_mm[idx])
-    g = _alignment_rows(x0[idx], n[idx]) if alignment == "rigid" else None
-    na = 0 if g is None else 6
+    rigid = _RIGID_NUISANCE[alignment]
+    g = _alignment_rows(x0[idx], n[idx]) if rigid else None
+    na = 6 if rigid else 0
 
-    cols = np.nonzero(_considered(names, machine, parameters))[0]
+    # Columns: every parameter but the gauge values (the held ones enter the aliasing prior); may_change: those the
+    # caller lets the fit change.
+    gauge = set(reference_parameters(machine))
+    considered = _considered(names, machine, parameters)
+    cols = np.array([i for i, nm in enumerate(names) if nm not in gauge], int)
+    may_change = np.r_[np.ones(na, bool), considered[cols]]
     jac = _Jacobians(twin, path.q[uniq], cols)
-    pred = contacts.gap_um[idx] + np.einsum("ni,ni->n", w, jac.error6()[inv])
-    b = dev[idx] - pred                                          # what the twin does not explain yet
+    b = dev[idx] - contacts.gap_um[idx]                          # what the twin does not explain yet
     omega = omega0[idx] / np.mean(omega0[idx])
     typical = np.r_[np.full(na, ALIGNMENT_TYPICAL), [typical_magnitude(names[c], machine) for c in cols]]
     col_names = list(ALIGNMENT_NAMES[:na]) + [names[c] for c in cols]
 
     system = _assemble(jac, inv, w, b, omega, g)
     active = system.scale > 1e-9 * max(system.scale.max(), 1e-300)
-    act = np.nonzero(active)[0]
+    act_all = np.nonzero(active)[0]
+    act = np.nonzero(active & may_change)[0]
     spec = _spectrum(system, act, typical, max_relative_std)
     share = np.full(system.N.shape[0], np.nan)
     share[act] = spec.share
@@ -674,7 +826,58 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
             residual = _residual(jac, inv, w, g, b, theta, na)
             if np.max(np.abs(theta - old), initial=0.0) <= 1e-6 * max(1.0, np.max(np.abs(theta), initial=0.0)):
                 break
-    std_all = np.sqrt(np.maximum(np.diag(cov), 0.0) * s2)
+
+    # Significance: drop the least significant change (against its noise std: do the data demand it?) until every
+    # kept one is significant. The reported std adds the aliasing: how well the data fix the value, not whether the
+    # part needs a change.
+    params_active = act_all[act_all >= na]
+    not_significant = {}
+    while True:
+        theta, cov, s2 = _least_squares(system, chosen)
+        held = np.setdiff1d(params_active, chosen) if alias_prior else np.array([], int)
+        var_noise, var_alias = _variances(system, chosen, held, typical, s2)
+        pos = np.nonzero(chosen >= na)[0]
+        if pos.size == 0:
+            break
+        zval = np.abs(theta[chosen[pos]]) / np.sqrt(np.maximum(var_noise[pos], 1e-300))
+        worst = int(np.argmin(zval))
+        if zval[worst] >= significance:
+            break
+        c = int(chosen[pos[worst]])
+        not_significant[col_names[c]] = (float(theta[c]), float(math.sqrt(var_noise[pos[worst]])))
+        chosen = chosen[chosen != c]
+    residual = _residual(jac, inv, w, g, b, theta, na)
+    std_noise_all = np.zeros(system.N.shape[0])
+    std_alias_all = np.zeros(system.N.shape[0])
+    std_noise_all[chosen] = np.sqrt(np.maximum(var_noise, 0.0))
+    std_alias_all[chosen] = np.sqrt(np.maximum(var_alias, 0.0))
+    std_all = np.hypot(std_noise_all, std_alias_all)
+
+    # Held-out check: the same columns fitted without every holdout_every-th block of the path; the improvement the
+    # fit predicts on its own points must show on the points it did not see.
+    block = (np.arange(uniq.size) * holdout_blocks) // max(uniq.size, 1)
+    out_pt = (block[inv] % holdout_every) == holdout_every // 2
+    heldout = {}
+    params_chosen = chosen[chosen >= na]
+    if params_chosen.size and out_pt.any() and (~out_pt).any():
+        sys_fit = _assemble(jac, inv, w, b, omega * ~out_pt, g)
+        try:
+            theta_fit = _least_squares(sys_fit, _independent(sys_fit, chosen))[0]
+        except np.linalg.LinAlgError:
+            theta_fit = np.zeros_like(theta)
+        r_fit = _residual(jac, inv, w, g, b, theta_fit, na)
+
+        def wrms(r, m):
+            return float(np.sqrt(np.sum(omega[m] * r[m] ** 2) / max(np.sum(omega[m]), 1e-300)))
+
+        heldout = {"points": int(out_pt.sum()), "blocks": f"every {holdout_every}th of {holdout_blocks} blocks of "
+                                                           "the tool path (program order)",
+                   "fit_before_rms_um": wrms(b, ~out_pt), "fit_after_rms_um": wrms(r_fit, ~out_pt),
+                   "before_rms_um": wrms(b, out_pt), "after_rms_um": wrms(r_fit, out_pt)}
+        predicted = heldout["fit_before_rms_um"] ** 2 - heldout["fit_after_rms_um"] ** 2
+        realised = heldout["before_rms_um"] ** 2 - heldout["after_rms_um"] ** 2
+        heldout["confirmed"] = bool(realised > 0 and realised >= 0.5 * predicted)
+        heldout = {k: (_r(v) if isinstance(v, float) else v) for k, v in heldout.items()}
 
     # The combinations the part cannot see, named by their largest loadings (in typical sizes).
     unseen = []
@@ -686,32 +889,34 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
                                        if abs(v[t]) >= 0.05]})
     sv = spec.singular_um
     cond = float(sv[0] / sv[-1]) if sv.size and sv[-1] > 0 else math.inf
-    if chosen.size:
-        T = typical[chosen]
-        lam_s = np.linalg.eigvalsh(system.N[np.ix_(chosen, chosen)] * T[:, None] * T[None, :])
+    if params_chosen.size:
+        T = typical[params_chosen]
+        lam_s = np.linalg.eigvalsh(system.N[np.ix_(params_chosen, params_chosen)] * T[:, None] * T[None, :])
         cond_s = float(math.sqrt(lam_s[-1] / lam_s[0])) if lam_s[0] > 0 else math.inf
     else:
         cond_s = math.nan
 
     value = prior.copy()
     std = np.full(len(names), np.nan)
+    std_noise = np.full(len(names), np.nan)
+    std_alias = np.full(len(names), np.nan)
     identified = np.zeros(len(names), bool)
     no_effect = np.ones(len(names), bool)
     no_effect[cols[active[na:]]] = False
     seen = np.full(len(names), np.nan)
     seen[cols] = share[na:]
-    for j in chosen[chosen >= na]:
+    for j in params_chosen:
         c = cols[j - na]
         value[c] = prior[c] + theta[j]
-        std[c] = std_all[j]
+        std[c], std_noise[c], std_alias[c] = std_all[j], std_noise_all[j], std_alias_all[j]
         identified[c] = True
     confounded = {}
-    params_chosen = chosen[chosen >= na]
     if params_chosen.size:
         fac = cho_factor(system.N[np.ix_(params_chosen, params_chosen)]
                          + 1e-12 * np.diag(np.diag(system.N[np.ix_(params_chosen, params_chosen)])))
+        chosen_set = set(params_chosen.tolist())
         for j in act[act >= na]:
-            if j in set(params_chosen.tolist()):
+            if j in chosen_set:
                 continue
             coef = cho_solve(fac, system.N[params_chosen, j])
             order = np.argsort(-np.abs(coef) * typical[params_chosen])[:4]
@@ -727,17 +932,71 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
 
     residual_all = np.full(x.shape[0], np.nan)
     residual_all[idx] = residual
+    dev_rms = float(np.sqrt(np.mean(dev[idx] ** 2)))
+    before = float(np.sqrt(np.mean(b**2)))
+    after = float(np.sqrt(np.mean(residual**2)))
+    noise = float(math.sqrt(spec.s2))
+    explained = math.sqrt(max(before**2 - after**2, 0.0))
+    verdict, reasons = _verdict(params_chosen.size, dev_rms, before, after, heldout, significance)
+    if verdict != "no change" and explained < min_explained * noise:
+        # Statistically significant but too small to matter: a few tenths of a micrometre that the first-order
+        # model and the envelope's discretisation leave; not worth a new twin.
+        verdict, reasons = "no change", [
+            f"the changes would explain {explained:.2f} um RMS, below {min_explained:g} x the noise ({noise:.2f} um): "
+            f"the twin's values stand (residual {before:.2f} um, deviation {dev_rms:.2f} um)"]
+    if verdict == "no change":
+        for i in np.nonzero(identified)[0]:
+            not_significant[names[i]] = (float(value[i] - prior[i]), float(std_noise[i]))
+        value = prior.copy()
+        identified[:] = False
+        after = before                                           # the twin as it is
+        residual_all[idx] = b
     return Identification(
         names=names, prior=prior, value=value, std=std, identified=identified, seen_share=seen,
         no_effect=no_effect, confounded_with=confounded, poorly_determined=poorly, alignment=align,
-        residual_um=residual_all, deviation_rms_um=float(np.sqrt(np.mean(dev[idx] ** 2))),
-        predicted_rms_um=float(np.sqrt(np.mean(b**2))), residual_rms_um=float(np.sqrt(np.mean(residual**2))),
-        noise_um=float(math.sqrt(spec.s2)), singular_values_um=sv, condition_number=cond,
+        residual_um=residual_all, deviation_rms_um=dev_rms, predicted_rms_um=before, residual_rms_um=after,
+        noise_um=noise, singular_values_um=sv, condition_number=cond,
         condition_number_identified=cond_s, unseen=unseen, machine=machine.with_parameters(value),
         n_points=int(x.shape[0]), n_used=int(idx.size), n_instances=int(uniq.size),
         options={"robust": bool(robust), "loss": loss if robust else None, "alignment": alignment,
-                 "max_relative_std": max_relative_std, "min_share": min_share, "parameters": parameters},
+                 "max_relative_std": max_relative_std, "min_share": min_share, "parameters": parameters,
+                 "significance": significance, "alias_prior": bool(alias_prior),
+                 "min_explained": min_explained},
+        std_noise=std_noise, std_alias=std_alias, not_significant=not_significant, verdict=verdict,
+        reasons=reasons, heldout=heldout, considered=considered,
     )
+
+
+def _variances(system: _System, chosen, held, typical, s2):
+    """Variances (S,) of the fitted columns ``chosen``: noise s^2 diag(N_ff^-1), and aliasing diag(C Sigma C^T)
+    with C = N_ff^-1 N_fh the bias each held column (``held``) leaves per unit of its error and Sigma its prior
+    (typical size squared)."""
+    if chosen.size == 0:
+        return np.zeros(0), np.zeros(0)
+    d = 1.0 / system.scale[chosen]
+    fac = cho_factor(system.N[np.ix_(chosen, chosen)] * d[:, None] * d[None, :])
+    inv_diag = np.diag(cho_solve(fac, np.eye(chosen.size))) * d * d
+    if held.size == 0:
+        return s2 * inv_diag, np.zeros(chosen.size)
+    C = cho_solve(fac, system.N[np.ix_(chosen, held)] * d[:, None]) * d[:, None]     # (S, H)
+    return s2 * inv_diag, np.sum(C**2 * typical[held][None, :] ** 2, axis=1)
+
+
+def _verdict(n_changed: int, dev_rms: float, before: float, after: float, heldout: dict, significance: float):
+    """accepted / no change / refused, with the reasons (one line each)."""
+    if n_changed == 0:
+        return "no change", [f"no parameter changes by {significance:g} noise std or more: the twin's values stand "
+                             f"(residual {before:.2f} um, deviation {dev_rms:.2f} um)"]
+    reasons = []
+    if not after < dev_rms:
+        reasons.append(f"residual {after:.2f} um is not below the deviation {dev_rms:.2f} um")
+    if not after < before:
+        reasons.append(f"residual {after:.2f} um is not below the twin's own {before:.2f} um")
+    if heldout and not heldout.get("confirmed"):
+        reasons.append(f"held-out points do not confirm the improvement ({heldout['before_rms_um']:.2f} -> "
+                       f"{heldout['after_rms_um']:.2f} um where the fit predicted {heldout['fit_before_rms_um']:.2f} "
+                       f"-> {heldout['fit_after_rms_um']:.2f} um)")
+    return ("refused", reasons) if reasons else ("accepted", [])
 
 
 def _residual(jac: _Jacobians, inv, w, g, b, theta, na):
@@ -831,46 +1090,75 @@ def machine_for_program(machine: Machine, program_text: str, part: str | None = 
     return machine
 
 
-def run_identification(cloud, deviation_um, part: dict, args) -> dict:
-    """``inspect CLOUD --part P --identify --machine TWIN.toml --program prog.ngc [--write NEW.toml] [--robust]``.
+def program_compensation(program_text: str, twin: Machine) -> dict:
+    """What the program says about its compensation (its ``trueaxis-setup`` comment: ``compensation`` and ``twin``,
+    the twin's id, ``trueaxis.inspect.programs.twin_id``), compared with ``twin``. The identification does not
+    depend on it (its model is the twin at the axes the program commands, whoever compensated them); the note says
+    what was read or assumed. Returns {"mode", "twin_id", "same_twin" (bool or None), "note"}."""
+    from .programs import read_setup, twin_id
 
-    cloud : ``trueaxis.inspect.cloud.Cloud`` (points mm, normals or None, part frame).  deviation_um : (N,) signed
-    deviation, um (+ = material outside).  part : the part JSON dict.  args : namespace with ``machine`` (path),
-    ``program`` (path), ``write`` (path or None) and optionally ``robust`` (bool), ``alignment`` ("none" | "rigid"),
-    ``parameters`` (comma-separated names or "location"/"component"), ``max_relative_std`` (float).
-    Returns the report's "identification" dict; writes the identified machine file when asked (atomically).
+    setup = read_setup(program_text)
+    mode, tid = setup.get("compensation"), setup.get("twin")
+    mine = twin_id(twin)
+    if not setup:
+        note = ("the program has no trueaxis-setup comment: assumed its axis words are the axes commanded at the cut "
+                "(compensated or not, by whoever); the model is the twin at those axes")
+    elif mode == "none":
+        note = ("the program's setup comment says compensation=none (a post run on it afterwards would not show "
+                "there); the model is the twin at the axes the program commands, compensated or not")
+    elif tid is None:
+        note = (f"the program says compensation={mode or 'unknown'} but not by which twin: assumed its axis words "
+                "are the axes commanded at the cut; the model is the twin at those axes")
+    elif tid == mine:
+        note = f"compensation={mode} by this twin ({tid}); the model is the twin at the commanded axes"
+    else:
+        note = (f"compensation={mode} by another twin ({tid}, this one is {mine}); the model is this twin at the "
+                "axes the program commands")
+    return {"mode": mode, "twin_id": tid, "same_twin": None if tid is None else tid == mine, "note": note}
+
+
+def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, program: str | Path,
+                       write: str | Path | None = None, alignment: str = "none", robust: bool = False,
+                       parameters=None, max_relative_std: float = 0.2) -> tuple[dict, Identification]:
+    """``inspect CLOUD --part P --identify --machine TWIN.toml --program prog.ngc [--align A] [--write NEW.toml]``.
+
+    cloud : ``trueaxis.inspect.cloud.Cloud`` (points mm, normals or None, part frame, after the alignment).
+    deviation_um : (N,) signed deviation, um (+ = material outside).  part : the part JSON dict.
+    machine : the twin's machine file.  program : the program that cut the part.  write : where to write the
+    identified machine file (atomically), only when the verdict is not "refused".  alignment : the inspection's
+    alignment ("none" | "bestfit" | "datum").  robust, parameters, max_relative_std : see ``identify``.
+    Returns (the report's "identification" dict, the Identification).
     """
     from ..fileio import atomic_write
     from ..machine.machine_file import dump_machine
 
-    if getattr(args, "machine", None) is None:
-        raise ValueError("--identify needs --machine TWIN.toml (the twin to start from)")
-    if getattr(args, "program", None) is None:
-        raise ValueError("--identify needs --program PROG (the program that cut the part)")
-    original = load_machine(args.machine)
-    program_path = Path(args.program)
+    original = load_machine(machine)
+    program_path = Path(program)
     if not program_path.is_file():
         raise ValueError(f"{program_path}: no such program file")
     text = program_path.read_text(encoding="utf-8", errors="replace")
     placed = machine_for_program(original, text, part.get("part"))
     normals = cloud.normals if cloud.normals is not None else part_normals(cloud.points, part)
     result = identify(cloud.points, normals, deviation_um, parse_program(text, str(program_path)), placed,
-                      parameters=getattr(args, "parameters", None), robust=bool(getattr(args, "robust", False)),
-                      alignment=getattr(args, "alignment", None) or "none",
-                      max_relative_std=float(getattr(args, "max_relative_std", None) or 0.2))
+                      parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std)
     report = result.as_report()
-    report["machine_file"] = str(args.machine)
+    report["machine_file"] = str(machine)
     report["program"] = str(program_path)
-    if getattr(args, "write", None):
-        out = dataclasses.replace(original.with_parameters(result.value), note=_identified_note(original, result))
-        atomic_write(args.write, dump_machine(out))
-        report["written"] = str(args.write)
-    return report
+    report["program_compensation"] = program_compensation(text, original)
+    if write is not None:
+        if result.accepted:
+            out = dataclasses.replace(original.with_parameters(result.value), note=_identified_note(original, result))
+            atomic_write(write, dump_machine(out))
+            report["written"] = str(write)
+        else:
+            report["written"] = None
+            report["not_written"] = f"{write}: not written: " + "; ".join(result.reasons)
+    return report, result
 
 
 def _identified_note(original: Machine, result: Identification) -> str:
     changed = [result.names[i] for i in np.nonzero(result.identified)[0]]
     head = original.note + "\n" if original.note else ""
     return (f"{head}Identified by trueaxis from a measured part ({result.n_used} points, residual RMS "
-            f"{result.residual_rms_um:.2f} um): changed {', '.join(changed) if changed else 'nothing'}; every other "
-            "value is the twin's own.")
+            f"{result.predicted_rms_um:.2f} -> {result.residual_rms_um:.2f} um, verdict {result.verdict}): changed "
+            f"{', '.join(changed) if changed else 'nothing'}; every other value is the twin's own.")

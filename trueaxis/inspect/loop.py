@@ -15,6 +15,9 @@ Slot block: the part program posts slot 1 uncompensated, slot 2 geometric, slot 
 three slots get the same treatment: the uncompensated program (``slots_program(...).raw``) is posted whole with mode
 "geometric", first with the starting twin, then with the identified one, so the three slots are three repeats.
 
+``user_loop`` runs the loop as a user does, command by command (program, simulate, inspect --identify --write, program
+again with the written twin), for as many rounds as asked.
+
 Units: um for deviations, mm for geometry.
 """
 
@@ -184,7 +187,78 @@ def closed_loop(true_machine: Machine, twin: Machine | None = None, part: str = 
                       **(identify_options or {}))
     timings["identify_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    program1 = compensate(raw, result.machine, "geometric", **post)
+    # A refused identification leaves the twin as it was (what ``inspect --write`` does).
+    program1 = compensate(raw, result.machine if result.accepted else placed_twin, "geometric", **post)
     after = _measure(program1, true, part, points, noise_um, seed + 1)
     timings["post_cut_and_measure_after_s"] = time.perf_counter() - t
     return LoopResult(part, before, after, result, placed_twin, timings)
+
+
+# ------------------------------------------------------------------------------------- the loop as a user runs it ----
+@dataclass
+class Round:
+    """One round of the user's loop: the program posted with ``twin``, cut on the true machine, measured, identified.
+
+    rms_um / max_abs_um : the part's deviation (inspect's report).  slots_rms_um : per slot (slot block).
+    misfit_rms_um : what the twin leaves unexplained on this part before the identification; residual_rms_um after.
+    verdict : accepted | no change | refused.  written : the twin file written (None when refused)."""
+
+    round: int
+    twin: str
+    program: str
+    rms_um: float
+    max_abs_um: float
+    slots_rms_um: dict
+    misfit_rms_um: float
+    residual_rms_um: float
+    verdict: str
+    written: str | None
+    exit_code: int
+
+
+def user_loop(folder, part: str, twin_file, true_file, *, rounds: int = 3, compensate: str | None = "geometric",
+              points: int = 4000, noise_um: float = 0.5, program_args=(), seed: int = 0) -> list[Round]:
+    """The closed loop as a user runs it, command by command (``trueaxis.cli.main``), in ``folder``:
+
+        trueaxis program PART --machine TWIN_k.toml [--compensate MODE] -o rK.ngc
+        trueaxis simulate rK.ngc --machine TRUE.toml --part PART -o rK.ply --points N --noise-um S --seed SEED+K
+        trueaxis inspect rK.ply --part PART --identify --machine TWIN_k.toml --program rK.ngc --write twinK.toml
+
+    and the next round programs with the written twin (the same twin again when the identification refused).
+    compensate : the program's mode for the cone (none | geometric | comprehensive); None for the slot block (its
+    slots are posted none, geometric and comprehensive). program_args : more ``program`` options (e.g. a coarser
+    ``--step-deg``). Returns one :class:`Round` per round. A command that fails for bad input raises RuntimeError.
+    """
+    import json
+    from pathlib import Path
+
+    from ..cli import EXIT_REFUSED, main
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    twin = str(twin_file)
+    out = []
+    for k in range(1, rounds + 1):
+        prog, cloud, new, rep = (folder / f"r{k}.ngc", folder / f"r{k}.ply", folder / f"twin{k}.toml",
+                                 folder / f"r{k}_report")
+        cmd = ["program", part, "--machine", twin, "-o", str(prog), *map(str, program_args)]
+        if compensate is not None:
+            cmd += ["--compensate", compensate]
+        for c in (cmd, ["simulate", str(prog), "--machine", str(true_file), "--part", part, "-o", str(cloud),
+                        "--points", str(points), "--noise-um", str(noise_um), "--seed", str(seed + k)]):
+            if main(c) != 0:
+                raise RuntimeError(f"trueaxis {' '.join(c)} failed")
+        code = main(["inspect", str(cloud), "--part", part, "--identify", "--machine", twin, "--program", str(prog),
+                     "--write", str(new), "-o", str(rep)])
+        if code not in (0, EXIT_REFUSED):
+            raise RuntimeError(f"trueaxis inspect {cloud} failed (exit {code})")
+        r = json.loads((rep / "report.json").read_text())
+        ident = r["identification"]
+        slots = {s["compensation"]: s["deviation_um"]["rms"] for s in r.get("slots", [])}
+        d = r["deviation_um"]
+        out.append(Round(k, twin, str(prog), d["rms"], max(abs(d["min"]), abs(d["max"])), slots,
+                         ident["verdict"]["residual_before_rms_um"], ident["verdict"]["residual_after_rms_um"],
+                         ident["verdict"]["status"], ident.get("written"), code))
+        if code == 0:
+            twin = str(new)
+    return out

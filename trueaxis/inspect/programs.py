@@ -20,9 +20,10 @@ Programs are machine-axis G-code (X Y Z = tool tip with tool length compensation
 made with the machine's inverse kinematics. 5-axis moves use G93 (inverse time, F = feed / tip path length of the
 block, 1/min). Cutting conditions are structured comments ``(trueaxis: ap=.. ae=.. fz=.. n=.. d=.. z=.. mode=down)``.
 The header holds a setup comment that the virtual shop reads to place the part:
-``(trueaxis-setup: part=nas979 origin_mm=X,Y,Z placement_mm=X,Y tool_d_mm=10 compensation=geometric)``
+``(trueaxis-setup: part=nas979 origin_mm=X,Y,Z placement_mm=X,Y tool_d_mm=10 compensation=geometric twin=ID)``
 (origin_mm: the part origin in M with all axes at zero; placement_mm: its offset from the C-axis line, or from the
-machine zero on a machine without a C axis about Z).
+machine zero on a machine without a C axis about Z; twin: ``twin_id`` of the twin that compensated it, absent when
+uncompensated).
 """
 
 from __future__ import annotations
@@ -335,10 +336,24 @@ def conditions_comment(c: dict) -> str:
             f"mode={c['mode']})")
 
 
-def setup_comment(part: str, origin, placement, tool_d: float, compensation: str) -> str:
+def twin_id(machine: Machine) -> str:
+    """A short id of a twin's error values (12 hex digits of the SHA-256 of its parameter names and values, bit for
+    bit): the setup comment's ``twin``, so that an identification can tell which twin compensated a program."""
+    import hashlib
+
+    h = hashlib.sha256("\n".join(machine.parameter_names()).encode())
+    h.update(np.ascontiguousarray(machine.parameter_values(), dtype="<f8").tobytes())
+    return h.hexdigest()[:12]
+
+
+def setup_comment(part: str, origin, placement, tool_d: float, compensation: str, twin: str | None = None) -> str:
+    """``(trueaxis-setup: part=.. origin_mm=X,Y,Z placement_mm=X,Y tool_d_mm=.. compensation=.. twin=..)``; twin:
+    ``twin_id`` of the twin that compensated the program (left out when None)."""
     o = ",".join(f"{v:.3f}" for v in origin)
     p = ",".join(f"{v:.3f}" for v in placement)
-    return f"({SETUP_TAG}: part={part} origin_mm={o} placement_mm={p} tool_d_mm={tool_d:g} compensation={compensation})"
+    t = f" twin={twin}" if twin else ""
+    return (f"({SETUP_TAG}: part={part} origin_mm={o} placement_mm={p} tool_d_mm={tool_d:g} "
+            f"compensation={compensation}{t})")
 
 
 def read_setup(text: str) -> dict:
@@ -492,7 +507,8 @@ def nas979_program(machine: Machine, params: Nas979Params | None = None, *, comp
                          f"({machine.tool.flute_length:g} mm)")
     q = cl_to_axes(placed, cl)
     safe_z = safe_height(placed, _nas979_hull(p), q)
-    setup = setup_comment("nas979", placed.workpiece_origin, placement, tool_diameter, compensation)
+    setup = setup_comment("nas979", placed.workpiece_origin, placement, tool_diameter, compensation,
+                          twin_id(machine) if compensation != "none" else None)
     title = [f"trueaxis NAS 979 cone frustum: 5-axis flank milling, flat end mill d {tool_diameter:g} mm",
              f"cone: half angle {p.half_angle_deg:g} deg, axis inclined {p.axis_inclination_deg:g} deg, base diameter "
              f"{p.base_diameter:g} mm, height {p.height:g} mm along the axis",
@@ -550,7 +566,7 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, pl
     hull = np.array([[x, y, z] for x in (0, p.block_length_x) for y in (0, p.block_width_y)
                      for z in (-p.block_height_z, 0.0)])
     safe_z = safe_height(placed, hull, q, clearance=10.0)
-    setup = setup_comment("slots", placed.workpiece_origin, placement, p.tool_diameter, "per-slot")
+    setup = setup_comment("slots", placed.workpiece_origin, placement, p.tool_diameter, "per-slot", twin_id(machine))
     title = [f"trueaxis slot block: three slots, flat end mill d {p.tool_diameter:g} mm, depth {p.slot_depth:g} mm "
              f"in passes of {p.axial_depth_per_pass:g} mm",
              "slot 1: no compensation, slot 2: geometric, slot 3: comprehensive; each section posted on its own",
