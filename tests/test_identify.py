@@ -294,6 +294,11 @@ def test_changed_machine_is_identified_within_three_std_and_written(shop, tmp_pa
     rep = _report(tmp_path / "rep")
     assert rep["verdict"]["status"] == "accepted" and rep["written"] == str(out)
     assert rep["verdict"]["heldout"]["confirmed"]
+    # The user's file is edited in place: every comment of the twin's file is in the written one.
+    comments = [line.split("#", 1)[1] for line in TWIN_FILE.read_text().splitlines() if "#" in line]
+    text = out.read_text()
+    assert rep["comments_kept"]
+    assert comments and all(c in text for c in comments)
     assert rep["verdict"]["residual_after_rms_um"] < 1.5 * NOISE_UM < rep["verdict"]["deviation_rms_um"]
     truth, written = _written_values(shop / "true.toml"), _written_values(out)
     reported = {p["name"]: p for p in rep["parameters"]}

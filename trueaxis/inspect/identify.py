@@ -1130,7 +1130,7 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     Returns (the report's "identification" dict, the Identification).
     """
     from ..fileio import atomic_write
-    from ..machine.machine_file import dump_machine
+    from ..machine.machine_file import update_machine_text
 
     original = load_machine(machine)
     program_path = Path(program)
@@ -1148,8 +1148,10 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     if write is not None:
         if result.accepted:
             out = dataclasses.replace(original.with_parameters(result.value), note=_identified_note(original, result))
-            atomic_write(write, dump_machine(out))
+            text, comments_kept = update_machine_text(Path(machine).read_text(encoding="utf-8-sig"), out)
+            atomic_write(write, text)
             report["written"] = str(write)
+            report["comments_kept"] = comments_kept  # the user's file edited in place, else written whole
         else:
             report["written"] = None
             report["not_written"] = f"{write}: not written: " + "; ".join(result.reasons)

@@ -518,8 +518,8 @@ def update_machine_text(text: str, machine: Machine) -> tuple[str, bool]:
     """``text`` (a machine file) with its error parameters replaced by ``machine``'s, the user's comments, order and
     layout kept (tomlkit edits the document in place; only values that changed are rewritten).
 
-    Only the error sections change: ``[location]``, ``[component.*]``, ``[loaded]`` (a parameter that became 0 is
-    written as 0, with its comment). The result is checked by reading it back: when it does not give ``machine``'s
+    Only the error sections and the note change: ``[location]``, ``[component.*]``, ``[loaded]`` (a parameter that
+    became 0 is written as 0, with its comment), ``[machine] note``. The result is checked by reading it back: when it does not give ``machine``'s
     parameters bit for bit (a form the edit cannot express, e.g. a Legendre series replaced by a table), the complete
     :func:`dump_machine` text is returned instead. Returns (text, comments_kept).
     """
@@ -532,6 +532,8 @@ def update_machine_text(text: str, machine: Machine) -> tuple[str, bool]:
         for section in ("location", "component", "loaded"):
             if section in new or section in doc:
                 _merge_values(doc, new, section)
+        if "note" in new["machine"] and doc["machine"].get("note") != new["machine"]["note"]:
+            doc["machine"]["note"] = new["machine"]["note"]  # an identified machine says so in its note
         edited = tomlkit.dumps(doc)
         same = dump_machine(parse_machine(edited, source=machine.source)) == fresh
     except (tomlkit.exceptions.TOMLKitError, tomllib.TOMLDecodeError, MachineFileError, ValueError):
