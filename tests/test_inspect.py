@@ -359,3 +359,78 @@ def test_a_failed_inspection_keeps_the_previous_report(tmp_path):
     (tmp_path / "bad.xyz").write_text("1 2 nan\n")
     assert run("inspect", str(tmp_path / "bad.xyz"), "--part", "nas979", "-o", str(tmp_path / "rep")).returncode == 2
     assert (tmp_path / "rep" / "report.json").read_text() == before
+
+
+# ------------------------------------------------------------------------------ tolerances and the feature table ----
+def _rows(report):
+    return {(r["feature"], r["characteristic"]): r for r in report["feature_table"]}
+
+
+def test_feature_table_judges_known_deviations_against_toml_tolerances(tmp_path):
+    b_mm, taper = 0.003, 50e-6  # roundness 6 um in every section, half-angle error +50 urad
+    p, _ = deformed_cone((0.0, 0.0), b_mm, taper, per_ring=180)
+    (tmp_path / "tol.toml").write_text(
+        "[default]\nroundness_um = 10.0\n[roundness_high]\nroundness_um = 5.0\n"
+        "[cone_angle]\nhalf_angle_urad = [-40.0, 40.0]\n[diameter_ref]\ndiameter_um = [-20.0, 20.0]\n")
+    rep = inspect_cloud(_cloud(p), "nas979", tolerances=tmp_path / "tol.toml").report
+    rows = {r["feature"]: r for r in rep["feature_table"] if r["feature"] != "cone"}
+    assert rows["roundness_low"]["result"] == "pass" and rows["roundness_mid"]["result"] == "pass"
+    assert rows["roundness_high"]["result"] == "fail"  # its own 5 um over the default 10 um
+    assert rows["roundness_high"]["actual"] == pytest.approx(2 * b_mm * 1e3, abs=1e-4)
+    assert rows["roundness_high"]["tolerance"] == {"lower": 0.0, "upper": 5.0}
+    angle = rows["cone_angle"]
+    assert angle["nominal"] == 15.0 and angle["unit"] == "deg" and angle["deviation_unit"] == "urad"
+    assert angle["deviation"] == pytest.approx(taper * 1e6, abs=0.05) and angle["result"] == "fail"
+    expected = -2 * 10.0 * (math.tan(ALPHA + taper) - math.tan(ALPHA)) * 1e3  # -17.5 um at h = 10 mm
+    assert rows["diameter_ref"]["deviation"] == pytest.approx(expected, abs=1e-3)
+    assert rows["diameter_ref"]["result"] == "pass"
+    assert rows["axis_direction"]["result"] == "no tolerance"
+    assert rep["feature_summary"] == {"pass": 3, "fail": 2, "no tolerance": 3, "not measured": 0}
+
+
+def test_tolerances_in_the_part_json_apply_and_the_toml_wins(tmp_path):
+    part = json.loads(json.dumps(NAS))
+    next(f for f in part["features"] if f["id"] == "roundness_mid")["tolerances"] = {"roundness_um": 1.0}
+    (tmp_path / "nas979.json").write_text(json.dumps(part))
+    p, _ = deformed_cone((0.0, 0.0), 0.002, 0.0, per_ring=180)  # roundness 4 um
+    rep = inspect_cloud(_cloud(p), "nas979", part_dir=tmp_path).report
+    mid = next(r for r in rep["feature_table"] if r["feature"] == "roundness_mid")
+    assert mid["result"] == "fail" and mid["tolerance"]["upper"] == 1.0
+    (tmp_path / "tol.toml").write_text("[roundness_mid]\nroundness_um = 5.0\n")
+    rep = inspect_cloud(_cloud(p), "nas979", part_dir=tmp_path, tolerances=tmp_path / "tol.toml").report
+    mid = next(r for r in rep["feature_table"] if r["feature"] == "roundness_mid")
+    assert mid["result"] == "pass" and mid["tolerance"]["upper"] == 5.0
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[roundness_top]\nroundness_um = 5.0\n", "no feature 'roundness_top'"),
+    ("[cone_angle]\nhalf_angle_urad = 40.0\n", "expected [lower, upper]"),
+    ("[roundness_mid]\nroundness_um = [0, 5]\n", "one upper limit"),
+    ("[roundness_mid]\nwidth_um = [-5, 5]\n", "has no width_um"),
+    ("[default]\nflatness_um = 5\n", "unknown characteristic"),
+    ("[cone_angle\n", "not valid TOML"),
+])
+def test_bad_tolerance_files_are_refused_naming_the_key(tmp_path, text, message):
+    p, n = deformed_cone(per_ring=36)
+    write_cloud_ply(tmp_path / "c.ply", p, n)
+    (tmp_path / "tol.toml").write_text(text)
+    r = run("inspect", str(tmp_path / "c.ply"), "--part", "nas979", "--tolerances", str(tmp_path / "tol.toml"),
+            "-o", str(tmp_path / "rep"))
+    assert r.returncode == 2 and message in r.stderr and "tol.toml" in r.stderr, r.stderr
+    assert not (tmp_path / "rep").exists()
+
+
+def test_report_folder_has_the_deviations_as_ply_scalar_field_and_csv(tmp_path):
+    from plyfile import PlyData
+
+    p, n = deformed_cone((0.0, 0.004), 0.002, 0.0, per_ring=90)
+    result = inspect_cloud(_cloud(p, n), "nas979")
+    out = write_report(result, tmp_path / "rep")
+    vertex = PlyData.read(str(out / "deviations.ply"))["vertex"]
+    np.testing.assert_array_equal(vertex["scalar_deviation_um"], result.deviation_um)
+    np.testing.assert_array_equal(np.column_stack([vertex["x"], vertex["y"], vertex["z"]]), result.aligned)
+    table = np.loadtxt(out / "deviations.csv", delimiter=",", skiprows=1, usecols=(0, 1, 2, 3))
+    np.testing.assert_allclose(table[:, 3], result.deviation_um, atol=5e-5)
+    assert set(np.loadtxt(out / "deviations.csv", delimiter=",", skiprows=1, usecols=4, dtype=str)) == {"cone"}
+    rep = json.loads((out / "report.json").read_text())
+    assert {"deviations.ply", "deviations.csv"} <= set(rep["files"])

@@ -244,7 +244,8 @@ def cmd_inspect(args) -> int:
     if not args.identify and (args.machine or args.program or args.write):
         raise UsageError("--machine, --program and --write go with --identify")
     out_dir = Path(args.output) if args.output else Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
-    result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align)
+    result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align,
+                           tolerances=args.tolerances)
     if args.identify:
         from .inspect.identify import run_identification
 
@@ -258,6 +259,9 @@ def cmd_inspect(args) -> int:
             f"{d['rms']:.2f} um, range {d['min']:+.2f}..{d['max']:+.2f} um")
     if r.get("cone"):
         line += f"; half angle error {r['cone']['half_angle_error_urad']:+.1f} urad"
+    counts = r["feature_summary"]
+    if counts["pass"] or counts["fail"]:
+        line += f"; {counts['pass']} characteristics in tolerance, {counts['fail']} out"
     print(line)
     return 0
 
@@ -371,7 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_demo)
 
     i = sub.add_parser("inspect", help="compare a CMM cloud with the part: deviations, form, report folder")
-    i.add_argument("cloud", help="CMM cloud in the part frame, mm: PLY (ascii/binary), CSV or XYZ, normals optional")
+    i.add_argument("cloud", help="CMM cloud in the part frame, mm: PLY (ascii/binary), CSV/TXT (',' ';' tab or "
+                   "whitespace, optional header x,y,z[,i,j,k] and name column), XYZ, E57, DMIS output (.dmo); "
+                   "normals optional")
     i.add_argument("--part", required=True, choices=["nas979", "slots"])
     ref = i.add_mutually_exclusive_group()
     ref.add_argument("--part-dir", help="folder holding <part>.json (and slots.stl) from 'trueaxis part' "
@@ -382,6 +388,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="none: cloud already in the part frame (default); bestfit: ICP onto the CAD, the rigid motion "
                         "removed is reported; datum: 3-2-1 frame from the probed datum planes")
     i.add_argument("-o", "--output", help="report folder (default: <cloud stem>_report beside the cloud)")
+    i.add_argument("--tolerances", metavar="FILE", help="tolerances of the part's features (TOML, see "
+                   "docs/tolerances.md), over those of the part JSON; the report's feature table says pass or fail")
     i.add_argument("--identify", action="store_true", help="identify twin parameters from the deviations")
     i.add_argument("--machine", help="with --identify: the machine's error twin (TOML)")
     i.add_argument("--program", help="with --identify: the program that cut the part")

@@ -54,7 +54,10 @@ import numpy as np
 
 from . import deviation as dv
 from . import form
-from .cloud import Cloud, CloudError, check_extent, read_cloud
+from .cloud import Cloud, CloudError, check_extent, read_cloud, write_deviation_csv, write_deviation_ply
+from .tolerances import CHARACTERISTICS, feature_table, load_tolerances, summary
+
+SIZE_KEYS = {k for k, v in CHARACTERISTICS.items() if v[0] == "size"}
 
 __all__ = ["Inspection", "load_part", "inspect_cloud", "deviation_stats", "evaluate_nas979", "evaluate_slots",
            "write_report", "ALIGNMENTS"]
@@ -172,6 +175,7 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
         "apex_mm": [float(v) for v in fit.apex],
         "base_radius_mm": r_base,
         "fit_rms_um": fit.rms * 1e3,
+        "form_um": float(np.ptp(fit.residuals) * 1e3),
         "points": int(len(pts)),
     }
     rings = []
@@ -303,12 +307,14 @@ def evaluate_slots(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5) 
 
 # -------------------------------------------------------------------------------------------------- the pipeline
 
-def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none", gate_mm: float = 0.5) -> Inspection:
+def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none", gate_mm: float = 0.5,
+                  tolerances=None) -> Inspection:
     """Read (or take) a cloud, check it can be the part, align it, measure its deviations, evaluate the features.
 
     cloud : path of a PLY/CSV/XYZ file, or a Cloud. part : "nas979" | "slots". part_dir : folder with <part>.json
     (and slots.stl). cad : a STEP or mesh file of the part (the reference where the JSON has no analytic surface;
-    without a JSON beside it, the only reference). align : "none" | "bestfit" | "datum".
+    without a JSON beside it, the only reference). align : "none" | "bestfit" | "datum". tolerances : a tolerance
+    TOML file (``trueaxis.inspect.tolerances``; merged over the part JSON's own), or None for the JSON's alone.
 
     Raises CloudError / InspectionError (ValueError) with a one-line message; nothing is written here.
     """
@@ -317,6 +323,7 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     if not isinstance(cloud, Cloud):
         cloud = read_cloud(cloud)
     part_doc = load_part(part, part_dir, cad)
+    limits = load_tolerances(tolerances, part_doc)  # a bad tolerance file is refused before any work
     has_json = cad is None or Path(cad).with_suffix(".json").is_file()
     surfaces = dv.analytic_surfaces(part_doc) if has_json else []
 
@@ -389,6 +396,8 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         },
         **features,
     }
+    report["feature_table"] = feature_table(report, part_doc, limits)
+    report["feature_summary"] = summary(report["feature_table"])
     figures.update(points=aligned, deviation_um=d_um)
     return Inspection(cloud, aligned, normals, dev, part_doc, report, figures)
 
@@ -471,6 +480,8 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
              f"<p>{report['points']} points; {html.escape(report['units'])}.</p>",
              "<h2>Deviation (um)</h2><table>" + rows(report["deviation_um"]) + "</table>",
              "<h2>Alignment</h2><table>" + rows(report["alignment"]) + "</table>"]
+    if report.get("feature_table"):
+        parts.append(_feature_table_html(report["feature_table"]))
     if report.get("cone"):
         parts.append("<h2>Cone</h2><table>" + rows(report["cone"]) + "</table>")
     if report.get("diameter"):
@@ -508,6 +519,30 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
     return "\n".join(parts)
 
 
+def _feature_table_html(rows: list[dict]) -> str:
+    def limits(row):
+        t = row["tolerance"]
+        if t is None:
+            return ""
+        return f"{t['lower']:+.1f} / {t['upper']:+.1f} {row['deviation_unit']}" if row["key"] in SIZE_KEYS \
+            else f"&le; {t['upper']:.1f} {row['deviation_unit']}"
+
+    def value(v, unit):
+        if v is None:
+            return "n/a"
+        return f"{v:.4f} {unit}" if unit in ("mm", "deg") else f"{v:.2f} {unit}"
+
+    colour = {"pass": "#d9f2d9", "fail": "#f8d0d0"}
+    body = "".join(
+        f"<tr style='background:{colour.get(r['result'], '#ffffff')}'><td>{html.escape(r['feature'])}</td>"
+        f"<td>{html.escape(r['characteristic'])}</td><td>{value(r['nominal'], r['unit'])}</td>"
+        f"<td>{value(r['actual'], r['unit'])}</td><td>{value(r['deviation'], r['deviation_unit'])}</td>"
+        f"<td>{limits(r)}</td><td><b>{html.escape(r['result'])}</b></td></tr>" for r in rows)
+    return ("<h2>Feature table</h2><table class='features'><tr><th>feature</th><th>characteristic</th>"
+            "<th>nominal</th><th>actual</th><th>deviation</th><th>tolerance</th><th>result</th></tr>" + body
+            + "</table>")
+
+
 def _fmt(value) -> str:
     if value is None:
         return "n/a"
@@ -535,8 +570,22 @@ def _clean(value):
     return value
 
 
+def _write_point_files(inspection: Inspection, folder: Path) -> None:
+    """``deviations.ply`` (binary; the deviation as the scalar field ``deviation_um``, CloudCompare's convention
+    ``scalar_deviation_um``) and ``deviations.csv`` (x_mm, y_mm, z_mm, deviation_um, surface) of the aligned points."""
+    dev = inspection.deviation
+    ids = np.array(list(dev.surface_ids) + ["cad_mesh"])
+    surface = ids[np.where(dev.from_mesh | (dev.surface < 0), len(ids) - 1, dev.surface)]
+    comments = [f"trueaxis inspect: {inspection.report['part']} part frame, mm; deviation um, + = material outside",
+                f"cloud {Path(str(inspection.cloud.source)).name}"]
+    write_deviation_ply(folder / "deviations.ply", inspection.aligned, inspection.deviation_um, inspection.normals,
+                        comments=[c.replace("\n", " ") for c in comments])
+    write_deviation_csv(folder / "deviations.csv", inspection.aligned, inspection.deviation_um, surface)
+
+
 def write_report(inspection: Inspection, out_dir) -> Path:
-    """Write ``out_dir/report.json``, ``report.html`` and the PNGs, all or nothing.
+    """Write ``out_dir/report.json``, ``report.html``, the PNGs and the per-point deviations (``deviations.ply``,
+    ``deviations.csv``), all or nothing.
 
     The folder is built as a temporary sibling and renamed into place; an existing ``out_dir`` (a previous report)
     is moved aside first and removed once the new one is in place. Returns the folder.
@@ -550,7 +599,9 @@ def write_report(inspection: Inspection, out_dir) -> Path:
     try:
         report = _clean(inspection.report)
         images = _figures(inspection, temp)
-        report["files"] = ["report.json", "report.html"] + [name for name, _ in images]
+        _write_point_files(inspection, temp)
+        report["files"] = ["report.json", "report.html", "deviations.ply", "deviations.csv"] + \
+            [name for name, _ in images]
         (temp / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         (temp / "report.html").write_text(_html(report, images, temp), encoding="utf-8")
         old = None
