@@ -434,3 +434,15 @@ def test_report_folder_has_the_deviations_as_ply_scalar_field_and_csv(tmp_path):
     assert set(np.loadtxt(out / "deviations.csv", delimiter=",", skiprows=1, usecols=4, dtype=str)) == {"cone"}
     rep = json.loads((out / "report.json").read_text())
     assert {"deviations.ply", "deviations.csv"} <= set(rep["files"])
+
+
+def test_cad_without_its_part_json_is_refused_asking_for_the_json(tmp_path):
+    # a STEP alone carries faces, not which slot, wall or section each is: every feature would be null
+    p, n = deformed_cone(per_ring=36)
+    write_cloud_ply(tmp_path / "c.ply", p, n)
+    (tmp_path / "slots.step").write_text("ISO-10303-21;\nEND-ISO-10303-21;\n")
+    r = run("inspect", str(tmp_path / "c.ply"), "--part", "slots", "--cad", str(tmp_path / "slots.step"),
+            "-o", str(tmp_path / "rep"))
+    assert r.returncode == 2 and "no part JSON beside it (slots.json)" in r.stderr, r.stderr
+    assert "trueaxis part slots -o DIR" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "rep").exists()

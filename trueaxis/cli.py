@@ -382,8 +382,8 @@ def build_parser() -> argparse.ArgumentParser:
     ref = i.add_mutually_exclusive_group()
     ref.add_argument("--part-dir", help="folder holding <part>.json (and slots.stl) from 'trueaxis part' "
                      "(default: the default part parameters)")
-    ref.add_argument("--cad", help="CAD of the part: STEP (tessellated to < 0.1 um chord error; slow) or STL/PLY/OBJ; "
-                     "its analytic surfaces come from <stem>.json beside it when present")
+    ref.add_argument("--cad", help="CAD of the part: STEP (tessellated to < 0.1 um chord error; slow) or STL/PLY/OBJ, "
+                     "with <stem>.json beside it (the features and analytic surfaces; refused without it)")
     i.add_argument("--align", default="none", choices=["none", "bestfit", "datum"],
                    help="none: cloud already in the part frame (default); bestfit: ICP onto the CAD, the rigid motion "
                         "removed is reported; datum: 3-2-1 frame from the probed datum planes")

@@ -311,15 +311,25 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
                   tolerances=None) -> Inspection:
     """Read (or take) a cloud, check it can be the part, align it, measure its deviations, evaluate the features.
 
-    cloud : path of a PLY/CSV/XYZ file, or a Cloud. part : "nas979" | "slots". part_dir : folder with <part>.json
-    (and slots.stl). cad : a STEP or mesh file of the part (the reference where the JSON has no analytic surface;
-    without a JSON beside it, the only reference). align : "none" | "bestfit" | "datum". tolerances : a tolerance
+    cloud : path of a cloud file (``read_cloud``), or a Cloud. part : "nas979" | "slots". part_dir : folder with
+    <part>.json (and slots.stl). cad : a STEP or mesh file of the part, with its JSON beside it (``<stem>.json``): the
+    mesh is the reference where the JSON has no analytic surface; without the JSON the features cannot be evaluated
+    and the inspection is refused, naming the JSON it needs. align : "none" | "bestfit" | "datum". tolerances : a tolerance
     TOML file (``trueaxis.inspect.tolerances``; merged over the part JSON's own), or None for the JSON's alone.
 
     Raises CloudError / InspectionError (ValueError) with a one-line message; nothing is written here.
     """
     if align not in ALIGNMENTS:
         raise dv.InspectionError(f"unknown alignment {align!r}: expected one of {', '.join(ALIGNMENTS)}")
+    if cad is not None and not Path(cad).with_suffix(".json").is_file():
+        # the features (cone, roundness sections, slot widths, walls, floors) are the JSON's analytic surfaces and
+        # feature list: a STEP file alone has faces but not which slot, wall or section each one is, so every
+        # feature would come out empty; refuse before the slow tessellation rather than report nulls
+        json_name = Path(cad).with_suffix(".json").name
+        raise dv.InspectionError(
+            f"{cad}: no part JSON beside it ({json_name}): the {part} part's features are evaluated on the analytic "
+            f"surfaces and feature list of that JSON, which a STEP file does not carry; write the STEP and the JSON "
+            f"together with 'trueaxis part {part} -o DIR' (then --cad DIR/{part}.step or --part-dir DIR)")
     if not isinstance(cloud, Cloud):
         cloud = read_cloud(cloud)
     part_doc = load_part(part, part_dir, cad)
