@@ -542,3 +542,37 @@ def test_least_squares_circle_in_space_is_the_nominal_of_a_symmetric_case():
     assert np.abs(fit.center - C3).max() < UM and abs(fit.radius - radius) < UM
     np.testing.assert_allclose(fit.normal_residuals * np.sign(fit.normal @ ROT[:, 2]), normal, atol=UM)
     np.testing.assert_allclose(fit.radial_residuals, radial, atol=UM)
+
+
+# ------------------------------------------------------------------------------- large clouds: the fast paths are exact
+
+def test_cone_fit_of_a_large_cloud_is_the_least_squares_cone_of_all_its_points():
+    # more points than the coarse sample: the coarse fit sees every second point, the polish all of them; the second
+    # formulation (apex + spherical angles, finite differences, trust region) on all points must reach the same cost
+    rng = np.random.default_rng(14)
+    apex, axis, half_angle = nas979_cone()
+    slant = np.linalg.norm(apex)
+    exact = cone_points(apex, axis, half_angle, (slant - 20.0, slant), 30_000, rng)
+    points = exact + rng.normal(0.0, 0.002, exact.shape)
+    fit = fit_cone(points)  # no start axis: the quadric estimate
+    (apex2, axis2, alpha2), cost2 = cone_second_formulation(points, apex + [0.3, -0.2, 0.1],
+                                                            Rotation.from_rotvec([0.01, 0.0, 0.01]).apply(axis),
+                                                            half_angle + 0.003)
+    cost1 = float(fit.residuals @ fit.residuals)
+    assert abs(cost1 - cost2) < 1e-12 * cost1
+    assert abs(alpha2 - fit.half_angle_rad) < 1e-4 * fit.half_angle_std_rad
+    assert np.arccos(np.clip(abs(axis2 @ fit.axis), -1, 1)) < 1e-4 * fit.axis_std_rad
+
+
+def test_minimum_zone_circle_on_extreme_points_is_the_minimum_over_all_points():
+    # 30,000 points: each linear program holds only the 1500 largest and smallest radii; the exact objective over all
+    # points, minimised by Nelder-Mead from the result and from the least-squares centre, finds nothing lower
+    rng = np.random.default_rng(15)
+    theta = rng.uniform(0, 2 * np.pi, 30_000)
+    radius = R + 0.004 * np.cos(3 * theta + 0.3) + 0.002 * np.sin(5 * theta) + rng.normal(0, 0.0005, theta.size)
+    points = profile(radius, theta=theta)
+    zone = minimum_zone_circle(points)
+    assert zone.width == pytest.approx(zone_width_at(points, zone.center), abs=1e-15)
+    best = nelder_mead_minimum_zone(points, [zone.center, fit_circle_least_squares(points).center])
+    assert zone.width <= best.fun + 1e-9  # 1e-3 um
+    assert zone.width < np.ptp(fit_circle_least_squares(points).residuals)

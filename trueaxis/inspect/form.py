@@ -145,22 +145,25 @@ def fit_circle_least_squares(points2d) -> CircleFit:
     return CircleFit(center=center, radius=radius, residuals=np.hypot(*(points2d - center).T) - radius)
 
 
-def minimum_zone_circle(points2d, start: np.ndarray | None = None, max_iterations: int = 100) -> ZoneCircle:
+def minimum_zone_circle(points2d, start: np.ndarray | None = None, max_iterations: int = 300) -> ZoneCircle:
     """Minimum-zone circles: the centre c minimising max_i |p_i - c| - min_i |p_i - c| (ISO 12181-2 MZCI).
 
     Method: sequential linear programming with a trust region (the linearised Chebyshev problem of Dhanish & Shunmugam,
     Precision Engineering 13 (1991), "An algorithm for form error evaluation using the theory of discrete and linear
-    Chebyshev approximation"). About the current centre c the radii are r_i(c + d) ~ r_i - u_i . d, u_i the unit
-    vector from c to p_i; the linear program
+    Chebyshev approximation"), :func:`_chebyshev_zone`. About the current centre c the radii are
+    r_i(c + d) ~ r_i - u_i . d, u_i the unit vector from c to p_i; the linear program
 
         minimise  a - b   over (d, a, b)   subject to   b <= r_i - u_i . d <= a,   |d|_inf <= trust radius
 
     gives a step; it is accepted when the exact zone width decreases, and the trust radius grows or shrinks with the
     ratio of actual to predicted decrease. The linearisation error is |d|^2 / (2 r), so near the solution the steps
-    converge like Newton steps (the optimum is a vertex: 2 outer and 2 inner contact points, generically). Starts
-    from the least-squares centre, which is within a zone width of the minimum-zone centre for a roundness profile.
-    The problem is not convex in general: for a profile far from a circle (a partial arc of a few degrees, a random
-    scatter) this is a local minimum near the least-squares centre.
+    converge like Newton steps (the optimum is a vertex: 2 outer and 2 inner contact points, generically). Only the
+    points of largest and smallest radius can be contacts: each linear program holds those (a few thousand, found in
+    O(n)), with the step capped so that no other point can reach the zone's edges; the exact width over all points
+    decides each step. Starts from the least-squares centre (of an evenly strided sample of 20,000 points for a larger
+    profile), which is within a zone width of the minimum-zone centre for a roundness profile. The problem is not
+    convex in general: for a profile far from a circle (a partial arc of a few degrees, a random scatter) this is a
+    local minimum near the least-squares centre.
 
     Parameters
     ----------
@@ -174,48 +177,21 @@ def minimum_zone_circle(points2d, start: np.ndarray | None = None, max_iteration
     """
     points2d = _points(points2d, (2,), 4, "points2d")
     if start is None:
-        start = fit_circle_least_squares(points2d).center
-    center = np.asarray(start, dtype=np.float64).reshape(2)
+        start = fit_circle_least_squares(points2d[::max(1, -(-len(points2d) // 20_000))]).center
+    center0 = np.asarray(start, dtype=np.float64).reshape(2)
+    radii0 = np.hypot(*(points2d - center0).T)
+    step = max(float(np.ptp(radii0)), 1e-12 * float(radii0.mean()))
 
-    def width_at(c):
-        radii = np.hypot(*(points2d - c).T)
-        return radii.max() - radii.min(), radii
+    def distance(c):
+        return np.hypot(points2d[:, 0] - c[0], points2d[:, 1] - c[1])
 
-    width, radii = width_at(center)
-    size = radii.mean()
-    # scale of the linear program: the zone width, so HiGHS' absolute tolerances (1e-7) are relative to it
-    scale = max(width, 1e-12 * size)
-    trust = 1.0  # in units of `scale`
-    options = dict(primal_feasibility_tolerance=1e-10, dual_feasibility_tolerance=1e-10)
-    for _ in range(max_iterations):
-        if width <= 1e-14 * size:
-            break  # a perfect circle to machine precision
-        directions = (points2d - center) / radii[:, None]
-        deviations = (radii - radii.mean()) / scale
-        n = len(points2d)
-        # variables (dx, dy, a, b); rows: r_i - u_i.d <= a  and  b <= r_i - u_i.d
-        upper = np.column_stack([-directions, -np.ones(n), np.zeros(n)])
-        lower = np.column_stack([directions, np.zeros(n), np.ones(n)])
-        result = linprog(c=[0.0, 0.0, 1.0, -1.0], A_ub=np.vstack([upper, lower]),
-                         b_ub=np.r_[-deviations, deviations],
-                         bounds=[(-trust, trust), (-trust, trust), (None, None), (None, None)],
-                         method="highs", options=options)
-        if result.status != 0:
-            raise RuntimeError(f"minimum-zone linear program failed: {result.message}")
-        step = result.x[:2] * scale
-        predicted = width - result.fun * scale
-        if predicted <= 1e-13 * max(width, 1e-300) or np.abs(result.x[:2]).max() < 1e-15 * size / scale:
-            break  # the linear model sees no further decrease: first-order optimal
-        new_width, new_radii = width_at(center + step)
-        ratio = (width - new_width) / predicted
-        if ratio > 0:
-            center, width, radii = center + step, new_width, new_radii
-        if ratio > 0.75 and np.abs(result.x[:2]).max() > 0.99 * trust:
-            trust *= 2.0
-        elif ratio < 0.25:
-            trust *= 0.25
-        if trust * scale < 1e-15 * size:
-            break
+    def jacobian(c, index):
+        delta = points2d[index] - c
+        r = np.hypot(delta[:, 0], delta[:, 1])
+        return r, -delta / r[:, None]
+
+    center, radii = _chebyshev_zone(distance, jacobian, center0, np.full(2, step), np.sqrt(2.0) * step,
+                                    len(points2d), max_iterations=max_iterations)
     mean = (radii.max() + radii.min()) / 2.0
     return ZoneCircle(center=center, radius_inner=float(radii.min()), radius_outer=float(radii.max()),
                       width=float(radii.max() - radii.min()), residuals=radii - mean)
@@ -280,31 +256,18 @@ def _cone_distance(points, base, axis, radius, half_angle):
     w = points - base
     h = w @ axis
     radial = w - h[:, None] * axis
-    r = np.linalg.norm(radial, axis=1)
+    r = np.sqrt(np.einsum("ij,ij->i", radial, radial))
     distance = (r - radius) * np.cos(half_angle) - h * np.sin(half_angle)
     return distance, w, h, r, radial / np.maximum(r, 1e-300)[:, None]
 
 
-def _fit_cone_from(points, axis0, base0, start=None):
-    """One Levenberg-Marquardt fit from a start axis (and, optionally, start parameters); returns (scipy result,
-    unpack function)."""
+def _cone_model(points, axis0, base0):
+    """The cone's residuals and Jacobian in the parameters (u, v, s, t, rho, alpha) about a start axis: axis =
+    normalise(axis0 + u e1 + v e2) has no singularity near axis0; the axis point base0 + s e1 + t e2 stays in the plane
+    through base0 normal to axis0; rho is the radius there. Neither the apex nor 1/tan(alpha) appears, so a nearly
+    cylindrical cone is as well posed as a steep one. Returns (unpack, residuals, jacobian, e1, e2)."""
     e1, e2 = _perpendicular_basis(axis0)
-    # algebraic start for this axis: in the frame (e1, e2, axis0) about base0 the cone is
-    # x^2 + y^2 = 2 cx x + 2 cy y + (rho^2 - cx^2 - cy^2) + 2 rho k z + k^2 z^2  (k = tan half angle), linear in
-    # (2cx, 2cy, rho^2 - |c|^2, 2 rho k, k^2): a Kasa-like fit that also works on a partial cone
-    if start is None:
-        local = points - base0
-        x, y, z = local @ e1, local @ e2, local @ axis0
-        design = np.column_stack([x, y, np.ones_like(x), z, z * z])
-        coef = np.linalg.lstsq(design, x * x + y * y, rcond=None)[0]
-        cx, cy = coef[0] / 2.0, coef[1] / 2.0
-        rho = np.sqrt(max(coef[2] + cx * cx + cy * cy, 1e-12))
-        half_angle = np.arctan(coef[3] / (2.0 * rho))
-        start = np.array([0.0, 0.0, cx, cy, rho, half_angle])
 
-    # parameters (u, v, s, t, rho, alpha): axis = normalise(axis0 + u e1 + v e2) has no singularity near axis0;
-    # the axis point base0 + s e1 + t e2 stays in the plane through base0 normal to axis0; rho is the radius there.
-    # Neither the apex nor 1/tan(alpha) appears, so a nearly cylindrical cone is as well posed as a steep one.
     def unpack(params):
         n = axis0 + params[0] * e1 + params[1] * e2
         return n / np.linalg.norm(n), base0 + params[2] * e1 + params[3] * e2, params[4], params[5], np.linalg.norm(n)
@@ -313,21 +276,107 @@ def _fit_cone_from(points, axis0, base0, start=None):
         axis, base, radius, alpha, _ = unpack(params)
         return _cone_distance(points, base, axis, radius, alpha)[0]
 
-    def jacobian(params):
+    def jacobian(params, with_residuals=False):
         axis, base, radius, alpha, norm = unpack(params)
-        _, w, h, r, q_hat = _cone_distance(points, base, axis, radius, alpha)
+        w = points - base
+        h = w @ axis
+        radial = w - h[:, None] * axis
+        r = np.sqrt(np.einsum("ij,ij->i", radial, radial))
         cos, sin = np.cos(alpha), np.sin(alpha)
-        # d(distance)/d(base) = -cos q_hat + sin axis  (dh/dbase = -axis, dr/dbase = -q_hat)
-        d_base = -cos * q_hat + sin * axis
-        # d(distance)/d(axis) = -cos h q_hat - sin w  (dh/daxis = w, dr/daxis = -h q_hat), then through the normalisation
-        d_axis = -cos * h[:, None] * q_hat - sin * w
         project = (np.eye(3) - np.outer(axis, axis)) / norm
-        return np.column_stack([d_axis @ (project @ e1), d_axis @ (project @ e2), d_base @ e1, d_base @ e2,
-                                np.full(len(points), -cos), -(r - radius) * sin - h * cos])
+        # the unit radial vector q_hat = radial / r, projected on the four directions the parameters move
+        directions = np.column_stack([project @ e1, project @ e2, e1, e2])
+        q_dir = (radial @ directions) / np.maximum(r, 1e-300)[:, None]
+        w_dir = w @ directions[:, :2]
+        jac = np.empty((len(points), 6))
+        # d(distance)/d(axis) = -cos h q_hat - sin w  (dh/daxis = w, dr/daxis = -h q_hat), through the normalisation
+        jac[:, 0] = -cos * h * q_dir[:, 0] - sin * w_dir[:, 0]
+        jac[:, 1] = -cos * h * q_dir[:, 1] - sin * w_dir[:, 1]
+        # d(distance)/d(base) = -cos q_hat + sin axis  (dh/dbase = -axis, dr/dbase = -q_hat)
+        jac[:, 2] = -cos * q_dir[:, 2] + sin * (axis @ e1)
+        jac[:, 3] = -cos * q_dir[:, 3] + sin * (axis @ e2)
+        jac[:, 4] = -cos
+        jac[:, 5] = -(r - radius) * sin - h * cos
+        if with_residuals:
+            return jac, (r - radius) * cos - h * sin
+        return jac
 
+    return unpack, residuals, jacobian
+
+
+def _algebraic_cone_start(points, axis0, base0):
+    """Start parameters for a start axis: in the frame (e1, e2, axis0) about base0 the cone is
+    x^2 + y^2 = 2 cx x + 2 cy y + (rho^2 - cx^2 - cy^2) + 2 rho k z + k^2 z^2  (k = tan half angle), linear in
+    (2cx, 2cy, rho^2 - |c|^2, 2 rho k, k^2): a Kasa-like fit that also works on a partial cone."""
+    e1, e2 = _perpendicular_basis(axis0)
+    local = points - base0
+    x, y, z = local @ e1, local @ e2, local @ axis0
+    design = np.column_stack([x, y, np.ones_like(x), z, z * z])
+    coef = np.linalg.lstsq(design, x * x + y * y, rcond=None)[0]
+    cx, cy = coef[0] / 2.0, coef[1] / 2.0
+    rho = np.sqrt(max(coef[2] + cx * cx + cy * cy, 1e-12))
+    return np.array([0.0, 0.0, cx, cy, rho, np.arctan(coef[3] / (2.0 * rho))])
+
+
+def _fit_cone_from(points, axis0, base0, start=None):
+    """One Levenberg-Marquardt fit from a start axis (and, optionally, start parameters); returns (scipy result,
+    unpack function)."""
+    if start is None:
+        start = _algebraic_cone_start(points, axis0, base0)
+    unpack, residuals, jacobian = _cone_model(points, axis0, base0)
     result = least_squares(residuals, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
                            max_nfev=2000)
     return result, unpack
+
+
+def _quadric_cone_axis(points) -> np.ndarray:
+    """Axis direction of a cone from a general quadric fitted algebraically (no start needed, no restarts).
+
+    A circular cone is the quadric (p - a)^T A (p - a) = 0 with A = I - (1 + k^2) u u^T (u its axis, k = tan half
+    angle): A has a double eigenvalue (the radial directions) and a single one whose eigenvector is the axis. The
+    quadric q(p) = p^T A p + b . p + c with |coefficients| = 1 minimising sum q(p_i)^2 is the right singular vector of
+    the design matrix with the least singular value (Pratt-like algebraic fit); the axis is the eigenvector of A whose
+    eigenvalue stands apart from the other two.
+    """
+    centre = points.mean(axis=0)
+    local = points - centre
+    local = local / np.sqrt((local ** 2).sum(axis=1).mean())
+    x, y, z = local.T
+    design = np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, x, y, z, np.ones_like(x)])
+    q = np.linalg.svd(design, full_matrices=False)[2][-1]
+    quadric = np.array([[q[0], q[3], q[4]], [q[3], q[1], q[5]], [q[4], q[5], q[2]]])
+    values, vectors = np.linalg.eigh(quadric)
+    # the double eigenvalue is the closer pair: the axis belongs to the remaining one
+    return vectors[:, 0] if values[2] - values[1] < values[1] - values[0] else vectors[:, 2]
+
+
+def _gauss_newton_polish(params, residuals, jacobian, max_iterations: int = 20):
+    """Gauss-Newton from a start near the least-squares minimum (quadratic convergence there); each step solves the
+    6 x 6 normal equations J^T J d = -J^T f (scaled by the diagonal). Stops when the decrease the step promises,
+    d^T J^T J d, is below 1e-13 of the sum of squares (the minimum to its rounding), or a step fails to lower it.
+    Returns (params, Jacobian at params, residuals at params)."""
+    del residuals  # every step evaluates residuals and Jacobian together: one pass over the points
+    jac, f = jacobian(params, with_residuals=True)
+    cost = float(f @ f)
+    for _ in range(max_iterations):
+        normal = jac.T @ jac
+        gradient = jac.T @ f
+        scale = np.sqrt(np.diag(normal))
+        scale[scale == 0] = 1.0
+        step = -np.linalg.solve(normal / np.outer(scale, scale), gradient / scale) / scale
+        promised = -float(gradient @ step)
+        if promised <= 1e-13 * cost:
+            break
+        trial = params + step
+        jac_new, f_new = jacobian(trial, with_residuals=True)
+        cost_new = float(f_new @ f_new)
+        if not cost_new < cost:
+            break  # at the minimum to rounding: the step is noise
+        params, jac, f, cost = trial, jac_new, f_new, cost_new
+    return params, jac, f
+
+
+CONE_SAMPLE = 20_000  # points of the coarse fit; the polish uses all of them
 
 
 def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None) -> ConeFit:
@@ -335,11 +384,17 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
 
     Method: geometric (orthogonal-distance) least squares as in Forbes, "Least-squares best-fit geometric elements",
     NPL DITC 140/89 (1989), and Shakarji, "Least-squares fitting algorithms of the NIST algorithm testing system",
-    J. Res. NIST 103 (1998): Levenberg-Marquardt with the exact Jacobian. The axis is parameterised as
-    normalise(a0 + u e1 + v e2) about the start axis a0 and the axis point moves in the plane normal to a0, so the
-    parameterisation has no singularity near the start; the cone's size is its radius on that plane, not its apex, so
-    a small half angle (far apex) is well posed. The start comes from an algebraic (linear) cone fit for the start
-    axis; with no start axis, the three principal directions of the points are tried and the best fit is kept.
+    J. Res. NIST 103 (1998), with the exact Jacobian. The axis is parameterised as normalise(a0 + u e1 + v e2) about
+    the start axis a0 and the axis point moves in the plane normal to a0, so the parameterisation has no singularity
+    near the start; the cone's size is its radius on that plane, not its apex, so a small half angle (far apex) is
+    well posed.
+
+    One start, no restarts: the start axis is ``initial_axis`` (the part's nominal axis), else the axis of a general
+    quadric fitted algebraically (:func:`_quadric_cone_axis`); an algebraic cone fit for that axis gives the other
+    parameters. Levenberg-Marquardt converges on an evenly strided sample of at most ``CONE_SAMPLE`` points; then
+    Gauss-Newton on all points, in the parameterisation centred on that solution (where the Jacobian is well
+    conditioned and the standard errors mean what they say), converges quadratically to the least-squares cone of
+    all points in a few passes over them.
 
     Parameters
     ----------
@@ -347,7 +402,8 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     initial_axis : (3,) float, optional start direction of the axis (either sign)
     initial_apex : (3,) float, mm, optional point on the start axis (default: the points' centroid)
     reference_plane : optional (point (3,), normal (3,)) pair: ``axis_point`` is where the fitted axis crosses this
-        plane (e.g. the part's base plane). Default: the foot of the points' centroid on the fitted axis.
+        plane (e.g. the part's base plane, or any stated reference plane), and ``radius_at_axis_point`` is the cone's
+        radius in the plane normal to the axis there. Default: the foot of the points' centroid on the fitted axis.
 
     Returns
     -------
@@ -358,34 +414,29 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     """
     points = _points(points, (3,), 6)
     centroid = points.mean(axis=0)
+    stride = max(1, -(-len(points) // CONE_SAMPLE))
+    sample = points[::stride]
     if initial_axis is None:
         if initial_apex is not None:
             raise ValueError("initial_apex needs initial_axis")
-        # principal directions: the axis is the least-spread one for a flat frustum, the most-spread for a tall cone
-        starts = list(np.linalg.svd(points - centroid, full_matrices=False)[2])
+        axis0 = _quadric_cone_axis(sample)
     else:
-        starts = [_unit(initial_axis, "initial_axis")]
+        axis0 = _unit(initial_axis, "initial_axis")
     base0 = centroid
-    best = None
-    for axis0 in starts:
-        if initial_apex is not None:
-            apex = np.asarray(initial_apex, dtype=np.float64).reshape(3)
-            base0 = apex + ((centroid - apex) @ axis0) * axis0  # the centroid's foot on the start axis
-        result, unpack = _fit_cone_from(points, axis0, base0)
-        if best is None or result.cost < best[0].cost:
-            best = (result, unpack)
-    result, unpack = best
+    if initial_apex is not None:
+        apex = np.asarray(initial_apex, dtype=np.float64).reshape(3)
+        base0 = apex + ((centroid - apex) @ axis0) * axis0  # the centroid's foot on the start axis
+    result, unpack = _fit_cone_from(sample, axis0, base0)
     axis, base, radius, alpha, _ = unpack(result.x)
-    # polish in the parameterisation centred on the solution: the start axis may be far from the fitted one (a
-    # principal direction), where the axis point's plane nearly contains the axis and the covariance is degenerate;
-    # about the solution the Jacobian is well conditioned and the standard errors mean what they say
-    shift = (centroid - base) @ axis  # move the axis point to the centroid's foot, the radius along the generator
+    # re-centre on the coarse solution: the axis point to the centroid's foot, the radius along the generator
+    shift = (centroid - base) @ axis
     base, radius = base + shift * axis, radius + shift * np.tan(alpha)
-    result, unpack = _fit_cone_from(points, axis, base, start=np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]))
-    axis, base, radius, alpha, _ = unpack(result.x)
+    unpack, residuals_of, jacobian_of = _cone_model(points, axis, base)
+    params, jac, residuals = _gauss_newton_polish(np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]), residuals_of,
+                                                  jacobian_of)
+    axis, base, radius, alpha, norm = unpack(params)
     if alpha < 0:  # radius grows along -axis: turn the axis round so that the half angle is positive
         axis, alpha = -axis, -alpha
-    residuals = _cone_distance(points, base, axis, radius, alpha)[0]
     apex = base - (radius / np.tan(alpha)) * axis if alpha != 0 else np.full(3, np.inf)
 
     if reference_plane is None:
@@ -403,11 +454,10 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     dof = max(n - 6, 1)
     sigma2 = float(residuals @ residuals) / dof
     try:
-        covariance = sigma2 * np.linalg.inv(result.jac.T @ result.jac)
+        covariance = sigma2 * np.linalg.inv(jac.T @ jac)
         std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     except np.linalg.LinAlgError:
         std = np.full(6, np.nan)
-    norm = unpack(result.x)[4]
     return ConeFit(apex=apex, axis=axis, half_angle_rad=float(alpha), axis_point=axis_point,
                    radius_at_axis_point=float(radius_at_point), residuals=residuals,
                    rms=float(np.sqrt(np.mean(residuals ** 2))), half_angle_std_rad=float(std[5]),
