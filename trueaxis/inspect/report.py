@@ -584,13 +584,13 @@ def _write_point_files(inspection: Inspection, folder: Path) -> None:
     """``deviations.ply`` (binary; the deviation as the scalar field ``deviation_um``, CloudCompare's convention
     ``scalar_deviation_um``) and ``deviations.csv`` (x_mm, y_mm, z_mm, deviation_um, surface) of the aligned points."""
     dev = inspection.deviation
-    ids = np.array(list(dev.surface_ids) + ["cad_mesh"])
-    surface = ids[np.where(dev.from_mesh | (dev.surface < 0), len(ids) - 1, dev.surface)]
+    names = list(dev.surface_ids) + ["cad_mesh"]
+    codes = np.where(dev.from_mesh | (dev.surface < 0), len(names) - 1, dev.surface)
     comments = [f"trueaxis inspect: {inspection.report['part']} part frame, mm; deviation um, + = material outside",
                 f"cloud {Path(str(inspection.cloud.source)).name}"]
     write_deviation_ply(folder / "deviations.ply", inspection.aligned, inspection.deviation_um, inspection.normals,
                         comments=[c.replace("\n", " ") for c in comments])
-    write_deviation_csv(folder / "deviations.csv", inspection.aligned, inspection.deviation_um, surface)
+    write_deviation_csv(folder / "deviations.csv", inspection.aligned, inspection.deviation_um, (names, codes))
 
 
 def write_report(inspection: Inspection, out_dir) -> Path:
