@@ -446,3 +446,72 @@ def test_cad_without_its_part_json_is_refused_asking_for_the_json(tmp_path):
     assert r.returncode == 2 and "no part JSON beside it (slots.json)" in r.stderr, r.stderr
     assert "trueaxis part slots -o DIR" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "rep").exists()
+
+
+# ------------------------------------------------------------------------------- the report in a real browser ----
+_IMAGE_PROBE = ("<script>window.addEventListener('load', function () { var imgs = Array.prototype.slice.call("
+                "document.images); document.body.setAttribute('data-images', imgs.length + ':' + imgs.filter("
+                "function (i) { return i.complete && i.naturalWidth > 0; }).length); });</script>")
+
+
+@pytest.mark.external
+def test_html_report_renders_in_headless_chromium_with_its_images_and_header(tmp_path):
+    from conftest import require_program
+    from PIL import Image
+
+    exe = require_program("chromium", "chromium", "the browser check of the HTML report")
+    p, n = deformed_cone((0.0, 0.004), 0.003, 30e-6, per_ring=120)
+    (tmp_path / "tol.toml").write_text("[default]\nroundness_um = 10.0\n")  # roundness 6 um: pass
+    result = inspect_cloud(_cloud(p, n), "nas979", tolerances=tmp_path / "tol.toml", program="cone.ngc",
+                           machine="nmv1500dcg.toml")
+    out = write_report(result, tmp_path / "rep")
+    page = out / "report.html"
+    # the page as it is, plus a probe that records on load how many images decoded (naturalWidth > 0)
+    probe = tmp_path / "probe.html"
+    probe.write_text(page.read_text(encoding="utf-8").replace("</body>", _IMAGE_PROBE + "</body>"), encoding="utf-8")
+    common = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--virtual-time-budget=5000"]
+    dom = subprocess.run(common + ["--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=120)
+    assert dom.returncode == 0, dom.stderr[-1000:]
+    images = [name for name in json.loads((out / "report.json").read_text())["files"] if name.endswith(".png")]
+    assert len(images) == 3  # deviation map, histogram, roundness
+    assert f'data-images="{len(images)}:{len(images)}"' in dom.stdout, dom.stdout[-300:]
+    # the header a metrologist signs: date, part, program, machine file, version, alignment
+    assert "id=\"report-header\"" in dom.stdout
+    for text in ("date (UTC)", "NAS 979 cone frustum", "cone.ngc", "nmv1500dcg.toml", "trueaxis version",
+                 "alignment", "Feature table", "Sign-off"):
+        assert text in dom.stdout, text
+    shot = tmp_path / "shot.png"
+    run_shot = subprocess.run(common + [f"--screenshot={shot}", "--window-size=1200,2400", page.as_uri()],
+                              capture_output=True, text=True, timeout=120)
+    assert run_shot.returncode == 0 and shot.is_file(), run_shot.stderr[-1000:]
+    pixels = np.asarray(Image.open(shot).convert("L"), dtype=float)
+    assert pixels.shape == (2400, 1200)
+    # rendered, not blank: dark text on white, and the green rows of the feature table
+    assert (pixels < 100).mean() > 0.002 and (pixels > 240).mean() > 0.5
+    colour = np.asarray(Image.open(shot).convert("RGB"), dtype=int)
+    assert np.any((colour[..., 1] > 230) & (colour[..., 0] < 225) & (colour[..., 2] < 225))  # a "pass" row
+
+
+def test_report_json_carries_the_header_and_the_plotted_figures(tmp_path):
+    p, n = deformed_cone((0.0, 0.0), 0.003, 0.0, per_ring=120)
+    result = inspect_cloud(_cloud(p, n), "nas979", program="cone.ngc")
+    # identification as run_identification reports it (DESIGN §7): value and std with their units
+    result.report["identification"] = {"parameters": [{"name": "XOC", "value_um": -21.853, "std_um": 0.114},
+                                                      {"name": "AOC", "value_urad": -38.84, "std_urad": 1.43}],
+                                       "not_identifiable": ["COC"], "residual_rms_um": 0.5}
+    out = write_report(result, tmp_path / "rep")
+    rep = json.loads((out / "report.json").read_text())
+    header = rep["header"]
+    assert header["part"] == "NAS 979 cone frustum" and header["program"] == "cone.ngc"
+    assert header["machine_file"] is None and header["trueaxis_version"] and header["date_utc"].endswith("UTC")
+    assert header["alignment"].startswith("none")
+    figures = rep["figures"]
+    assert sum(figures["histogram"]["counts"]) == len(p)
+    for ring, section in zip(figures["roundness"], rep["roundness_um"]):
+        # the plotted profile is the least-squares residual of the section: its peak-to-valley is the LS roundness
+        assert np.ptp(ring["residual_um"]) == pytest.approx(section["least_squares"], abs=2e-4)
+    assert figures["identified"]["names"] == ["XOC", "AOC"] and figures["identified"]["std"] == [0.114, 1.43]
+    page = (out / "report.html").read_text()
+    assert "<td>XOC</td><td>-21.85</td><td>0.11</td><td>um</td>" in page
+    assert "<td>AOC</td><td>-38.8</td><td>1.4</td><td>urad</td>" in page
+    assert "identified.png" in rep["files"] and "mean -0.0" not in page

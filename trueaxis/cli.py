@@ -245,7 +245,7 @@ def cmd_inspect(args) -> int:
         raise UsageError("--machine, --program and --write go with --identify")
     out_dir = Path(args.output) if args.output else Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
     result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align,
-                           tolerances=args.tolerances)
+                           tolerances=args.tolerances, program=args.program, machine=args.machine)
     if args.identify:
         from .inspect.identify import run_identification
 
