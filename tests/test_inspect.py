@@ -515,3 +515,17 @@ def test_report_json_carries_the_header_and_the_plotted_figures(tmp_path):
     assert "<td>XOC</td><td>-21.85</td><td>0.11</td><td>um</td>" in page
     assert "<td>AOC</td><td>-38.8</td><td>1.4</td><td>urad</td>" in page
     assert "identified.png" in rep["files"] and "mean -0.0" not in page
+
+
+def test_dense_roundness_profiles_are_drawn_as_bins_that_keep_every_peak():
+    from trueaxis.inspect.report import _profile_for_plot
+
+    rng = np.random.default_rng(6)
+    angle = rng.uniform(-np.pi, np.pi, 50_000)
+    residual = 3.0 * np.cos(3 * angle) + rng.normal(0, 0.5, angle.size)
+    centre, high, low = _profile_for_plot(angle, residual)
+    assert len(centre) <= 1440 and np.all(np.diff(centre) > 0)
+    assert high.max() == residual.max() and low.min() == residual.min() and np.all(high >= low)
+    bin_of = np.minimum(((angle + np.pi) / (2 * np.pi) * 1440).astype(int), 1439)
+    k = bin_of[np.argmax(residual)]
+    assert abs(centre[np.argmax(high)] - ((k + 0.5) * 2 * np.pi / 1440 - np.pi)) < 1e-12

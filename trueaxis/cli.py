@@ -398,17 +398,29 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv=None) -> int:
-    from .machine import MachineFileError
-    from .postproc.gcode import GcodeError
+def _located_errors() -> tuple:
+    """The error classes whose messages already say ``file:line: reason`` (machine files, G-code). Taken from the
+    modules only when a command has imported them: a command that never reads a machine file or a program (inspect
+    of a cloud) then does not pay the 2 s of importing the twin's interpolators, and an error of those classes can
+    only come from a module that is loaded."""
+    found = []
+    for module, name in (("trueaxis.machine.machine_file", "MachineFileError"),
+                         ("trueaxis.postproc.gcode", "GcodeError")):
+        if module in sys.modules:
+            found.append(getattr(sys.modules[module], name))
+    return tuple(found)
 
+
+def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (MachineFileError, GcodeError) as exc:
-        print(str(exc), file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except (UsageError, ValueError, FileNotFoundError) as exc:
+    except Exception as exc:  # noqa: BLE001 - sorted below; anything else is re-raised as it is
+        if isinstance(exc, _located_errors()):
+            print(str(exc), file=sys.stderr)
+            return EXIT_BAD_INPUT
+        if not isinstance(exc, (UsageError, ValueError, FileNotFoundError)):
+            raise
         print(f"trueaxis {args.command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 

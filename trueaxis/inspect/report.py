@@ -454,6 +454,20 @@ def _nice(value: float, up: bool = False) -> float:
     return (1 if mantissa < 1.5 else 2 if mantissa < 3.5 else 5 if mantissa < 7.5 else 10) * 10 ** exponent
 
 
+def _profile_for_plot(angle, residual, limit: int = 2000, bins: int = 1440):
+    """A roundness profile ready to draw: sorted by angle, all points when there are at most ``limit``; else, per
+    bin of 360/bins deg, the highest and the lowest residual (so no peak is lost). Returns (angle (m,) rad,
+    residual or highest (m,), lowest (m,) or None)."""
+    order = np.argsort(angle)
+    angle, residual = angle[order], residual[order]
+    if len(angle) <= limit:
+        return angle, residual, None
+    index = np.minimum(((angle + np.pi) / (2 * np.pi) * bins).astype(np.int64), bins - 1)
+    starts = np.flatnonzero(np.r_[True, index[1:] != index[:-1]])
+    centre = (index[starts] + 0.5) * (2 * np.pi / bins) - np.pi
+    return centre, np.maximum.reduceat(residual, starts), np.minimum.reduceat(residual, starts)
+
+
 def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]], dict]:
     """Write the PNGs into ``folder``; returns ([(file name, caption)], the plotted data for report.json)."""
     import matplotlib
@@ -465,7 +479,7 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
     report = inspection.report
     pts, d = fig_data["points"], fig_data["deviation_um"]
     rng = np.random.default_rng(0)
-    show = np.sort(rng.choice(len(pts), size=20_000, replace=False)) if len(pts) > 20_000 else slice(None)
+    show = np.sort(rng.choice(len(pts), size=15_000, replace=False)) if len(pts) > 15_000 else slice(None)
     limit = _nice(float(np.percentile(np.abs(d), 99)) or 1.0, up=True)
     written, data = [], {}
     colour_label = "deviation (um), + = material outside"
@@ -500,11 +514,11 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
     ax.set_title("Deviation from the nominal part (part frame)")
     fig.savefig(folder / "deviation_map.png", dpi=100, bbox_inches="tight")
     plt.close(fig)
-    written.append(("deviation_map.png", f"Deviation colour map on the part ({min(len(pts), 20_000):,} of "
+    written.append(("deviation_map.png", f"Deviation colour map on the part ({min(len(pts), 15_000):,} of "
                     f"{len(pts):,} points shown; colour scale +-{limit:g} um, the round number at or above the "
                     "99th percentile of |deviation|; all points with their deviations are in deviations.ply and deviations.csv)."))
     data["deviation_map"] = {"file": "deviation_map.png", "colour_limit_um": limit, "points_shown":
-                             int(min(len(pts), 20_000)), "data": "deviations.ply"}
+                             int(min(len(pts), 15_000)), "data": "deviations.ply"}
 
     counts, edges = np.histogram(d, bins=80)
     fig, ax = plt.subplots(figsize=(7.5, 4))
@@ -528,9 +542,12 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
         top = step * math.ceil(span / step)
         base = 2 * top  # the nominal circle: the profile is drawn at base + residual
         for ax, ring in zip(axes, rings):
-            order = np.argsort(ring["angle"])
-            angle, r = ring["angle"][order], ring["residual_um"][order]
-            ax.plot(np.r_[angle, angle[:1]], np.r_[r, r[:1]] + base, lw=1, color="C0")
+            angle, r, low = _profile_for_plot(ring["angle"], ring["residual_um"])
+            if low is None:
+                ax.plot(np.r_[angle, angle[:1]], np.r_[r, r[:1]] + base, lw=1, color="C0")
+            else:  # a dense profile: the band between each 0.25 deg bin's lowest and highest point
+                ax.fill_between(np.r_[angle, angle[:1]], np.r_[low, low[:1]] + base, np.r_[r, r[:1]] + base,
+                                color="C0", lw=0.6)
             ax.plot(np.linspace(0, 2 * np.pi, 361), np.full(361, base), "k--", lw=0.7)
             ax.set_ylim(0, base + top)
             ticks = np.arange(-top, top + step / 2, step)
@@ -538,11 +555,16 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
             ax.set_yticklabels([f"{t:+g} um" if t else "0" for t in ticks], fontsize=7)
             ax.set_rlabel_position(100)
             ax.tick_params(axis="x", labelsize=8)
-            ax.set_title(f"h = {ring['height_mm']:g} mm\nLS roundness {np.ptp(r):.2f} um", fontsize=10, pad=18)
-            keep = order[::max(1, len(order) // 720)]
-            data["roundness"].append({"height_mm": ring["height_mm"], "reference": "least-squares circle",
-                                      "angle_deg": np.round(np.degrees(ring["angle"][keep]), 3),
-                                      "residual_um": np.round(ring["residual_um"][keep], 4)})
+            ax.set_title(f"h = {ring['height_mm']:g} mm\nLS roundness {np.ptp(ring['residual_um']):.2f} um",
+                         fontsize=10, pad=18)
+            entry = {"height_mm": ring["height_mm"], "reference": "least-squares circle",
+                     "angle_deg": np.round(np.degrees(angle), 3)}
+            if low is None:
+                entry["residual_um"] = np.round(r, 4)
+            else:
+                entry.update(residual_max_um=np.round(r, 4), residual_min_um=np.round(low, 4),
+                             note="1440 bins of 0.25 deg: the highest and lowest residual in each")
+            data["roundness"].append(entry)
         fig.suptitle(f"Roundness profiles: radial deviation from the least-squares circle (dashed), radial scale in um "
                      f"(grid every {step:g} um)", fontsize=10)
         fig.tight_layout(rect=(0, 0, 1, 0.93), w_pad=3.0)
