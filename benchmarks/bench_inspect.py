@@ -75,7 +75,8 @@ def bench_fits(n: int) -> None:
         h, th = rng.uniform(0.0, 20.0, n), rng.uniform(0.0, 2 * np.pi, n)
         radius = r0 - h * np.tan(alpha)
         normal = np.column_stack([np.cos(alpha) * np.cos(th), np.cos(alpha) * np.sin(th), np.full(n, np.sin(alpha))])
-        local = np.column_stack([radius * np.cos(th), radius * np.sin(th), h]) + rng.normal(0, 1e-3, n)[:, None] * normal
+        noise = rng.normal(0, 1e-3, n)[:, None] * normal
+        local = np.column_stack([radius * np.cos(th), radius * np.sin(th), h]) + noise
         points = local @ rotation.T + [5.0, -3.0, 2.0]
         axis = rotation[:, 2]
         for label, start in (("nominal axis", axis), ("no start (quadric)", None)):
@@ -83,7 +84,8 @@ def bench_fits(n: int) -> None:
             tilt = np.linalg.norm(np.cross(fit.axis, axis)) * 1e6
             print(f"fit_cone, {n:,} points, half angle {half_deg:g} deg, {label}: {t:6.2f} s "
                   f"({'goal met' if t <= 2.0 else 'goal NOT met'}: <= 2 s); half-angle error "
-                  f"{(fit.half_angle_rad - alpha) * 1e6:+.3f} urad, axis tilt {tilt:.3f} urad, rms {fit.rms * 1e3:.3f} um")
+                  f"{(fit.half_angle_rad - alpha) * 1e6:+.3f} urad, axis tilt {tilt:.3f} urad, "
+                  f"rms {fit.rms * 1e3:.3f} um")
     th = rng.uniform(0.0, 2 * np.pi, n)
     radius = 40.0 + 0.003 * np.cos(3 * th) + 0.002 * np.sin(7 * th) + rng.normal(0, 5e-4, n)
     profile = np.column_stack([3.0 + radius * np.cos(th), -2.0 + radius * np.sin(th)])

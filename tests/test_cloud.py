@@ -247,7 +247,7 @@ def test_check_extent_names_the_part_the_axis_and_the_distance():
         check_extent(inside, box_max, box_min, tolerance_mm=0.5)
 
 
-# ------------------------------------------------------------------------- files as CMM software and other programs write them
+# ---------------------------------------------------------------- files as CMM software and other programs write them
 
 CMM_POINTS = np.array([[12.5, -3.25, 4.0], [-7.125, 0.5, 19.75], [0.0, 40.0, -2.5], [3.0625, 1.5, 0.001]])
 CMM_VECTORS = np.array([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0], [0.0, -1.0, 0.0], [0.28, 0.0, 0.96]])

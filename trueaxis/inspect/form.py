@@ -350,12 +350,12 @@ def _quadric_cone_axis(points) -> np.ndarray:
     return vectors[:, 0] if values[2] - values[1] < values[1] - values[0] else vectors[:, 2]
 
 
-def _gauss_newton_polish(params, residuals, jacobian, max_iterations: int = 20):
+def _gauss_newton_polish(params, jacobian, max_iterations: int = 20):
     """Gauss-Newton from a start near the least-squares minimum (quadratic convergence there); each step solves the
     6 x 6 normal equations J^T J d = -J^T f (scaled by the diagonal). Stops when the decrease the step promises,
     d^T J^T J d, is below 1e-13 of the sum of squares (the minimum to its rounding), or a step fails to lower it.
+    ``jacobian(params, with_residuals=True)`` gives both in one pass over the points.
     Returns (params, Jacobian at params, residuals at params)."""
-    del residuals  # every step evaluates residuals and Jacobian together: one pass over the points
     jac, f = jacobian(params, with_residuals=True)
     cost = float(f @ f)
     for _ in range(max_iterations):
@@ -431,9 +431,8 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     # re-centre on the coarse solution: the axis point to the centroid's foot, the radius along the generator
     shift = (centroid - base) @ axis
     base, radius = base + shift * axis, radius + shift * np.tan(alpha)
-    unpack, residuals_of, jacobian_of = _cone_model(points, axis, base)
-    params, jac, residuals = _gauss_newton_polish(np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]), residuals_of,
-                                                  jacobian_of)
+    unpack, _, jacobian_of = _cone_model(points, axis, base)
+    params, jac, residuals = _gauss_newton_polish(np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]), jacobian_of)
     axis, base, radius, alpha, norm = unpack(params)
     if alpha < 0:  # radius grows along -axis: turn the axis round so that the half angle is positive
         axis, alpha = -axis, -alpha
@@ -461,7 +460,8 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     return ConeFit(apex=apex, axis=axis, half_angle_rad=float(alpha), axis_point=axis_point,
                    radius_at_axis_point=float(radius_at_point), residuals=residuals,
                    rms=float(np.sqrt(np.mean(residuals ** 2))), half_angle_std_rad=float(std[5]),
-                   axis_std_rad=float(np.hypot(std[0], std[1]) / norm), axis_point_std_mm=float(np.hypot(std[2], std[3])))
+                   axis_std_rad=float(np.hypot(std[0], std[1]) / norm),
+                   axis_point_std_mm=float(np.hypot(std[2], std[3])))
 
 
 def section_ring(points, axis_point, axis_dir, height: float, tolerance: float, half_angle_rad: float | None = None,

@@ -315,8 +315,9 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     cloud : path of a cloud file (``read_cloud``), or a Cloud. part : "nas979" | "slots". part_dir : folder with
     <part>.json (and slots.stl). cad : a STEP or mesh file of the part, with its JSON beside it (``<stem>.json``): the
     mesh is the reference where the JSON has no analytic surface; without the JSON the features cannot be evaluated
-    and the inspection is refused, naming the JSON it needs. align : "none" | "bestfit" | "datum". tolerances : a tolerance
-    TOML file (``trueaxis.inspect.tolerances``; merged over the part JSON's own), or None for the JSON's alone.
+    and the inspection is refused, naming the JSON it needs. align : "none" | "bestfit" | "datum".
+    tolerances : a tolerance TOML file (``trueaxis.inspect.tolerances``; merged over the part JSON's own), or None for
+    the JSON's alone.
     program, machine : the NC program that cut the part and the machine file, named in the report's header (when
     known).
 
@@ -516,7 +517,8 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
     plt.close(fig)
     written.append(("deviation_map.png", f"Deviation colour map on the part ({min(len(pts), 15_000):,} of "
                     f"{len(pts):,} points shown; colour scale +-{limit:g} um, the round number at or above the "
-                    "99th percentile of |deviation|; all points with their deviations are in deviations.ply and deviations.csv)."))
+                    "99th percentile of |deviation|; all points with their deviations are in deviations.ply and "
+                    "deviations.csv)."))
     data["deviation_map"] = {"file": "deviation_map.png", "colour_limit_um": limit, "points_shown":
                              int(min(len(pts), 15_000)), "data": "deviations.ply"}
 

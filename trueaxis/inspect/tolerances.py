@@ -142,7 +142,8 @@ def _row(feature, key, label, unit, nominal, actual, deviation, tolerance, note=
     row = {"feature": feature, "characteristic": label, "key": key, "unit": unit, "nominal": nominal,
            "actual": actual, "deviation": deviation, "deviation_unit": deviation_unit,
            "tolerance": None if tolerance is None else (
-               {"lower": tolerance[0], "upper": tolerance[1]} if kind == "size" else {"lower": 0.0, "upper": tolerance}),
+               {"lower": tolerance[0], "upper": tolerance[1]} if kind == "size"
+               else {"lower": 0.0, "upper": tolerance}),
            "result": result}
     if note:
         row["note"] = note
@@ -176,7 +177,8 @@ def feature_table(report: dict, part: dict, tolerances: dict) -> list[dict]:
             elif kind == "diameter":
                 d = report.get("diameter")
                 rows.append(_row(fid, "diameter_um", f"{label['diameter_um']} at h = {feature['height']:g} mm", "mm",
-                                 feature.get("nominal_diameter"), None if d is None or cone is None else d["measured_mm"],
+                                 feature.get("nominal_diameter"),
+                                 None if d is None or cone is None else d["measured_mm"],
                                  None if d is None or cone is None else d["error_um"],
                                  _tolerance_for(tolerances, fid, "diameter_um")))
             elif kind == "roundness":
