@@ -447,11 +447,12 @@ def _alignment_words(motion: dv.RigidMotion) -> str:
 # -------------------------------------------------------------------------------------------------- the writing
 
 def _nice(value: float, up: bool = False) -> float:
-    """A round number (1, 2 or 5 times a power of ten) near value > 0 (or the next one at or above it), for scales."""
+    """A round number near value > 0 (1, 2 or 5 times a power of ten), or the next one at or above it (also 1.5, 3,
+    4, 6, 8 times a power of ten), for scales."""
     exponent = math.floor(math.log10(value))
     mantissa = value / 10 ** exponent
     if up:
-        return next(m for m in (1, 2, 5, 10) if m >= mantissa * (1 - 1e-12)) * 10 ** exponent
+        return next(m for m in (1, 1.5, 2, 3, 4, 5, 6, 8, 10) if m >= mantissa * (1 - 1e-12)) * 10 ** exponent
     return (1 if mantissa < 1.5 else 2 if mantissa < 3.5 else 5 if mantissa < 7.5 else 10) * 10 ** exponent
 
 
@@ -486,19 +487,19 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
     colour_label = "deviation (um), + = material outside"
 
     if report["part"] == "nas979":
-        fig = plt.figure(figsize=(8.5, 6.5))
-        ax = fig.add_subplot(projection="3d")
+        fig = plt.figure(figsize=(8.5, 6.0))
+        ax = fig.add_axes([0.0, 0.02, 0.8, 0.92], projection="3d")
         sc = ax.scatter(*pts[show].T, c=d[show], cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
         ax.set_xlabel("x (mm)", labelpad=8)
         ax.set_ylabel("y (mm)", labelpad=8)
         ax.set_zlabel("z (mm)", labelpad=4)
         ax.set_box_aspect(np.ptp(pts, axis=0) + 1e-9)
         # the colour bar stands clear of the 3D axes' z label: its own column, with a gap
-        cax = fig.add_axes([0.88, 0.2, 0.025, 0.6])
+        cax = fig.add_axes([0.86, 0.2, 0.025, 0.6])
         fig.colorbar(sc, cax=cax).set_label(colour_label)
-        fig.subplots_adjust(left=0.0, right=0.8)
     else:
-        fig, ax = plt.subplots(figsize=(10, 6.5))
+        fig, ax = plt.subplots(figsize=(10, 4.8))
+        fig.subplots_adjust(left=0.07, right=0.98, bottom=0.1, top=0.92)
         sc = ax.scatter(pts[show, 0], pts[show, 1], c=d[show], cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
         ax.set_aspect("equal")
         ax.set_xlabel("x (mm)")
@@ -513,7 +514,8 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
         ax.set_ylim(bottom=ax.get_ylim()[0] - 16)  # room for the slots' labels below their first segments
         fig.colorbar(sc, ax=ax, shrink=0.7, pad=0.03).set_label(colour_label)
     ax.set_title("Deviation from the nominal part (part frame)")
-    fig.savefig(folder / "deviation_map.png", dpi=100, bbox_inches="tight")
+    # fixed layouts, no tight bounding box: each figure is drawn once (a tight layout draws it twice)
+    fig.savefig(folder / "deviation_map.png", dpi=100)
     plt.close(fig)
     written.append(("deviation_map.png", f"Deviation colour map on the part ({min(len(pts), 15_000):,} of "
                     f"{len(pts):,} points shown; colour scale +-{limit:g} um, the round number at or above the "
@@ -528,7 +530,7 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
     ax.set_xlabel("deviation (um), + = material outside")
     ax.set_ylabel("points")
     ax.set_title("Histogram of deviations")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.11, right=0.97, bottom=0.14, top=0.9)
     fig.savefig(folder / "histogram.png", dpi=100)
     plt.close(fig)
     written.append(("histogram.png", "Histogram of the signed deviations (80 bins)."))
@@ -569,7 +571,7 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
             data["roundness"].append(entry)
         fig.suptitle(f"Roundness profiles: radial deviation from the least-squares circle (dashed), radial scale in um "
                      f"(grid every {step:g} um)", fontsize=10)
-        fig.tight_layout(rect=(0, 0, 1, 0.93), w_pad=3.0)
+        fig.subplots_adjust(left=0.04, right=0.96, bottom=0.06, top=0.76, wspace=0.45)
         fig.savefig(folder / "roundness.png", dpi=100)
         plt.close(fig)
         written.append(("roundness.png", "Roundness profiles of the sections about their least-squares circles "
