@@ -615,13 +615,18 @@ def _fixed_point_bytes(values: np.ndarray, decimals: int) -> np.ndarray:
     digits = max(1, len(str(int(whole.max(initial=0)))))
     out = np.zeros((len(values), 1 + digits + 1 + decimals), dtype=np.uint8)
     out[:, 0] = np.where(negative, ord("-"), 0)
-    for k in range(digits):
-        power = 10 ** (digits - 1 - k)
-        shown = (whole >= power) | (k == digits - 1)  # no leading zeros, but always the units digit
-        out[:, 1 + k] = np.where(shown, ord("0") + (whole // power) % 10, 0)
     out[:, 1 + digits] = ord(".")
-    for k in range(decimals):
-        out[:, 2 + digits + k] = ord("0") + (fraction // 10 ** (decimals - 1 - k)) % 10
+    # digits from the right, one divmod each: the fraction's, then the whole part's (no leading zeros, but always
+    # the units digit)
+    rest = fraction
+    for k in range(decimals - 1, -1, -1):
+        rest, digit = np.divmod(rest, 10)
+        out[:, 2 + digits + k] = ord("0") + digit
+    rest = whole
+    for k in range(digits - 1, -1, -1):
+        shown = (whole >= 10 ** (digits - 1 - k)) | (k == digits - 1)
+        rest, digit = np.divmod(rest, 10)
+        out[:, 1 + k] = np.where(shown, ord("0") + digit, 0)
     return out
 
 

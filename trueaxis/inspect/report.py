@@ -180,10 +180,13 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
         "points": int(len(pts)),
     }
     rings = []
+    heights = (pts - base_point) @ up  # once for all sections; section_ring takes the exact slab from a superset
     for feature in (f for f in part["features"] if f.get("type") == "roundness"):
         h = float(feature["height"])
-        planar, index = form.section_ring(pts, base_point, up, h, slab_mm, half_angle_rad=-fit.half_angle_rad,
+        near = np.flatnonzero(np.abs(heights - h) <= slab_mm * (1 + 1e-9) + 1e-9)
+        planar, index = form.section_ring(pts[near], base_point, up, h, slab_mm, half_angle_rad=-fit.half_angle_rad,
                                           return_index=True)
+        index = near[index]
         entry = {"id": feature.get("id"), "height_mm": h, "points": int(len(index)), "slab_half_width_mm": slab_mm}
         if len(index) < MIN_RING_POINTS:
             entry.update(least_squares=None, minimum_zone=None, diameter_ls_mm=None,
@@ -472,10 +475,8 @@ def _profile_for_plot(angle, residual, limit: int = 2000, bins: int = 1440):
 
 def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]], dict]:
     """Write the PNGs into ``folder``; returns ([(file name, caption)], the plotted data for report.json)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # matplotlib's object API, not pyplot: no global figure state, and 0.2 s less to import
+    from matplotlib.figure import Figure
 
     fig_data = inspection.figures
     report = inspection.report
@@ -487,7 +488,7 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
     colour_label = "deviation (um), + = material outside"
 
     if report["part"] == "nas979":
-        fig = plt.figure(figsize=(8.5, 6.0))
+        fig = Figure(figsize=(8.5, 6.0))
         ax = fig.add_axes([0.0, 0.02, 0.8, 0.92], projection="3d")
         sc = ax.scatter(*pts[show].T, c=d[show], cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
         ax.set_xlabel("x (mm)", labelpad=8)
@@ -498,7 +499,8 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
         cax = fig.add_axes([0.86, 0.2, 0.025, 0.6])
         fig.colorbar(sc, cax=cax).set_label(colour_label)
     else:
-        fig, ax = plt.subplots(figsize=(10, 4.8))
+        fig = Figure(figsize=(10, 4.8))
+        ax = fig.subplots()
         fig.subplots_adjust(left=0.07, right=0.98, bottom=0.1, top=0.92)
         sc = ax.scatter(pts[show, 0], pts[show, 1], c=d[show], cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
         ax.set_aspect("equal")
@@ -516,7 +518,6 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
     ax.set_title("Deviation from the nominal part (part frame)")
     # fixed layouts, no tight bounding box: each figure is drawn once (a tight layout draws it twice)
     fig.savefig(folder / "deviation_map.png", dpi=100)
-    plt.close(fig)
     written.append(("deviation_map.png", f"Deviation colour map on the part ({min(len(pts), 15_000):,} of "
                     f"{len(pts):,} points shown; colour scale +-{limit:g} um, the round number at or above the "
                     "99th percentile of |deviation|; all points with their deviations are in deviations.ply and "
@@ -525,20 +526,21 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
                              int(min(len(pts), 15_000)), "data": "deviations.ply"}
 
     counts, edges = np.histogram(d, bins=80)
-    fig, ax = plt.subplots(figsize=(7.5, 4))
+    fig = Figure(figsize=(7.5, 4))
+    ax = fig.subplots()
     ax.stairs(counts, edges, fill=True, color="steelblue")
     ax.set_xlabel("deviation (um), + = material outside")
     ax.set_ylabel("points")
     ax.set_title("Histogram of deviations")
     fig.subplots_adjust(left=0.11, right=0.97, bottom=0.14, top=0.9)
     fig.savefig(folder / "histogram.png", dpi=100)
-    plt.close(fig)
     written.append(("histogram.png", "Histogram of the signed deviations (80 bins)."))
     data["histogram"] = {"file": "histogram.png", "bin_edges_um": edges, "counts": counts}
 
     rings = fig_data.get("rings") or []
     if rings:
-        fig, axes = plt.subplots(1, len(rings), subplot_kw={"projection": "polar"}, figsize=(4.8 * len(rings), 5.4))
+        fig = Figure(figsize=(4.8 * len(rings), 5.4))
+        axes = fig.subplots(1, len(rings), subplot_kw={"projection": "polar"})
         axes = np.atleast_1d(axes)
         data["roundness"] = []
         span = max(max(float(np.abs(ring["residual_um"]).max()) for ring in rings), 1e-6)
@@ -573,7 +575,6 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
                      f"(grid every {step:g} um)", fontsize=10)
         fig.subplots_adjust(left=0.04, right=0.96, bottom=0.06, top=0.76, wspace=0.45)
         fig.savefig(folder / "roundness.png", dpi=100)
-        plt.close(fig)
         written.append(("roundness.png", "Roundness profiles of the sections about their least-squares circles "
                         "(dashed); the radial axis is the deviation in um, the same scale for every section."))
         data["roundness_file"] = "roundness.png"
@@ -585,16 +586,16 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
         values = [next((v for k, v in p.items() if k.startswith("value_")), None) for p in parameters]
         stds = [next((v for k, v in p.items() if k.startswith("std_")), None) for p in parameters]
         units = [next((k[6:] for k in p if k.startswith("value_")), "") for p in parameters]
-        fig, ax = plt.subplots(figsize=(max(5.0, 0.6 * len(names) + 2), 4))
+        fig = Figure(figsize=(max(5.0, 0.6 * len(names) + 2), 4))
+        ax = fig.subplots()
         x = np.arange(len(names))
         ax.bar(x, [v or 0.0 for v in values], yerr=[2 * (s or 0.0) for s in stds], capsize=3, color="C2")
         ax.set_xticks(x, [f"{n}\n({u})" for n, u in zip(names, units)], fontsize=8)
         ax.axhline(0, color="k", lw=0.6)
         ax.set_ylabel("identified value (um or urad)")
         ax.set_title("Identified parameters, error bars +-2 std")
-        fig.tight_layout()
+        fig.subplots_adjust(left=0.12, right=0.97, bottom=0.2, top=0.9)
         fig.savefig(folder / "identified.png", dpi=100)
-        plt.close(fig)
         written.append(("identified.png", "Identified twin parameters with +-2 standard deviations."))
         data["identified"] = {"file": "identified.png", "names": names, "values": values, "std": stds,
                               "units": units}
