@@ -350,14 +350,19 @@ def _quadric_cone_axis(points) -> np.ndarray:
     return vectors[:, 0] if values[2] - values[1] < values[1] - values[0] else vectors[:, 2]
 
 
-def _gauss_newton_polish(params, jacobian, max_iterations: int = 20):
-    """Gauss-Newton from a start near the least-squares minimum (quadratic convergence there); each step solves the
-    6 x 6 normal equations J^T J d = -J^T f (scaled by the diagonal). Stops when the decrease the step promises,
-    d^T J^T J d, is below 1e-13 of the sum of squares (the minimum to its rounding), or a step fails to lower it.
-    ``jacobian(params, with_residuals=True)`` gives both in one pass over the points.
-    Returns (params, Jacobian at params, residuals at params)."""
+def _gauss_newton_polish(params, jacobian, residuals, max_iterations: int = 20):
+    """Gauss-Newton from a start near the least-squares minimum; each step solves the 6 x 6 normal equations
+    J^T J d = -J^T f (scaled by the diagonal). The decrease a step promises, Delta = d^T J^T J d, measures it in
+    standard errors: k^2 = Delta (n - 6) / sum f^2. Near a minimum with non-zero residuals Gauss-Newton converges
+    linearly, each step smaller than the one before by a rate r (measured from the two); when r k < 1e-4 (what is
+    left after this step, in standard errors) the step is the last one, checked with the residuals alone, the
+    Jacobian kept from before it (it changes by that step: negligibly for the standard errors). Stops too when a step promises less than the
+    rounding of the sum of squares, or fails to lower it. ``jacobian(params, with_residuals=True)`` gives both in
+    one pass over the points. Returns (params, Jacobian, residuals at params)."""
     jac, f = jacobian(params, with_residuals=True)
     cost = float(f @ f)
+    n = max(len(f) - len(params), 1)
+    previous = None
     for _ in range(max_iterations):
         normal = jac.T @ jac
         gradient = jac.T @ f
@@ -368,6 +373,16 @@ def _gauss_newton_polish(params, jacobian, max_iterations: int = 20):
         if promised <= 1e-13 * cost:
             break
         trial = params + step
+        # the step in standard errors, and what is left after it: Gauss-Newton converges linearly near a
+        # non-zero-residual minimum, at a rate measured by the ratio of successive steps
+        size = np.sqrt(promised * n / cost)
+        rate = 1.0 if previous is None else min(1.0, np.sqrt(promised / previous))
+        previous = promised
+        if size * rate <= 1e-4:
+            f_new = residuals(trial)
+            if float(f_new @ f_new) < cost:
+                params, f = trial, f_new
+            break
         jac_new, f_new = jacobian(trial, with_residuals=True)
         cost_new = float(f_new @ f_new)
         if not cost_new < cost:
@@ -431,8 +446,9 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     # re-centre on the coarse solution: the axis point to the centroid's foot, the radius along the generator
     shift = (centroid - base) @ axis
     base, radius = base + shift * axis, radius + shift * np.tan(alpha)
-    unpack, _, jacobian_of = _cone_model(points, axis, base)
-    params, jac, residuals = _gauss_newton_polish(np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]), jacobian_of)
+    unpack, residuals_of, jacobian_of = _cone_model(points, axis, base)
+    params, jac, residuals = _gauss_newton_polish(np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]), jacobian_of,
+                                                  residuals_of)
     axis, base, radius, alpha, norm = unpack(params)
     if alpha < 0:  # radius grows along -axis: turn the axis round so that the half angle is positive
         axis, alpha = -axis, -alpha
