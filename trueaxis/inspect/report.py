@@ -48,6 +48,7 @@ import math
 import os
 import shutil
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -838,9 +839,12 @@ def write_report(inspection: Inspection, out_dir) -> Path:
     temp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
     try:
         report = _clean(inspection.report)
-        images, figure_data = _figures(inspection, temp)
+        # the point files (numpy formatting, which releases the GIL) are written while matplotlib draws
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            points_written = pool.submit(_write_point_files, inspection, temp)
+            images, figure_data = _figures(inspection, temp)
+            points_written.result()  # re-raises its error, if any
         report["figures"] = _clean(figure_data)
-        _write_point_files(inspection, temp)
         report["files"] = ["report.json", "report.html", "deviations.ply", "deviations.csv"] + \
             [name for name, _ in images]
         (temp / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
