@@ -392,6 +392,11 @@ def test_deviation_ply_is_a_scalar_field_for_plyfile_and_cloudcompare(tmp_path):
     # CloudCompare keeps coordinates and scalar fields as float32
     np.testing.assert_allclose(table[:, header.index("deviation_um")], deviation_um, rtol=2e-7, atol=1e-5)
     np.testing.assert_allclose(table[:, :3], points, rtol=0, atol=1e-5)
+    # and CloudCompare's ASCII export, header and all, reads back as a cloud with its normals
+    back = read_cloud(tmp_path / "cc.asc")
+    np.testing.assert_allclose(back.points, points, rtol=0, atol=1e-5)
+    cosine = np.sum(back.normals * normals / np.linalg.norm(normals, axis=1)[:, None], axis=1)
+    assert np.degrees(np.arccos(np.clip(cosine, -1, 1))).max() < 0.5
 
 
 def test_a_ply_written_by_cloudcompare_with_scalar_fields_is_read(tmp_path):

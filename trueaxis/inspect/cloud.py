@@ -74,7 +74,8 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
         CMM export ``Name;X;Y;Z;I;J;K`` reads as it is. Without a header the numeric columns of the first row are
         taken in order (3: x y z, 6: x y z nx ny nz) and text columns (a point name) are skipped. Lines starting with
         ``#`` or ``//`` are comments.
-        ``.xyz`` / ``.asc``: whitespace-separated ``x y z`` or ``x y z nx ny nz``.
+        ``.xyz`` / ``.asc``: whitespace-separated ``x y z`` or ``x y z nx ny nz``; a first line ``//X Y Z ...``
+        (CloudCompare's ASCII export) is a header naming the columns, read as for CSV.
         ``.e57`` (ASTM E2807, through libE57Format's Python binding pye57): every scan, its pose applied; E57
         stores metres, read into mm; cartesian or spherical; invalid points (the invalid-state field) dropped.
         DMIS output (``.dmo``, ``.dmi``, ``.dms``, ``.dmis``; ANSI/DMIS 105.2): the measured (actual) point
@@ -401,6 +402,12 @@ def _read_csv(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def _read_xyz(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+    head = data.lstrip()[:2]
+    if head == b"//":
+        # CloudCompare's ASCII export names its columns in a '//' first line (//X Y Z deviation_um Nx Ny Nz):
+        # read it as a header, so the scalar fields are skipped and the normals found wherever they stand
+        first, _, rest = data.lstrip().partition(b"\n")
+        return _read_csv(first[2:] + b"\n" + rest, name)
     lines = _text_lines(data, name)
     if not lines:
         raise CloudError(f"{name}: the cloud has no points")
