@@ -576,3 +576,55 @@ def test_minimum_zone_circle_on_extreme_points_is_the_minimum_over_all_points():
     best = nelder_mead_minimum_zone(points, [zone.center, fit_circle_least_squares(points).center])
     assert zone.width <= best.fun + 1e-9  # 1e-3 um
     assert zone.width < np.ptp(fit_circle_least_squares(points).residuals)
+
+
+def test_least_squares_sphere_cylinder_and_circle_in_space_agree_with_a_second_formulation():
+    # asymmetric clouds (no exact answer known): the same objectives written independently (centre / axis in
+    # spherical angles, finite-difference Jacobians, trust region) must reach the same minimum
+    from trueaxis.inspect.form import fit_circle_3d, fit_cylinder, fit_sphere
+
+    sphere_points, _ = sphere_case(symmetric=False)
+    fit = fit_sphere(sphere_points)
+    second = least_squares(lambda x: np.linalg.norm(sphere_points - x[:3], axis=1) - x[3],
+                           np.r_[C3 + [0.3, -0.2, 0.1], 24.0], method="trf", jac="3-point", xtol=1e-15, ftol=1e-15,
+                           gtol=1e-15)
+    assert np.abs(second.x[:3] - fit.center).max() < UM and abs(second.x[3] - fit.radius) < UM
+
+    def axis_of(polar, azimuth):
+        return np.array([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)])
+
+    cylinder_points, _ = cylinder_case(symmetric=False)
+    fit = fit_cylinder(cylinder_points)
+
+    def cylinder_residuals(x):
+        axis = axis_of(x[3], x[4])
+        w = cylinder_points - x[:3]
+        return np.linalg.norm(w - np.outer(w @ axis, axis), axis=1) - x[5]
+
+    start_axis = Rotation.from_rotvec([0.02, -0.01, 0.0]).apply(ROT[:, 2])
+    x0 = np.r_[C3 + [0.2, 0.1, 0.0], np.arccos(start_axis[2]), np.arctan2(start_axis[1], start_axis[0]), 14.9]
+    second = least_squares(cylinder_residuals, x0, method="trf", jac="3-point", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    axis2 = axis_of(second.x[3], second.x[4])
+    assert _angle(axis2, fit.axis) < URAD and abs(second.x[5] - fit.radius) < UM
+    w = second.x[:3] - fit.axis_point
+    assert np.linalg.norm(w - (w @ fit.axis) * fit.axis) < UM
+    assert abs(float(fit.residuals @ fit.residuals) - 2 * second.cost) < 1e-12 * float(fit.residuals @ fit.residuals)
+
+    rng = np.random.default_rng(21)
+    theta = np.sort(rng.uniform(0, 2 * np.pi, 40))
+    local = np.column_stack([(20 + rng.uniform(-D, D, 40)) * np.cos(theta), (20 + rng.uniform(-D, D, 40))
+                             * np.sin(theta), rng.uniform(-D, D, 40) + 0.002 * np.cos(theta)])
+    circle_points = C3 + local @ ROT.T
+    fit = fit_circle_3d(circle_points)
+
+    def circle_residuals(x):
+        normal = axis_of(x[3], x[4])
+        w = circle_points - x[:3]
+        z = w @ normal
+        return np.r_[z, np.linalg.norm(w - np.outer(z, normal), axis=1) - x[5]]
+
+    start_normal = Rotation.from_rotvec([0.01, 0.02, 0.0]).apply(ROT[:, 2])
+    x0 = np.r_[C3 + [0.1, -0.1, 0.05], np.arccos(start_normal[2]), np.arctan2(start_normal[1], start_normal[0]), 19.9]
+    second = least_squares(circle_residuals, x0, method="trf", jac="3-point", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    assert _angle(axis_of(second.x[3], second.x[4]), fit.normal) < URAD
+    assert np.abs(second.x[:3] - fit.center).max() < UM and abs(second.x[5] - fit.radius) < UM
