@@ -515,6 +515,24 @@ def test_report_json_carries_the_header_and_the_plotted_figures(tmp_path):
     assert "<td>XOC</td><td>-21.85</td><td>0.11</td><td>um</td>" in page
     assert "<td>AOC</td><td>-38.8</td><td>1.4</td><td>urad</td>" in page
     assert "identified.png" in rep["files"] and "mean -0.0" not in page
+    assert "components" not in figures  # no component-error tables identified
+
+
+def test_identified_component_errors_are_plotted_against_position(tmp_path):
+    p, n = deformed_cone(per_ring=60)
+    result = inspect_cloud(_cloud(p, n), "nas979")
+    table = [("EXX@100", 2.0, 0.3), ("EXX@-100", -2.1, 0.3), ("EXX@0", 0.1, 0.2), ("EAC@90", 4.0, 1.0),
+             ("EAC@0", 1.0, 1.0), ("XOC", 5.0, 0.1)]
+    result.report["identification"] = {"parameters": [
+        {"name": name, f"value_{'urad' if name[1] in 'ABC' else 'um'}": v,
+         f"std_{'urad' if name[1] in 'ABC' else 'um'}": sd} for name, v, sd in table]}
+    out = write_report(result, tmp_path / "rep")
+    rep = json.loads((out / "report.json").read_text())
+    components = rep["figures"]["components"]
+    assert components["EXX"] == {"position": [-100.0, 0.0, 100.0], "value": [-2.1, 0.1, 2.0],
+                                 "std": [0.3, 0.2, 0.3], "unit": "um"}
+    assert components["EAC"]["position"] == [0.0, 90.0] and components["EAC"]["unit"] == "urad"
+    assert "components.png" in rep["files"] and (out / "components.png").stat().st_size > 1000
 
 
 def test_dense_roundness_profiles_are_drawn_as_bins_that_keep_every_peak():

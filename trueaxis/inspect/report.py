@@ -46,6 +46,7 @@ import html
 import json
 import math
 import os
+import re
 import shutil
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
@@ -600,7 +601,45 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
         written.append(("identified.png", "Identified twin parameters with +-2 standard deviations."))
         data["identified"] = {"file": "identified.png", "names": names, "values": values, "std": stds,
                               "units": units}
+        components = _component_tables(names, values, stds, units)
+        if components:
+            fig = Figure(figsize=(5.0 * min(len(components), 3), 3.6 * math.ceil(len(components) / 3)))
+            axes = np.atleast_1d(fig.subplots(math.ceil(len(components) / 3), min(len(components), 3))).ravel()
+            for ax, (component, table) in zip(axes, components.items()):
+                ax.errorbar(table["position"], table["value"], yerr=2 * np.asarray(table["std"]), marker="o",
+                            capsize=3, color="C3")
+                ax.axhline(0, color="k", lw=0.6)
+                ax.set_title(component, fontsize=10)
+                ax.set_xlabel(f"{component[-1]} position ({'deg' if component[-1] in 'ABC' else 'mm'})")
+                ax.set_ylabel(f"error ({table['unit']})")
+            for ax in axes[len(components):]:
+                ax.set_visible(False)
+            fig.subplots_adjust(left=0.08, right=0.97, bottom=0.15, top=0.8, wspace=0.35, hspace=0.6)
+            fig.suptitle("Identified component errors against the axis position, error bars +-2 std", fontsize=10)
+            fig.savefig(folder / "components.png", dpi=100)
+            written.append(("components.png", "Identified component errors (tables of values at axis positions) "
+                            "against the position of their axis, with +-2 standard deviations."))
+            data["components"] = {"file": "components.png", **components}
     return written, data
+
+
+def _component_tables(names, values, stds, units) -> dict:
+    """Identified component-error table values (``EXX@-100``: EXX at X = -100) grouped per component, sorted by
+    position: {component: {"position", "value", "std", "unit"}}."""
+    tables: dict = {}
+    for name, value, std, unit in zip(names, values, stds, units):
+        match = re.fullmatch(r"(E[XYZABC][XYZABC])@(-?[0-9.eE+-]+)", str(name))
+        if match is None or value is None:
+            continue
+        table = tables.setdefault(match.group(1), {"position": [], "value": [], "std": [], "unit": unit})
+        table["position"].append(float(match.group(2)))
+        table["value"].append(float(value))
+        table["std"].append(float(std or 0.0))
+    for table in tables.values():
+        order = np.argsort(table["position"])
+        for key in ("position", "value", "std"):
+            table[key] = [table[key][i] for i in order]
+    return tables
 
 
 # ------------------------------------------------------------------------------------------------------- the page
