@@ -11,7 +11,7 @@ STAMP  := $(VENV)/.trueaxis-installed
 
 # Debian packages: open3d's run-time libraries, and the outside programs the tests drive for real.
 DEBS_RUNTIME := libusb-1.0-0 libgl1 libegl1
-DEBS_TEST    := freecad linuxcnc-uspace cloudcompare
+DEBS_TEST    := freecad linuxcnc-uspace cloudcompare chromium
 
 .PHONY: demo test test-fast bench debs-runtime debs-test venv clean
 

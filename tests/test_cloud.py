@@ -245,3 +245,195 @@ def test_check_extent_names_the_part_the_axis_and_the_distance():
     assert "nas979" in message and "153.6 mm in X" in message and "12.0 mm in Z" in message and "in mm?" in message
     with pytest.raises(ValueError):
         check_extent(inside, box_max, box_min, tolerance_mm=0.5)
+
+
+# ---------------------------------------------------------------- files as CMM software and other programs write them
+
+CMM_POINTS = np.array([[12.5, -3.25, 4.0], [-7.125, 0.5, 19.75], [0.0, 40.0, -2.5], [3.0625, 1.5, 0.001]])
+CMM_VECTORS = np.array([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0], [0.0, -1.0, 0.0], [0.28, 0.0, 0.96]])
+
+
+def _decimal_comma(value):
+    return f"{value:.4f}".replace(".", ",")
+
+
+def test_cmm_point_exports_with_names_delimiters_and_decimal_commas(tmp_path):
+    # the shapes CMM software writes (Calypso / PC-DMIS / PolyWorks point exports): a name column, upper-case
+    # header X Y Z I J K, ';' with decimal commas (European locale), tabs, units in the header, no header at all
+    names = [f"Pt{k + 1}" for k in range(len(CMM_POINTS))]
+    rows = [(n, *p, *v) for n, p, v in zip(names, CMM_POINTS, CMM_VECTORS)]
+    files = {
+        "semicolon.csv": "Name;X;Y;Z;I;J;K\n" + "".join(
+            f"{r[0]};" + ";".join(_decimal_comma(v) for v in r[1:]) + "\n" for r in rows),
+        "comma_named.csv": "Name,X,Y,Z,I,J,K\n" + "".join(",".join([r[0]] + [f"{v:.4f}" for v in r[1:]]) + "\n"
+                                                           for r in rows),
+        "quoted.csv": '"Name","X [mm]","Y [mm]","Z [mm]","I","J","K"\r\n' + "".join(
+            ",".join([f'"{r[0]}"'] + [f"{v:.4f}" for v in r[1:]]) + "\r\n" for r in rows),
+        "tab.txt": "x\ty\tz\tnx\tny\tnz\n" + "".join("\t".join(f"{v:.4f}" for v in r[1:]) + "\n" for r in rows),
+        "tab_comma.csv": "".join("\t".join(_decimal_comma(v) for v in r[1:]) + "\n" for r in rows),
+        "name_no_header.csv": "".join(f"{r[0]} " + " ".join(f"{v:.4f}" for v in r[1:]) + "\n" for r in rows),
+        "semicolon_no_vectors.csv": "name;x;y;z;dev\n" + "".join(
+            f"{r[0]};" + ";".join(_decimal_comma(v) for v in r[1:4]) + ";0,001\n" for r in rows),
+    }
+    for file, text in files.items():
+        (tmp_path / file).write_bytes(text.encode("ascii"))
+        back = read_cloud(tmp_path / file)
+        np.testing.assert_allclose(back.points, CMM_POINTS, rtol=0, atol=5e-5, err_msg=file)
+        if "no_vectors" in file:
+            assert back.normals is None
+        else:
+            np.testing.assert_allclose(back.normals, CMM_VECTORS, rtol=0, atol=1e-4, err_msg=file)
+
+
+def test_csv_exports_that_cannot_be_read_unambiguously_are_refused(tmp_path):
+    (tmp_path / "two.csv").write_text("Name;X;Y\nP1;1,0;2,0\n")
+    refused(tmp_path / "two.csv", "no column z")
+    (tmp_path / "ij.csv").write_text("x,y,z,i,j\n1,2,3,0,0\n")
+    refused(tmp_path / "ij.csv", "not all of nx ny nz")
+    (tmp_path / "ragged.csv").write_text("P1;1,0;2,0;3,0\nP2;1,0;2,0;3,0;4,0\n")
+    refused(tmp_path / "ragged.csv", "row 2")
+    (tmp_path / "four.csv").write_text("1,2,3,4\n")
+    refused(tmp_path / "four.csv", "4 numeric columns")
+
+
+def test_e57_written_by_libe57format_reads_in_mm_with_its_pose(tmp_path):
+    pye57 = pytest.importorskip("pye57")
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    local_m = rng.uniform(-0.05, 0.05, (500, 3))  # E57 stores metres
+    quaternion_wxyz = np.array([np.cos(0.15), 0.0, 0.0, np.sin(0.15)])  # 0.3 rad about z
+    translation_m = np.array([0.01, -0.02, 0.005])
+    e57 = pye57.E57(str(tmp_path / "scan.e57"), mode="w")
+    e57.write_scan_raw({"cartesianX": local_m[:, 0], "cartesianY": local_m[:, 1], "cartesianZ": local_m[:, 2]},
+                       rotation=quaternion_wxyz, translation=translation_m)
+    e57.write_scan_raw({"cartesianX": local_m[:7, 0], "cartesianY": local_m[:7, 1], "cartesianZ": local_m[:7, 2]})
+    e57.close()
+    back = read_cloud(tmp_path / "scan.e57")
+    rotation = Rotation.from_quat(np.r_[quaternion_wxyz[1:], quaternion_wxyz[0]]).as_matrix()
+    expected = np.vstack([local_m @ rotation.T + translation_m, local_m[:7]]) * 1000.0
+    # pye57 writes the coordinates as float32 metres: 2^-24 of 0.1 m is 6 nm
+    np.testing.assert_allclose(back.points, expected, rtol=0, atol=1e-5)
+    assert back.normals is None
+    (tmp_path / "junk.e57").write_bytes(b"ASTM-E57" + bytes(100))
+    refused(tmp_path / "junk.e57", "E57")
+
+
+DMIS_OUTPUT = """\
+$$ DMIS output of a point measurement, written by hand following ANSI/DMIS 105.2 (part 1, 5.2)
+DMISMD/'CONE_CHECK',CURRENT
+UNITS/{unit},ANGDEC
+F(PT1)=FEAT/POINT,CART,12.5,-3.25,4,0,0,1
+MEAS/POINT,F(PT1),1
+PTMEAS/CART,12.5,-3.25,4,0,0,1
+ENDMES
+FA(PT1)=FEAT/POINT,CART,{p[0][0]},{p[0][1]},{p[0][2]},0.000000,0.000000,1.000000
+FA(PT2)=FEAT/POINT,CART,{p[1][0]},{p[1][1]},$
+    {p[1][2]},0.600000,0.800000,0.000000
+$$ a circle's actual is a feature, not a point: skipped
+FA(CIR1)=FEAT/CIRCLE,INNER,CART,0,0,0,0,0,1,20.001
+FA(PT_3)=FEAT/POINT,CART,{p[2][0]},{p[2][1]},{p[2][2]},0.000000,-1.000000,0.000000
+FA(P4) = FEAT/POINT, CART, {p[3][0]}, {p[3][1]}, {p[3][2]}, 0.280000, 0.000000, 0.960000
+ENDFIL
+"""
+
+
+@pytest.mark.parametrize("unit, scale", [("MM", 1.0), ("INCH", 25.4)])
+def test_dmis_output_measured_points_are_read_in_mm_and_nominals_are_not(tmp_path, unit, scale):
+    values = [[f"{v / scale:.9f}" for v in p] for p in CMM_POINTS]
+    (tmp_path / "run.dmo").write_text(DMIS_OUTPUT.format(unit=unit, p=values))
+    back = read_cloud(tmp_path / "run.dmo")
+    # four actual points (PT1 once: its nominal F(PT1) and PTMEAS target are not measurements)
+    np.testing.assert_allclose(back.points, CMM_POINTS, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(back.normals, CMM_VECTORS, rtol=0, atol=1e-12)
+
+
+def test_dmis_program_without_actuals_is_refused(tmp_path):
+    program = "DMISMD/'P',CURRENT\nUNITS/MM,ANGDEC\nF(PT1)=FEAT/POINT,CART,1,2,3,0,0,1\nMEAS/POINT,F(PT1),1\n" \
+              "PTMEAS/CART,1,2,3,0,0,1\nENDMES\nFA(C1)=FEAT/CIRCLE,INNER,CART,0,0,0,0,0,1,20\nENDFIL\n"
+    (tmp_path / "prog.dmi").write_text(program)
+    message = refused(tmp_path / "prog.dmi", "no measured DMIS point")
+    assert "1 CIRCLE" in message
+    (tmp_path / "pol.dmo").write_text("FA(P1)=FEAT/POINT,POL,10,45,3,0,0,1\n")
+    refused(tmp_path / "pol.dmo", "only CART")
+    (tmp_path / "feet.dmo").write_text("UNITS/FURLONG,ANGDEC\nFA(P1)=FEAT/POINT,CART,1,2,3\n")
+    refused(tmp_path / "feet.dmo", "FURLONG")
+
+
+# ------------------------------------------------------------------------------------------- deviation outputs
+
+def test_deviation_ply_is_a_scalar_field_for_plyfile_and_cloudcompare(tmp_path):
+    import os
+    import subprocess
+
+    from cloudcompare_helpers import require_cloudcompare
+    from plyfile import PlyData
+    from trueaxis.inspect.cloud import write_deviation_ply
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-40, 40, (300, 3))
+    deviation_um = rng.uniform(-30, 30, 300)
+    normals = rng.normal(size=(300, 3))
+    write_deviation_ply(tmp_path / "dev.ply", points, deviation_um, normals, comments=["part nas979"])
+    vertex = PlyData.read(str(tmp_path / "dev.ply"))["vertex"]
+    np.testing.assert_array_equal(vertex["scalar_deviation_um"], deviation_um)
+    np.testing.assert_array_equal(np.column_stack([vertex["x"], vertex["y"], vertex["z"]]), points)
+    np.testing.assert_array_equal(read_cloud(tmp_path / "dev.ply").points, points)  # ours ignores the field
+
+    exe = require_cloudcompare()
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+    run = subprocess.run([exe, "-SILENT", "-AUTO_SAVE", "OFF", "-O", str(tmp_path / "dev.ply"), "-C_EXPORT_FMT",
+                          "ASC", "-ADD_HEADER", "-SAVE_CLOUDS", "FILE", str(tmp_path / "cc.asc")],
+                         capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path)
+    assert run.returncode == 0, run.stdout[-1000:] + run.stderr[-1000:]
+    header = (tmp_path / "cc.asc").read_text().splitlines()[0].lstrip("/").split()
+    assert "deviation_um" in header, header  # CloudCompare loaded our property as its scalar field
+    table = np.loadtxt(tmp_path / "cc.asc", comments="//")
+    # CloudCompare keeps coordinates and scalar fields as float32
+    np.testing.assert_allclose(table[:, header.index("deviation_um")], deviation_um, rtol=2e-7, atol=1e-5)
+    np.testing.assert_allclose(table[:, :3], points, rtol=0, atol=1e-5)
+    # and CloudCompare's ASCII export, header and all, reads back as a cloud with its normals
+    back = read_cloud(tmp_path / "cc.asc")
+    np.testing.assert_allclose(back.points, points, rtol=0, atol=1e-5)
+    cosine = np.sum(back.normals * normals / np.linalg.norm(normals, axis=1)[:, None], axis=1)
+    assert np.degrees(np.arccos(np.clip(cosine, -1, 1))).max() < 0.5
+
+
+def test_a_ply_written_by_cloudcompare_with_scalar_fields_is_read(tmp_path):
+    import os
+    import subprocess
+
+    from cloudcompare_helpers import require_cloudcompare
+
+    exe = require_cloudcompare()
+    rng = np.random.default_rng(8)
+    points = rng.uniform(-40, 40, (200, 3))
+    normals = rng.normal(size=(200, 3))
+    from trueaxis.inspect.cloud import write_deviation_ply
+
+    write_deviation_ply(tmp_path / "in.ply", points, np.arange(200) * 0.5, normals)
+    env = dict(os.environ, QT_QPA_PLATFORM="offscreen")
+    run = subprocess.run([exe, "-SILENT", "-AUTO_SAVE", "OFF", "-O", "in.ply", "-C_EXPORT_FMT", "PLY",
+                          "-SAVE_CLOUDS", "FILE", "cc.ply"], capture_output=True, text=True, env=env, timeout=300,
+                         cwd=tmp_path)
+    assert run.returncode == 0 and (tmp_path / "cc.ply").is_file(), run.stdout[-1000:]
+    head = (tmp_path / "cc.ply").read_bytes()[:1000]
+    assert b"CloudCompare" in head and b"property float scalar_" in head, head
+    back = read_cloud(tmp_path / "cc.ply")
+    np.testing.assert_allclose(back.points, points, rtol=0, atol=1e-5)  # float32
+    # CloudCompare keeps normals compressed (quantised directions, a few milliradians)
+    cosine = np.sum(back.normals * normals / np.linalg.norm(normals, axis=1)[:, None], axis=1)
+    assert np.degrees(np.arccos(np.clip(cosine, -1, 1))).max() < 0.5
+
+
+def test_deviation_csv_reads_back_as_a_cloud(tmp_path):
+    from trueaxis.inspect.cloud import write_deviation_csv
+
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-40, 40, (50, 3))
+    deviation_um = rng.uniform(-30, 30, 50)
+    write_deviation_csv(tmp_path / "dev.csv", points, deviation_um, ["cone"] * 25 + ["block_top"] * 25)
+    lines = (tmp_path / "dev.csv").read_text().splitlines()
+    assert lines[0] == "x_mm,y_mm,z_mm,deviation_um,surface" and lines[1].endswith(",cone")
+    np.testing.assert_allclose(read_cloud(tmp_path / "dev.csv").points, points, rtol=0, atol=5e-7)
+    np.testing.assert_allclose([float(line.split(",")[3]) for line in lines[1:]], deviation_um, atol=5e-5)

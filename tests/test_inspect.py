@@ -359,3 +359,191 @@ def test_a_failed_inspection_keeps_the_previous_report(tmp_path):
     (tmp_path / "bad.xyz").write_text("1 2 nan\n")
     assert run("inspect", str(tmp_path / "bad.xyz"), "--part", "nas979", "-o", str(tmp_path / "rep")).returncode == 2
     assert (tmp_path / "rep" / "report.json").read_text() == before
+
+
+# ------------------------------------------------------------------------------ tolerances and the feature table ----
+def _rows(report):
+    return {(r["feature"], r["characteristic"]): r for r in report["feature_table"]}
+
+
+def test_feature_table_judges_known_deviations_against_toml_tolerances(tmp_path):
+    b_mm, taper = 0.003, 50e-6  # roundness 6 um in every section, half-angle error +50 urad
+    p, _ = deformed_cone((0.0, 0.0), b_mm, taper, per_ring=180)
+    (tmp_path / "tol.toml").write_text(
+        "[default]\nroundness_um = 10.0\n[roundness_high]\nroundness_um = 5.0\n"
+        "[cone_angle]\nhalf_angle_urad = [-40.0, 40.0]\n[diameter_ref]\ndiameter_um = [-20.0, 20.0]\n")
+    rep = inspect_cloud(_cloud(p), "nas979", tolerances=tmp_path / "tol.toml").report
+    rows = {r["feature"]: r for r in rep["feature_table"] if r["feature"] != "cone"}
+    assert rows["roundness_low"]["result"] == "pass" and rows["roundness_mid"]["result"] == "pass"
+    assert rows["roundness_high"]["result"] == "fail"  # its own 5 um over the default 10 um
+    assert rows["roundness_high"]["actual"] == pytest.approx(2 * b_mm * 1e3, abs=1e-4)
+    assert rows["roundness_high"]["tolerance"] == {"lower": 0.0, "upper": 5.0}
+    angle = rows["cone_angle"]
+    assert angle["nominal"] == 15.0 and angle["unit"] == "deg" and angle["deviation_unit"] == "urad"
+    assert angle["deviation"] == pytest.approx(taper * 1e6, abs=0.05) and angle["result"] == "fail"
+    expected = -2 * 10.0 * (math.tan(ALPHA + taper) - math.tan(ALPHA)) * 1e3  # -17.5 um at h = 10 mm
+    assert rows["diameter_ref"]["deviation"] == pytest.approx(expected, abs=1e-3)
+    assert rows["diameter_ref"]["result"] == "pass"
+    assert rows["axis_direction"]["result"] == "no tolerance"
+    assert rep["feature_summary"] == {"pass": 3, "fail": 2, "no tolerance": 3, "not measured": 0}
+
+
+def test_tolerances_in_the_part_json_apply_and_the_toml_wins(tmp_path):
+    part = json.loads(json.dumps(NAS))
+    next(f for f in part["features"] if f["id"] == "roundness_mid")["tolerances"] = {"roundness_um": 1.0}
+    (tmp_path / "nas979.json").write_text(json.dumps(part))
+    p, _ = deformed_cone((0.0, 0.0), 0.002, 0.0, per_ring=180)  # roundness 4 um
+    rep = inspect_cloud(_cloud(p), "nas979", part_dir=tmp_path).report
+    mid = next(r for r in rep["feature_table"] if r["feature"] == "roundness_mid")
+    assert mid["result"] == "fail" and mid["tolerance"]["upper"] == 1.0
+    (tmp_path / "tol.toml").write_text("[roundness_mid]\nroundness_um = 5.0\n")
+    rep = inspect_cloud(_cloud(p), "nas979", part_dir=tmp_path, tolerances=tmp_path / "tol.toml").report
+    mid = next(r for r in rep["feature_table"] if r["feature"] == "roundness_mid")
+    assert mid["result"] == "pass" and mid["tolerance"]["upper"] == 5.0
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[roundness_top]\nroundness_um = 5.0\n", "no feature 'roundness_top'"),
+    ("[cone_angle]\nhalf_angle_urad = 40.0\n", "expected [lower, upper]"),
+    ("[roundness_mid]\nroundness_um = [0, 5]\n", "one upper limit"),
+    ("[roundness_mid]\nwidth_um = [-5, 5]\n", "has no width_um"),
+    ("[default]\nflatness_um = 5\n", "unknown characteristic"),
+    ("[cone_angle\n", "not valid TOML"),
+])
+def test_bad_tolerance_files_are_refused_naming_the_key(tmp_path, text, message):
+    p, n = deformed_cone(per_ring=36)
+    write_cloud_ply(tmp_path / "c.ply", p, n)
+    (tmp_path / "tol.toml").write_text(text)
+    r = run("inspect", str(tmp_path / "c.ply"), "--part", "nas979", "--tolerances", str(tmp_path / "tol.toml"),
+            "-o", str(tmp_path / "rep"))
+    assert r.returncode == 2 and message in r.stderr and "tol.toml" in r.stderr, r.stderr
+    assert not (tmp_path / "rep").exists()
+
+
+def test_report_folder_has_the_deviations_as_ply_scalar_field_and_csv(tmp_path):
+    from plyfile import PlyData
+
+    p, n = deformed_cone((0.0, 0.004), 0.002, 0.0, per_ring=90)
+    result = inspect_cloud(_cloud(p, n), "nas979")
+    out = write_report(result, tmp_path / "rep")
+    vertex = PlyData.read(str(out / "deviations.ply"))["vertex"]
+    np.testing.assert_array_equal(vertex["scalar_deviation_um"], result.deviation_um)
+    np.testing.assert_array_equal(np.column_stack([vertex["x"], vertex["y"], vertex["z"]]), result.aligned)
+    table = np.loadtxt(out / "deviations.csv", delimiter=",", skiprows=1, usecols=(0, 1, 2, 3))
+    np.testing.assert_allclose(table[:, 3], result.deviation_um, atol=5e-5)
+    assert set(np.loadtxt(out / "deviations.csv", delimiter=",", skiprows=1, usecols=4, dtype=str)) == {"cone"}
+    rep = json.loads((out / "report.json").read_text())
+    assert {"deviations.ply", "deviations.csv"} <= set(rep["files"])
+
+
+def test_cad_without_its_part_json_is_refused_asking_for_the_json(tmp_path):
+    # a STEP alone carries faces, not which slot, wall or section each is: every feature would be null
+    p, n = deformed_cone(per_ring=36)
+    write_cloud_ply(tmp_path / "c.ply", p, n)
+    (tmp_path / "slots.step").write_text("ISO-10303-21;\nEND-ISO-10303-21;\n")
+    r = run("inspect", str(tmp_path / "c.ply"), "--part", "slots", "--cad", str(tmp_path / "slots.step"),
+            "-o", str(tmp_path / "rep"))
+    assert r.returncode == 2 and "no part JSON beside it (slots.json)" in r.stderr, r.stderr
+    assert "trueaxis part slots -o DIR" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "rep").exists()
+
+
+# ------------------------------------------------------------------------------- the report in a real browser ----
+_IMAGE_PROBE = ("<script>window.addEventListener('load', function () { var imgs = Array.prototype.slice.call("
+                "document.images); document.body.setAttribute('data-images', imgs.length + ':' + imgs.filter("
+                "function (i) { return i.complete && i.naturalWidth > 0; }).length); });</script>")
+
+
+@pytest.mark.external
+def test_html_report_renders_in_headless_chromium_with_its_images_and_header(tmp_path):
+    from conftest import require_program
+    from PIL import Image
+
+    exe = require_program("chromium", "chromium", "the browser check of the HTML report")
+    p, n = deformed_cone((0.0, 0.004), 0.003, 30e-6, per_ring=120)
+    (tmp_path / "tol.toml").write_text("[default]\nroundness_um = 10.0\n")  # roundness 6 um: pass
+    result = inspect_cloud(_cloud(p, n), "nas979", tolerances=tmp_path / "tol.toml", program="cone.ngc",
+                           machine="nmv1500dcg.toml")
+    out = write_report(result, tmp_path / "rep")
+    page = out / "report.html"
+    # the page as it is, plus a probe that records on load how many images decoded (naturalWidth > 0)
+    probe = tmp_path / "probe.html"
+    probe.write_text(page.read_text(encoding="utf-8").replace("</body>", _IMAGE_PROBE + "</body>"), encoding="utf-8")
+    common = [exe, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--virtual-time-budget=5000"]
+    dom = subprocess.run(common + ["--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=120)
+    assert dom.returncode == 0, dom.stderr[-1000:]
+    images = [name for name in json.loads((out / "report.json").read_text())["files"] if name.endswith(".png")]
+    assert len(images) == 3  # deviation map, histogram, roundness
+    assert f'data-images="{len(images)}:{len(images)}"' in dom.stdout, dom.stdout[-300:]
+    # the header a metrologist signs: date, part, program, machine file, version, alignment
+    assert "id=\"report-header\"" in dom.stdout
+    for text in ("date (UTC)", "NAS 979 cone frustum", "cone.ngc", "nmv1500dcg.toml", "trueaxis version",
+                 "alignment", "Feature table", "Sign-off"):
+        assert text in dom.stdout, text
+    shot = tmp_path / "shot.png"
+    run_shot = subprocess.run(common + [f"--screenshot={shot}", "--window-size=1200,2400", page.as_uri()],
+                              capture_output=True, text=True, timeout=120)
+    assert run_shot.returncode == 0 and shot.is_file(), run_shot.stderr[-1000:]
+    pixels = np.asarray(Image.open(shot).convert("L"), dtype=float)
+    assert pixels.shape == (2400, 1200)
+    # rendered, not blank: dark text on white, and the green rows of the feature table
+    assert (pixels < 100).mean() > 0.002 and (pixels > 240).mean() > 0.5
+    colour = np.asarray(Image.open(shot).convert("RGB"), dtype=int)
+    assert np.any((colour[..., 1] > 230) & (colour[..., 0] < 225) & (colour[..., 2] < 225))  # a "pass" row
+
+
+def test_report_json_carries_the_header_and_the_plotted_figures(tmp_path):
+    p, n = deformed_cone((0.0, 0.0), 0.003, 0.0, per_ring=120)
+    result = inspect_cloud(_cloud(p, n), "nas979", program="cone.ngc")
+    # identification as run_identification reports it (DESIGN §7): value and std with their units
+    result.report["identification"] = {"parameters": [{"name": "XOC", "value_um": -21.853, "std_um": 0.114},
+                                                      {"name": "AOC", "value_urad": -38.84, "std_urad": 1.43}],
+                                       "not_identifiable": ["COC"], "residual_rms_um": 0.5}
+    out = write_report(result, tmp_path / "rep")
+    rep = json.loads((out / "report.json").read_text())
+    header = rep["header"]
+    assert header["part"] == "NAS 979 cone frustum" and header["program"] == "cone.ngc"
+    assert header["machine_file"] is None and header["trueaxis_version"] and header["date_utc"].endswith("UTC")
+    assert header["alignment"].startswith("none")
+    figures = rep["figures"]
+    assert sum(figures["histogram"]["counts"]) == len(p)
+    for ring, section in zip(figures["roundness"], rep["roundness_um"]):
+        # the plotted profile is the least-squares residual of the section: its peak-to-valley is the LS roundness
+        assert np.ptp(ring["residual_um"]) == pytest.approx(section["least_squares"], abs=2e-4)
+    assert figures["identified"]["names"] == ["XOC", "AOC"] and figures["identified"]["std"] == [0.114, 1.43]
+    page = (out / "report.html").read_text()
+    assert "<td>XOC</td><td>-21.85</td><td>0.11</td><td>um</td>" in page
+    assert "<td>AOC</td><td>-38.8</td><td>1.4</td><td>urad</td>" in page
+    assert "identified.png" in rep["files"] and "mean -0.0" not in page
+    assert "components" not in figures  # no component-error tables identified
+
+
+def test_identified_component_errors_are_plotted_against_position(tmp_path):
+    p, n = deformed_cone(per_ring=60)
+    result = inspect_cloud(_cloud(p, n), "nas979")
+    table = [("EXX@100", 2.0, 0.3), ("EXX@-100", -2.1, 0.3), ("EXX@0", 0.1, 0.2), ("EAC@90", 4.0, 1.0),
+             ("EAC@0", 1.0, 1.0), ("XOC", 5.0, 0.1)]
+    result.report["identification"] = {"parameters": [
+        {"name": name, f"value_{'urad' if name[1] in 'ABC' else 'um'}": v,
+         f"std_{'urad' if name[1] in 'ABC' else 'um'}": sd} for name, v, sd in table]}
+    out = write_report(result, tmp_path / "rep")
+    rep = json.loads((out / "report.json").read_text())
+    components = rep["figures"]["components"]
+    assert components["EXX"] == {"position": [-100.0, 0.0, 100.0], "value": [-2.1, 0.1, 2.0],
+                                 "std": [0.3, 0.2, 0.3], "unit": "um"}
+    assert components["EAC"]["position"] == [0.0, 90.0] and components["EAC"]["unit"] == "urad"
+    assert "components.png" in rep["files"] and (out / "components.png").stat().st_size > 1000
+
+
+def test_dense_roundness_profiles_are_drawn_as_bins_that_keep_every_peak():
+    from trueaxis.inspect.report import _profile_for_plot
+
+    rng = np.random.default_rng(6)
+    angle = rng.uniform(-np.pi, np.pi, 50_000)
+    residual = 3.0 * np.cos(3 * angle) + rng.normal(0, 0.5, angle.size)
+    centre, high, low = _profile_for_plot(angle, residual)
+    assert len(centre) <= 1440 and np.all(np.diff(centre) > 0)
+    assert high.max() == residual.max() and low.min() == residual.min() and np.all(high >= low)
+    bin_of = np.minimum(((angle + np.pi) / (2 * np.pi) * 1440).astype(int), 1439)
+    k = bin_of[np.argmax(residual)]
+    assert abs(centre[np.argmax(high)] - ((k + 0.5) * 2 * np.pi / 1440 - np.pi)) < 1e-12

@@ -278,7 +278,8 @@ def cmd_inspect(args) -> int:
     if not args.identify and (args.machine or args.program or args.write):
         raise UsageError("--machine, --program and --write go with --identify")
     out_dir = Path(args.output) if args.output else Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
-    result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align)
+    result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align,
+                           tolerances=args.tolerances, program=args.program, machine=args.machine)
     identification = None
     if args.identify:
         from .inspect.identify import run_identification
@@ -294,6 +295,9 @@ def cmd_inspect(args) -> int:
             f"{d['rms']:.2f} um, range {d['min']:+.2f}..{d['max']:+.2f} um")
     if r.get("cone"):
         line += f"; half angle error {r['cone']['half_angle_error_urad']:+.1f} urad"
+    counts = r["feature_summary"]
+    if counts["pass"] or counts["fail"]:
+        line += f"; {counts['pass']} characteristics in tolerance, {counts['fail']} out"
     print(line)
     if identification is None:
         return 0
@@ -315,8 +319,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(prog="trueaxis", description="Machine-tool error compensation: post, inspect, diagnose.",
                                 epilog="Exit status: 0 done; 1 the system refused (a file that cannot be read or "
-                                       "written); 2 bad input or usage, nothing written; 130 / 143 interrupted "
-                                       "(SIGINT / SIGTERM).")
+                                       "written); 2 bad input or usage, nothing written; 3 a computed result "
+                                       "refused (an identification that does not explain the part), nothing "
+                                       "written; 130 / 143 interrupted (SIGINT / SIGTERM).")
     p.add_argument("--version", action="version", version=f"trueaxis {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -427,17 +432,21 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_demo)
 
     i = sub.add_parser("inspect", help="compare a CMM cloud with the part: deviations, form, report folder")
-    i.add_argument("cloud", help="CMM cloud in the part frame, mm: PLY (ascii/binary), CSV or XYZ, normals optional")
+    i.add_argument("cloud", help="CMM cloud in the part frame, mm: PLY (ascii/binary), CSV/TXT (',' ';' tab or "
+                   "whitespace, optional header x,y,z[,i,j,k] and name column), XYZ, E57, DMIS output (.dmo); "
+                   "normals optional")
     i.add_argument("--part", required=True, choices=["nas979", "slots"])
     ref = i.add_mutually_exclusive_group()
     ref.add_argument("--part-dir", help="folder holding <part>.json (and slots.stl) from 'trueaxis part' "
                      "(default: the default part parameters)")
-    ref.add_argument("--cad", help="CAD of the part: STEP (tessellated to < 0.1 um chord error; slow) or STL/PLY/OBJ; "
-                     "its analytic surfaces come from <stem>.json beside it when present")
+    ref.add_argument("--cad", help="CAD of the part: STEP (tessellated to < 0.1 um chord error; slow) or STL/PLY/OBJ, "
+                     "with <stem>.json beside it (the features and analytic surfaces; refused without it)")
     i.add_argument("--align", default="none", choices=["none", "bestfit", "datum"],
                    help="none: cloud already in the part frame (default); bestfit: ICP onto the CAD, the rigid motion "
                         "removed is reported; datum: 3-2-1 frame from the probed datum planes")
     i.add_argument("-o", "--output", help="report folder (default: <cloud stem>_report beside the cloud)")
+    i.add_argument("--tolerances", metavar="FILE", help="tolerances of the part's features (TOML, see "
+                   "docs/tolerances.md), over those of the part JSON; the report's feature table says pass or fail")
     i.add_argument("--identify", action="store_true", help="identify twin parameters from the deviations")
     i.add_argument("--machine", help="with --identify: the machine's error twin (TOML)")
     i.add_argument("--program", help="with --identify: the program that cut the part")
@@ -445,6 +454,19 @@ def build_parser() -> argparse.ArgumentParser:
                    "accepted or changes nothing; a refused fit writes nothing and exits 3)")
     i.set_defaults(func=cmd_inspect)
     return p
+
+
+def _located_errors() -> tuple:
+    """The error classes whose messages already say ``file:line: reason`` (machine files, G-code). Taken from the
+    modules only when a command has imported them: a command that never reads a machine file or a program (inspect
+    of a cloud) then does not pay the 2 s of importing the twin's interpolators, and an error of those classes can
+    only come from a module that is loaded."""
+    found = []
+    for module, name in (("trueaxis.machine.machine_file", "MachineFileError"),
+                         ("trueaxis.postproc.gcode", "GcodeError")):
+        if module in sys.modules:
+            found.append(getattr(sys.modules[module], name))
+    return tuple(found)
 
 
 def _paths(args) -> tuple[list, list]:
@@ -502,13 +524,11 @@ EXIT_BROKEN_PIPE = 141  # as a shell reports a process ended by SIGPIPE
 
 def main(argv=None) -> int:
     """Run one command. Exit status: 0 done; 2 bad input or usage (one line per problem on stderr, nothing written);
-    1 the system refused (a file that cannot be read or written: one line); 130 / 143 interrupted by SIGINT /
-    SIGTERM (one line; earlier outputs intact, no temporary file left)."""
+    3 a computed result refused (nothing written); 1 the system refused (a file that cannot be read or written: one
+    line); 130 / 143 interrupted by SIGINT / SIGTERM (one line; earlier outputs intact, no temporary file left)."""
     import signal
 
-    from .fileio import OutputPathError, check_outputs
-    from .machine import MachineFileError
-    from .postproc.gcode import GcodeError
+    from .fileio import check_outputs
 
     args = build_parser().parse_args(argv)
     if threading_main():
@@ -520,26 +540,33 @@ def main(argv=None) -> int:
                 raise UsageError(f"{option} {path}: is a folder; name a file")
         check_outputs(inputs, outputs)
         return int(args.func(args) or 0)
-    except (MachineFileError, GcodeError) as exc:
-        print(str(exc), file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except (UsageError, OutputPathError, ValueError, FileNotFoundError) as exc:
-        print(f"trueaxis {args.command}: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
     except (KeyboardInterrupt, _Terminated) as exc:
         return _report_interruption(args.command, exc)
-    except BrokenPipeError:  # the reader went away (`trueaxis machine show M | head`): nothing to say to it
+    except Exception as exc:  # noqa: BLE001 - sorted by _report_error; what it does not know is raised again
+        return _report_error(args.command, exc)
+
+
+def _report_error(command: str, exc: Exception) -> int:
+    """One line on stderr and the exit status for an error the user can act on; anything else is raised again."""
+    from .fileio import OutputPathError
+
+    if isinstance(exc, _located_errors()):  # already 'file:line: reason'
+        print(str(exc), file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if isinstance(exc, (UsageError, OutputPathError, ValueError, FileNotFoundError)):
+        print(f"trueaxis {command}: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if isinstance(exc, BrokenPipeError):  # the reader went away (`trueaxis machine show M | head`): nothing to say
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
-    except OSError as exc:  # permissions, a full disk, a read-only file system: the system's word, one line
+    if isinstance(exc, OSError):  # permissions, a full disk, a read-only file system: the system's word, one line
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"trueaxis {args.command}: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(f"trueaxis {command}: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_FAILURE
-    except SystemError as exc:
-        cause = _interruption(exc)
-        if cause is None:
-            raise
-        return _report_interruption(args.command, cause)
+    cause = _interruption(exc) if isinstance(exc, SystemError) else None
+    if cause is not None:
+        return _report_interruption(command, cause)
+    raise exc
 
 
 def _report_interruption(command: str, exc: BaseException) -> int:

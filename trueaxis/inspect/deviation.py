@@ -282,12 +282,25 @@ class SurfaceDeviation:
     surface_ids: list
 
 
+def _lower_bound(points, surface: dict):
+    """A lower bound of the distance of each point to a bounded patch, cheaper than the distance itself: the
+    distance to the patch's unbounded plane (|offset along the normal|) or cylinder (|r - radius|); None for a cone
+    (measured in full)."""
+    if surface["type"] == "plane":
+        return np.abs((points - np.asarray(surface["point"], float)) @ _unit(surface["normal"]))
+    if surface["type"] == "cylinder":
+        xy = points[:, :2] - np.asarray(surface["center"], float)[:2]
+        return np.abs(np.hypot(xy[:, 0], xy[:, 1]) - float(surface["radius"]))
+    return None
+
+
 def analytic_deviation(points, surfaces: list[dict]) -> SurfaceDeviation:
     """Signed deviation of each point from its nearest analytic surface patch (exact).
 
     points : (n, 3) float, mm, part frame. surfaces : list of surface dicts (``analytic_surfaces``), at least one.
     Ties between patches (a point on a shared edge) go to the first listed. Vectorised over points and surfaces, in
-    blocks of ``CHUNK`` points.
+    blocks of ``CHUNK`` points; a patch is measured only at the points its unbounded surface could win
+    (:func:`_lower_bound`).
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -306,12 +319,14 @@ def analytic_deviation(points, surfaces: list[dict]) -> SurfaceDeviation:
         best_n = np.zeros((len(block), 3))
         best_i = np.zeros(len(block), dtype=np.int64)
         for k, s in enumerate(surfaces):
-            signed, unsigned, nrm = patch_distance(block, s)
-            better = unsigned < best_d
-            best_d = np.where(better, unsigned, best_d)
-            best_s = np.where(better, signed, best_s)
-            best_n[better] = nrm[better]
-            best_i[better] = k
+            # a patch lies no nearer than its unbounded surface: where that bound is no better than the nearest
+            # patch so far, the patch cannot win (ties go to the first listed), so only the others are measured
+            bound = _lower_bound(block, s)
+            rows = np.flatnonzero(bound < best_d) if bound is not None else slice(None)
+            signed, unsigned, nrm = patch_distance(block[rows], s)
+            better = unsigned < best_d[rows]
+            take = rows[better] if bound is not None else np.flatnonzero(better)
+            best_d[take], best_s[take], best_n[take], best_i[take] = unsigned[better], signed[better], nrm[better], k
         sl = slice(start, start + len(block))
         deviation_mm[sl], distance_mm[sl], normal[sl], surface[sl] = best_s, best_d, best_n, best_i
     return SurfaceDeviation(deviation_mm, distance_mm, normal, surface, [s["id"] for s in surfaces])

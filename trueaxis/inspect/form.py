@@ -1,4 +1,5 @@
-"""Form evaluation of measured features: circles, roundness, cones, planes, lines, straightness, parallelism.
+"""Form evaluation of measured features: circles (2D and in space), roundness, cones, cylinders, spheres, planes,
+lines, straightness, parallelism; least-squares (Gauss) and minimum-zone (Chebyshev) associations.
 
 Pure numpy/scipy, vectorised over the points; lengths in mm, angles in rad. Each function names the reference
 feature it computes (ISO 12181 for roundness, ISO 12780 for straightness, ISO 1101 for parallelism) and the method.
@@ -21,6 +22,8 @@ __all__ = [
     "CircleFit", "ZoneCircle", "ConeFit", "PlaneFit", "LineFit",
     "fit_circle_least_squares", "minimum_zone_circle", "roundness",
     "fit_cone", "section_ring", "fit_plane", "fit_line", "straightness", "parallelism",
+    "SphereFit", "ZoneSphere", "fit_sphere", "minimum_zone_sphere", "ZonePlane", "minimum_zone_plane",
+    "CylinderFit", "ZoneCylinder", "fit_cylinder", "minimum_zone_cylinder", "Circle3DFit", "fit_circle_3d",
 ]
 
 
@@ -142,22 +145,25 @@ def fit_circle_least_squares(points2d) -> CircleFit:
     return CircleFit(center=center, radius=radius, residuals=np.hypot(*(points2d - center).T) - radius)
 
 
-def minimum_zone_circle(points2d, start: np.ndarray | None = None, max_iterations: int = 100) -> ZoneCircle:
+def minimum_zone_circle(points2d, start: np.ndarray | None = None, max_iterations: int = 300) -> ZoneCircle:
     """Minimum-zone circles: the centre c minimising max_i |p_i - c| - min_i |p_i - c| (ISO 12181-2 MZCI).
 
     Method: sequential linear programming with a trust region (the linearised Chebyshev problem of Dhanish & Shunmugam,
     Precision Engineering 13 (1991), "An algorithm for form error evaluation using the theory of discrete and linear
-    Chebyshev approximation"). About the current centre c the radii are r_i(c + d) ~ r_i - u_i . d, u_i the unit
-    vector from c to p_i; the linear program
+    Chebyshev approximation"), :func:`_chebyshev_zone`. About the current centre c the radii are
+    r_i(c + d) ~ r_i - u_i . d, u_i the unit vector from c to p_i; the linear program
 
         minimise  a - b   over (d, a, b)   subject to   b <= r_i - u_i . d <= a,   |d|_inf <= trust radius
 
     gives a step; it is accepted when the exact zone width decreases, and the trust radius grows or shrinks with the
     ratio of actual to predicted decrease. The linearisation error is |d|^2 / (2 r), so near the solution the steps
-    converge like Newton steps (the optimum is a vertex: 2 outer and 2 inner contact points, generically). Starts
-    from the least-squares centre, which is within a zone width of the minimum-zone centre for a roundness profile.
-    The problem is not convex in general: for a profile far from a circle (a partial arc of a few degrees, a random
-    scatter) this is a local minimum near the least-squares centre.
+    converge like Newton steps (the optimum is a vertex: 2 outer and 2 inner contact points, generically). Only the
+    points of largest and smallest radius can be contacts: each linear program holds those (a few thousand, found in
+    O(n)), with the step capped so that no other point can reach the zone's edges; the exact width over all points
+    decides each step. Starts from the least-squares centre (of an evenly strided sample of 20,000 points for a larger
+    profile), which is within a zone width of the minimum-zone centre for a roundness profile. The problem is not
+    convex in general: for a profile far from a circle (a partial arc of a few degrees, a random scatter) this is a
+    local minimum near the least-squares centre.
 
     Parameters
     ----------
@@ -171,48 +177,21 @@ def minimum_zone_circle(points2d, start: np.ndarray | None = None, max_iteration
     """
     points2d = _points(points2d, (2,), 4, "points2d")
     if start is None:
-        start = fit_circle_least_squares(points2d).center
-    center = np.asarray(start, dtype=np.float64).reshape(2)
+        start = fit_circle_least_squares(points2d[::max(1, -(-len(points2d) // 20_000))]).center
+    center0 = np.asarray(start, dtype=np.float64).reshape(2)
+    radii0 = np.hypot(*(points2d - center0).T)
+    step = max(float(np.ptp(radii0)), 1e-12 * float(radii0.mean()))
 
-    def width_at(c):
-        radii = np.hypot(*(points2d - c).T)
-        return radii.max() - radii.min(), radii
+    def distance(c):
+        return np.hypot(points2d[:, 0] - c[0], points2d[:, 1] - c[1])
 
-    width, radii = width_at(center)
-    size = radii.mean()
-    # scale of the linear program: the zone width, so HiGHS' absolute tolerances (1e-7) are relative to it
-    scale = max(width, 1e-12 * size)
-    trust = 1.0  # in units of `scale`
-    options = dict(primal_feasibility_tolerance=1e-10, dual_feasibility_tolerance=1e-10)
-    for _ in range(max_iterations):
-        if width <= 1e-14 * size:
-            break  # a perfect circle to machine precision
-        directions = (points2d - center) / radii[:, None]
-        deviations = (radii - radii.mean()) / scale
-        n = len(points2d)
-        # variables (dx, dy, a, b); rows: r_i - u_i.d <= a  and  b <= r_i - u_i.d
-        upper = np.column_stack([-directions, -np.ones(n), np.zeros(n)])
-        lower = np.column_stack([directions, np.zeros(n), np.ones(n)])
-        result = linprog(c=[0.0, 0.0, 1.0, -1.0], A_ub=np.vstack([upper, lower]),
-                         b_ub=np.r_[-deviations, deviations],
-                         bounds=[(-trust, trust), (-trust, trust), (None, None), (None, None)],
-                         method="highs", options=options)
-        if result.status != 0:
-            raise RuntimeError(f"minimum-zone linear program failed: {result.message}")
-        step = result.x[:2] * scale
-        predicted = width - result.fun * scale
-        if predicted <= 1e-13 * max(width, 1e-300) or np.abs(result.x[:2]).max() < 1e-15 * size / scale:
-            break  # the linear model sees no further decrease: first-order optimal
-        new_width, new_radii = width_at(center + step)
-        ratio = (width - new_width) / predicted
-        if ratio > 0:
-            center, width, radii = center + step, new_width, new_radii
-        if ratio > 0.75 and np.abs(result.x[:2]).max() > 0.99 * trust:
-            trust *= 2.0
-        elif ratio < 0.25:
-            trust *= 0.25
-        if trust * scale < 1e-15 * size:
-            break
+    def jacobian(c, index):
+        delta = points2d[index] - c
+        r = np.hypot(delta[:, 0], delta[:, 1])
+        return r, -delta / r[:, None]
+
+    center, radii = _chebyshev_zone(distance, jacobian, center0, np.full(2, step), np.sqrt(2.0) * step,
+                                    len(points2d), max_iterations=max_iterations)
     mean = (radii.max() + radii.min()) / 2.0
     return ZoneCircle(center=center, radius_inner=float(radii.min()), radius_outer=float(radii.max()),
                       width=float(radii.max() - radii.min()), residuals=radii - mean)
@@ -277,31 +256,18 @@ def _cone_distance(points, base, axis, radius, half_angle):
     w = points - base
     h = w @ axis
     radial = w - h[:, None] * axis
-    r = np.linalg.norm(radial, axis=1)
+    r = np.sqrt(np.einsum("ij,ij->i", radial, radial))
     distance = (r - radius) * np.cos(half_angle) - h * np.sin(half_angle)
     return distance, w, h, r, radial / np.maximum(r, 1e-300)[:, None]
 
 
-def _fit_cone_from(points, axis0, base0, start=None):
-    """One Levenberg-Marquardt fit from a start axis (and, optionally, start parameters); returns (scipy result,
-    unpack function)."""
+def _cone_model(points, axis0, base0):
+    """The cone's residuals and Jacobian in the parameters (u, v, s, t, rho, alpha) about a start axis: axis =
+    normalise(axis0 + u e1 + v e2) has no singularity near axis0; the axis point base0 + s e1 + t e2 stays in the plane
+    through base0 normal to axis0; rho is the radius there. Neither the apex nor 1/tan(alpha) appears, so a nearly
+    cylindrical cone is as well posed as a steep one. Returns (unpack, residuals, jacobian, e1, e2)."""
     e1, e2 = _perpendicular_basis(axis0)
-    # algebraic start for this axis: in the frame (e1, e2, axis0) about base0 the cone is
-    # x^2 + y^2 = 2 cx x + 2 cy y + (rho^2 - cx^2 - cy^2) + 2 rho k z + k^2 z^2  (k = tan half angle), linear in
-    # (2cx, 2cy, rho^2 - |c|^2, 2 rho k, k^2): a Kasa-like fit that also works on a partial cone
-    if start is None:
-        local = points - base0
-        x, y, z = local @ e1, local @ e2, local @ axis0
-        design = np.column_stack([x, y, np.ones_like(x), z, z * z])
-        coef = np.linalg.lstsq(design, x * x + y * y, rcond=None)[0]
-        cx, cy = coef[0] / 2.0, coef[1] / 2.0
-        rho = np.sqrt(max(coef[2] + cx * cx + cy * cy, 1e-12))
-        half_angle = np.arctan(coef[3] / (2.0 * rho))
-        start = np.array([0.0, 0.0, cx, cy, rho, half_angle])
 
-    # parameters (u, v, s, t, rho, alpha): axis = normalise(axis0 + u e1 + v e2) has no singularity near axis0;
-    # the axis point base0 + s e1 + t e2 stays in the plane through base0 normal to axis0; rho is the radius there.
-    # Neither the apex nor 1/tan(alpha) appears, so a nearly cylindrical cone is as well posed as a steep one.
     def unpack(params):
         n = axis0 + params[0] * e1 + params[1] * e2
         return n / np.linalg.norm(n), base0 + params[2] * e1 + params[3] * e2, params[4], params[5], np.linalg.norm(n)
@@ -310,21 +276,122 @@ def _fit_cone_from(points, axis0, base0, start=None):
         axis, base, radius, alpha, _ = unpack(params)
         return _cone_distance(points, base, axis, radius, alpha)[0]
 
-    def jacobian(params):
+    def jacobian(params, with_residuals=False):
         axis, base, radius, alpha, norm = unpack(params)
-        _, w, h, r, q_hat = _cone_distance(points, base, axis, radius, alpha)
+        w = points - base
+        h = w @ axis
+        radial = w - h[:, None] * axis
+        r = np.sqrt(np.einsum("ij,ij->i", radial, radial))
         cos, sin = np.cos(alpha), np.sin(alpha)
-        # d(distance)/d(base) = -cos q_hat + sin axis  (dh/dbase = -axis, dr/dbase = -q_hat)
-        d_base = -cos * q_hat + sin * axis
-        # d(distance)/d(axis) = -cos h q_hat - sin w  (dh/daxis = w, dr/daxis = -h q_hat), then through the normalisation
-        d_axis = -cos * h[:, None] * q_hat - sin * w
         project = (np.eye(3) - np.outer(axis, axis)) / norm
-        return np.column_stack([d_axis @ (project @ e1), d_axis @ (project @ e2), d_base @ e1, d_base @ e2,
-                                np.full(len(points), -cos), -(r - radius) * sin - h * cos])
+        # the unit radial vector q_hat = radial / r, projected on the four directions the parameters move
+        directions = np.column_stack([project @ e1, project @ e2, e1, e2])
+        q_dir = (radial @ directions) / np.maximum(r, 1e-300)[:, None]
+        w_dir = w @ directions[:, :2]
+        jac = np.empty((len(points), 6))
+        # d(distance)/d(axis) = -cos h q_hat - sin w  (dh/daxis = w, dr/daxis = -h q_hat), through the normalisation
+        jac[:, 0] = -cos * h * q_dir[:, 0] - sin * w_dir[:, 0]
+        jac[:, 1] = -cos * h * q_dir[:, 1] - sin * w_dir[:, 1]
+        # d(distance)/d(base) = -cos q_hat + sin axis  (dh/dbase = -axis, dr/dbase = -q_hat)
+        jac[:, 2] = -cos * q_dir[:, 2] + sin * (axis @ e1)
+        jac[:, 3] = -cos * q_dir[:, 3] + sin * (axis @ e2)
+        jac[:, 4] = -cos
+        jac[:, 5] = -(r - radius) * sin - h * cos
+        if with_residuals:
+            return jac, (r - radius) * cos - h * sin
+        return jac
 
+    return unpack, residuals, jacobian
+
+
+def _algebraic_cone_start(points, axis0, base0):
+    """Start parameters for a start axis: in the frame (e1, e2, axis0) about base0 the cone is
+    x^2 + y^2 = 2 cx x + 2 cy y + (rho^2 - cx^2 - cy^2) + 2 rho k z + k^2 z^2  (k = tan half angle), linear in
+    (2cx, 2cy, rho^2 - |c|^2, 2 rho k, k^2): a Kasa-like fit that also works on a partial cone."""
+    e1, e2 = _perpendicular_basis(axis0)
+    local = points - base0
+    x, y, z = local @ e1, local @ e2, local @ axis0
+    design = np.column_stack([x, y, np.ones_like(x), z, z * z])
+    coef = np.linalg.lstsq(design, x * x + y * y, rcond=None)[0]
+    cx, cy = coef[0] / 2.0, coef[1] / 2.0
+    rho = np.sqrt(max(coef[2] + cx * cx + cy * cy, 1e-12))
+    return np.array([0.0, 0.0, cx, cy, rho, np.arctan(coef[3] / (2.0 * rho))])
+
+
+def _fit_cone_from(points, axis0, base0, start=None):
+    """One Levenberg-Marquardt fit from a start axis (and, optionally, start parameters); returns (scipy result,
+    unpack function)."""
+    if start is None:
+        start = _algebraic_cone_start(points, axis0, base0)
+    unpack, residuals, jacobian = _cone_model(points, axis0, base0)
     result = least_squares(residuals, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
                            max_nfev=2000)
     return result, unpack
+
+
+def _quadric_cone_axis(points) -> np.ndarray:
+    """Axis direction of a cone from a general quadric fitted algebraically (no start needed, no restarts).
+
+    A circular cone is the quadric (p - a)^T A (p - a) = 0 with A = I - (1 + k^2) u u^T (u its axis, k = tan half
+    angle): A has a double eigenvalue (the radial directions) and a single one whose eigenvector is the axis. The
+    quadric q(p) = p^T A p + b . p + c with |coefficients| = 1 minimising sum q(p_i)^2 is the right singular vector of
+    the design matrix with the least singular value (Pratt-like algebraic fit); the axis is the eigenvector of A whose
+    eigenvalue stands apart from the other two.
+    """
+    centre = points.mean(axis=0)
+    local = points - centre
+    local = local / np.sqrt((local ** 2).sum(axis=1).mean())
+    x, y, z = local.T
+    design = np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, x, y, z, np.ones_like(x)])
+    q = np.linalg.svd(design, full_matrices=False)[2][-1]
+    quadric = np.array([[q[0], q[3], q[4]], [q[3], q[1], q[5]], [q[4], q[5], q[2]]])
+    values, vectors = np.linalg.eigh(quadric)
+    # the double eigenvalue is the closer pair: the axis belongs to the remaining one
+    return vectors[:, 0] if values[2] - values[1] < values[1] - values[0] else vectors[:, 2]
+
+
+def _gauss_newton_polish(params, jacobian, residuals, max_iterations: int = 20):
+    """Gauss-Newton from a start near the least-squares minimum; each step solves the 6 x 6 normal equations
+    J^T J d = -J^T f (scaled by the diagonal). The decrease a step promises, Delta = d^T J^T J d, measures it in
+    standard errors: k^2 = Delta (n - 6) / sum f^2. Near a minimum with non-zero residuals Gauss-Newton converges
+    linearly, each step smaller than the one before by a rate r (measured from the two); when r k < 1e-4 (what is
+    left after this step, in standard errors) the step is the last one, checked with the residuals alone, the
+    Jacobian kept from before it (it changes by that step: negligibly for the standard errors). Stops too when a step promises less than the
+    rounding of the sum of squares, or fails to lower it. ``jacobian(params, with_residuals=True)`` gives both in
+    one pass over the points. Returns (params, Jacobian, residuals at params)."""
+    jac, f = jacobian(params, with_residuals=True)
+    cost = float(f @ f)
+    n = max(len(f) - len(params), 1)
+    previous = None
+    for _ in range(max_iterations):
+        normal = jac.T @ jac
+        gradient = jac.T @ f
+        scale = np.sqrt(np.diag(normal))
+        scale[scale == 0] = 1.0
+        step = -np.linalg.solve(normal / np.outer(scale, scale), gradient / scale) / scale
+        promised = -float(gradient @ step)
+        if promised <= 1e-13 * cost:
+            break
+        trial = params + step
+        # the step in standard errors, and what is left after it: Gauss-Newton converges linearly near a
+        # non-zero-residual minimum, at a rate measured by the ratio of successive steps
+        size = np.sqrt(promised * n / cost)
+        rate = 1.0 if previous is None else min(1.0, np.sqrt(promised / previous))
+        previous = promised
+        if size * rate <= 1e-4:
+            f_new = residuals(trial)
+            if float(f_new @ f_new) < cost:
+                params, f = trial, f_new
+            break
+        jac_new, f_new = jacobian(trial, with_residuals=True)
+        cost_new = float(f_new @ f_new)
+        if not cost_new < cost:
+            break  # at the minimum to rounding: the step is noise
+        params, jac, f, cost = trial, jac_new, f_new, cost_new
+    return params, jac, f
+
+
+CONE_SAMPLE = 20_000  # points of the coarse fit; the polish uses all of them
 
 
 def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None) -> ConeFit:
@@ -332,11 +399,17 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
 
     Method: geometric (orthogonal-distance) least squares as in Forbes, "Least-squares best-fit geometric elements",
     NPL DITC 140/89 (1989), and Shakarji, "Least-squares fitting algorithms of the NIST algorithm testing system",
-    J. Res. NIST 103 (1998): Levenberg-Marquardt with the exact Jacobian. The axis is parameterised as
-    normalise(a0 + u e1 + v e2) about the start axis a0 and the axis point moves in the plane normal to a0, so the
-    parameterisation has no singularity near the start; the cone's size is its radius on that plane, not its apex, so
-    a small half angle (far apex) is well posed. The start comes from an algebraic (linear) cone fit for the start
-    axis; with no start axis, the three principal directions of the points are tried and the best fit is kept.
+    J. Res. NIST 103 (1998), with the exact Jacobian. The axis is parameterised as normalise(a0 + u e1 + v e2) about
+    the start axis a0 and the axis point moves in the plane normal to a0, so the parameterisation has no singularity
+    near the start; the cone's size is its radius on that plane, not its apex, so a small half angle (far apex) is
+    well posed.
+
+    One start, no restarts: the start axis is ``initial_axis`` (the part's nominal axis), else the axis of a general
+    quadric fitted algebraically (:func:`_quadric_cone_axis`); an algebraic cone fit for that axis gives the other
+    parameters. Levenberg-Marquardt converges on an evenly strided sample of at most ``CONE_SAMPLE`` points; then
+    Gauss-Newton on all points, in the parameterisation centred on that solution (where the Jacobian is well
+    conditioned and the standard errors mean what they say), converges quadratically to the least-squares cone of
+    all points in a few passes over them.
 
     Parameters
     ----------
@@ -344,7 +417,8 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     initial_axis : (3,) float, optional start direction of the axis (either sign)
     initial_apex : (3,) float, mm, optional point on the start axis (default: the points' centroid)
     reference_plane : optional (point (3,), normal (3,)) pair: ``axis_point`` is where the fitted axis crosses this
-        plane (e.g. the part's base plane). Default: the foot of the points' centroid on the fitted axis.
+        plane (e.g. the part's base plane, or any stated reference plane), and ``radius_at_axis_point`` is the cone's
+        radius in the plane normal to the axis there. Default: the foot of the points' centroid on the fitted axis.
 
     Returns
     -------
@@ -355,34 +429,29 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     """
     points = _points(points, (3,), 6)
     centroid = points.mean(axis=0)
+    stride = max(1, -(-len(points) // CONE_SAMPLE))
+    sample = points[::stride]
     if initial_axis is None:
         if initial_apex is not None:
             raise ValueError("initial_apex needs initial_axis")
-        # principal directions: the axis is the least-spread one for a flat frustum, the most-spread for a tall cone
-        starts = list(np.linalg.svd(points - centroid, full_matrices=False)[2])
+        axis0 = _quadric_cone_axis(sample)
     else:
-        starts = [_unit(initial_axis, "initial_axis")]
+        axis0 = _unit(initial_axis, "initial_axis")
     base0 = centroid
-    best = None
-    for axis0 in starts:
-        if initial_apex is not None:
-            apex = np.asarray(initial_apex, dtype=np.float64).reshape(3)
-            base0 = apex + ((centroid - apex) @ axis0) * axis0  # the centroid's foot on the start axis
-        result, unpack = _fit_cone_from(points, axis0, base0)
-        if best is None or result.cost < best[0].cost:
-            best = (result, unpack)
-    result, unpack = best
+    if initial_apex is not None:
+        apex = np.asarray(initial_apex, dtype=np.float64).reshape(3)
+        base0 = apex + ((centroid - apex) @ axis0) * axis0  # the centroid's foot on the start axis
+    result, unpack = _fit_cone_from(sample, axis0, base0)
     axis, base, radius, alpha, _ = unpack(result.x)
-    # polish in the parameterisation centred on the solution: the start axis may be far from the fitted one (a
-    # principal direction), where the axis point's plane nearly contains the axis and the covariance is degenerate;
-    # about the solution the Jacobian is well conditioned and the standard errors mean what they say
-    shift = (centroid - base) @ axis  # move the axis point to the centroid's foot, the radius along the generator
+    # re-centre on the coarse solution: the axis point to the centroid's foot, the radius along the generator
+    shift = (centroid - base) @ axis
     base, radius = base + shift * axis, radius + shift * np.tan(alpha)
-    result, unpack = _fit_cone_from(points, axis, base, start=np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]))
-    axis, base, radius, alpha, _ = unpack(result.x)
+    unpack, residuals_of, jacobian_of = _cone_model(points, axis, base)
+    params, jac, residuals = _gauss_newton_polish(np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]), jacobian_of,
+                                                  residuals_of)
+    axis, base, radius, alpha, norm = unpack(params)
     if alpha < 0:  # radius grows along -axis: turn the axis round so that the half angle is positive
         axis, alpha = -axis, -alpha
-    residuals = _cone_distance(points, base, axis, radius, alpha)[0]
     apex = base - (radius / np.tan(alpha)) * axis if alpha != 0 else np.full(3, np.inf)
 
     if reference_plane is None:
@@ -400,15 +469,15 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     dof = max(n - 6, 1)
     sigma2 = float(residuals @ residuals) / dof
     try:
-        covariance = sigma2 * np.linalg.inv(result.jac.T @ result.jac)
+        covariance = sigma2 * np.linalg.inv(jac.T @ jac)
         std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     except np.linalg.LinAlgError:
         std = np.full(6, np.nan)
-    norm = unpack(result.x)[4]
     return ConeFit(apex=apex, axis=axis, half_angle_rad=float(alpha), axis_point=axis_point,
                    radius_at_axis_point=float(radius_at_point), residuals=residuals,
                    rms=float(np.sqrt(np.mean(residuals ** 2))), half_angle_std_rad=float(std[5]),
-                   axis_std_rad=float(np.hypot(std[0], std[1]) / norm), axis_point_std_mm=float(np.hypot(std[2], std[3])))
+                   axis_std_rad=float(np.hypot(std[0], std[1]) / norm),
+                   axis_point_std_mm=float(np.hypot(std[2], std[3])))
 
 
 def section_ring(points, axis_point, axis_dir, height: float, tolerance: float, half_angle_rad: float | None = None,
@@ -610,3 +679,427 @@ def parallelism(plane_a_points, plane_b) -> float:
     normal = _unit(normal, "plane_b normal")
     distance = (points - point) @ normal
     return float(distance.max() - distance.min())
+
+
+# ------------------------------------------------------------------------------------------ Chebyshev (minimum zone)
+
+def _chebyshev_zone(distance, jacobian, theta0, step_scale, lipschitz: float, n_points: int,
+                    candidates: int = 1500, max_iterations: int = 300):
+    """Minimise the zone width max_i f_i(theta) - min_i f_i(theta) over the parameters theta (the feature's
+    location and orientation; its size is the zone's middle, free).
+
+    Method: sequential linear programming with a trust region (Dhanish & Shunmugam, Precision Engineering 13 (1991)),
+    as in :func:`minimum_zone_circle`: about theta the distances are f_i + J_i S x, the linear program
+
+        minimise  a - b   over (x, a, b)   subject to   b <= f_i + J_i S x <= a,   |x|_inf <= t
+
+    gives a step S x; it is accepted when the exact width over *all* points decreases. Only the extreme points can
+    touch the zone: each linear program holds the ``candidates`` points of largest and of smallest f (found in O(n)
+    with ``argpartition``), and the step bound t is capped so that no other point can reach the zone's edges in the
+    linear model (|J_i S x| <= lipschitz * t < the margin to the nearest left-out point): the linear program on the
+    candidates is then the linear program on all points, and the fixed point is first-order optimal for the whole
+    set. The linearisation error is second order in the step, so near the solution the steps converge like Newton's.
+
+    distance(theta) -> (n,) f of all points; jacobian(theta, index) -> (f[index], J[index] (m, k)).
+    step_scale : (k,) S, the size of a unit step of each parameter. lipschitz : an upper bound of the 1-norm of the
+    rows of J S over all points. Returns (theta, f at theta).
+    """
+    theta = np.asarray(theta0, dtype=np.float64).copy()
+    f = distance(theta)
+    width = float(np.ptp(f))
+    size = max(float(np.abs(f).max()), 1e-300)
+    k = len(theta)
+    trust = 1.0
+    options = dict(primal_feasibility_tolerance=1e-10, dual_feasibility_tolerance=1e-10)
+    for _ in range(max_iterations):
+        if width <= 1e-14 * size:
+            break  # a perfect form to machine precision
+        if n_points > 2 * candidates + 2:
+            top = np.argpartition(f, n_points - candidates - 1)
+            outer, rest_hi = top[n_points - candidates:], f[top[n_points - candidates - 1]]
+            bottom = np.argpartition(f, candidates)
+            inner, rest_lo = bottom[:candidates], f[bottom[candidates]]
+            index = np.union1d(outer, inner)
+            # the nearest left-out point is this far inside the zone: keep the linear model's motion below half of it
+            margin = min(f.max() - rest_hi, rest_lo - f.min())
+            cap = 0.5 * margin / max(lipschitz, 1e-300)
+        else:
+            index, cap = np.arange(n_points), np.inf
+        bound = min(trust, cap)
+        fi, ji = jacobian(theta, index)
+        js = ji * step_scale
+        scale = max(width, 1e-12 * size)
+        dev = (fi - fi.mean()) / scale
+        m = len(index)
+        upper = np.column_stack([js / scale, -np.ones(m), np.zeros(m)])
+        lower = np.column_stack([-js / scale, np.zeros(m), np.ones(m)])
+        result = linprog(c=np.r_[np.zeros(k), 1.0, -1.0], A_ub=np.vstack([upper, lower]), b_ub=np.r_[-dev, dev],
+                         bounds=[(-bound, bound)] * k + [(None, None)] * 2, method="highs", options=options)
+        if result.status != 0:
+            raise RuntimeError(f"minimum-zone linear program failed: {result.message}")
+        x = result.x[:k]
+        predicted = width - result.fun * scale
+        if predicted <= 1e-12 * max(width, 1e-300) or np.abs(x).max() == 0.0:
+            if bound < trust and np.abs(x).max() > 0.99 * bound:
+                pass  # the cap, not the optimum, stopped the step: take it and look again
+            else:
+                break  # the linear model sees no further decrease: first-order optimal
+        new_theta = theta + step_scale * x
+        new_f = distance(new_theta)
+        new_width = float(np.ptp(new_f))
+        ratio = (width - new_width) / predicted if predicted > 0 else -1.0
+        if ratio > 0:
+            theta, f, width = new_theta, new_f, new_width
+        if ratio > 0.75 and np.abs(x).max() > 0.99 * bound:
+            trust = 2.0 * min(trust, bound)
+        elif ratio < 0.25:
+            trust = 0.25 * min(trust, bound)
+        if trust < 1e-13:
+            break
+    return theta, f
+
+
+# ----------------------------------------------------------------------------------------------------------- spheres
+
+@dataclass(frozen=True)
+class SphereFit:
+    """Least-squares sphere (Gauss).
+
+    center : (3,) float, mm. radius : float, mm.
+    residuals : (n,) float, mm, |p - center| - radius, positive outward. rms : float, mm.
+    """
+
+    center: np.ndarray
+    radius: float
+    residuals: np.ndarray
+    rms: float
+
+
+@dataclass(frozen=True)
+class ZoneSphere:
+    """Minimum-zone spheres (Chebyshev): two concentric spheres enclosing the points, of least radial separation.
+
+    center : (3,) float, mm. radius_inner, radius_outer : float, mm. width : float, mm, the form deviation.
+    residuals : (n,) float, mm, |p - center| - (radius_inner + radius_outer) / 2.
+    """
+
+    center: np.ndarray
+    radius_inner: float
+    radius_outer: float
+    width: float
+    residuals: np.ndarray
+
+
+def fit_sphere(points) -> SphereFit:
+    """Least-squares sphere: minimise the sum of squared radial distances |p - c| - R.
+
+    Method: the algebraic fit |p|^2 = 2 c . p + (R^2 - |c|^2) (linear least squares) for the start, then
+    Levenberg-Marquardt on the geometric residuals with their exact Jacobian (Forbes, NPL DITC 140/89, §4;
+    Shakarji, J. Res. NIST 103 (1998)).
+
+    points : (n, 3) float, mm, n >= 4, not all on one plane (or circle). Returns SphereFit.
+    """
+    points = _points(points, (3,), 4)
+    origin = points.mean(axis=0)
+    local = points - origin
+    scale = np.sqrt((local ** 2).sum(axis=1).mean())
+    if scale == 0.0:
+        raise ValueError("points are all the same point")
+    local = local / scale
+    design = np.column_stack([2.0 * local, np.ones(len(local))])
+    solution, _, rank, singular = np.linalg.lstsq(design, (local ** 2).sum(axis=1), rcond=None)
+    if rank < 4 or singular[-1] < 1e-9 * singular[0]:
+        raise ValueError("points lie on a plane or a circle: no unique sphere through them")
+    start = np.r_[solution[:3], np.sqrt(solution[3] + solution[:3] @ solution[:3])]
+
+    def residuals(params):
+        return np.linalg.norm(local - params[:3], axis=1) - params[3]
+
+    def jacobian(params):
+        delta = local - params[:3]
+        return np.column_stack([-delta / np.linalg.norm(delta, axis=1)[:, None], -np.ones(len(delta))])
+
+    fit = least_squares(residuals, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    center = origin + fit.x[:3] * scale
+    radius = float(fit.x[3] * scale)
+    res = np.linalg.norm(points - center, axis=1) - radius
+    return SphereFit(center=center, radius=radius, residuals=res, rms=float(np.sqrt(np.mean(res ** 2))))
+
+
+def minimum_zone_sphere(points, start=None) -> ZoneSphere:
+    """Minimum-zone spheres (Chebyshev): the centre c minimising max_i |p_i - c| - min_i |p_i - c|.
+
+    Method: :func:`_chebyshev_zone` (sequential linear programming on the extreme points) from the least-squares
+    centre (or ``start``); a local minimum near it, which is the minimum zone for a sphere-like profile.
+
+    points : (n, 3) float, mm, n >= 5. start : optional (3,) centre. Returns ZoneSphere.
+    """
+    points = _points(points, (3,), 5)
+    fit = fit_sphere(points) if start is None else None
+    center0 = fit.center if fit is not None else np.asarray(start, dtype=np.float64).reshape(3)
+    width0 = float(np.ptp(np.linalg.norm(points - center0, axis=1)))
+    step = max(width0, 1e-12 * np.abs(points).max())
+
+    def distance(c):
+        return np.linalg.norm(points - c, axis=1)
+
+    def jacobian(c, index):
+        delta = points[index] - c
+        r = np.linalg.norm(delta, axis=1)
+        return r, -delta / r[:, None]
+
+    center, radii = _chebyshev_zone(distance, jacobian, center0, np.full(3, step), np.sqrt(3.0) * step, len(points))
+    mean = (radii.max() + radii.min()) / 2.0
+    return ZoneSphere(center=center, radius_inner=float(radii.min()), radius_outer=float(radii.max()),
+                      width=float(np.ptp(radii)), residuals=radii - mean)
+
+
+# ------------------------------------------------------------------------------------------------- minimum-zone plane
+
+@dataclass(frozen=True)
+class ZonePlane:
+    """Minimum-zone planes (Chebyshev, ISO 12781 MZPL): two parallel planes enclosing the points, of least distance.
+
+    point : (3,) float, mm, on the mid plane. normal : (3,) unit, largest-magnitude component positive.
+    width : float, mm, the flatness deviation. residuals : (n,) float, mm, signed distances to the mid plane.
+    """
+
+    point: np.ndarray
+    normal: np.ndarray
+    width: float
+    residuals: np.ndarray
+
+
+def minimum_zone_plane(points) -> ZonePlane:
+    """Minimum-zone planes: the normal n minimising max_i n . p_i - min_i n . p_i (flatness, ISO 12781-1 MZPL).
+
+    Method: :func:`_chebyshev_zone` from the least-squares plane's normal, n = normalise(n0 + u e1 + v e2): only the
+    extreme points (which lie on the convex hull) can touch the zone. Always <= the least-squares peak-to-valley.
+
+    points : (n, 3) float, mm, n >= 4, not all on one line. Returns ZonePlane.
+    """
+    points = _points(points, (3,), 4)
+    ls = fit_plane(points)
+    n0 = ls.normal
+    e1, e2 = _perpendicular_basis(n0)
+    local = points - ls.point
+    extent = float(np.abs(local).max())
+    step = max(float(np.ptp(ls.residuals)), 1e-12 * extent) / max(extent, 1e-300)
+
+    def normal_of(theta):
+        n = n0 + theta[0] * e1 + theta[1] * e2
+        return n / np.linalg.norm(n), np.linalg.norm(n)
+
+    def distance(theta):
+        return local @ normal_of(theta)[0]
+
+    def jacobian(theta, index):
+        n, norm = normal_of(theta)
+        project = (np.eye(3) - np.outer(n, n)) / norm
+        block = local[index]
+        return block @ n, np.column_stack([block @ (project @ e1), block @ (project @ e2)])
+
+    # |J_i S x|_1 <= |p_i| (|e1| + |e2|) step: 2 sqrt(3) extent step bounds every row
+    theta, f = _chebyshev_zone(distance, jacobian, np.zeros(2), np.full(2, step), 2.0 * np.sqrt(3.0) * extent * step,
+                               len(points))
+    n = normal_of(theta)[0]
+    sign = 1.0 if n[np.argmax(np.abs(n))] >= 0 else -1.0
+    mid = (f.max() + f.min()) / 2.0
+    return ZonePlane(point=ls.point + mid * n, normal=sign * n, width=float(np.ptp(f)), residuals=sign * (f - mid))
+
+
+# --------------------------------------------------------------------------------------------------------- cylinders
+
+@dataclass(frozen=True)
+class CylinderFit:
+    """Least-squares cylinder (Gauss).
+
+    axis : (3,) unit, largest-magnitude component positive. axis_point : (3,) mm, the axis' point nearest the
+    points' centroid. radius : float, mm. residuals : (n,) mm, distance to the axis - radius. rms : float, mm.
+    """
+
+    axis: np.ndarray
+    axis_point: np.ndarray
+    radius: float
+    residuals: np.ndarray
+    rms: float
+
+
+@dataclass(frozen=True)
+class ZoneCylinder:
+    """Minimum-zone cylinders (Chebyshev, ISO 12180 MZCY): two coaxial cylinders enclosing the points, of least
+    radial separation. axis, axis_point as CylinderFit; radius_inner, radius_outer, width (the cylindricity), mm;
+    residuals : (n,) mm, distance to the axis - (radius_inner + radius_outer) / 2."""
+
+    axis: np.ndarray
+    axis_point: np.ndarray
+    radius_inner: float
+    radius_outer: float
+    width: float
+    residuals: np.ndarray
+
+
+def _line_frame(axis0, base0):
+    e1, e2 = _perpendicular_basis(axis0)
+
+    def unpack(theta):
+        n = axis0 + theta[0] * e1 + theta[1] * e2
+        return n / np.linalg.norm(n), base0 + theta[2] * e1 + theta[3] * e2, np.linalg.norm(n)
+
+    def radial(points, theta, index=slice(None)):
+        """Distances of points[index] to the axis and their Jacobian (m, 4) in (u, v, s, t)."""
+        axis, base, norm = unpack(theta)
+        w = points[index] - base
+        h = w @ axis
+        q = w - h[:, None] * axis
+        r = np.linalg.norm(q, axis=1)
+        q_hat = q / np.maximum(r, 1e-300)[:, None]
+        project = (np.eye(3) - np.outer(axis, axis)) / norm
+        d_axis = -h[:, None] * q_hat  # dr/daxis, then through the normalisation
+        return r, np.column_stack([d_axis @ (project @ e1), d_axis @ (project @ e2), -q_hat @ e1, -q_hat @ e2]), h
+
+    return unpack, radial
+
+
+def _finish_axis(axis, base, points):
+    """Orient the axis and move its point to the foot of the points' centroid."""
+    axis = _orient(axis)
+    base = base + ((points.mean(axis=0) - base) @ axis) * axis
+    return axis, base
+
+
+def fit_cylinder(points, initial_axis=None) -> CylinderFit:
+    """Least-squares cylinder: minimise the sum of squared distances | distance to the axis - R |^2.
+
+    Method: Levenberg-Marquardt on the geometric residuals with the exact Jacobian (Forbes, NPL DITC 140/89, §5),
+    the axis parameterised as normalise(a0 + u e1 + v e2) and its point moving in the plane normal to a0 through the
+    centroid (no singularity near the start). Start axis: ``initial_axis``, else the principal directions of the
+    points (the axis is the most spread one for a long cylinder, the least spread one for a short one), the best fit
+    kept.
+
+    points : (n, 3) float, mm, n >= 6. initial_axis : optional (3,) start direction. Returns CylinderFit.
+    """
+    points = _points(points, (3,), 6)
+    centroid = points.mean(axis=0)
+    starts = [_unit(initial_axis, "initial_axis")] if initial_axis is not None else \
+        list(np.linalg.svd(points - centroid, full_matrices=False)[2])
+    best = None
+    for axis0 in starts:
+        unpack, radial = _line_frame(axis0, centroid)
+        r0 = radial(points, np.zeros(4))[0]
+
+        def residuals(params, radial=radial):
+            return radial(points, params[:4])[0] - params[4]
+
+        def jacobian(params, radial=radial):
+            return np.column_stack([radial(points, params[:4])[1], -np.ones(len(points))])
+
+        result = least_squares(residuals, np.r_[np.zeros(4), r0.mean()], jac=jacobian, method="lm", xtol=1e-15,
+                               ftol=1e-15, gtol=1e-15, max_nfev=2000)
+        if best is None or result.cost < best[0].cost:
+            best = (result, unpack)
+    result, unpack = best
+    axis, base, _ = unpack(result.x[:4])
+    axis, base = _finish_axis(axis, base, points)
+    w = points - base
+    res = np.linalg.norm(w - np.outer(w @ axis, axis), axis=1) - result.x[4]
+    return CylinderFit(axis=axis, axis_point=base, radius=float(result.x[4]), residuals=res,
+                       rms=float(np.sqrt(np.mean(res ** 2))))
+
+
+def minimum_zone_cylinder(points, initial_axis=None) -> ZoneCylinder:
+    """Minimum-zone cylinders (cylindricity): the axis minimising max_i r_i - min_i r_i, r_i the distance of p_i to it.
+
+    Method: :func:`_chebyshev_zone` from the least-squares cylinder (a local minimum near it).
+
+    points : (n, 3) float, mm, n >= 6. Returns ZoneCylinder.
+    """
+    points = _points(points, (3,), 6)
+    ls = fit_cylinder(points, initial_axis)
+    unpack, radial = _line_frame(ls.axis, ls.axis_point)
+    h = (points - ls.axis_point) @ ls.axis
+    height = max(float(np.abs(h).max()), 1e-300)
+    width0 = max(float(np.ptp(ls.residuals)), 1e-12 * ls.radius)
+    scale = np.array([width0 / height, width0 / height, width0, width0])
+    # |dr/du| <= |h| / |n|, |dr/ds| <= 1: the rows of J S are bounded by 2 width0 + 2 width0
+    theta, r = _chebyshev_zone(lambda t: radial(points, t)[0], lambda t, i: radial(points, t, i)[:2], np.zeros(4),
+                               scale, 4.0 * width0 * 1.01, len(points))
+    axis, base, _ = unpack(theta)
+    axis, base = _finish_axis(axis, base, points)
+    mean = (r.max() + r.min()) / 2.0
+    return ZoneCylinder(axis=axis, axis_point=base, radius_inner=float(r.min()), radius_outer=float(r.max()),
+                        width=float(np.ptp(r)), residuals=r - mean)
+
+
+# ------------------------------------------------------------------------------------------------------- 3D circles
+
+@dataclass(frozen=True)
+class Circle3DFit:
+    """Least-squares circle in space (Gauss).
+
+    center : (3,) mm. normal : (3,) unit, of the circle's plane, largest-magnitude component positive.
+    radius : float, mm. radial_residuals : (n,) mm, in-plane distance from the centre - radius (+ outward).
+    normal_residuals : (n,) mm, signed distance from the circle's plane. rms : float, mm, of the 3D distances.
+    """
+
+    center: np.ndarray
+    normal: np.ndarray
+    radius: float
+    radial_residuals: np.ndarray
+    normal_residuals: np.ndarray
+    rms: float
+
+
+def fit_circle_3d(points) -> Circle3DFit:
+    """Least-squares circle in space: minimise the sum of squared 3D distances of the points to the circle,
+    d_i^2 = (n . (p_i - c))^2 + (|p_i - c - (n . (p_i - c)) n| - R)^2, over centre, plane normal and radius at once.
+
+    Method: Forbes, NPL DITC 140/89, §6 (circle in space); start from the least-squares plane and the least-squares
+    circle of the points projected on it, then Levenberg-Marquardt on both residual components with the normal
+    parameterised as normalise(n0 + u e1 + v e2). A plane fit followed by a 2D circle fit is not the same: the
+    plane fit weights the points by their out-of-plane scatter only, and its normal can tilt where the joint fit's
+    does not.
+
+    points : (n, 3) float, mm, n >= 4, spread round the circle (not on a line). Returns Circle3DFit.
+    """
+    points = _points(points, (3,), 4)
+    plane = fit_plane(points)
+    n0 = plane.normal
+    e1, e2 = _perpendicular_basis(n0)
+    local = points - plane.point
+    circle = fit_circle_least_squares(np.column_stack([local @ e1, local @ e2]))
+    start = np.r_[0.0, 0.0, circle.center[0], circle.center[1], 0.0, circle.radius]
+
+    def unpack(params):
+        n = n0 + params[0] * e1 + params[1] * e2
+        norm = np.linalg.norm(n)
+        return n / norm, plane.point + params[2] * e1 + params[3] * e2 + params[4] * n0, params[5], norm
+
+    def parts(params):
+        n, c, radius, norm = unpack(params)
+        w = points - c
+        z = w @ n
+        q = w - z[:, None] * n
+        rho = np.linalg.norm(q, axis=1)
+        return n, c, radius, norm, w, z, q / np.maximum(rho, 1e-300)[:, None], rho
+
+    def residuals(params):
+        _, _, radius, _, _, z, _, rho = parts(params)
+        return np.r_[z, rho - radius]
+
+    def jacobian(params):
+        n, _, _, norm, w, z, q_hat, _ = parts(params)
+        project = (np.eye(3) - np.outer(n, n)) / norm
+        dn = np.column_stack([project @ e1, project @ e2])  # (3, 2): dn/du, dn/dv
+        # z = w . n: dz/dn = w, dz/dc = -n;  rho = |w - z n|: drho/dn = -z q_hat, drho/dc = -q_hat
+        dc = np.column_stack([e1, e2, n0])  # (3, 3): dc/ds, dc/dt, dc/dw
+        jz = np.column_stack([w @ dn, -(n @ dc) * np.ones((len(w), 1)), np.zeros(len(w))])
+        jr = np.column_stack([(-z[:, None] * q_hat) @ dn, -q_hat @ dc, -np.ones(len(w))])
+        return np.vstack([jz, jr])
+
+    fit = least_squares(residuals, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
+                        max_nfev=2000)
+    n, c, radius, _, _, z, _, rho = parts(fit.x)
+    sign = 1.0 if n[np.argmax(np.abs(n))] >= 0 else -1.0
+    return Circle3DFit(center=c, normal=sign * n, radius=float(radius), radial_residuals=rho - radius,
+                       normal_residuals=sign * z, rms=float(np.sqrt(np.mean(z ** 2 + (rho - radius) ** 2))))

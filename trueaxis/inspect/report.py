@@ -41,11 +41,14 @@ from __future__ import annotations
 
 import base64
 import dataclasses
+import datetime
 import html
 import json
 import math
+import re
 import shutil
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,7 +57,10 @@ import numpy as np
 from ..fileio import OutputPathError, publish_folder, resolve_output
 from . import deviation as dv
 from . import form
-from .cloud import Cloud, CloudError, check_extent, read_cloud
+from .cloud import Cloud, CloudError, check_extent, read_cloud, write_deviation_csv, write_deviation_ply
+from .tolerances import CHARACTERISTICS, feature_table, load_tolerances, summary
+
+SIZE_KEYS = {k for k, v in CHARACTERISTICS.items() if v[0] == "size"}
 
 __all__ = ["Inspection", "load_part", "inspect_cloud", "deviation_stats", "evaluate_nas979", "evaluate_slots",
            "write_report", "ALIGNMENTS"]
@@ -172,13 +178,17 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
         "apex_mm": [float(v) for v in fit.apex],
         "base_radius_mm": r_base,
         "fit_rms_um": fit.rms * 1e3,
+        "form_um": float(np.ptp(fit.residuals) * 1e3),
         "points": int(len(pts)),
     }
     rings = []
+    heights = (pts - base_point) @ up  # once for all sections; section_ring takes the exact slab from a superset
     for feature in (f for f in part["features"] if f.get("type") == "roundness"):
         h = float(feature["height"])
-        planar, index = form.section_ring(pts, base_point, up, h, slab_mm, half_angle_rad=-fit.half_angle_rad,
+        near = np.flatnonzero(np.abs(heights - h) <= slab_mm * (1 + 1e-9) + 1e-9)
+        planar, index = form.section_ring(pts[near], base_point, up, h, slab_mm, half_angle_rad=-fit.half_angle_rad,
                                           return_index=True)
+        index = near[index]
         entry = {"id": feature.get("id"), "height_mm": h, "points": int(len(index)), "slab_half_width_mm": slab_mm}
         if len(index) < MIN_RING_POINTS:
             entry.update(least_squares=None, minimum_zone=None, diameter_ls_mm=None,
@@ -303,20 +313,36 @@ def evaluate_slots(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5) 
 
 # -------------------------------------------------------------------------------------------------- the pipeline
 
-def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none", gate_mm: float = 0.5) -> Inspection:
+def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none", gate_mm: float = 0.5,
+                  tolerances=None, program=None, machine=None) -> Inspection:
     """Read (or take) a cloud, check it can be the part, align it, measure its deviations, evaluate the features.
 
-    cloud : path of a PLY/CSV/XYZ file, or a Cloud. part : "nas979" | "slots". part_dir : folder with <part>.json
-    (and slots.stl). cad : a STEP or mesh file of the part (the reference where the JSON has no analytic surface;
-    without a JSON beside it, the only reference). align : "none" | "bestfit" | "datum".
+    cloud : path of a cloud file (``read_cloud``), or a Cloud. part : "nas979" | "slots". part_dir : folder with
+    <part>.json (and slots.stl). cad : a STEP or mesh file of the part, with its JSON beside it (``<stem>.json``): the
+    mesh is the reference where the JSON has no analytic surface; without the JSON the features cannot be evaluated
+    and the inspection is refused, naming the JSON it needs. align : "none" | "bestfit" | "datum".
+    tolerances : a tolerance TOML file (``trueaxis.inspect.tolerances``; merged over the part JSON's own), or None for
+    the JSON's alone.
+    program, machine : the NC program that cut the part and the machine file, named in the report's header (when
+    known).
 
     Raises CloudError / InspectionError (ValueError) with a one-line message; nothing is written here.
     """
     if align not in ALIGNMENTS:
         raise dv.InspectionError(f"unknown alignment {align!r}: expected one of {', '.join(ALIGNMENTS)}")
+    if cad is not None and not Path(cad).with_suffix(".json").is_file():
+        # the features (cone, roundness sections, slot widths, walls, floors) are the JSON's analytic surfaces and
+        # feature list: a STEP file alone has faces but not which slot, wall or section each one is, so every
+        # feature would come out empty; refuse before the slow tessellation rather than report nulls
+        json_name = Path(cad).with_suffix(".json").name
+        raise dv.InspectionError(
+            f"{cad}: no part JSON beside it ({json_name}): the {part} part's features are evaluated on the analytic "
+            f"surfaces and feature list of that JSON, which a STEP file does not carry; write the STEP and the JSON "
+            f"together with 'trueaxis part {part} -o DIR' (then --cad DIR/{part}.step or --part-dir DIR)")
     if not isinstance(cloud, Cloud):
         cloud = read_cloud(cloud)
     part_doc = load_part(part, part_dir, cad)
+    limits = load_tolerances(tolerances, part_doc)  # a bad tolerance file is refused before any work
     has_json = cad is None or Path(cad).with_suffix(".json").is_file()
     surfaces = dv.analytic_surfaces(part_doc) if has_json else []
 
@@ -371,8 +397,25 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
             per_surface[sid] = deviation_stats(d_um[sel])
     if dev.from_mesh.any():
         per_surface["cad_mesh"] = deviation_stats(d_um[dev.from_mesh])
+    from .. import __version__
+
+    if part_dir is not None:
+        description = str(Path(part_dir) / f"{part}.json")
+    elif cad is not None:
+        description = f"{Path(cad).with_suffix('.json')} (with {cad})"
+    else:
+        description = "the default parameters of 'trueaxis part'"
+    header = {
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
+        "part": PART_NAMES.get(part, part), "part_description": description, "cloud": str(cloud.source),
+        "points": int(len(aligned)), "program": None if program is None else str(program),
+        "machine_file": None if machine is None else str(machine), "alignment": _alignment_words(motion),
+        "tolerances": str(tolerances) if tolerances is not None else (
+            "from the part JSON" if limits else "none given"),
+        "trueaxis_version": __version__,
+    }
     report = {
-        "trueaxis_report": "inspect", "version": 1,
+        "trueaxis_report": "inspect", "version": 1, "header": header,
         "part": part, "cloud": str(cloud.source), "points": int(len(aligned)),
         "units": "lengths in the keys' units (mm, um), angles in deg or urad; deviations + = material outside the "
                  "nominal surface",
@@ -389,135 +432,407 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         },
         **features,
     }
+    report["feature_table"] = feature_table(report, part_doc, limits)
+    report["feature_summary"] = summary(report["feature_table"])
     figures.update(points=aligned, deviation_um=d_um)
     return Inspection(cloud, aligned, normals, dev, part_doc, report, figures)
 
 
+def _alignment_words(motion: dv.RigidMotion) -> str:
+    """The alignment in one line: method, and for a fit the motion it removed."""
+    if motion.method == "none":
+        return "none: the cloud was taken as measured in the part frame"
+    t, w = motion.translation_um, motion.rotation_urad
+    moved = (f"removed translation ({t[0]:+.2f}, {t[1]:+.2f}, {t[2]:+.2f}) um, rotation ({w[0]:+.1f}, {w[1]:+.1f}, "
+             f"{w[2]:+.1f}) urad")
+    words = {"bestfit": "best fit onto the CAD", "datum": "3-2-1 datum frame (A, B, C planes)"}
+    return f"{words.get(motion.method, motion.method)}; {moved}"
+
+
 # -------------------------------------------------------------------------------------------------- the writing
 
-def _figures(inspection: Inspection, folder: Path) -> list[tuple[str, str]]:
-    """Write the PNGs into ``folder``; returns [(file name, caption)]."""
-    import matplotlib
+def _nice(value: float, up: bool = False) -> float:
+    """A round number near value > 0 (1, 2 or 5 times a power of ten), or the next one at or above it (also 1.5, 3,
+    4, 6, 8 times a power of ten), for scales."""
+    exponent = math.floor(math.log10(value))
+    mantissa = value / 10 ** exponent
+    if up:
+        return next(m for m in (1, 1.5, 2, 3, 4, 5, 6, 8, 10) if m >= mantissa * (1 - 1e-12)) * 10 ** exponent
+    return (1 if mantissa < 1.5 else 2 if mantissa < 3.5 else 5 if mantissa < 7.5 else 10) * 10 ** exponent
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def _profile_for_plot(angle, residual, limit: int = 2000, bins: int = 1440):
+    """A roundness profile ready to draw: sorted by angle, all points when there are at most ``limit``; else, per
+    bin of 360/bins deg, the highest and the lowest residual (so no peak is lost). Returns (angle (m,) rad,
+    residual or highest (m,), lowest (m,) or None)."""
+    order = np.argsort(angle)
+    angle, residual = angle[order], residual[order]
+    if len(angle) <= limit:
+        return angle, residual, None
+    index = np.minimum(((angle + np.pi) / (2 * np.pi) * bins).astype(np.int64), bins - 1)
+    starts = np.flatnonzero(np.r_[True, index[1:] != index[:-1]])
+    centre = (index[starts] + 0.5) * (2 * np.pi / bins) - np.pi
+    return centre, np.maximum.reduceat(residual, starts), np.minimum.reduceat(residual, starts)
+
+
+def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]], dict]:
+    """Write the PNGs into ``folder``; returns ([(file name, caption)], the plotted data for report.json)."""
+    # matplotlib's object API, not pyplot: no global figure state, and 0.2 s less to import
+    from matplotlib.figure import Figure
 
     fig_data = inspection.figures
+    report = inspection.report
     pts, d = fig_data["points"], fig_data["deviation_um"]
     rng = np.random.default_rng(0)
-    show = rng.choice(len(pts), size=min(len(pts), 40_000), replace=False) if len(pts) > 40_000 else slice(None)
-    limit = float(np.percentile(np.abs(d), 99)) or 1.0
-    written = []
+    show = np.sort(rng.choice(len(pts), size=15_000, replace=False)) if len(pts) > 15_000 else slice(None)
+    limit = _nice(float(np.percentile(np.abs(d), 99)) or 1.0, up=True)
+    written, data = [], {}
+    colour_label = "deviation (um), + = material outside"
 
-    fig = plt.figure(figsize=(7.5, 6))
-    if inspection.report["part"] == "nas979":
-        ax = fig.add_subplot(projection="3d")
+    if report["part"] == "nas979":
+        fig = Figure(figsize=(8.5, 6.0))
+        ax = fig.add_axes([0.0, 0.02, 0.8, 0.92], projection="3d")
         sc = ax.scatter(*pts[show].T, c=d[show], cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
-        ax.set_zlabel("z (mm)")
+        ax.set_xlabel("x (mm)", labelpad=8)
+        ax.set_ylabel("y (mm)", labelpad=8)
+        ax.set_zlabel("z (mm)", labelpad=4)
         ax.set_box_aspect(np.ptp(pts, axis=0) + 1e-9)
+        # the colour bar stands clear of the 3D axes' z label: its own column, with a gap
+        cax = fig.add_axes([0.86, 0.2, 0.025, 0.6])
+        fig.colorbar(sc, cax=cax).set_label(colour_label)
     else:
-        ax = fig.add_subplot()
+        fig = Figure(figsize=(10, 4.8))
+        ax = fig.subplots()
+        fig.subplots_adjust(left=0.07, right=0.98, bottom=0.1, top=0.92)
         sc = ax.scatter(pts[show, 0], pts[show, 1], c=d[show], cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
         ax.set_aspect("equal")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    fig.colorbar(sc, ax=ax, shrink=0.7, label="deviation (um), + = material outside")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        for feature in (f for f in inspection.part.get("features", []) if f.get("type") == "slot"):
+            path = np.asarray(feature["tool_centre_path"], float)[:, :2]
+            ax.plot(*path.T, color="0.3", lw=0.8, ls="--")
+            ax.annotate(f"{feature['id']}\ncompensation: {feature.get('compensation', '')}",
+                        (path[0] + path[1]) / 2, xytext=(0, -24), textcoords="offset points", ha="center", va="top",
+                        fontsize=9, annotation_clip=False,
+                        bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.6", alpha=0.9))
+        ax.set_ylim(bottom=ax.get_ylim()[0] - 16)  # room for the slots' labels below their first segments
+        fig.colorbar(sc, ax=ax, shrink=0.7, pad=0.03).set_label(colour_label)
     ax.set_title("Deviation from the nominal part (part frame)")
-    fig.savefig(folder / "deviation_map.png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    written.append(("deviation_map.png", "Deviation colour map on the part (colour scale clipped at the 99th "
-                    "percentile of |deviation|)."))
+    # fixed layouts, no tight bounding box: each figure is drawn once (a tight layout draws it twice)
+    fig.savefig(folder / "deviation_map.png", dpi=100)
+    written.append(("deviation_map.png", f"Deviation colour map on the part ({min(len(pts), 15_000):,} of "
+                    f"{len(pts):,} points shown; colour scale +-{limit:g} um, the round number at or above the "
+                    "99th percentile of |deviation|; all points with their deviations are in deviations.ply and "
+                    "deviations.csv)."))
+    data["deviation_map"] = {"file": "deviation_map.png", "colour_limit_um": limit, "points_shown":
+                             int(min(len(pts), 15_000)), "data": "deviations.ply"}
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    ax.hist(d, bins=80, color="steelblue")
-    ax.set_xlabel("deviation (um)")
+    counts, edges = np.histogram(d, bins=80)
+    fig = Figure(figsize=(7.5, 4))
+    ax = fig.subplots()
+    ax.stairs(counts, edges, fill=True, color="steelblue")
+    ax.set_xlabel("deviation (um), + = material outside")
     ax.set_ylabel("points")
     ax.set_title("Histogram of deviations")
-    fig.savefig(folder / "histogram.png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    written.append(("histogram.png", "Histogram of the signed deviations."))
+    fig.subplots_adjust(left=0.11, right=0.97, bottom=0.14, top=0.9)
+    fig.savefig(folder / "histogram.png", dpi=100)
+    written.append(("histogram.png", "Histogram of the signed deviations (80 bins)."))
+    data["histogram"] = {"file": "histogram.png", "bin_edges_um": edges, "counts": counts}
 
     rings = fig_data.get("rings") or []
     if rings:
-        fig, axes = plt.subplots(1, len(rings), subplot_kw={"projection": "polar"}, figsize=(4.2 * len(rings), 4.4))
+        fig = Figure(figsize=(4.8 * len(rings), 5.4))
+        axes = fig.subplots(1, len(rings), subplot_kw={"projection": "polar"})
         axes = np.atleast_1d(axes)
+        data["roundness"] = []
+        span = max(max(float(np.abs(ring["residual_um"]).max()) for ring in rings), 1e-6)
+        step = _nice(span / 2)  # one radial scale for all sections, so they compare at a glance
+        top = step * math.ceil(span / step)
+        base = 2 * top  # the nominal circle: the profile is drawn at base + residual
         for ax, ring in zip(axes, rings):
-            order = np.argsort(ring["angle"])
-            r = ring["residual_um"][order]
-            span = max(float(np.ptp(r)), 1e-6)
-            base = span  # radial axis: residual + an offset so that the profile reads as a ring
-            ax.plot(np.r_[ring["angle"][order], ring["angle"][order][:1]], np.r_[r, r[:1]] + base, lw=1)
-            ax.plot(np.linspace(0, 2 * np.pi, 200), np.full(200, base), "k--", lw=0.6)
-            ax.set_ylim(0, base + r.max() + 0.1 * span)
-            ax.set_yticklabels([])
-            ax.set_title(f"h = {ring['height_mm']:g} mm\nLS roundness {np.ptp(r):.2f} um", fontsize=9)
-        fig.savefig(folder / "roundness.png", dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        written.append(("roundness.png", "Roundness profiles about the least-squares circles (dashed), radial "
-                        "deviation magnified."))
-    return written
+            angle, r, low = _profile_for_plot(ring["angle"], ring["residual_um"])
+            if low is None:
+                ax.plot(np.r_[angle, angle[:1]], np.r_[r, r[:1]] + base, lw=1, color="C0")
+            else:  # a dense profile: the band between each 0.25 deg bin's lowest and highest point
+                ax.fill_between(np.r_[angle, angle[:1]], np.r_[low, low[:1]] + base, np.r_[r, r[:1]] + base,
+                                color="C0", lw=0.6)
+            ax.plot(np.linspace(0, 2 * np.pi, 361), np.full(361, base), "k--", lw=0.7)
+            ax.set_ylim(0, base + top)
+            ticks = np.arange(-top, top + step / 2, step)
+            ax.set_yticks(base + ticks)
+            ax.set_yticklabels([f"{t:+g} um" if t else "0" for t in ticks], fontsize=7)
+            ax.set_rlabel_position(100)
+            ax.tick_params(axis="x", labelsize=8)
+            ax.set_title(f"h = {ring['height_mm']:g} mm\nLS roundness {np.ptp(ring['residual_um']):.2f} um",
+                         fontsize=10, pad=18)
+            entry = {"height_mm": ring["height_mm"], "reference": "least-squares circle",
+                     "angle_deg": np.round(np.degrees(angle), 3)}
+            if low is None:
+                entry["residual_um"] = np.round(r, 4)
+            else:
+                entry.update(residual_max_um=np.round(r, 4), residual_min_um=np.round(low, 4),
+                             note="1440 bins of 0.25 deg: the highest and lowest residual in each")
+            data["roundness"].append(entry)
+        fig.suptitle(f"Roundness profiles: radial deviation from the least-squares circle (dashed), radial scale in um "
+                     f"(grid every {step:g} um)", fontsize=10)
+        fig.subplots_adjust(left=0.04, right=0.96, bottom=0.06, top=0.76, wspace=0.45)
+        fig.savefig(folder / "roundness.png", dpi=100)
+        written.append(("roundness.png", "Roundness profiles of the sections about their least-squares circles "
+                        "(dashed); the radial axis is the deviation in um, the same scale for every section."))
+        data["roundness_file"] = "roundness.png"
+
+    parameters = (report.get("identification") or {}).get("parameters") if isinstance(
+        report.get("identification"), dict) else None
+    if parameters:
+        names = [p["name"] for p in parameters]
+        values = [next((v for k, v in p.items() if k.startswith("value_")), None) for p in parameters]
+        stds = [next((v for k, v in p.items() if k.startswith("std_")), None) for p in parameters]
+        units = [next((k[6:] for k in p if k.startswith("value_")), "") for p in parameters]
+        fig = Figure(figsize=(max(5.0, 0.6 * len(names) + 2), 4))
+        ax = fig.subplots()
+        x = np.arange(len(names))
+        ax.bar(x, [v or 0.0 for v in values], yerr=[2 * (s or 0.0) for s in stds], capsize=3, color="C2")
+        ax.set_xticks(x, [f"{n}\n({u})" for n, u in zip(names, units)], fontsize=8)
+        ax.axhline(0, color="k", lw=0.6)
+        ax.set_ylabel("identified value (um or urad)")
+        ax.set_title("Identified parameters, error bars +-2 std")
+        fig.subplots_adjust(left=0.12, right=0.97, bottom=0.2, top=0.9)
+        fig.savefig(folder / "identified.png", dpi=100)
+        written.append(("identified.png", "Identified twin parameters with +-2 standard deviations."))
+        data["identified"] = {"file": "identified.png", "names": names, "values": values, "std": stds,
+                              "units": units}
+        components = _component_tables(names, values, stds, units)
+        if components:
+            fig = Figure(figsize=(5.0 * min(len(components), 3), 3.6 * math.ceil(len(components) / 3)))
+            axes = np.atleast_1d(fig.subplots(math.ceil(len(components) / 3), min(len(components), 3))).ravel()
+            for ax, (component, table) in zip(axes, components.items()):
+                ax.errorbar(table["position"], table["value"], yerr=2 * np.asarray(table["std"]), marker="o",
+                            capsize=3, color="C3")
+                ax.axhline(0, color="k", lw=0.6)
+                ax.set_title(component, fontsize=10)
+                ax.set_xlabel(f"{component[-1]} position ({'deg' if component[-1] in 'ABC' else 'mm'})")
+                ax.set_ylabel(f"error ({table['unit']})")
+            for ax in axes[len(components):]:
+                ax.set_visible(False)
+            fig.subplots_adjust(left=0.08, right=0.97, bottom=0.15, top=0.8, wspace=0.35, hspace=0.6)
+            fig.suptitle("Identified component errors against the axis position, error bars +-2 std", fontsize=10)
+            fig.savefig(folder / "components.png", dpi=100)
+            written.append(("components.png", "Identified component errors (tables of values at axis positions) "
+                            "against the position of their axis, with +-2 standard deviations."))
+            data["components"] = {"file": "components.png", **components}
+    return written, data
+
+
+def _component_tables(names, values, stds, units) -> dict:
+    """Identified component-error table values (``EXX@-100``: EXX at X = -100) grouped per component, sorted by
+    position: {component: {"position", "value", "std", "unit"}}."""
+    tables: dict = {}
+    for name, value, std, unit in zip(names, values, stds, units):
+        match = re.fullmatch(r"(E[XYZABC][XYZABC])@(-?[0-9.eE+-]+)", str(name))
+        if match is None or value is None:
+            continue
+        table = tables.setdefault(match.group(1), {"position": [], "value": [], "std": [], "unit": unit})
+        table["position"].append(float(match.group(2)))
+        table["value"].append(float(value))
+        table["std"].append(float(std or 0.0))
+    for table in tables.values():
+        order = np.argsort(table["position"])
+        for key in ("position", "value", "std"):
+            table[key] = [table[key][i] for i in order]
+    return tables
+
+
+# ------------------------------------------------------------------------------------------------------- the page
+
+# human labels of report keys; a key not listed is shown with its underscores as spaces and its unit in brackets
+_LABELS = {
+    "rms": "RMS", "min": "minimum", "max": "maximum", "mean": "mean", "std": "standard deviation",
+    "p95": "95th percentile of |deviation|", "points": "points",
+    "half_angle_deg": "half angle", "nominal_half_angle_deg": "nominal half angle",
+    "half_angle_error_urad": "half-angle error", "half_angle_std_urad": "half-angle standard deviation",
+    "axis": "axis direction (base to top)", "nominal_axis": "nominal axis direction",
+    "axis_tilt_urad": "axis tilt from nominal", "axis_point_mm": "axis point at the nominal base plane",
+    "axis_offset_um": "axis offset from the nominal base centre", "apex_mm": "apex",
+    "base_radius_mm": "radius at the base plane", "fit_rms_um": "fit residual RMS",
+    "form_um": "form (peak-to-valley about the cone)", "cone_points": "points on the cone",
+    "height_mm": "height", "nominal_mm": "nominal", "measured_mm": "measured", "error_um": "error",
+    "translation_um": "translation", "rotation_urad": "rotation (rotation vector)", "method": "method",
+    "iterations": "iterations", "rms_after_um": "RMS after alignment", "not_determined": "not determined",
+}
+_DECIMALS = {"um": 2, "urad": 1, "mm": 4, "deg": 5}
+
+
+def _unit_of_key(key: str) -> str:
+    tail = key.rsplit("_", 1)[-1]
+    return tail if tail in _DECIMALS else ""
+
+
+def _label(key: str) -> str:
+    unit = _unit_of_key(key)
+    text = _LABELS.get(key) or (key[: -len(unit) - 1] if unit else key).replace("_", " ")
+    return f"{text} ({unit})" if unit else text
+
+
+def _value(value, unit: str = "") -> str:
+    """A number rounded for its unit (um 0.01, urad 0.1, mm 0.0001, deg 0.00001), vectors in brackets, lists
+    joined; None as an en dash."""
+    if value is None:
+        return "&ndash;"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return f"{value:,}"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return "&ndash;"
+        decimals = _DECIMALS.get(unit, 4)
+        text = f"{value:.{decimals}f}"
+        return "0" if float(text) == 0 else text
+    if isinstance(value, (list, tuple)):
+        if value and all(isinstance(v, (int, float)) for v in value):
+            return "(" + ", ".join(_value(float(v), unit) for v in value) + ")"
+        return "; ".join(html.escape(str(v)) for v in value) or "none"
+    if isinstance(value, dict):
+        return html.escape(", ".join(f"{k}: {v}" for k, v in value.items()))
+    return html.escape(str(value))
+
+
+def _table(mapping: dict, skip=(), unit: str = "") -> str:
+    """Key-value rows with human labels; each value rounded for its key's unit (or ``unit`` for all)."""
+    rows = "".join(f"<tr><th>{html.escape(_label(k))}</th><td>{_value(v, unit or _unit_of_key(k))}</td></tr>"
+                   for k, v in mapping.items() if k not in skip and not isinstance(v, dict))
+    return f"<table class='kv'>{rows}</table>"
+
+
+def _header_html(header: dict) -> str:
+    labels = [("date_utc", "date (UTC)"), ("part", "part"), ("part_description", "part description"),
+              ("cloud", "cloud"), ("points", "points"), ("program", "program"), ("machine_file", "machine file"),
+              ("alignment", "alignment"), ("tolerances", "tolerances"), ("trueaxis_version", "trueaxis version")]
+    cells = "".join(f"<tr><th>{html.escape(label)}</th><td>{_value(header.get(key))}</td></tr>"
+                    for key, label in labels)
+    return f"<table class='header' id='report-header'>{cells}</table>"
 
 
 def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
-    def rows(mapping):
-        return "".join(f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(_fmt(v))}</td></tr>"
-                       for k, v in mapping.items())
-
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>trueaxis inspection: "
-             f"{html.escape(report['part'])}</title><style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}"
-             "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 8px;text-align:left}"
-             "img{max-width:100%}</style></head><body>",
-             f"<h1>Inspection of {html.escape(report['cloud'])} against {html.escape(report['part'])}</h1>",
-             f"<p>{report['points']} points; {html.escape(report['units'])}.</p>",
-             "<h2>Deviation (um)</h2><table>" + rows(report["deviation_um"]) + "</table>",
-             "<h2>Alignment</h2><table>" + rows(report["alignment"]) + "</table>"]
+    header = report["header"]
+    title = f"Inspection report: {PART_NAMES.get(report['part'], report['part'])}"
+    style = ("body{font-family:'DejaVu Sans',Arial,sans-serif;max-width:1150px;margin:auto;padding:0 16px;"
+             "color:#222}h1{margin-bottom:4px}h2{border-bottom:1px solid #999;margin-top:28px}"
+             "table{border-collapse:collapse;margin:6px 0}td,th{border:1px solid #bbb;padding:3px 9px;"
+             "text-align:left;vertical-align:top}th{background:#f1f1f1;font-weight:600}"
+             "table.features td:nth-child(n+3){text-align:right;white-space:nowrap}"
+             "table.header{width:100%}table.header th{width:22%}img{max-width:100%;border:1px solid #ddd}"
+             "figcaption{font-size:90%;color:#444;margin-bottom:18px}.signature td{height:36px;width:260px}"
+             "@media print{h2{page-break-after:avoid}figure{page-break-inside:avoid}}")
+    d = report["deviation_um"]
+    parts = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+             f"<style>{style}</style></head><body>",
+             f"<h1>{html.escape(title)}</h1>", _header_html(header)]
+    counts = report.get("feature_summary") or {}
+    parts.append(f"<h2>Summary</h2><p>{report['points']:,} points; deviation RMS {_value(d['rms'], 'um')} um, "
+                 f"range {_value(d['min'], 'um')} to {_value(d['max'], 'um')} um (+ = material outside the nominal "
+                 f"surface). Characteristics: {counts.get('pass', 0)} in tolerance, {counts.get('fail', 0)} out of "
+                 f"tolerance, {counts.get('no tolerance', 0)} without a tolerance, "
+                 f"{counts.get('not measured', 0)} not measured.</p>")
+    if report.get("feature_table"):
+        parts.append(_feature_table_html(report["feature_table"]))
+    parts.append("<h2>Deviation from the nominal surfaces (um)</h2>" + _table(d, unit="um"))
+    by_surface = report.get("deviation_by_surface_um") or {}
+    if by_surface:
+        rows = "".join(f"<tr><td>{html.escape(sid)}</td><td>{s['points']:,}</td><td>{_value(s['rms'], 'um')}</td>"
+                       f"<td>{_value(s['mean'], 'um')}</td><td>{_value(s['min'], 'um')}</td>"
+                       f"<td>{_value(s['max'], 'um')}</td></tr>" for sid, s in by_surface.items())
+        parts.append("<h3>By surface</h3><table><tr><th>surface</th><th>points</th><th>RMS (um)</th><th>mean (um)"
+                     "</th><th>minimum (um)</th><th>maximum (um)</th></tr>" + rows + "</table>")
     if report.get("cone"):
-        parts.append("<h2>Cone</h2><table>" + rows(report["cone"]) + "</table>")
-    if report.get("diameter"):
-        parts.append("<h2>Diameter</h2><table>" + rows(report["diameter"]) + "</table>")
+        parts.append("<h2>Cone (least-squares fit)</h2>" + _table(report["cone"], skip=("axis_point_note",)))
     if report.get("roundness_um"):
-        parts.append("<h2>Roundness (um)</h2><table><tr><th>height (mm)</th><th>least squares</th>"
-                     "<th>minimum zone</th><th>points</th></tr>" + "".join(
-                         f"<tr><td>{r['height_mm']:g}</td><td>{_fmt(r['least_squares'])}</td>"
-                         f"<td>{_fmt(r['minimum_zone'])}</td><td>{r['points']}</td></tr>"
-                         for r in report["roundness_um"]) + "</table>")
+        rows = "".join(f"<tr><td>{html.escape(str(r.get('id')))}</td><td>{_value(r['height_mm'], 'mm')}</td>"
+                       f"<td>{_value(r['least_squares'], 'um')}</td><td>{_value(r['minimum_zone'], 'um')}</td>"
+                       f"<td>{_value(r.get('diameter_ls_mm'), 'mm')}</td><td>{r['points']:,}</td></tr>"
+                       for r in report["roundness_um"])
+        parts.append("<h2>Roundness</h2><table><tr><th>section</th><th>height (mm)</th><th>least squares, RONt "
+                     "(um)</th><th>minimum zone, RONt (um)</th><th>least-squares diameter (mm)</th><th>points</th>"
+                     "</tr>" + rows + "</table>")
+    if report.get("diameter"):
+        parts.append("<h2>Diameter</h2>" + _table(report["diameter"]))
     for slot in report.get("slots", []):
-        parts.append(f"<h2>{html.escape(slot['id'])} ({html.escape(str(slot['compensation']))})</h2>")
-        parts.append("<table>" + rows({"points": slot["points"], "mean contour error (um)":
-                                       slot["mean_contour_error_um"], "mean width (mm)": slot["width"]["mean_mm"],
-                                       "mean width error (um)": slot["width"]["mean_error_um"],
-                                       "max |position| (um)": slot["position_um"]["max_abs"],
-                                       "depth error (um)": (slot["depth"] or {}).get("error_um")}) + "</table>")
+        parts.append(f"<h2>Slot {html.escape(slot['id'])} (compensation: {html.escape(str(slot['compensation']))})"
+                     "</h2>")
+        parts.append(_table({"points": slot["points"], "mean_contour_error_um": slot["mean_contour_error_um"],
+                             "mean_width_mm": slot["width"]["mean_mm"],
+                             "mean_width_error_um": slot["width"]["mean_error_um"],
+                             "largest_position_offset_um": slot["position_um"]["max_abs"],
+                             "depth_error_um": (slot["depth"] or {}).get("error_um")}))
         parts.append("<table><tr><th>segment</th><th>width (mm)</th><th>width error (um)</th><th>position (um)</th>"
                      "<th>parallelism (um)</th></tr>" + "".join(
-                         f"<tr><td>{s['segment']}</td><td>{_fmt(s['width_mm'])}</td><td>{_fmt(s['width_error_um'])}"
-                         f"</td><td>{_fmt(s['position_um'])}</td><td>{_fmt(s.get('parallelism_um'))}</td></tr>"
+                         f"<tr><td>{s['segment']}</td><td>{_value(s['width_mm'], 'mm')}</td>"
+                         f"<td>{_value(s['width_error_um'], 'um')}</td><td>{_value(s['position_um'], 'um')}</td>"
+                         f"<td>{_value(s.get('parallelism_um'), 'um')}</td></tr>"
                          for s in slot["width"]["segments"]) + "</table>")
-        parts.append("<table><tr><th>wall</th><th>straightness (um)</th></tr>" + "".join(
-            f"<tr><td>{html.escape(k)}</td><td>{_fmt(v)}</td></tr>" for k, v in slot["straightness_um"].items())
-            + "</table>")
-    if report.get("identification") is not None:
-        parts.append("<h2>Identification</h2><pre>" + html.escape(json.dumps(report["identification"], indent=1))
-                     + "</pre>")
+        parts.append("<table><tr><th>wall</th><th>straightness, minimum zone (um)</th></tr>" + "".join(
+            f"<tr><td>{html.escape(k)}</td><td>{_value(v, 'um')}</td></tr>"
+            for k, v in slot["straightness_um"].items()) + "</table>")
+    alignment = report["alignment"]
+    parts.append("<h2>Alignment</h2>" + _table(alignment, skip=("applied_as", "rotation_note")))
+    parts.append(f"<p>{html.escape(str(alignment.get('applied_as', '')))}; "
+                 f"{html.escape(str(alignment.get('rotation_note', '')))}.</p>")
+    identification = report.get("identification")
+    if isinstance(identification, dict):
+        parts.append("<h2>Identified parameters</h2>")
+        params = identification.get("parameters") or []
+        if params:
+            rows = []
+            for p in params:
+                unit = next((k[6:] for k in p if k.startswith("value_")), "")
+                rows.append(f"<tr><td>{html.escape(str(p.get('name')))}</td><td>{_value(p.get('value_' + unit), unit)}"
+                            f"</td><td>{_value(p.get('std_' + unit), unit)}</td><td>{html.escape(unit)}</td></tr>")
+            parts.append("<table><tr><th>parameter</th><th>value</th><th>standard deviation</th><th>unit</th></tr>"
+                         + "".join(rows) + "</table>")
+        if identification.get("not_identifiable"):
+            parts.append("<p>Not identifiable from this part: "
+                         + html.escape(", ".join(map(str, identification["not_identifiable"]))) + ".</p>")
+        parts.append(_table({k: v for k, v in identification.items()
+                             if isinstance(v, (int, float, str)) and not isinstance(v, bool)}))
+    elif identification is not None:
+        parts.append("<h2>Identification</h2><p>" + html.escape(str(identification)) + "</p>")
     parts.append("<h2>Pictures</h2>")
     for name, caption in images:
         data = base64.b64encode((folder / name).read_bytes()).decode("ascii")
         parts.append(f"<figure><img alt='{html.escape(name)}' src='data:image/png;base64,{data}'>"
-                     f"<figcaption>{html.escape(caption)} ({html.escape(name)})</figcaption></figure>")
-    parts.append("</body></html>\n")
+                     f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+    parts.append("<h2>Sign-off</h2><table class='signature'><tr><th>inspected by</th><td></td><th>date</th><td></td>"
+                 "</tr><tr><th>approved by</th><td></td><th>date</th><td></td></tr></table>")
+    parts.append(f"<p style='font-size:85%;color:#555'>Files: {html.escape(', '.join(report.get('files', [])))}. "
+                 f"{html.escape(report['units'])}.</p></body></html>\n")
     return "\n".join(parts)
 
 
-def _fmt(value) -> str:
-    if value is None:
-        return "n/a"
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_fmt(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return json.dumps(value)
-    return str(value)
+PART_NAMES = {"nas979": "NAS 979 cone frustum", "slots": "slot block"}
+
+
+def _feature_table_html(rows: list[dict]) -> str:
+    def limits(row):
+        t = row["tolerance"]
+        if t is None:
+            return ""
+        return f"{t['lower']:+.1f} / {t['upper']:+.1f} {row['deviation_unit']}" if row["key"] in SIZE_KEYS \
+            else f"&le; {t['upper']:.1f} {row['deviation_unit']}"
+
+    def value(v, unit):
+        if v is None:
+            return "n/a"
+        return f"{v:.4f} {unit}" if unit in ("mm", "deg") else f"{v:.2f} {unit}"
+
+    colour = {"pass": "#d9f2d9", "fail": "#f8d0d0"}
+    body = "".join(
+        f"<tr style='background:{colour.get(r['result'], '#ffffff')}'><td>{html.escape(r['feature'])}</td>"
+        f"<td>{html.escape(r['characteristic'])}</td><td>{value(r['nominal'], r['unit'])}</td>"
+        f"<td>{value(r['actual'], r['unit'])}</td><td>{value(r['deviation'], r['deviation_unit'])}</td>"
+        f"<td>{limits(r)}</td><td><b>{html.escape(r['result'])}</b></td></tr>" for r in rows)
+    return ("<h2>Feature table</h2><table class='features'><tr><th>feature</th><th>characteristic</th>"
+            "<th>nominal</th><th>actual</th><th>deviation</th><th>tolerance</th><th>result</th></tr>" + body
+            + "</table>")
 
 
 def _clean(value):
@@ -535,8 +850,22 @@ def _clean(value):
     return value
 
 
+def _write_point_files(inspection: Inspection, folder: Path) -> None:
+    """``deviations.ply`` (binary; the deviation as the scalar field ``deviation_um``, CloudCompare's convention
+    ``scalar_deviation_um``) and ``deviations.csv`` (x_mm, y_mm, z_mm, deviation_um, surface) of the aligned points."""
+    dev = inspection.deviation
+    names = list(dev.surface_ids) + ["cad_mesh"]
+    codes = np.where(dev.from_mesh | (dev.surface < 0), len(names) - 1, dev.surface)
+    comments = [f"trueaxis inspect: {inspection.report['part']} part frame, mm; deviation um, + = material outside",
+                f"cloud {Path(str(inspection.cloud.source)).name}"]
+    write_deviation_ply(folder / "deviations.ply", inspection.aligned, inspection.deviation_um, inspection.normals,
+                        comments=[c.replace("\n", " ") for c in comments])
+    write_deviation_csv(folder / "deviations.csv", inspection.aligned, inspection.deviation_um, (names, codes))
+
+
 def write_report(inspection: Inspection, out_dir) -> Path:
-    """Write ``out_dir/report.json``, ``report.html`` and the PNGs, all or nothing.
+    """Write ``out_dir/report.json``, ``report.html``, the PNGs and the per-point deviations (``deviations.ply``,
+    ``deviations.csv``), all or nothing.
 
     The folder is built as a temporary sibling and renamed into place; an existing ``out_dir`` (a previous report)
     is moved aside first and removed once the new one is in place. Returns the folder.
@@ -550,8 +879,14 @@ def write_report(inspection: Inspection, out_dir) -> Path:
     temp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
     try:
         report = _clean(inspection.report)
-        images = _figures(inspection, temp)
-        report["files"] = ["report.json", "report.html"] + [name for name, _ in images]
+        # the point files (numpy formatting, which releases the GIL) are written while matplotlib draws
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            points_written = pool.submit(_write_point_files, inspection, temp)
+            images, figure_data = _figures(inspection, temp)
+            points_written.result()  # re-raises its error, if any
+        report["figures"] = _clean(figure_data)
+        report["files"] = ["report.json", "report.html", "deviations.ply", "deviations.csv"] + \
+            [name for name, _ in images]
         (temp / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         (temp / "report.html").write_text(_html(report, images, temp), encoding="utf-8")
         publish_folder(temp, out)
