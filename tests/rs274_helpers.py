@@ -115,3 +115,96 @@ def assert_rs274_reads_as_we_do(text: str, workdir: Path, tool_lengths_mm: dict 
     assert len(moves.kind) == len(ours)
     np.testing.assert_allclose(moves.end, ours.end, atol=5e-5)
     return moves
+
+
+# ---------------------------------------------------------------------------------- with the control's setup ----
+_SETUP_CALL = re.compile(r"^\s*\d+\s+N\S*\s+(USE_LENGTH_UNITS|SET_G5X_OFFSET|SET_G92_OFFSET|SET_XY_ROTATION|"
+                         r"USE_TOOL_LENGTH_OFFSET|STRAIGHT_TRAVERSE|STRAIGHT_FEED|ARC_FEED|SELECT_PLANE)\((.*)\)\s*$")
+
+
+@dataclass
+class MachineMoves:
+    """rs274's moves in machine coordinates, mm / deg: kind (N,) str, end (N, 6), line (N,) the block's sequence
+    number as rs274 prints it (or -1), computed from its canonical calls as LinuxCNC's canon does: the position it
+    prints (program coordinates) plus the G92 shift, turned by the XY rotation, plus the G5x offset and the tool
+    offset (USE_TOOL_LENGTH_OFFSET), each in the length units in force when it was printed."""
+
+    kind: list
+    end: np.ndarray
+    stderr: str
+    returncode: int
+
+
+def machine_moves(text: str) -> MachineMoves:
+    """Machine-coordinate moves (mm) from rs274's canonical output text (see MachineMoves)."""
+    scale = 1.0  # mm per unit of the numbers printed now
+    g5x = np.zeros(6)
+    g92 = np.zeros(6)
+    tool = np.zeros(6)
+    rot = 0.0
+    plane = _PLANE["CANON_PLANE_XY"]
+    lin = np.array([1, 1, 1, 0, 0, 0], bool)
+    kinds, ends = [], []
+
+    def mm(values):
+        v = np.array(values, float)
+        return np.where(lin, v * scale, v)
+
+    for line in text.splitlines():
+        m = _SETUP_CALL.match(line)
+        if not m:
+            continue
+        name, args = m.group(1), m.group(2)
+        if name == "USE_LENGTH_UNITS":
+            scale = 25.4 if "INCHES" in args else 1.0
+            continue
+        if name == "SELECT_PLANE":
+            plane = _PLANE.get(args.strip(), plane)
+            continue
+        if name == "SET_XY_ROTATION":
+            rot = float(args)
+            continue
+        if name == "USE_TOOL_LENGTH_OFFSET":
+            # "(x y z, a b c, u v w)"
+            groups = [g.split() for g in args.split(",")]
+            tool = mm([float(v) for v in groups[0]] + [float(v) for v in groups[1]])
+            continue
+        vals = [float(v) for v in args.replace(" ", "").split(",")]
+        if name == "SET_G5X_OFFSET":
+            g5x = mm(vals[1:7])
+            continue
+        if name == "SET_G92_OFFSET":
+            g92 = mm(vals[:6])
+            continue
+        if name == "ARC_FEED":
+            first, second, normal = plane
+            p = [0.0] * 6
+            p[first], p[second], p[normal] = vals[0], vals[1], vals[5]
+            p[3:6] = vals[6:9]
+            kinds.append("arc")
+        else:
+            p = vals[:6]
+            kinds.append("traverse" if name == "STRAIGHT_TRAVERSE" else "feed")
+        u = mm(p) + g92
+        c, s = np.cos(np.radians(rot)), np.sin(np.radians(rot))
+        u[0], u[1] = c * u[0] - s * u[1], s * u[0] + c * u[1]
+        ends.append(u + g5x + tool)
+    return MachineMoves(kinds, np.array(ends, float).reshape(-1, 6), "", 0)
+
+
+def run_rs274_setup(program: Path, var: Path, tools: Path, workdir: Path) -> MachineMoves:
+    """rs274 with a parameter file and a tool table (copies: rs274 rewrites its parameter file on exit), its moves in
+    machine coordinates (mm). The standalone rs274's machine units are inches: the files must be written in inches."""
+    import shutil
+
+    exe = require_rs274()
+    workdir.mkdir(parents=True, exist_ok=True)
+    var_copy, tbl_copy = workdir / "rs274.var", workdir / "rs274.tbl"
+    shutil.copyfile(var, var_copy)
+    shutil.copyfile(tools, tbl_copy)
+    out = workdir / "canon_setup.txt"
+    proc = subprocess.run([exe, "-v", str(var_copy), "-t", str(tbl_copy), "-g", str(program), str(out)],
+                          stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=120, cwd=workdir)
+    moves = machine_moves(out.read_text(errors="replace"))
+    moves.stderr, moves.returncode = proc.stdout + proc.stderr, proc.returncode
+    return moves
