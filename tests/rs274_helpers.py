@@ -208,3 +208,22 @@ def run_rs274_setup(program: Path, var: Path, tools: Path, workdir: Path) -> Mac
     moves = machine_moves(out.read_text(errors="replace"))
     moves.stderr, moves.returncode = proc.stdout + proc.stderr, proc.returncode
     return moves
+
+
+def var_text(work_offsets: dict | None = None, rotations: dict | None = None, g92=None, active: int = 1,
+             g28=None, g30=None) -> str:
+    """A complete LinuxCNC parameter file (every parameter trueaxis and LinuxCNC require): work offsets
+    {system index 1..9: (X, Y, Z, A, B, C)}, rotations {index: deg}, a G92 shift in force (or None), the active
+    system, G28 / G30 homes; values in the file's units, written with repr (exact)."""
+    work_offsets, rotations = work_offsets or {}, rotations or {}
+    rows = []
+    for base, home in ((5161, g28), (5181, g30)):
+        rows += [(base + i, v) for i, v in enumerate(list(home if home is not None else [0.0] * 6))]
+    rows.append((5210, 1.0 if g92 is not None else 0.0))
+    rows += [(5211 + i, v) for i, v in enumerate(list(g92 if g92 is not None else [0.0] * 6))]
+    rows.append((5220, float(active)))
+    for k in range(1, 10):
+        base = 5221 + 20 * (k - 1)
+        rows += [(base + i, v) for i, v in enumerate(list(work_offsets.get(k, [0.0] * 6)))]
+        rows.append((base + 9, float(rotations.get(k, 0.0))))
+    return "".join(f"{n}\t{float(v)!r}\n" for n, v in rows)

@@ -1418,11 +1418,13 @@ class _Interpreter:
             if key not in seen:
                 seen.add(key)
                 rec = hist[key]
-                src = rec["source"]
+                entry = {"what": _SYSTEM_NAMES[active - 1], "values_mm_deg": [float(v) for v in rec["values"]],
+                         "rotation_deg": float(rec["rotation"]), "source": rec["source"], "first_line": line_no}
                 if not rec["known"][:3].all() and not (selects_work or setup_given_active):
-                    src = "not given and not selected by the program: program coordinates taken as machine coordinates"
-                out.append({"what": _SYSTEM_NAMES[active - 1], "values_mm_deg": [float(v) for v in rec["values"]],
-                            "rotation_deg": float(rec["rotation"]), "source": src, "first_line": line_no})
+                    entry["source"] = ("the program selects no work system and the setup gives none: program "
+                                       "coordinates are machine coordinates")
+                    entry["assumed"] = True
+                out.append(entry)
             key = ("g92", g92_ver)
             if key not in seen and (g92_ver > 0 or np.any(hist[key]["values"] != 0.0)):
                 seen.add(key)

@@ -111,6 +111,8 @@ class PostReport:
     max_residual_urad: float = 0.0
     max_split_deviation_um: float = 0.0
     max_split_deviation_urad: float = 0.0
+    setup: str = "none given"
+    setup_used: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -133,17 +135,49 @@ def compensate(
     report: dict | None = None,
     cl_feed_mm_min: float | None = None,
     cl_branch="nearest",
+    setup=None,
+    var=None,
+    tool_table=None,
+    machine_units: str = "mm",
+    offsets_zero: bool = False,
+    header: bool = True,
 ) -> str:
     """Compensated program text. ``program``: G-code text, CL data (CSV or APT, see ``cl``) or a path.
-    ``report``: a dict to fill with the report."""
+    ``report``: a dict to fill with the report.
+
+    The control's setup (DESIGN §5): ``var`` (LinuxCNC parameter file), ``tool_table`` (LinuxCNC tool table), both in
+    ``machine_units``; ``setup`` a setup file (path) or a :class:`~trueaxis.postproc.setup.Setup`; none of them: the
+    machine file's default setup, if it names one. ``offsets_zero``: work offsets, G92 shifts and tool lengths that
+    none of them gives are zero (without it a program that uses one is refused). ``header``: put the comment naming
+    the machine, mode and setup at the top of the output."""
     text, source = _read_input(program, source)
+    the_setup = resolve_setup(machine, setup=setup, var=var, tool_table=tool_table, machine_units=machine_units,
+                              offsets_zero=offsets_zero)
     out, rep = post_text(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
                          singular_deg=singular_deg, conditions=conditions,
                          passthrough_unsupported=passthrough_unsupported, source=source,
-                         cl_feed_mm_min=cl_feed_mm_min, cl_branch=cl_branch)
+                         cl_feed_mm_min=cl_feed_mm_min, cl_branch=cl_branch, setup=the_setup, header=header)
     if report is not None:
         report.update(rep.as_dict())
     return out
+
+
+def resolve_setup(machine: Machine, *, setup=None, var=None, tool_table=None, machine_units: str = "mm",
+                  offsets_zero: bool = False):
+    """The :class:`Setup` from the files given (a setup file path or a Setup object in ``setup``), else from the
+    machine file's default setup file (``[machine] setup``); with ``offsets_zero`` as the user said."""
+    from .setup import Setup, load_setup
+
+    if isinstance(setup, Setup):
+        out = setup
+        if var is not None or tool_table is not None:
+            out = load_setup(var=var, tool_table=tool_table, machine_units=machine_units).merged(out)
+        out.offsets_zero = out.offsets_zero or bool(offsets_zero)
+        return out
+    if setup is None and var is None and tool_table is None and getattr(machine, "setup", ""):
+        setup = machine.setup
+    return load_setup(var=var, tool_table=tool_table, setup_file=setup, machine_units=machine_units,
+                      offsets_zero=offsets_zero)
 
 
 def _read_input(program, source):
@@ -165,13 +199,18 @@ def _read_input(program, source):
 def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: float = 1.0,
               max_correction_mm: float = 0.5, singular_deg: float = 1.0, conditions: dict | None = None,
               passthrough_unsupported: bool = False, source: str = "<string>", cl_feed_mm_min: float | None = None,
-              cl_branch="nearest") -> tuple[str, PostReport]:
+              cl_branch="nearest", setup=None, header: bool = True) -> tuple[str, PostReport]:
     """Compensate program text (G-code or CL data, told apart by content); returns (text, report).
 
     CL data (``GOTO/`` lines, or a CSV header naming x,y,z,i,j,k) first become machine-axis G-code through the
     machine's inverse kinematics (``cl.cl_program``: linearised within tol_um / 2 of the CL segments), which is then
     compensated within tol_um / 2, so the actual path stays within tol_um of the CL segments. Errors and the singular
-    blocks of the report then name lines of the CL file."""
+    blocks of the report then name lines of the CL file.
+
+    ``setup``: the control's setup (:class:`~trueaxis.postproc.setup.Setup`; None: none given). A work offset, G92
+    shift or tool length the program uses and the setup does not give is refused (``setup.offsets_zero``: zero).
+    ``header``: the output starts (after a leading ``%`` and program number) with a comment naming the machine, the
+    mode and the setup, and one line per offset and tool length used with where it came from."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
     if not (tol_um > 0):
@@ -179,11 +218,21 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     from .cl import cl_format
 
     if cl_format(text) is not None:
-        return _post_cl(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
-                        singular_deg=singular_deg, conditions=conditions, source=source,
-                        feed_mm_min=cl_feed_mm_min, branch=cl_branch)
-    prog = parse_program(text, source, passthrough_unsupported=passthrough_unsupported)
+        out, rep = _post_cl(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
+                            singular_deg=singular_deg, conditions=conditions, source=source,
+                            feed_mm_min=cl_feed_mm_min, branch=cl_branch)
+        return (with_header(out, rep, machine) if header else out), rep
+    from .setup import Setup, SetupError
+
+    setup = setup if setup is not None else Setup()
+    prog = parse_program(text, source, passthrough_unsupported=passthrough_unsupported, setup=setup,
+                         require_setup=True)
+    if setup.program_units is not None and prog.units != setup.program_units and len(prog):
+        raise SetupError(f"{source}: the program is in {prog.units} ({'G20' if prog.units == 'inch' else 'G21'}), "
+                         f"the setup ({setup.describe()}) is for programs in {setup.program_units}")
     rep = PostReport(source=source, machine=machine.name, mode=mode, tol_um=tol_um)
+    rep.setup = setup.describe()
+    rep.setup_used = prog.setup_used
     rep.blocks_in = len(prog.lines)
     rep.passthrough = [{"line": ln, "reason": r} for ln, r in prog.unsupported]
     rep.warnings = list(prog.warnings)
@@ -194,8 +243,58 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     # Nothing to compensate: mode none, no motion, or only G28/G30/G53 moves (machine positions, passed through).
     if mode == "none" or not np.isin(prog.kind, (ROW_PROGRAMMED, ROW_CYCLE)).any():
         rep.blocks_out = rep.blocks_in
-        return text, rep
-    return _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep).run()
+        out = text
+    else:
+        out, rep = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep).run()
+    if header:
+        out = with_header(out, rep, machine)
+    return out, rep
+
+
+_HEADER_SKIP = re.compile(r"^[ \t]*(?:%.*|[Oo][0-9]+.*)$")
+
+
+def header_lines(rep: PostReport, machine: Machine) -> list:
+    """The output's header comment lines (without line endings): the post, its machine, mode and setup, then every
+    offset and tool length the program used with where it came from. Parentheses in names become brackets."""
+    def clean(text):
+        return str(text).replace("(", "[").replace(")", "]")
+
+    lines = [f"(trueaxis post: machine {clean(machine.name)}, mode {rep.mode}, setup {clean(rep.setup)})"]
+    for u in rep.setup_used:
+        if u.get("assumed"):
+            lines.append(f"(trueaxis setup: no work offset: {u['source']})")
+            continue
+        vals = u["values_mm_deg"]
+        words = " ".join(f"{a}{write_number(v, 4)}" for a, v in zip("XYZABC", vals) if v != 0.0) or "0"
+        rot = f" R{write_number(u['rotation_deg'], 4)}" if u.get("rotation_deg") else ""
+        units = "mm, deg" if rot or any(vals[3:]) else "mm"
+        how = f" by {u['applied_by']}" if u.get("applied_by") else ""
+        lines.append(f"(trueaxis setup: {u['what']} {words}{rot} {units}{how}, from {clean(u['source'])})")
+    return lines
+
+
+def with_header(text: str, rep: PostReport, machine: Machine) -> str:
+    """``text`` with ``header_lines`` inserted after its leading ``%`` / program number lines, in its line endings."""
+    lines_head = text[:4096].splitlines(keepends=True)
+    pos = 0
+    for line in lines_head[:3]:
+        if _HEADER_SKIP.match(line.rstrip("\r\n")) and line.endswith(("\n", "\r")):
+            pos += len(line)
+        else:
+            break
+    first = lines_head[0] if lines_head else "\n"
+    ending = "\r\n" if first.endswith("\r\n") else "\n"
+    lines = header_lines(rep, machine)
+    rep.blocks_out += len(lines)
+    return text[:pos] + "".join(line + ending for line in lines) + text[pos:]
+
+
+def without_header(text: str) -> str:
+    """``text`` with the lines ``with_header`` put in taken out (for comparing outputs with what the post wrote
+    before it had a header)."""
+    return "".join(line for line in text.splitlines(keepends=True)
+                   if not line.startswith(("(trueaxis post: ", "(trueaxis setup: ")))
 
 
 def _post_cl(text, machine, mode, *, tol_um, max_correction_mm, singular_deg, conditions, source, feed_mm_min,
@@ -206,7 +305,7 @@ def _post_cl(text, machine, mode, *, tol_um, max_correction_mm, singular_deg, co
     gcode, line_map = cl_program(cl, machine, tol_um=tol_um / 2, feed_mm_min=feed_mm_min, branch=branch)
     try:
         out, rep = post_text(gcode, machine, mode, tol_um=tol_um / 2, max_correction_mm=max_correction_mm,
-                             singular_deg=singular_deg, conditions=conditions, source=source)
+                             singular_deg=singular_deg, conditions=conditions, source=source, header=False)
     except GcodeError as exc:
         line = line_map[min(max(exc.line_no, 1), len(line_map)) - 1]
         raise PostError(source, line, f"{exc.reason} (CL point; line {exc.line_no} of the machine-axis program "
@@ -265,15 +364,16 @@ class _Poster:
                 q[:, j] = np.where(inch, q[:, j] * MM_PER_INCH, q[:, j])
         return q
 
-    def to_program_delta(self, dq, inch):
-        """(K, n_axes) correction mm / rad -> (K, 6) program units (inch or mm, degrees)."""
+    def to_program_delta(self, dq, inch, prog_rows):
+        """(K, n_axes) correction mm / rad of the program rows ``prog_rows`` (K,) -> (K, 6) program units (inch or
+        mm, degrees), in the rows' work system (its XY rotation undone)."""
         out = np.zeros((dq.shape[0], 6))
         for j, a in enumerate(self.names):
             if self.m.axes[a].is_rotary:
                 out[:, self.cols[j]] = np.degrees(dq[:, j])
             else:
                 out[:, self.cols[j]] = np.where(inch, dq[:, j] / MM_PER_INCH, dq[:, j])
-        return out
+        return self.p.to_program_delta(out, prog_rows)
 
     # --- forces --------------------------------------------------------------------------------------------------
     def forces(self, rows, direction, q):
@@ -457,8 +557,8 @@ class _Poster:
         "arc" | "lines"}); k indexes ``rows``. Split moves' piece boundaries go to ``self.fractions`` (by row)."""
         p = self.p
         inch = p.inch[rows]
-        q_end = self.to_machine(p.end_machine[rows], inch)
-        q_start = self.to_machine((p.start + p.offset)[rows], inch)
+        q_end = self.to_machine(p.to_machine(p.end[rows], rows), inch)
+        q_start = self.to_machine(p.to_machine(p.start[rows], rows), inch)
         direction = np.zeros((rows.size, 3))
         lin = [j for j, a in enumerate(self.names) if not self.m.axes[a].is_rotary]
         direction[:, : len(lin)] = (q_end - q_start)[:, lin] if len(lin) == 3 else 0.0
@@ -469,7 +569,7 @@ class _Poster:
         q_cmd, singular = self.solve(q_end, force, rows)
         self.check(q_end, q_cmd, rows)
         dq = q_cmd - q_end
-        delta_prog = self.to_program_delta(dq, inch)
+        delta_prog = self.to_program_delta(dq, inch, rows)
 
         pieces, arc_mode = {}, {}
         feed_rows = np.nonzero(p.motion[rows] == FEED)[0]
@@ -501,16 +601,25 @@ class _Poster:
 
     def _arc_end_tangent(self, arc_rows, q_end_mm):
         p = self.p
-        tang = np.zeros((arc_rows.size, 3))
-        center = p.arc_center[arc_rows] + p.offset[arc_rows, :3]
-        center = np.where(p.inch[arc_rows, None], center * MM_PER_INCH, center)
+        if p.rotation is None or not np.any(p.rotation[arc_rows]):
+            center = p.arc_center[arc_rows] + p.offset[arc_rows, :3]
+            center = np.where(p.inch[arc_rows, None], center * MM_PER_INCH, center)
+            plane = p.arc_plane[arc_rows]
+            normal = np.select([plane[:, None] == 17, plane[:, None] == 18, plane[:, None] == 19],
+                               [np.array([0, 0, 1.0]), np.array([0, 1.0, 0]), np.array([1.0, 0, 0])])
+            sense = np.where(p.motion[arc_rows] == ARC_CCW, 1.0, -1.0)
+            return np.cross(normal, q_end_mm[:, :3] - center) * sense[:, None]
+        # in program coordinates (the arc's plane is the work system's), then turned into the machine frame
+        radial6 = np.zeros((arc_rows.size, 6))
+        radial6[:, :3] = p.end[arc_rows, :3] - p.arc_center[arc_rows]
         plane = p.arc_plane[arc_rows]
         normal = np.select([plane[:, None] == 17, plane[:, None] == 18, plane[:, None] == 19],
                            [np.array([0, 0, 1.0]), np.array([0, 1.0, 0]), np.array([1.0, 0, 0])])
         sense = np.where(p.motion[arc_rows] == ARC_CCW, 1.0, -1.0)
-        radial = q_end_mm[:, :3] - center
-        tang = np.cross(normal, radial) * sense[:, None]
-        return tang
+        tang6 = np.zeros((arc_rows.size, 6))
+        tang6[:, :3] = np.cross(normal, radial6[:, :3]) * sense[:, None]
+        # a direction: turned by the rotation, not offset
+        return p.to_machine(tang6, arc_rows)[:, :3] - p.to_machine(np.zeros_like(tang6), arc_rows)[:, :3]
 
     def _split_lines(self, rows, feed_idx, q_start, q_end, force, inch, q_cmd_end, max_rounds=10):
         """Straight feed moves: split until the actual path stays within tolerance of the nominal path.
@@ -621,7 +730,7 @@ class _Poster:
         start6 = p.start[rows[mv]]
         end6 = p.end[rows[mv]]
         nom6 = start6 + fr[:, None] * (end6 - start6)
-        cmd6 = nom6 + self.to_program_delta(qc - q_nom, inch[mv])
+        cmd6 = nom6 + self.to_program_delta(qc - q_nom, inch[mv], rows[mv])
         bounds = np.split(np.arange(mv.size), np.nonzero(np.diff(mv))[0] + 1)
         for sel in bounds:
             i = int(mv[sel[0]])
@@ -668,7 +777,7 @@ class _Poster:
         owner = np.repeat(np.arange(lin.size), np.asarray(counts) + 1)
         q_c, q_pts = self._solve_arc_points(rows, lin, owner, pts6, force)
         self.check(q_pts, q_c, rows[lin][owner])
-        cmd6 = pts6 + self.to_program_delta(q_c - q_pts, p.inch[rows[lin]][owner])
+        cmd6 = pts6 + self.to_program_delta(q_c - q_pts, p.inch[rows[lin]][owner], rows[lin][owner])
         first = np.r_[0, np.cumsum(np.asarray(counts) + 1)[:-1]]
         for k, i in enumerate(lin):
             out[int(i)] = cmd6[first[k] + 1 : first[k] + counts[k] + 1]
@@ -680,7 +789,7 @@ class _Poster:
         """Commanded and nominal machine poses (K, n_axes) for points ``pts6`` (K, 6) on the arcs ``arc_idx[owner]``."""
         p = self.p
         r = rows[arc_idx][owner]
-        q_pts = self.to_machine(pts6 + p.offset[r], p.inch[r])
+        q_pts = self.to_machine(p.to_machine(pts6, r), p.inch[r])
         f = None if force is None else force[arc_idx][owner]
         q_c, _ = self.solve(q_pts, f, r)
         return q_c, q_pts
