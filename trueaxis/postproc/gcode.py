@@ -1038,6 +1038,7 @@ class _Interpreter:
                 # -- modal and non-modal G codes, in LinuxCNC's order of execution ---------------------------
                 new_motion = None
                 nonmodal = None
+                meta_changed = False
                 g53 = False
                 for g in gnums:
                     if g in _MOTION_G:
@@ -1082,7 +1083,7 @@ class _Interpreter:
                         pass  # handled after the tool change below
                     elif (540 <= g <= 590 and g % 10 == 0) or g in (591, 592, 593):
                         new_active = (g - 530) // 10 if g % 10 == 0 else 7 + (g - 591)
-                        selects_work = True
+                        selects_work = meta_changed = True
                         if new_active != active:
                             if rot[active] == 0.0 and rot[new_active] == 0.0:
                                 _add(pos, g5x[active] - g5x[new_active])
@@ -1131,6 +1132,7 @@ class _Interpreter:
                             tlo = new
                             pos[:] = program_of(m_pos)
                             tlo_ver[0] += 1
+                            meta_changed = True
                             hist[("tlo", tlo_ver[0])] = {"tool": tool, "values": new * u_scale,
                                                          "source": self.tool_source(tool, zero_ok), "how": "M6"}
                     elif m in (2, 30):
@@ -1170,6 +1172,7 @@ class _Interpreter:
                         tlo = new
                         pos[:] = program_of(m_pos)
                     tlo_ver[0] += 1
+                    meta_changed = True
                     rec["values"] = tlo * u_scale
                     hist[("tlo", tlo_ver[0])] = rec
 
@@ -1182,7 +1185,8 @@ class _Interpreter:
 
                 if gnums or mnums or "F" in fvals:
                     off_now[0] = offsets().tolist()
-                    meta_now[0] = meta()
+                    if meta_changed:
+                        meta_now[0] = meta()
                     refresh_state()
                 # -- non-modal: G10, G28, G30, G92, G4 -------------------------------------------------------
                 if nonmodal == 100:
@@ -1336,9 +1340,14 @@ class _Interpreter:
         st_flags = np.array([k[1:7] for k in state_rows] or [(False, False, 40, 0, False, True)],
                             np.int64).reshape(-1, 6)
         st_off = np.array([k[7] for k in state_rows] or [(0.0,) * 6], float).reshape(-1, 6)
-        st_meta = [k[8] for k in state_rows] or [meta_now[0]]
-        rotation = np.array([mt[0] for mt in st_meta], float)[sid].reshape(m)
-        setup_used = self.setup_report(sid, np.array(r_kind, np.int64), np.array(r_line, np.int64), st_meta, hist,
+        # the setup in force per state: few distinct ones (states differ mostly by feed, e.g. under G93)
+        meta_index: dict = {}
+        meta_of_state = np.array([meta_index.setdefault(k[8], len(meta_index)) for k in state_rows]
+                                 or [meta_index.setdefault(meta_now[0], 0)], np.int64)
+        metas = list(meta_index)
+        mid = meta_of_state[sid]
+        rotation = np.array([mt[0] for mt in metas], float)[mid].reshape(m)
+        setup_used = self.setup_report(mid, np.array(r_kind, np.int64), np.array(r_line, np.int64), metas, hist,
                                        selects_work, used_axes)
         arc_center = np.full((m, 3), np.nan)
         arc_plane = np.zeros(m, np.int8)
@@ -1391,6 +1400,7 @@ class _Interpreter:
         )
 
     def setup_report(self, sid, kind, line, st_meta, hist, selects_work, used_axes):
+        # sid: (M,) index of each row's setup in st_meta
         """What the rows used of the control's setup (one entry per value, in the order of first use), and, under
         ``require_setup``, the refusal of the first move made under a value that was not given."""
         out, seen = [], set()
