@@ -11,8 +11,13 @@ Coordinates
 active at that row (G54..G59.3, G92), in the units active at that row (G20 inch / G21 mm; rotary axes in degrees).
 That is exactly what LinuxCNC's ``rs274`` prints in its canonical ``STRAIGHT_FEED`` / ``ARC_FEED`` calls (checked: it
 reports positions *before* the G5x, G92 and tool length offsets, which it announces separately with
-``SET_G5X_OFFSET`` and ``USE_TOOL_LENGTH_OFFSET``). ``Program.offset`` holds the sum of those offsets at each row, so the
-controlled point in machine coordinates is ``end + offset`` (:attr:`Program.end_machine`).
+``SET_G5X_OFFSET`` and ``USE_TOOL_LENGTH_OFFSET``). The machine position is composed as LinuxCNC's canon does: program
+position plus G92, turned by the work system's XY rotation (``Program.rotation``, deg), plus the G5x offset and the
+tool offset. ``Program.offset`` holds the sum of those offsets at each row (the G92 shift turned by the rotation), so
+the controlled point in machine coordinates is ``R end + offset`` (:attr:`Program.end_machine`,
+:meth:`Program.to_machine`), ``end + offset`` in a system without rotation. The offsets at program start come from
+the control's setup (``setup``: LinuxCNC's parameter file and tool table, or a setup file; see ``setup.py``);
+``Program.setup_used`` lists what the rows used and where it came from.
 
 Decisions (documented here once)
 --------------------------------
@@ -216,6 +221,10 @@ class Program:
     axes_present : the axis letters the program uses, in XYZABC order
     warnings : list of str, ``file:line: message``
     unsupported : list of (line_no, reason), 1-based, for blocks passed through uninterpreted
+    rotation : (M,) float, XY rotation of the row's work system, deg (G10 L2 R, parameter 5230 + 20 (k - 1))
+    setup_used : list of dict, the work offsets, G92 shifts and tool offsets the rows used, in order of first use:
+        ``what`` ("G54", "G92", "tool 3 offset"), ``values_mm_deg`` (6,), ``rotation_deg``, ``source`` (file:parameters,
+        file:line, or "not given"), ``applied_by`` (tool offsets: "G43 H3", "M6"), ``first_line``
     """
 
     source: str
