@@ -297,6 +297,11 @@ def test_nist_inch_programs_post_and_rs274_reads_them(tmp_path, name):
     moves = run_rs274(path, {t: 0.0 for t in range(1, 40)}, tmp_path)
     assert moves.returncode == 0, moves.stderr[-2000:]
     actual, _, _ = actual_points(out, m)
+    # the first blocks, before the program has given every axis, are left as written (uncompensated): not checked
+    n_unknown = sum(1 for r in np.nonzero(parse_program(src).kind == 0)[0]
+                    if parse_program(src).line_no[r] in {u["line"] for u in report["uncompensated"]})
+    assert n_unknown <= 2
+    actual = actual[n_unknown:]
     nominal = nominal_polyline(parse_program(src), m, arc_points=400)
     # arcs sampled at 400 points: sagitta of a 2-inch arc over 1/400 of a turn is about 0.3 um; check with that slack
     d_um = distance_to_polyline(actual, nominal) * 1e3

@@ -135,6 +135,9 @@ def cmd_post(args) -> int:
                             passthrough_unsupported=args.passthrough_unsupported, source=source,
                             cl_feed_mm_min=args.cl_feed, cl_branch=branch, setup=setup)
     atomic_write(args.output, out)
+    for item in report.uncompensated:
+        print(f"{source}:{item['line']}: the position of {' '.join(item['axes'])} is not known here (no absolute move "
+              "of it before): block left as written, uncompensated", file=sys.stderr)
     if args.report:
         atomic_write(args.report, json.dumps(report.as_dict(), indent=2))
     corr = ", ".join(f"{a} {max(v.values()):.2f}" for a, v in report.correction.items())

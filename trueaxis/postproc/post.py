@@ -41,6 +41,7 @@ from .gcode import (
     RAPID,
     ROW_CYCLE,
     ROW_PROGRAMMED,
+    ROW_REFERENCE,
     WORD_BITS,
     GcodeError,
     Program,
@@ -113,6 +114,7 @@ class PostReport:
     max_split_deviation_urad: float = 0.0
     setup: str = "none given"
     setup_used: list = field(default_factory=list)
+    uncompensated: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -524,9 +526,47 @@ class _Poster:
                                     f"corrected {a} = {v:.6g} lies outside its travel [{t[0]:g}, {t[1]:g}]")
 
     # --- the run -------------------------------------------------------------------------------------------------
+    def known_positions(self):
+        """(end known (M,) bool, start known (M,) bool, the axes not known at each row's end (M,) bit mask) of the
+        program's rows: an axis' position is known from its first absolute word (G90) on, and from a G28 / G30 that
+        homes every axis; before that the control is wherever it stands. Required are the machine's linear axes and
+        the rotary axes the program uses."""
+        p = self.p
+        need = [AXES.index(a) for a in self.names if not self.m.axes[a].is_rotary or a in p.axes_present]
+        bits = sum(1 << c for c in need)
+        given = np.where(p.incremental, 0, p.words.astype(np.int64) & bits)
+        homing = (p.kind == ROW_REFERENCE) & (p.words == 0)
+        second = np.r_[False, (p.line_index[1:] == p.line_index[:-1]) & (p.kind[:-1] == ROW_REFERENCE)]
+        given = np.where(homing & ~second, bits, given)
+        have = np.bitwise_or.accumulate(given) if given.size else given
+        missing = bits & ~have
+        end_known = missing == 0
+        return end_known, np.r_[False, end_known[:-1]], missing
+
     def run(self):
         p = self.p
         rows = np.nonzero((p.kind == ROW_PROGRAMMED) | (p.kind == ROW_CYCLE))[0]
+        # Positions are never invented: a block whose end the program has not yet fixed on every axis (or an arc
+        # whose start it has not) keeps its own words, uncompensated, and the report and stderr say so.
+        end_known, start_known, missing = self.known_positions()
+        self.start_known = start_known
+        unknown = ~end_known[rows] | (np.isin(p.motion[rows], (ARC_CW, ARC_CCW)) & ~start_known[rows])
+        if np.any(unknown):
+            bad_lines = np.unique(p.line_index[rows[unknown]])
+            keep = ~np.isin(p.line_index[rows], bad_lines)
+            for r in rows[unknown]:
+                li = int(p.line_index[r])
+                if self.rep.uncompensated and self.rep.uncompensated[-1]["line"] == li + 1:
+                    continue
+                axes = "".join(a for i, a in enumerate(AXES) if int(missing[r]) >> i & 1) or \
+                    "".join(a for i, a in enumerate(AXES) if int(missing[r - 1]) >> i & 1 if r > 0)
+                self.rep.uncompensated.append({"line": li + 1, "axes": axes})
+                self.rep.warnings.append(f"{p.source}:{li + 1}: the position of {' '.join(axes)} is not known here "
+                                         "(no absolute move of it before): block left as written, uncompensated")
+            rows = rows[keep]
+            if rows.size == 0:  # nothing left to compensate: the program as it was
+                self.rep.blocks_out = len(p.lines)
+                return "".join(p.lines), self.rep
         self.rep.moves = int(rows.size)
         delta_prog = np.empty((rows.size, 6))
         pieces, arc_mode = {}, {}
@@ -572,7 +612,8 @@ class _Poster:
         delta_prog = self.to_program_delta(dq, inch, rows)
 
         pieces, arc_mode = {}, {}
-        feed_rows = np.nonzero(p.motion[rows] == FEED)[0]
+        # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
+        feed_rows = np.nonzero((p.motion[rows] == FEED) & self.start_known[rows])[0]
         pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd))
         if np.any(arcs):
             arc_pieces, modes = self._arcs(rows, np.nonzero(arcs)[0], q_start, q_end, force, inch, delta_prog)

@@ -1,0 +1,55 @@
+"""A post a shop can trust (issue 16): what the post does not know it does not invent, and it says what it did."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from conftest import MACHINES
+from trueaxis.machine import load_machine
+from trueaxis.postproc.post import compensate, without_header
+
+XH714 = MACHINES / "xh714.toml"
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "trueaxis.cli", *map(str, args)], capture_output=True, text=True,
+                           timeout=300)
+
+
+# --- (a) positions are never invented --------------------------------------------------------------------------------
+
+FIRST_MOVE_Z_ONLY = "G21 G90 G17\nG0 Z-20\nG0 X10 Y10\nG1 Z-25 F100\nG1 X50 Y20\nM2\n"
+
+
+def test_a_block_before_every_axis_is_known_keeps_its_words_and_stderr_says_which(tmp_path):
+    src, out, rep = tmp_path / "in.ngc", tmp_path / "out.ngc", tmp_path / "r.json"
+    src.write_text(FIRST_MOVE_Z_ONLY)
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--report", rep)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.strip().splitlines() == [f"{src}:2: the position of X Y is not known here (no absolute move of "
+                                             "it before): block left as written, uncompensated"]
+    lines = without_header(out.read_text()).splitlines()
+    assert lines[1] == "G0 Z-20"  # not "G0 X0.00066 Y-0.00204 Z-19.99836": no rapid towards an invented X0 Y0
+    assert lines[2].startswith("G0 X10.000") and lines[2] != "G0 X10 Y10"  # known from here: compensated
+    assert json.loads(rep.read_text())["uncompensated"] == [{"line": 2, "axes": "XY"}]
+
+
+def test_incremental_moves_from_an_unknown_start_stay_as_written():
+    m = load_machine(XH714)
+    report = {}
+    text = "G21 G91\nG0 Z5\nG0 X10 Y10\nG90 G0 X20 Y20 Z-10\nG1 X30 F100\nM2\n"
+    lines = without_header(compensate(text, m, "geometric", report=report)).splitlines()
+    assert lines[1:3] == ["G0 Z5", "G0 X10 Y10"]
+    assert [u["line"] for u in report["uncompensated"]] == [2, 3]
+    assert lines[3] != "G90 G0 X20 Y20 Z-10" and lines[4] != "G1 X30 F100"
+
+
+def test_a_g28_home_of_every_axis_makes_the_position_known():
+    m = load_machine(XH714)
+    report = {}
+    compensate("G21 G90\nG28\nG0 Z-20\nG1 X5 F100\nM2\n", m, "geometric", report=report)
+    assert report["uncompensated"] == []
