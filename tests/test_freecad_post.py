@@ -104,8 +104,10 @@ def test_post_equals_linuxcnc_post_compensated_by_trueaxis(freecad_job, tmp_path
 def test_without_correction_the_post_is_the_linuxcnc_post_plus_conditions(freecad_job):
     assert without_header(COMMENT_LINE.sub("", freecad_job.files["trueaxis_none.ngc"])) == \
         freecad_job.files["linuxcnc.ngc"]
-    header = freecad_job.files["trueaxis_none.ngc"].splitlines()[:3]
-    assert header[0].startswith("(trueaxis post: machine XH714") and "setup.var" in header[0]
+    header = freecad_job.files["trueaxis_none.ngc"].splitlines()[:7]
+    assert header[0].startswith("(trueaxis post: trueaxis ") and "machine XH714" in header[0]
+    assert header[2].endswith("setup.var)") and header[3].endswith("setup.tbl)")
+    header = header[3:]
     assert header[1].startswith("(trueaxis setup: G54 Z-50.8 mm, from ") and "setup.var:5221-5226,5230" in header[1]
     assert header[2].startswith("(trueaxis setup: tool 1 offset Z50.8 mm by G43 H1, from ")
 

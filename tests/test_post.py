@@ -202,7 +202,7 @@ def test_the_post_in_small_chunks_writes_what_it_writes_in_one(xh714, monkeypatc
 def test_mode_none_returns_the_input_unchanged_under_the_header(xh714):
     out = compensate(PROGRAM, xh714, "none")
     assert without_header(out) == PROGRAM
-    assert out.splitlines()[1].startswith("(trueaxis post: machine XH714") and "mode none" in out.splitlines()[1]
+    assert out.splitlines()[1].startswith("(trueaxis post: trueaxis ") and "mode none" in out.splitlines()[1]
 
 
 def test_a_correction_above_the_bound_stops_with_the_block_named(xh714):

@@ -53,3 +53,36 @@ def test_a_g28_home_of_every_axis_makes_the_position_known():
     report = {}
     compensate("G21 G90\nG28\nG0 Z-20\nG1 X5 F100\nM2\n", m, "geometric", report=report)
     assert report["uncompensated"] == []
+
+
+# --- (b) the header names what made the output; a posted program is not posted again ---------------------------------
+
+def test_the_header_names_version_machine_file_hash_mode_and_setup(tmp_path):
+    import hashlib
+
+    from trueaxis import __version__
+
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90\nG0 X0 Y0 Z-10\nG1 X50 F300\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--mode", "geometric")
+    assert r.returncode == 0, r.stderr
+    digest = hashlib.sha256(XH714.read_bytes()).hexdigest()[:12]
+    assert out.read_text().splitlines()[:3] == [
+        f"(trueaxis post: trueaxis {__version__}, mode geometric, machine XH714 vertical mill "
+        "[equivalent-cutting-force paper])",
+        f"(trueaxis post: machine file {XH714} sha256 {digest})",
+        "(trueaxis post: setup none given)"]
+
+
+def test_a_program_that_carries_the_header_is_refused_unless_forced(tmp_path):
+    src, out, again = tmp_path / "in.ngc", tmp_path / "out.ngc", tmp_path / "again.ngc"
+    src.write_text("%\nG21 G90\nG0 X0 Y0 Z-10\nG1 X50 F300\nM2\n%\n")
+    assert run_cli("post", src, "-o", out, "--machine", XH714).returncode == 0
+    r = run_cli("post", out, "-o", again, "--machine", XH714)
+    assert r.returncode != 0 and not again.exists()
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{out}:2: the program was posted by trueaxis already")
+    assert lines[0].endswith("posting it again would compensate it twice; --force to post it anyway")
+    r = run_cli("post", out, "-o", again, "--machine", XH714, "--force")
+    assert r.returncode == 0, r.stderr
+    assert again.read_text().count("(trueaxis post: trueaxis ") == 2

@@ -251,9 +251,11 @@ def test_mm_program_read_back_by_rs274_lies_on_the_nominal_path_within_0_15_um(t
     assert d_um.max() < 0.15, d_um.max()
     whats = [u["what"] for u in report["setup_used"]]
     assert whats == ["G54", "tool 1 offset", "G55", "tool 2 offset"]
-    header = out.splitlines()[:5]
-    assert header[0] == f"(trueaxis post: machine position-dependent test mill, mode geometric, setup {files[0]}, " \
-                        f"{files[1]})"
+    header = out.splitlines()[:8]
+    assert header[0].startswith("(trueaxis post: trueaxis ") and header[0].endswith(
+        ", mode geometric, machine position-dependent test mill)")
+    assert header[2:4] == [f"(trueaxis post: setup {files[0]})", f"(trueaxis post: setup {files[1]})"]
+    header = header[3:]
     assert header[1] == f"(trueaxis setup: G54 X76.2 Y50.8 Z-203.2 mm, from {files[0]}:5221-5226,5230)"
     assert header[2] == f"(trueaxis setup: tool 1 offset Z63.5 mm by G43 H1, from {files[1]}:1)"
     assert header[3] == f"(trueaxis setup: G55 X38.1 Y-31.75 Z-165.1 R25 mm, deg, from {files[0]}:5241-5246,5250)"
@@ -284,7 +286,9 @@ def test_the_same_program_without_offsets_is_refused_and_accepted_with_offsets_z
                                 "--setup), or --offsets-zero if zero is meant")
     r = run_cli("post", src, "-o", out, "--machine", machine_file, "--offsets-zero")
     assert r.returncode == 0, r.stderr
-    assert out.read_text().splitlines()[2].endswith("setup none given, --offsets-zero)")  # after % and O0000
+    lines = out.read_text().splitlines()
+    assert lines[:2] == ["%", "O0000(NIST_MTC_CRADA_COVER_REV-A)"]  # the header comes after % and the O number
+    assert lines[4:6] == ["(trueaxis post: setup none given)", "(trueaxis post: setup --offsets-zero)"]
     r = run_cli("post", src, "-o", out, "--machine", machine_file, "--var", files[0], "--machine-units", "inch",
                 "--report", tmp_path / "r.json")
     assert r.returncode == 0, r.stderr

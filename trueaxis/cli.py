@@ -133,7 +133,7 @@ def cmd_post(args) -> int:
     out, report = post_text(text, machine, args.mode, tol_um=args.tol_um, max_correction_mm=args.max_correction_mm,
                             singular_deg=args.singular_deg, conditions=conditions,
                             passthrough_unsupported=args.passthrough_unsupported, source=source,
-                            cl_feed_mm_min=args.cl_feed, cl_branch=branch, setup=setup)
+                            cl_feed_mm_min=args.cl_feed, cl_branch=branch, setup=setup, force=args.force)
     atomic_write(args.output, out)
     for item in report.uncompensated:
         print(f"{source}:{item['line']}: the position of {' '.join(item['axes'])} is not known here (no absolute move "
@@ -316,6 +316,9 @@ def build_parser() -> argparse.ArgumentParser:
     po.add_argument("--setup", metavar="SETUP.toml", help="the control's setup for other controls: work offsets, tool "
                     "lengths, how tool length is applied (docs/setup_file.md); default: the machine file's "
                     "[machine] setup")
+    po.add_argument("--force", action="store_true",
+                    help="post a program that already carries a trueaxis header (compensated already: refused "
+                         "otherwise)")
     po.add_argument("--offsets-zero", action="store_true",
                     help="work offsets, G92 shifts and tool lengths not given are zero (without it a program that "
                          "uses one is refused)")

@@ -143,6 +143,7 @@ def compensate(
     machine_units: str = "mm",
     offsets_zero: bool = False,
     header: bool = True,
+    force: bool = False,
 ) -> str:
     """Compensated program text. ``program``: G-code text, CL data (CSV or APT, see ``cl``) or a path.
     ``report``: a dict to fill with the report.
@@ -158,7 +159,8 @@ def compensate(
     out, rep = post_text(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
                          singular_deg=singular_deg, conditions=conditions,
                          passthrough_unsupported=passthrough_unsupported, source=source,
-                         cl_feed_mm_min=cl_feed_mm_min, cl_branch=cl_branch, setup=the_setup, header=header)
+                         cl_feed_mm_min=cl_feed_mm_min, cl_branch=cl_branch, setup=the_setup, header=header,
+                         force=force)
     if report is not None:
         report.update(rep.as_dict())
     return out
@@ -201,7 +203,7 @@ def _read_input(program, source):
 def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: float = 1.0,
               max_correction_mm: float = 0.5, singular_deg: float = 1.0, conditions: dict | None = None,
               passthrough_unsupported: bool = False, source: str = "<string>", cl_feed_mm_min: float | None = None,
-              cl_branch="nearest", setup=None, header: bool = True) -> tuple[str, PostReport]:
+              cl_branch="nearest", setup=None, header: bool = True, force: bool = False) -> tuple[str, PostReport]:
     """Compensate program text (G-code or CL data, told apart by content); returns (text, report).
 
     CL data (``GOTO/`` lines, or a CSV header naming x,y,z,i,j,k) first become machine-axis G-code through the
@@ -212,7 +214,10 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     ``setup``: the control's setup (:class:`~trueaxis.postproc.setup.Setup`; None: none given). A work offset, G92
     shift or tool length the program uses and the setup does not give is refused (``setup.offsets_zero``: zero).
     ``header``: the output starts (after a leading ``%`` and program number) with a comment naming the machine, the
-    mode and the setup, and one line per offset and tool length used with where it came from."""
+    mode and the setup, and one line per offset and tool length used with where it came from.
+    ``force``: post a program that already carries that header (it was compensated already: refused otherwise)."""
+    if not force:
+        _refuse_posted(text, source)
     if mode not in MODES:
         raise ValueError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
     if not (tol_um > 0):
@@ -253,6 +258,33 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     return out, rep
 
 
+def _refuse_posted(text: str, source: str):
+    """PostError when ``text`` carries the header of a trueaxis post: compensating it again would apply the
+    correction twice."""
+    at = text.find(HEADER_TAG)
+    if at < 0:
+        return
+    line_no = text.count("\n", 0, at) + 1
+    end = text.find(")", at)
+    raise PostError(source, line_no, f"the program was posted by trueaxis already ({text[at:end + 1][:160]}): "
+                                     "posting it again would compensate it twice; --force to post it anyway")
+
+
+def machine_fingerprint(machine: Machine) -> str:
+    """"FILE sha256 HASH": the machine file and the first 12 hex digits of the SHA-256 of its bytes (of the machine's
+    complete dump when it was not read from a file)."""
+    import hashlib
+
+    path = Path(machine.source)
+    if machine.source not in ("", "<string>", "<memory>") and path.is_file():
+        return f"{machine.source} sha256 {hashlib.sha256(path.read_bytes()).hexdigest()[:12]}"
+    from ..machine.machine_file import dump_machine
+
+    digest = hashlib.sha256(dump_machine(machine).encode("utf-8")).hexdigest()[:12]
+    return f"{machine.source} [not a file; its dump] sha256 {digest}"
+
+
+HEADER_TAG = "(trueaxis post: "
 _HEADER_SKIP = re.compile(r"^[ \t]*(?:%.*|[Oo][0-9]+.*)$")
 
 
@@ -262,7 +294,11 @@ def header_lines(rep: PostReport, machine: Machine) -> list:
     def clean(text):
         return str(text).replace("(", "[").replace(")", "]")
 
-    lines = [f"(trueaxis post: machine {clean(machine.name)}, mode {rep.mode}, setup {clean(rep.setup)})"]
+    from .. import __version__
+
+    lines = [f"{HEADER_TAG}trueaxis {__version__}, mode {rep.mode}, machine {clean(machine.name)})",
+             f"{HEADER_TAG}machine file {clean(machine_fingerprint(machine))})"]
+    lines += [f"{HEADER_TAG}setup {clean(part)})" for part in rep.setup.split(", ")]
     for u in rep.setup_used:
         if u.get("assumed"):
             lines.append(f"(trueaxis setup: no work offset: {u['source']})")
@@ -273,7 +309,15 @@ def header_lines(rep: PostReport, machine: Machine) -> list:
         units = "mm, deg" if rot or any(vals[3:]) else "mm"
         how = f" by {u['applied_by']}" if u.get("applied_by") else ""
         lines.append(f"(trueaxis setup: {u['what']} {words}{rot} {units}{how}, from {clean(u['source'])})")
-    return lines
+    return [_fit(line) for line in lines]
+
+
+def _fit(comment: str, limit: int = 250) -> str:
+    """A comment line shortened in its middle to ``limit`` characters (LinuxCNC refuses lines of 256 and more)."""
+    if len(comment) <= limit:
+        return comment
+    keep = (limit - 3) // 2
+    return comment[:keep] + "..." + comment[len(comment) - (limit - 3 - keep):]
 
 
 def with_header(text: str, rep: PostReport, machine: Machine) -> str:
