@@ -86,3 +86,36 @@ def test_a_program_that_carries_the_header_is_refused_unless_forced(tmp_path):
     r = run_cli("post", out, "-o", again, "--machine", XH714, "--force")
     assert r.returncode == 0, r.stderr
     assert again.read_text().count("(trueaxis post: trueaxis ") == 2
+
+
+# --- (c) three-axis programs on five-axis machines -------------------------------------------------------------------
+
+THREE_AXIS = "G21 G90 G17\nG0 X0 Y0 Z50\nG1 X20 Y10 Z40 F300\nG1 X30\nG2 X40 Y20 I0 J10\nM2\n"
+
+
+def test_a_three_axis_program_posts_on_a_five_axis_machine_from_the_command_line(tmp_path):
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text(THREE_AXIS)
+    r = run_cli("post", src, "-o", out, "--machine", MACHINES / "nmv1500dcg.toml", "--report", tmp_path / "r.json")
+    assert r.returncode == 0, r.stderr  # was "trueaxis post: Singular matrix", exit 2
+    body = without_header(out.read_text())
+    assert " B" not in body and " C" not in body  # the rotary axes stay where they are, not written
+    assert json.loads((tmp_path / "r.json").read_text())["singular_block_count"] == 0
+
+
+def test_a_three_axis_program_through_the_python_hook_puts_the_tip_on_the_nominal_points():
+    # the CadQuery hook is this function; the FreeCAD post runs the command line above
+    import numpy as np
+
+    from post_checks import actual_points, machine_rows
+    from trueaxis.postproc.gcode import parse_program
+
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    out = compensate(THREE_AXIS, m, "geometric")
+    actual, prog, rows = actual_points(out, m)
+    nominal_q, _ = machine_rows(parse_program(THREE_AXIS), m)
+    from trueaxis.machine import ErrorTwin
+
+    nominal = ErrorTwin(m).nominal_pose(nominal_q)[0]
+    # the programmed ends (the arc is split into lines: its end is the last row)
+    assert np.abs(actual[-1] - nominal[-1]).max() < 1e-4 and np.abs(actual[1] - nominal[1]).max() < 1e-4

@@ -395,6 +395,7 @@ class _Poster:
         self.names = machine.axis_names
         self.cols = [AXES.index(a) for a in self.names]
         self.orientation = any(a in prog.axes_present for a in machine.rotary_axes)
+        self.rotary_columns = [j for j, a in enumerate(self.names) if machine.axes[a].is_rotary]
         self.inch_rows = prog.inch
         self.stats = {"um": 0.0, "urad": 0.0, "urad_singular": 0.0, "singular_points": 0, "singular_lines": set()}
         self.fractions = {}  # program row -> piece boundaries (fractions of the move) of split moves
@@ -523,6 +524,11 @@ class _Poster:
         pair = self._pair()
         if pair is not None:
             hold[:, pair[0].column] = self.singular_at(q)
+        held = hold.any(axis=1)  # the singular cone's held free axis
+        if not self.orientation:
+            # A program without rotary words on a machine with rotary axes: they stay where they are (their position
+            # in the program, 0, plus the setup's offset) and are not written; X Y Z alone place the tip.
+            hold[:, self.rotary_columns] = True
         res = solve_commanded(self.twin, q, force, orientation=self.orientation, hold=hold,
                               tol_um=self.solve_tol_um, tol_urad=SOLVE_TOL_URAD)
         bad = ~res.converged
@@ -531,7 +537,6 @@ class _Poster:
             raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
                             f"compensation did not converge (residual {res.position_residual_um[k]:.3g} um,"
                             f" {res.axis_residual_urad[k]:.3g} urad)")
-        held = hold.any(axis=1)
         st = self.stats
         st["um"] = max(st["um"], float(res.position_residual_um.max(initial=0.0)))
         if self.orientation:
