@@ -119,3 +119,12 @@ def test_a_three_axis_program_through_the_python_hook_puts_the_tip_on_the_nomina
     nominal = ErrorTwin(m).nominal_pose(nominal_q)[0]
     # the programmed ends (the arc is split into lines: its end is the last row)
     assert np.abs(actual[-1] - nominal[-1]).max() < 1e-4 and np.abs(actual[1] - nominal[1]).max() < 1e-4
+
+
+# --- (d) command-line habits -------------------------------------------------------------------------------------------
+
+def test_version_prints_the_package_version():
+    from trueaxis import __version__
+
+    r = run_cli("--version")
+    assert r.returncode == 0 and r.stdout.strip() == f"trueaxis {__version__}"

@@ -269,7 +269,10 @@ def cmd_inspect(args) -> int:
 
 # ------------------------------------------------------------------------------------------------------ parser ----
 def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
     p = argparse.ArgumentParser(prog="trueaxis", description="Machine-tool error compensation: post, inspect, diagnose.")
+    p.add_argument("--version", action="version", version=f"trueaxis {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     mach = sub.add_parser("machine", help="check or show a machine file")
