@@ -6,8 +6,6 @@ import json
 import subprocess
 import sys
 
-import pytest
-
 from conftest import MACHINES
 from trueaxis.machine import load_machine
 from trueaxis.postproc.post import compensate, without_header
