@@ -45,6 +45,17 @@ class CanonMoves:
     returncode: int
 
 
+def private_env(workdir: Path) -> dict:
+    """The environment for one rs274 run: HOME in its own folder. LinuxCNC 2.9's rs274 keeps the tool table in a
+    memory-mapped file ``$HOME/.tool.mmap``, shared by every rs274 of the user: runs in parallel (pytest -n 2) read
+    each other's tools ("Requested tool 23 not found") or die of SIGBUS when another one truncates it."""
+    import os
+
+    env = dict(os.environ)
+    env["HOME"] = str(workdir)
+    return env
+
+
 def tool_table_text(lengths_mm: dict) -> str:
     """A LinuxCNC tool table for ``rs274`` (which reads it in inches) from tool -> length in mm."""
     rows = []
@@ -61,7 +72,7 @@ def run_rs274(program: Path, tool_lengths_mm: dict, workdir: Path) -> CanonMoves
     tbl.write_text(tool_table_text(tool_lengths_mm))
     out = workdir / "canon.txt"
     proc = subprocess.run([exe, "-t", str(tbl), "-g", str(program), str(out)], stdin=subprocess.DEVNULL,
-                          capture_output=True, text=True, timeout=120, cwd=workdir)
+                          capture_output=True, text=True, timeout=120, cwd=workdir, env=private_env(workdir))
     moves = parse_canon(out.read_text(errors="replace"))
     moves.stderr, moves.returncode = proc.stdout + proc.stderr, proc.returncode
     return moves
@@ -204,7 +215,8 @@ def run_rs274_setup(program: Path, var: Path, tools: Path, workdir: Path) -> Mac
     shutil.copyfile(tools, tbl_copy)
     out = workdir / "canon_setup.txt"
     proc = subprocess.run([exe, "-v", str(var_copy), "-t", str(tbl_copy), "-g", str(program), str(out)],
-                          stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=120, cwd=workdir)
+                          stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=120, cwd=workdir,
+                          env=private_env(workdir))
     moves = machine_moves(out.read_text(errors="replace"))
     moves.stderr, moves.returncode = proc.stdout + proc.stderr, proc.returncode
     return moves
