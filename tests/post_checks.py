@@ -14,7 +14,7 @@ def machine_rows(program, machine, kinds=(ROW_PROGRAMMED,)):
     """Programmed rows of a parsed program as machine poses (N, n_axes) in mm / rad, plus their row indices."""
     rows = np.nonzero(np.isin(program.kind, kinds))[0]
     cols = [AXES.index(a) for a in machine.axis_names]
-    q = (program.end + program.offset)[rows][:, cols].copy()
+    q = program.to_machine(program.end[rows], rows)[:, cols].copy()
     for j, a in enumerate(machine.axis_names):
         if machine.axes[a].is_rotary:
             q[:, j] = np.radians(q[:, j])
@@ -34,7 +34,7 @@ def nominal_polyline(program, machine, arc_points=4000):
             six = points_on_arc(program, r, arc_points)
         else:
             six = np.vstack([program.start[r], program.end[r]])
-        six = six + program.offset[r]
+        six = program.to_machine(six, np.full(len(six), r))
         q = six[:, cols].copy()
         for j, a in enumerate(machine.axis_names):
             q[:, j] = np.radians(q[:, j]) if machine.axes[a].is_rotary else q[:, j] * (
@@ -75,9 +75,10 @@ def _point_segment_distance(p, a, b):
     return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
 
 
-def actual_points(program_text, machine, force_n=None):
-    """Where the twin puts the tool tip at every programmed end point of a (compensated) program: (N,3) mm."""
-    prog = parse_program(program_text)
+def actual_points(program_text, machine, force_n=None, setup=None):
+    """Where the twin puts the tool tip at every programmed end point of a (compensated) program: (N,3) mm.
+    ``setup``: the control's setup the program runs with (trueaxis.postproc.setup.Setup)."""
+    prog = parse_program(program_text, setup=setup)
     q, rows = machine_rows(prog, machine)
     return ErrorTwin(machine).actual_pose(q, force_n)[0], prog, rows
 

@@ -248,7 +248,8 @@ def test_the_nist_programs_post_the_same_with_and_without_the_fast_path(xh714_wi
         text = "".join(c if c.isascii() else "?" for c in text)
     else:
         text = (NIST / name).read_text(errors="replace")
-    fast, slow, taken = _both(text, xh714_wide, monkeypatch)
+    # their work offsets and tool lengths are not at hand: zero, said explicitly (the setup has its own tests)
+    fast, slow, taken = _both(text, xh714_wide, monkeypatch, offsets_zero=True)
     assert fast == slow
     if text.isascii():
         assert taken is not None and taken > 0.2

@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 
 from conftest import MACHINES, ROOT, require_program
-from rs274_helpers import run_rs274
+from rs274_helpers import run_rs274, var_text
 from trueaxis.postproc.hosts.freecad import default_macro_dir, install_post, post_script_path
+from trueaxis.postproc.post import without_header
 
 XH714 = MACHINES / "xh714.toml"
 TRUEAXIS = ROOT / ".venv" / "bin" / "trueaxis"
@@ -65,7 +66,13 @@ def freecad_job(tmp_path_factory):
             mp.delenv(name, raising=False)
         installed = install_post(default_macro_dir(home))
     env = {k: v for k, v in os.environ.items() if k not in XDG}
-    env.update(HOME=str(home), TRUEAXIS_TEST_OUT=str(out), TRUEAXIS_MACHINE=str(XH714), TRUEAXIS_BIN=trueaxis_exe())
+    # The control's setup, in inches as the standalone rs274 reads it: G54 2 inch below the machine zero and tool 1
+    # 2 inch long (the part is drawn in machine coordinates: the two cancel, so the job's positions stay on the
+    # machine's travel), FreeCAD's program selecting G54 and G43 H1.
+    (out / "setup.var").write_text(var_text({1: [0.0, 0.0, -2.0, 0.0, 0.0, 0.0]}))
+    (out / "setup.tbl").write_text("T1 P1 Z2.0 D0.2362 ;6 mm end mill\n")
+    env.update(HOME=str(home), TRUEAXIS_TEST_OUT=str(out), TRUEAXIS_MACHINE=str(XH714), TRUEAXIS_BIN=trueaxis_exe(),
+               TRUEAXIS_SETUP_ARGS=" ".join(setup_args(out)))
     proc = subprocess.run([freecadcmd, str(DRIVER)], cwd=out, env=env, stdin=subprocess.DEVNULL,
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, f"make_job.py failed:\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
@@ -75,13 +82,19 @@ def freecad_job(tmp_path_factory):
     return SimpleNamespace(dir=out, files=files, facts=facts)
 
 
+def setup_args(folder):
+    return ["--var", str(folder / "setup.var"), "--tool-table", str(folder / "setup.tbl"), "--machine-units", "inch"]
+
+
 @pytest.mark.external
 def test_post_equals_linuxcnc_post_compensated_by_trueaxis(freecad_job, tmp_path):
     linuxcnc = freecad_job.dir / "linuxcnc.ngc"
     direct = tmp_path / "direct.ngc"
     subprocess.run([trueaxis_exe(), "post", str(linuxcnc), "-o", str(direct), "--machine", str(XH714),
-                    "--mode", "geometric", "--tol-um", "1"], check=True, capture_output=True, text=True)
+                    "--mode", "geometric", "--tol-um", "1", *setup_args(freecad_job.dir)], check=True,
+                   capture_output=True, text=True)
     posted = freecad_job.files["trueaxis.ngc"]
+    # the header names the setup files by their full paths, the same in both
     assert COMMENT_LINE.sub("", posted) == direct.read_text()
     assert posted != freecad_job.files["linuxcnc.ngc"]  # the machine has errors: the program changed
     assert freecad_job.files["trueaxis_return.ngc"] == posted
@@ -89,7 +102,14 @@ def test_post_equals_linuxcnc_post_compensated_by_trueaxis(freecad_job, tmp_path
 
 @pytest.mark.external
 def test_without_correction_the_post_is_the_linuxcnc_post_plus_conditions(freecad_job):
-    assert COMMENT_LINE.sub("", freecad_job.files["trueaxis_none.ngc"]) == freecad_job.files["linuxcnc.ngc"]
+    assert without_header(COMMENT_LINE.sub("", freecad_job.files["trueaxis_none.ngc"])) == \
+        freecad_job.files["linuxcnc.ngc"]
+    header = freecad_job.files["trueaxis_none.ngc"].splitlines()[:7]
+    assert header[0].startswith("(trueaxis post: trueaxis ") and "machine XH714" in header[0]
+    assert header[2].endswith("setup.var)") and header[3].endswith("setup.tbl)")
+    header = header[3:]
+    assert header[1].startswith("(trueaxis setup: G54 Z-50.8 mm, from ") and "setup.var:5221-5226,5230" in header[1]
+    assert header[2].startswith("(trueaxis setup: tool 1 offset Z50.8 mm by G43 H1, from ")
 
 
 @pytest.mark.external
@@ -131,6 +151,31 @@ def test_rs274_reads_the_compensated_program(freecad_job, tmp_path):
     lo = np.abs(moves.end[:, :3].min(axis=0) - nominal.end[:, :3].min(axis=0))
     hi = np.abs(moves.end[:, :3].max(axis=0) - nominal.end[:, :3].max(axis=0))
     assert max(lo.max(), hi.max()) < 0.1
+
+
+@pytest.mark.external
+def test_freecad_program_read_back_by_rs274_with_the_setup_lies_on_the_nominal_path(freecad_job, tmp_path):
+    # FreeCAD's program selects G54 and G43 H1; the post took them from the .var and tool table given in the job's
+    # argument string. rs274 reads the compensated program with the same files (4 decimals of a mm: 0.05 um): every
+    # feed end point, through the twin at that machine position, lies on the nominal path within 0.15 um.
+    from post_checks import distance_to_polyline, nominal_polyline
+    from rs274_helpers import run_rs274_setup
+    from trueaxis.machine import ErrorTwin, load_machine
+    from trueaxis.postproc.gcode import ROW_PROGRAMMED, parse_program
+    from trueaxis.postproc.setup import load_setup
+
+    var, tbl = freecad_job.dir / "setup.var", freecad_job.dir / "setup.tbl"
+    moves = run_rs274_setup(freecad_job.dir / "trueaxis.ngc", var, tbl, tmp_path)
+    assert moves.returncode == 0, moves.stderr
+    setup = load_setup(var=var, tool_table=tbl, machine_units="inch")
+    ours = parse_program(freecad_job.files["trueaxis.ngc"], setup=setup)
+    assert len(moves.kind) == len(ours)
+    feed = np.array([k in ("feed", "arc") for k in moves.kind]) & (ours.kind == ROW_PROGRAMMED)
+    assert feed.sum() > 50
+    m = load_machine(XH714)
+    nominal = nominal_polyline(parse_program(freecad_job.files["linuxcnc.ngc"], setup=setup), m, arc_points=4000)
+    d_um = distance_to_polyline(ErrorTwin(m).actual_pose(moves.end[feed][:, :3])[0], nominal) * 1e3
+    assert d_um.max() < 0.15, d_um.max()
 
 
 @pytest.mark.external

@@ -26,7 +26,7 @@ from rs274_helpers import assert_rs274_reads_as_we_do
 from trueaxis.machine import ErrorTwin, forward_nominal, load_machine
 from trueaxis.postproc.cl import ClError, cl_to_program, read_cl
 from trueaxis.postproc.gcode import FEED, parse_program
-from trueaxis.postproc.post import PostError, compensate
+from trueaxis.postproc.post import PostError, compensate, without_header
 from trueaxis.sim.programs import cone_flank_program
 
 CONE = {"axis": [math.sin(math.radians(10)), 0.0, math.cos(math.radians(10))], "half_angle_deg": 15.0,
@@ -295,7 +295,8 @@ def test_posted_cl_lands_on_the_cl_poses_and_stays_on_the_cl_path(name):
     m = load_machine(MACHINES / f"{name}.toml")
     cl = read_cl(CL_APT)
     report = {}
-    out = compensate(CL_APT, m, "geometric", tol_um=TOL_UM, report=report)
+    # The APT file loads tool 1 (G43 H1); its length is the reference tool's, so zero offset is meant here.
+    out = compensate(CL_APT, m, "geometric", tol_um=TOL_UM, report=report, offsets_zero=True)
     assert report["input_format"] == "cl-apt" and report["cl_points"] == len(cl)
     q, _ = machine_rows(parse_program(out), m)
     # The last move is the APT END's retract of Z, not a CL pose: the rest must be on the CL path.
@@ -343,8 +344,10 @@ def _slerp(a, b, t):
 
 
 def test_csv_and_apt_post_to_the_same_moves_and_apt_keeps_its_setup(nmv):
-    a = compensate(CL_CSV, nmv, "geometric").splitlines()
-    b = compensate(CL_APT, nmv, "geometric").splitlines()
+    a = without_header(compensate(CL_CSV, nmv, "geometric")).splitlines()
+    with pytest.raises(PostError, match=r"cone_cl.apt:\d+: the length of tool 1 \(G43 H1\) was not given"):
+        compensate(CL_APT, nmv, "geometric")  # LOADTL/1 selects a tool length the post was not given
+    b = without_header(compensate(CL_APT, nmv, "geometric", offsets_zero=True)).splitlines()
     # The APT file's setup, where it stands: PARTNO, CUTTER, LOADTL, SPINDL before the first move; END after the last.
     head = ["(PARTNO CONE FLANK)", "(trueaxis: d=10)", "T1 M6", "G43 H1", "S5000 M3"]
     assert b[3:8] == head

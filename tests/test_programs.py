@@ -236,3 +236,19 @@ def test_rs274_reads_both_programs(tmp_path, nmv, slots_prog):
         assert len(moves.kind) == len(words)
         cols = [("XYZABC".index(a)) for a in prog.machine.axis_names]
         np.testing.assert_allclose(moves.end[:, cols], words, atol=6e-5)
+
+
+def test_programs_state_their_work_offset_and_the_setup_they_expect(cone_prog, slots_prog, nmv):
+    from trueaxis.postproc.post import compensate
+
+    for prog, zero in ((cone_prog, "G10 L2 P1 X0 Y0 Z0 B0 C0"), (slots_prog, "G10 L2 P1 X0 Y0 Z0")):
+        lines = prog.text.splitlines()
+        assert any(line.startswith("(setup expected: work offset G54 = machine zero") for line in lines)
+        i = lines.index(zero)
+        assert lines[i + 1] == "G54" and "G43" not in prog.raw and "G49" in lines[i - 1]
+        # the program itself gives its offset: the post needs no setup and names where the offset came from
+        p = parse_program(prog.raw, require_setup=True)
+        assert [u["what"] for u in p.setup_used] == ["G54"]
+        assert p.setup_used[0]["source"] == f"<string>:{i + 1} (G10 L2)"
+    out = compensate(cone_prog.raw, cone_prog.machine, "geometric", source="cone.ngc")
+    assert any(line.startswith("(trueaxis setup: G54 0 mm, from cone.ngc:") for line in out.splitlines()[:8])

@@ -153,9 +153,11 @@ def cmd_error(args) -> int:
 def cmd_post(args) -> int:
     from .fileio import atomic_write
     from .machine import load_machine
-    from .postproc.post import post_text, _read_input
+    from .postproc.post import post_text, _read_input, resolve_setup
 
     machine = load_machine(args.machine)
+    setup = resolve_setup(machine, setup=args.setup, var=args.var, tool_table=args.tool_table,
+                          machine_units=args.machine_units, offsets_zero=args.offsets_zero)
     text, source = _read_input(Path(args.input), None) if Path(args.input).exists() else (None, args.input)
     if text is None:
         raise UsageError(f"{args.input}: no such file")
@@ -165,8 +167,11 @@ def cmd_post(args) -> int:
     out, report = post_text(text, machine, args.mode, tol_um=args.tol_um, max_correction_mm=args.max_correction_mm,
                             singular_deg=args.singular_deg, conditions=conditions,
                             passthrough_unsupported=args.passthrough_unsupported, source=source,
-                            cl_feed_mm_min=args.cl_feed, cl_branch=branch)
+                            cl_feed_mm_min=args.cl_feed, cl_branch=branch, setup=setup, force=args.force)
     atomic_write(args.output, out)
+    for item in report.uncompensated:
+        print(f"{source}:{item['line']}: the position of {' '.join(item['axes'])} is not known here (no absolute move "
+              "of it before): block left as written, uncompensated", file=sys.stderr)
     if args.report:
         atomic_write(args.report, json.dumps(report.as_dict(), indent=2))
     corr = ", ".join(f"{a} {max(v.values()):.2f}" for a, v in report.correction.items())
@@ -362,6 +367,22 @@ def build_parser() -> argparse.ArgumentParser:
         po.add_argument(f"--{key}", type=POSITIVE if key != "z" else _number(int, low=1), help=f"cutting conditions: {what} "
                         "(overrides the program's structured comments)")
     po.add_argument("--cut-mode", choices=["down", "up"], help="cutting conditions: down or up milling")
+    po.add_argument("--var", metavar="PARAMS.var", help="the control's setup: LinuxCNC parameter file (work offsets "
+                    "G54..G59.3 with rotation, G92, active system, G28/G30 homes)")
+    po.add_argument("--tool-table", metavar="TOOLS.tbl", help="the control's setup: LinuxCNC tool table (tool "
+                    "offsets X..C, Z = length; D diameter)")
+    po.add_argument("--machine-units", choices=["mm", "inch"], default="mm",
+                    help="units of the .var and tool table: LinuxCNC's [TRAJ] LINEAR_UNITS (default mm; the "
+                         "standalone rs274 uses inch)")
+    po.add_argument("--setup", metavar="SETUP.toml", help="the control's setup for other controls: work offsets, tool "
+                    "lengths, how tool length is applied (docs/setup_file.md); default: the machine file's "
+                    "[machine] setup")
+    po.add_argument("--force", action="store_true",
+                    help="post a program that already carries a trueaxis header (compensated already: refused "
+                         "otherwise)")
+    po.add_argument("--offsets-zero", action="store_true",
+                    help="work offsets, G92 shifts and tool lengths not given are zero (without it a program that "
+                         "uses one is refused)")
     po.add_argument("--cl-feed", type=POSITIVE, help="CL data: feed, mm/min, for cuts before the data gives one")
     po.add_argument("--cl-branch", choices=["nearest", "+1", "-1"], default="nearest",
                     help="CL data: sign of the tilt axis (default: kept along the path, the one farthest inside "
@@ -463,7 +484,7 @@ def _located_errors() -> tuple:
     only come from a module that is loaded."""
     found = []
     for module, name in (("trueaxis.machine.machine_file", "MachineFileError"),
-                         ("trueaxis.postproc.gcode", "GcodeError")):
+                         ("trueaxis.postproc.gcode", "GcodeError"), ("trueaxis.postproc.setup", "SetupError")):
         if module in sys.modules:
             found.append(getattr(sys.modules[module], name))
     return tuple(found)

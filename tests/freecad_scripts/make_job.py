@@ -7,6 +7,7 @@ Environment (freecadcmd passes no arguments to a script):
   TRUEAXIS_TEST_OUT     folder for the outputs
   TRUEAXIS_MACHINE      machine file for the trueaxis post
   TRUEAXIS_BIN          the trueaxis executable (read by the post script itself)
+  TRUEAXIS_SETUP_ARGS   the control's setup options for the trueaxis post (e.g. --var F --tool-table T)
 
 The part: a 60 x 40 x 10 mm block with a 30 x 20 x 5 mm pocket, placed in the machine frame of the test machine
 (top face at Z = -300, centred on X = Y = 0), since trueaxis reads program coordinates as machine axes. The job: one
@@ -84,7 +85,8 @@ try:
     assert "trueaxis" in PathPreferences.allAvailablePostProcessors(), PathPreferences.searchPathsPost()
     trueaxis = PostProcessor.load("trueaxis")
     module = trueaxis.script
-    args = "--machine %s --mode geometric --tol-um 1 --no-header --no-show-editor" % MACHINE
+    args = "--machine %s --mode geometric --tol-um 1 --no-header --no-show-editor %s" % (
+        MACHINE, os.environ.get("TRUEAXIS_SETUP_ARGS", ""))
     returned = trueaxis.export(postlist, os.path.join(OUT, "trueaxis.ngc"), args)
     with open(os.path.join(OUT, "trueaxis_return.ngc"), "w") as f:
         f.write(returned)

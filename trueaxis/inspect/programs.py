@@ -424,10 +424,17 @@ class PartProgram:
 
 
 def _header(title: list[str], machine: Machine, setup: str, n_rpm: float) -> list[str]:
+    """The program's head: title, machine, the virtual shop's setup comment, the setup the program expects (stated,
+    and made by the program itself: G54 set to the machine zero by G10 L2 P1, no tool length offset), units and
+    modes, the tool change and the spindle."""
+    zero = " ".join(f"{a}0" for a in machine.axis_names)
     return (["%"] + [f"({t})" for t in title] +
             [f"(machine: {machine.name.replace('(', '[').replace(')', ']')})", setup,
-             "(X Y Z: tool tip, tool length compensation active; rotary axes in degrees)",
-             "G21 G90 G17 G94 G40 G49", "T1 M6", "G43 H1", f"S{n_rpm:g} M3"])
+             "(X Y Z: tool tip in machine coordinates, the twin's axes with the machine file's tool of length "
+             f"{machine.tool.length:g} mm; rotary axes in degrees)",
+             f"(setup expected: work offset G54 = machine zero [set below by G10 L2 P1], no G92 shift, no tool "
+             "length offset [G49]: post it without a setup)",
+             "G21 G90 G17 G94 G40 G49", f"G10 L2 P1 {zero}", "G54", "T1 M6", f"S{n_rpm:g} M3"])
 
 
 def _footer() -> list[str]:
@@ -590,7 +597,7 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, pl
         raw_sections.append(sec_text)
         rep = {}
         out = compensate(head_text + sec_text, placed, mode, source=f"slots.ngc[slot {s + 1}]", report=rep,
-                         **(post_options or {}))
+                         header=False, **(post_options or {}))
         if not out.startswith(head_text):
             raise RuntimeError("the post changed the program header; cannot splice the slot sections")
         posted.append(out[len(head_text):])

@@ -143,12 +143,17 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
         {"machine", "kinematics", "axes", "tool", "workpiece", "location", "component", "force", "loaded", "cutting"},
         required=("machine", "kinematics", "axes", "tool"),
     )
-    head = ck.table(data.get("machine", {}), "machine", {"name", "kind", "format", "note"}, ("name", "kind", "format"))
+    head = ck.table(data.get("machine", {}), "machine", {"name", "kind", "format", "note", "setup"},
+                    ("name", "kind", "format"))
     name = ck.string(head.get("name", ""), "machine.name") or ""
     kind = ck.string(head.get("kind", "mill"), "machine.kind", ("mill", "lathe")) or "mill"
     if "format" in head and head["format"] != 1:
         ck.fail("machine.format", f"this trueaxis reads format 1, the file says {head['format']!r}")
     note = ck.string(head.get("note", ""), "machine.note") or ""
+    # the default setup of the control (docs/setup_file.md), relative to the machine file's folder
+    setup = ck.string(head.get("setup", ""), "machine.setup") or ""
+    if setup and source not in ("<string>", "<memory>"):
+        setup = str(Path(source).parent / setup)
 
     axes = _read_axes(data.get("axes", {}), ck)
     wp, tl = _read_kinematics(data.get("kinematics", {}), axes, ck)
@@ -227,6 +232,7 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
         cutting=cutting,
         note=note,
         source=source,
+        setup=setup,
     )
 
 
@@ -474,6 +480,8 @@ def dump_machine(machine: Machine) -> str:
     out = ["[machine]", f"name = {_toml_str(machine.name)}", f"kind = {_toml_str(machine.kind)}", "format = 1"]
     if machine.note:
         out.append(f"note = {_toml_str(machine.note)}")
+    if machine.setup:
+        out.append(f"setup = {_toml_str(machine.setup)}")
     out += ["", "[kinematics]", f"bed_to_workpiece = {_toml_list(machine.bed_to_workpiece)}",
             f"bed_to_tool = {_toml_list(machine.bed_to_tool)}", "", "[axes]"]
     for name in machine.axis_names:

@@ -117,6 +117,7 @@ class Machine:
     cutting: dict | None = None
     note: str = ""
     source: str = "<memory>"
+    setup: str = ""  # the control's default setup file (``[machine] setup``), a path; "" when none
 
     # --- names ---------------------------------------------------------------------------------------------------
     @property

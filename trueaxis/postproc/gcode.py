@@ -11,8 +11,13 @@ Coordinates
 active at that row (G54..G59.3, G92), in the units active at that row (G20 inch / G21 mm; rotary axes in degrees).
 That is exactly what LinuxCNC's ``rs274`` prints in its canonical ``STRAIGHT_FEED`` / ``ARC_FEED`` calls (checked: it
 reports positions *before* the G5x, G92 and tool length offsets, which it announces separately with
-``SET_G5X_OFFSET`` and ``USE_TOOL_LENGTH_OFFSET``). ``Program.offset`` holds the sum of those offsets at each row, so the
-controlled point in machine coordinates is ``end + offset`` (:attr:`Program.end_machine`).
+``SET_G5X_OFFSET`` and ``USE_TOOL_LENGTH_OFFSET``). The machine position is composed as LinuxCNC's canon does: program
+position plus G92, turned by the work system's XY rotation (``Program.rotation``, deg), plus the G5x offset and the
+tool offset. ``Program.offset`` holds the sum of those offsets at each row (the G92 shift turned by the rotation), so
+the controlled point in machine coordinates is ``R end + offset`` (:attr:`Program.end_machine`,
+:meth:`Program.to_machine`), ``end + offset`` in a system without rotation. The offsets at program start come from
+the control's setup (``setup``: LinuxCNC's parameter file and tool table, or a setup file; see ``setup.py``);
+``Program.setup_used`` lists what the rows used and where it came from.
 
 Decisions (documented here once)
 --------------------------------
@@ -124,6 +129,7 @@ MAX_WORD_VALUE = 1e9
 # Arc turns (P) are stored as int16.
 MAX_ARC_TURNS = 32767
 
+_SYSTEM_NAMES = ("G54", "G55", "G56", "G57", "G58", "G59", "G59.1", "G59.2", "G59.3")
 _AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2, "A": 3, "B": 4, "C": 5}
 _LINEAR = np.array([True, True, True, False, False, False])
 _LINEAR_T = (True, True, True, False, False, False)
@@ -216,6 +222,10 @@ class Program:
     axes_present : the axis letters the program uses, in XYZABC order
     warnings : list of str, ``file:line: message``
     unsupported : list of (line_no, reason), 1-based, for blocks passed through uninterpreted
+    rotation : (M,) float, XY rotation of the row's work system, deg (G10 L2 R, parameter 5230 + 20 (k - 1))
+    setup_used : list of dict, the work offsets, G92 shifts and tool offsets the rows used, in order of first use:
+        ``what`` ("G54", "G92", "tool 3 offset"), ``values_mm_deg`` (6,), ``rotation_deg``, ``source`` (file:parameters,
+        file:line, or "not given"), ``applied_by`` (tool offsets: "G43 H3", "M6"), ``first_line``
     """
 
     source: str
@@ -242,6 +252,8 @@ class Program:
     axes_present: str
     warnings: list = field(default_factory=list)
     unsupported: list = field(default_factory=list)
+    rotation: np.ndarray | None = None
+    setup_used: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return int(self.motion.shape[0])
@@ -254,7 +266,39 @@ class Program:
     @property
     def end_machine(self) -> np.ndarray:
         """(M, 6) float, end points in machine coordinates (work, G92 and tool length offsets applied)."""
-        return self.end + self.offset
+        return self.to_machine(self.end)
+
+    @property
+    def start_machine(self) -> np.ndarray:
+        """(M, 6) float, start points in machine coordinates."""
+        return self.to_machine(self.start)
+
+    def to_machine(self, points: np.ndarray, rows=None) -> np.ndarray:
+        """Machine coordinates (program units) of program-coordinate points (K, 6) of the rows ``rows`` (K,) (all
+        rows when None): the XY rotation of the row's work system, then ``offset``."""
+        rows = slice(None) if rows is None else rows
+        off = self.offset[rows]
+        rot = None if self.rotation is None else self.rotation[rows]
+        if rot is None or not np.any(rot):
+            return points + off
+        out = points.copy()
+        c, s = np.cos(np.radians(rot)), np.sin(np.radians(rot))
+        out[..., 0] = c * points[..., 0] - s * points[..., 1]
+        out[..., 1] = s * points[..., 0] + c * points[..., 1]
+        return out + off
+
+    def to_program_delta(self, delta: np.ndarray, rows=None) -> np.ndarray:
+        """A displacement (K, 6) in machine coordinates as a displacement in the rows' program coordinates (the
+        work system's rotation undone; offsets do not change a displacement)."""
+        rows = slice(None) if rows is None else rows
+        rot = None if self.rotation is None else self.rotation[rows]
+        if rot is None or not np.any(rot):
+            return delta
+        out = delta.copy()
+        c, s = np.cos(np.radians(rot)), np.sin(np.radians(rot))
+        out[..., 0] = c * delta[..., 0] + s * delta[..., 1]
+        out[..., 1] = -s * delta[..., 0] + c * delta[..., 1]
+        return out
 
     @property
     def end_mm(self) -> np.ndarray:
@@ -491,6 +535,8 @@ def parse_program(
     passthrough_unsupported: bool = False,
     tool_table: Mapping[int, float] | None = None,
     reference_points: Mapping[str, Sequence[float]] | None = None,
+    setup=None,
+    require_setup: bool = False,
 ) -> Program:
     """Interpret RS-274 text as LinuxCNC does and return its motion table.
 
@@ -500,6 +546,14 @@ def parse_program(
         as they are, recorded in ``Program.unsupported``, instead of raising GcodeError
     tool_table : tool number -> tool length (Z) in **mm**, for G43 (see :func:`parse_tool_table`)
     reference_points : {"G28": (6,), "G30": (6,)} reference points in machine coordinates, mm / degrees (default zero)
+    setup : the controller's setup (:class:`trueaxis.postproc.setup.Setup`): work offsets (with their XY rotation),
+        G92 shift, active system, home positions and tool offsets at program start; it completes ``tool_table`` and
+        ``reference_points``. What it does not give is unknown; ``Program.setup_used`` lists what the rows used.
+    require_setup : refuse (GcodeError naming the offset) a move made under a work offset, G92 shift or tool length
+        that is unknown: a work system the program selects (G54..G59.3) that neither the setup nor a G10 in the
+        program gives, a G92.3 restore without the stored shift, a tool length (G43 H, or M6 when the setup applies
+        lengths at the tool change) of a tool not given; unless ``setup.offsets_zero``. Without it such values are
+        zero (LinuxCNC's defaults) and listed as "not given" in ``setup_used``.
     """
     if isinstance(text, (bytes, bytearray)):
         raise GcodeError(source, 1, "got bytes, expected text: decode the file first (or use parse_file)")
@@ -509,18 +563,38 @@ def parse_program(
         raise GcodeError(source, text[: text.index("\x00")].count("\n") + 1, "binary data (NUL byte): not G-code")
     if not text.strip():
         raise GcodeError(source, 1, "empty program: no blocks")
-    return _Interpreter(text, source, passthrough_unsupported, tool_table, reference_points).run()
+    return _Interpreter(text, source, passthrough_unsupported, tool_table, reference_points, setup,
+                        require_setup).run()
 
 
 class _Interpreter:
     """One lean pass over the lines; state in current program units like LinuxCNC's interpreter."""
 
-    def __init__(self, text, source, passthrough, tool_table, reference_points):
+    def __init__(self, text, source, passthrough, tool_table, reference_points, setup=None, require_setup=False):
         self.text = text
         self.source = source
         self.passthrough = passthrough
-        self.tool_table_mm = {int(k): float(v) for k, v in (tool_table or {}).items()}
-        refs = reference_points or {}
+        self.setup = setup
+        self.require_setup = require_setup
+        self.offsets_zero = bool(setup is not None and setup.offsets_zero)
+        # tool number -> (6,) offsets X Y Z A B C in mm / deg (Z: the length), and where each came from
+        self.tool_off_mm: dict = {}
+        self.tool_src: dict = {}
+        for k, v in (tool_table or {}).items():
+            off = np.zeros(6)
+            if np.ndim(v) == 0:
+                off[2] = float(v)
+            else:
+                off[:] = np.asarray(v, float)
+            self.tool_off_mm[int(k)] = off
+            self.tool_src[int(k)] = "tool table"
+        refs = dict(reference_points or {})
+        if setup is not None:
+            for t, tool_offset in setup.tools.items():
+                self.tool_off_mm[int(t)] = np.asarray(tool_offset.offset, float).copy()
+                self.tool_src[int(t)] = tool_offset.source
+            for key, home in setup.home.items():
+                refs.setdefault(key, home.values)
         self.ref_mm = {
             "G28": np.array(refs.get("G28", np.zeros(6)), float),
             "G30": np.array(refs.get("G30", np.zeros(6)), float),
@@ -550,9 +624,46 @@ class _Interpreter:
         self.inch = False
         u_scale = np.array([1.0, 1, 1, 1, 1, 1])  # mm per program unit, per axis
         g5x = np.zeros((10, 6))  # index 1..9: G54..G59.3
+        rot = [0.0] * 10  # XY rotation of each work system, deg (LinuxCNC's R, parameter 5230 + 20 (k - 1))
         active = 1
         g92 = np.zeros(6)
         tlo = np.zeros(6)
+        # What is known of the control's setup, and where each value came from. A value's "version" changes when the
+        # program changes it, so that the rows' states can name the value they used (setup_used).
+        setup = self.setup
+        zero_ok = self.offsets_zero
+        g5x_known = np.full((10, 6), zero_ok)
+        g5x_src = ["--offsets-zero" if zero_ok else "not given"] * 10
+        g5x_ver = [0] * 10
+        hist = {}  # ("g5x", index, version) / ("g92", version) / ("tlo", version) -> record for setup_used
+        g92_reason = ""
+        g92_ver = [0]
+        tlo_ver = [0]
+        tlo_reason = ""
+        tlo_h = -1  # the tool whose offsets are in force (-1 none, -2 G43.1 given in the program)
+        selects_work = False
+        g92_stored = None  # (values mm, source) of the shift G92.3 restores; None: unknown
+        if setup is not None and setup.g92_stored is not None:
+            g92_stored = (np.asarray(setup.g92_stored.values, float), setup.g92_stored.source)
+        elif zero_ok:
+            g92_stored = (np.zeros(6), "--offsets-zero")
+        tool_change_mode = setup is not None and setup.tool_length == "tool_change"
+        if setup is not None:
+            for k, off in setup.work_offsets.items():
+                g5x[k] = off.values
+                rot[k] = float(off.rotation_deg)
+                g5x_known[k] = True
+                g5x_src[k] = off.source
+            if setup.active is not None:
+                active = int(setup.active)
+            if setup.g92 is not None:
+                g92[:] = setup.g92.values
+        hist[("g92", 0)] = {"values": g92.copy(), "source": setup.g92.source if setup is not None and
+                            setup.g92 is not None else "none at program start"}
+        hist[("tlo", 0)] = {"tool": -1, "values": np.zeros(6), "source": ""}
+        for k in range(1, 10):
+            hist[("g5x", k, 0)] = {"values": g5x[k].copy(), "rotation": rot[k], "source": g5x_src[k],
+                                   "known": g5x_known[k].copy()}
         arc_tol = 0.05  # arc end point off the circle by more than this (and 0.1 %): refused, like LinuxCNC
         pos = [0.0] * 6  # program coordinates (a list: numpy is slow for 6 numbers at a time)
         off_now = [[0.0] * 6]  # G5x + G92 + tool length offset, refreshed after every block that can change it
@@ -586,11 +697,49 @@ class _Interpreter:
         cur_state = [0]
 
         def offsets():
-            return g5x[active] + g92 + tlo
+            """G5x + G92 + tool offsets, the G92 shift turned by the system's rotation: machine = R p + offsets."""
+            r = rot[active]
+            if r == 0.0:
+                return g5x[active] + g92 + tlo
+            c, s = math.cos(math.radians(r)), math.sin(math.radians(r))
+            g = g92.copy()
+            g[0], g[1] = c * g92[0] - s * g92[1], s * g92[0] + c * g92[1]
+            return g5x[active] + g + tlo
+
+        def machine_of(p):
+            """Machine position (current units) of program position p: R (p + G92) + G5x + tool offset."""
+            u = [p[i] + g92[i] for i in range(6)]
+            r = rot[active]
+            if r != 0.0:
+                c, s = math.cos(math.radians(r)), math.sin(math.radians(r))
+                u[0], u[1] = c * u[0] - s * u[1], s * u[0] + c * u[1]
+            return [u[i] + g5x[active, i] + tlo[i] for i in range(6)]
+
+        def program_of(m):
+            """The inverse of machine_of."""
+            u = [m[i] - g5x[active, i] - tlo[i] for i in range(6)]
+            r = rot[active]
+            if r != 0.0:
+                c, s = math.cos(math.radians(r)), math.sin(math.radians(r))
+                u[0], u[1] = c * u[0] + s * u[1], -s * u[0] + c * u[1]
+            return [u[i] - g92[i] for i in range(6)]
+
+        def meta():
+            """The setup in force, for the rows' states: rotation, system and the versions of the values used, and
+            what is unknown (work axes not given, G92 / tool length reasons)."""
+            unknown = "".join(AXES[i] for i in range(6) if not g5x_known[active, i])
+            return (rot[active], active, g5x_ver[active], g92_ver[0], tlo_ver[0], unknown, g92_reason, tlo_reason)
+
+        meta_now = [meta()]
 
         def refresh_state():
-            key = (feed, inverse, inch, cutter, tool, not absolute, not arc_abs, tuple(off_now[0]), diameter)
+            key = (feed, inverse, inch, cutter, tool, not absolute, not arc_abs, tuple(off_now[0]), meta_now[0],
+                   diameter)
             cur_state[0] = states.setdefault(key, len(states))
+
+        if setup is not None:
+            off_now[0] = offsets().tolist()
+            refresh_state()
 
         def emit(motion, kind, target, li, words=0, center=None, pl=0, turns=0):
             if center is not None:
@@ -907,6 +1056,7 @@ class _Interpreter:
                 # -- modal and non-modal G codes, in LinuxCNC's order of execution ---------------------------
                 new_motion = None
                 nonmodal = None
+                meta_changed = False
                 g53 = False
                 for g in gnums:
                     if g in _MOTION_G:
@@ -949,16 +1099,17 @@ class _Interpreter:
                                       "contour, not the tool centre")
                     elif g in (430, 431, 432, 490):
                         pass  # handled after the tool change below
-                    elif 540 <= g <= 590 and g % 10 == 0:
-                        new_active = (g - 530) // 10
+                    elif (540 <= g <= 590 and g % 10 == 0) or g in (591, 592, 593):
+                        new_active = (g - 530) // 10 if g % 10 == 0 else 7 + (g - 591)
+                        selects_work = meta_changed = True
                         if new_active != active:
-                            _add(pos, g5x[active] - g5x[new_active])
-                            active = new_active
-                    elif g in (591, 592, 593):
-                        new_active = 7 + (g - 591)
-                        if new_active != active:
-                            _add(pos, g5x[active] - g5x[new_active])
-                            active = new_active
+                            if rot[active] == 0.0 and rot[new_active] == 0.0:
+                                _add(pos, g5x[active] - g5x[new_active])
+                                active = new_active
+                            else:  # the machine position stays; the program position follows the rotation
+                                m_pos = machine_of(pos)
+                                active = new_active
+                                pos[:] = program_of(m_pos)
                     elif g == 900:
                         absolute = True
                     elif g == 910:
@@ -994,39 +1145,56 @@ class _Interpreter:
                 for m in mnums:
                     if m == 6:
                         tool = next_tool
+                        if tool_change_mode:
+                            # the control applies the new tool's length at the change (Hurco, some Fanuc setups)
+                            new, tlo_h, tlo_reason = self.tool_offsets(tool, u_scale, zero_ok, line_no, "M6")
+                            m_pos = machine_of(pos)
+                            tlo = new
+                            pos[:] = program_of(m_pos)
+                            tlo_ver[0] += 1
+                            meta_changed = True
+                            hist[("tlo", tlo_ver[0])] = {"tool": tool, "values": new * u_scale,
+                                                         "source": self.tool_source(tool, zero_ok), "how": "M6"}
                     elif m in (2, 30):
                         ended = True
                     elif m not in _KNOWN_M and not (100 <= m <= 199):
                         self.unsupported_block(line_no, f"M{m} is not an RS-274 code (no axis moved)")
                 # tool length offset
                 for g in gnums:
+                    if g not in (430, 431, 432, 490):
+                        continue
                     if g == 430:
                         h = int(fvals["H"]) if "H" in fvals else tool
-                        length_mm = self.tool_table_mm.get(h)
-                        if length_mm is None:
-                            if h != 0:
-                                self.warn(line_no, f"G43 H{h}: tool {h} is not in the tool table; length 0 used")
-                            length_mm = 0.0
-                        new = np.zeros(6)
-                        new[2] = length_mm / u_scale[2]
-                        _add(pos, tlo - new)
-                        tlo = new
+                        new, tlo_h, tlo_reason = self.tool_offsets(h, u_scale, zero_ok, line_no, f"G43 H{h}")
+                        rec = {"tool": h, "source": self.tool_source(h, zero_ok), "how": f"G43 H{h}"}
                     elif g == 431:
                         new = tlo.copy()
                         for i, v in ax:
                             new[i] = v
                         ax = []
-                        _add(pos, tlo - new)
-                        tlo = new
+                        tlo_h, tlo_reason = -2, ""
+                        rec = {"tool": -2, "source": f"{self.source}:{line_no} (G43.1)", "how": "G43.1"}
                     elif g == 432:
                         h = int(fvals.get("H", 0))
-                        new = tlo.copy()
-                        new[2] += self.tool_table_mm.get(h, 0.0) / u_scale[2]
+                        add, _, reason = self.tool_offsets(h, u_scale, zero_ok, line_no, f"G43.2 H{h}")
+                        new = tlo + add
+                        tlo_reason = tlo_reason or reason
+                        rec = {"tool": h, "source": self.tool_source(h, zero_ok), "how": f"G43.2 H{h} (added)"}
+                    else:
+                        new = np.zeros(6)
+                        tlo_h, tlo_reason = -1, ""
+                        rec = {"tool": -1, "source": "", "how": "G49"}
+                    if rot[active] == 0.0:
                         _add(pos, tlo - new)
                         tlo = new
-                    elif g == 490:
-                        _add(pos, tlo)
-                        tlo = np.zeros(6)
+                    else:
+                        m_pos = machine_of(pos)
+                        tlo = new
+                        pos[:] = program_of(m_pos)
+                    tlo_ver[0] += 1
+                    meta_changed = True
+                    rec["values"] = tlo * u_scale
+                    hist[("tlo", tlo_ver[0])] = rec
 
                 if new_motion is not None:
                     if new_motion in (0, 10, 20, 30, 800):
@@ -1037,11 +1205,22 @@ class _Interpreter:
 
                 if gnums or mnums or "F" in fvals:
                     off_now[0] = offsets().tolist()
+                    if meta_changed:
+                        meta_now[0] = meta()
                     refresh_state()
                 # -- non-modal: G10, G28, G30, G92, G4 -------------------------------------------------------
                 if nonmodal == 100:
                     # the active system may change: the machine position stays, the program position moves
-                    self.g10(line_no, fvals, ax, g5x, active, g92, tlo, pos, u_scale)
+                    changed = self.g10(line_no, fvals, ax, g5x, rot, active, g92, tlo, pos, u_scale, machine_of,
+                                       program_of)
+                    if changed is not None:
+                        idx, letters = changed
+                        for i in letters:
+                            g5x_known[idx, i] = True
+                        g5x_src[idx] = f"{self.source}:{line_no} (G10 L{int(fvals.get('L', -1))})"
+                        g5x_ver[idx] += 1
+                        hist[("g5x", idx, g5x_ver[idx])] = {"values": g5x[idx] * u_scale, "rotation": rot[idx],
+                                                            "source": g5x_src[idx], "known": g5x_known[idx].copy()}
                     ax = []
                 elif nonmodal in (280, 300):
                     key = "G28" if nonmodal == 280 else "G30"
@@ -1053,25 +1232,46 @@ class _Interpreter:
                         moving = [i for i, _ in ax]
                     else:
                         moving = list(range(6))
-                    home = refs[key] / u_scale - offsets()
-                    target = list(pos)
-                    for i in moving:
-                        target[i] = float(home[i])
+                    if rot[active] == 0.0:
+                        home = refs[key] / u_scale - offsets()
+                        target = list(pos)
+                        for i in moving:
+                            target[i] = float(home[i])
+                    else:  # as LinuxCNC: the home point in program coordinates, its named axes taken
+                        home = program_of([float(refs[key][i] / u_scale[i]) for i in range(6)])
+                        target = list(pos)
+                        for i in moving:
+                            target[i] = home[i]
                     emit(RAPID, ROW_REFERENCE, target, li, 0)
                     ax = []
                 elif nonmodal in (281, 301):
-                    refs["G28" if nonmodal == 281 else "G30"] = (np.array(pos) + offsets()) * u_scale
-                elif nonmodal == 920:
-                    for i, v in ax:
-                        new = pos[i] + g92[i] - v
-                        g92[i] = new
-                        pos[i] = v
-                    ax = []
-                elif nonmodal in (921, 922):
-                    _add(pos, g92)
-                    g92[:] = 0.0
-                elif nonmodal == 923:
-                    self.unsupported_block(line_no, "G92.3 (restore G92 from parameters) not supported; G92 kept")
+                    refs["G28" if nonmodal == 281 else "G30"] = np.array(machine_of(pos)) * u_scale
+                elif nonmodal in (920, 921, 922, 923):
+                    old_g92 = g92.copy()
+                    if nonmodal == 920:
+                        for i, v in ax:
+                            g92[i] = pos[i] + g92[i] - v
+                        ax = []
+                        g92_stored = (g92 * u_scale, f"{self.source}:{line_no} (G92)")
+                        src, g92_reason = g92_stored[1], ""
+                    elif nonmodal in (921, 922):
+                        g92[:] = 0.0
+                        src, g92_reason = f"{self.source}:{line_no} (G92.{nonmodal - 920})", ""
+                        if nonmodal == 921:
+                            g92_stored = (np.zeros(6), src)
+                    elif g92_stored is not None:
+                        g92[:] = g92_stored[0] / u_scale
+                        src, g92_reason = f"{g92_stored[1]}, restored by G92.3 at line {line_no}", ""
+                    else:
+                        g92[:] = 0.0
+                        src = "--offsets-zero" if zero_ok else "not given"
+                        g92_reason = "" if zero_ok else \
+                            "the G92 shift that G92.3 restores (stored in the control) was not given"
+                    # the machine position stays: the program position moves by the change (G92 is applied before
+                    # the system's rotation, so the same formula holds in a rotated system)
+                    _add(pos, old_g92 - g92)
+                    g92_ver[0] += 1
+                    hist[("g92", g92_ver[0])] = {"values": g92 * u_scale, "source": src}
 
                 if ended and not ax and motion_here is None:
                     break
@@ -1079,6 +1279,7 @@ class _Interpreter:
                 # -- motion ---------------------------------------------------------------------------------
                 if nonmodal is not None:
                     off_now[0] = offsets().tolist()
+                    meta_now[0] = meta()
                     refresh_state()
                 prior_mode = motion_mode
                 if motion_here is not None:
@@ -1103,10 +1304,16 @@ class _Interpreter:
                         raise self.err(line_no, "G53 needs G0 or G1")
                     if not absolute:
                         raise self.err(line_no, "G53 in incremental mode (G91)")
-                    target = list(pos)
-                    off = offsets()
-                    for i, v in ax:
-                        target[i] = v - off[i]
+                    if rot[active] == 0.0:
+                        target = list(pos)
+                        off = offsets()
+                        for i, v in ax:
+                            target[i] = v - off[i]
+                    else:
+                        m_pos = machine_of(pos)
+                        for i, v in ax:
+                            m_pos[i] = v
+                        target = program_of(m_pos)
                     if mm == 10 and feed == 0.0:
                         raise self.err(line_no, "G1 with zero feed rate (no F word yet)")
                     emit(RAPID if mm == 0 else FEED, ROW_MACHINE, target, li, words_mask)
@@ -1153,7 +1360,16 @@ class _Interpreter:
         st_flags = np.array([k[1:7] for k in state_rows] or [(False, False, 40, 0, False, True)],
                             np.int64).reshape(-1, 6)
         st_off = np.array([k[7] for k in state_rows] or [(0.0,) * 6], float).reshape(-1, 6)
-        st_diameter = np.array([k[8] for k in state_rows] or [False], bool)
+        st_diameter = np.array([k[9] for k in state_rows] or [False], bool)
+        # the setup in force per state: few distinct ones (states differ mostly by feed, e.g. under G93)
+        meta_index: dict = {}
+        meta_of_state = np.array([meta_index.setdefault(k[8], len(meta_index)) for k in state_rows]
+                                 or [meta_index.setdefault(meta_now[0], 0)], np.int64)
+        metas = list(meta_index)
+        mid = meta_of_state[sid]
+        rotation = np.array([mt[0] for mt in metas], float)[mid].reshape(m)
+        setup_used = self.setup_report(mid, np.array(r_kind, np.int64), np.array(r_line, np.int64), metas, hist,
+                                       selects_work, used_axes)
         arc_center = np.full((m, 3), np.nan)
         arc_plane = np.zeros(m, np.int8)
         arc_turns = np.zeros(m, np.int16)
@@ -1201,7 +1417,60 @@ class _Interpreter:
             axes_present="".join(a for a in AXES if a in used_axes),
             warnings=self.warnings,
             unsupported=self.unsupported,
+            rotation=rotation,
+            setup_used=setup_used,
         )
+
+    def setup_report(self, sid, kind, line, st_meta, hist, selects_work, used_axes):
+        # sid: (M,) index of each row's setup in st_meta
+        """What the rows used of the control's setup (one entry per value, in the order of first use), and, under
+        ``require_setup``, the refusal of the first move made under a value that was not given."""
+        out, seen = [], set()
+        if sid.size == 0:
+            return out
+        uniq, first = np.unique(sid, return_index=True)
+        setup_given_active = self.setup is not None and self.setup.active is not None
+        moving = (kind == ROW_PROGRAMMED) | (kind == ROW_CYCLE)
+        checked = set(np.unique(sid[moving]).tolist())
+        axes_used = "XYZ" + "".join(a for a in "ABC" if a in used_axes)
+        for s_id, row in sorted(zip(uniq.tolist(), first.tolist()), key=lambda t: t[1]):
+            r, active, g5x_ver, g92_ver, tlo_ver, unknown, g92_reason, tlo_reason = st_meta[s_id]
+            line_no = int(line[row]) + 1
+            if self.require_setup and s_id in checked:
+                missing = "".join(a for a in unknown if a in axes_used)
+                if missing and (selects_work or setup_given_active):
+                    raise self.err(line_no, f"work offset {_SYSTEM_NAMES[active - 1]} ({' '.join(missing)}) was not "
+                                   "given: give the control's setup (--var / --setup), or --offsets-zero if zero is "
+                                   "meant")
+                for reason in (g92_reason, tlo_reason):
+                    if reason:
+                        raise self.err(line_no, f"{reason}: give the control's setup (--tool-table / --var / "
+                                       "--setup), or --offsets-zero if zero is meant")
+            key = ("g5x", active, g5x_ver)
+            if key not in seen:
+                seen.add(key)
+                rec = hist[key]
+                entry = {"what": _SYSTEM_NAMES[active - 1], "values_mm_deg": [float(v) for v in rec["values"]],
+                         "rotation_deg": float(rec["rotation"]), "source": rec["source"], "first_line": line_no}
+                if not rec["known"][:3].all() and not (selects_work or setup_given_active):
+                    entry["source"] = ("the program selects no work system and the setup gives none: program "
+                                       "coordinates are machine coordinates")
+                    entry["assumed"] = True
+                out.append(entry)
+            key = ("g92", g92_ver)
+            if key not in seen and (g92_ver > 0 or np.any(hist[key]["values"] != 0.0)):
+                seen.add(key)
+                rec = hist[key]
+                out.append({"what": "G92", "values_mm_deg": [float(v) for v in rec["values"]],
+                            "source": rec["source"], "first_line": line_no})
+            key = ("tlo", tlo_ver)
+            rec = hist[key]
+            if key not in seen and rec["tool"] != -1:
+                seen.add(key)
+                what = "tool offset (G43.1)" if rec["tool"] == -2 else f"tool {rec['tool']} offset"
+                out.append({"what": what, "values_mm_deg": [float(v) for v in rec["values"]],
+                            "source": rec["source"], "applied_by": rec["how"], "first_line": line_no})
+        return out
 
     def resolve(self, text):
         """Value of ``#n`` / ``[#n]`` when #n was assigned a literal; None for anything else."""
@@ -1211,30 +1480,58 @@ class _Interpreter:
         n = int(m.group(1) or m.group(2))
         return self.params.get(n)
 
-    def g10(self, line_no, fvals, ax, g5x, active, g92, tlo, pos, u_scale):
-        """G10 L1 (tool length), L2 / L20 (work offsets); other L values are recorded and ignored."""
+    def g10(self, line_no, fvals, ax, g5x, rot, active, g92, tlo, pos, u_scale, machine_of, program_of):
+        """G10 L1 (tool offsets), L2 / L20 (work offsets; L2 with its rotation R); other L values are recorded and
+        ignored. Returns (system index, axis indices set) for L2 / L20, else None."""
         L = int(fvals.get("L", -1))
-        if "R" in fvals and L in (2, 20):
-            self.unsupported_block(line_no, "G10 rotation R is not supported; rotation ignored")
         if L in (2, 20):
             p = int(fvals.get("P", 0))
             if not 0 <= p <= 9:
                 raise ValueError(f"G10 L{L} P{p}: coordinate system must be P0..P9")
             idx = active if p == 0 else p
+            if L == 20 and ("R" in fvals or rot[active] != 0.0 or rot[idx] != 0.0):
+                raise ValueError("G10 L20 with a rotated work system is not supported")
             old = g5x[active].copy()
+            old_rot = rot[active]
+            m_pos = machine_of(pos)
             for i, v in ax:
                 if L == 2:
                     g5x[idx, i] = v
                 else:  # L20: the current point gets coordinate v in system idx
                     g5x[idx, i] = pos[i] + old[i] - v
+            if "R" in fvals:
+                rot[idx] = float(fvals["R"])
             if idx == active:
-                _add(pos, old - g5x[active])
-        elif L == 1:
+                if old_rot == 0.0 and rot[active] == 0.0:
+                    _add(pos, old - g5x[active])
+                else:
+                    pos[:] = program_of(m_pos)
+            return idx, [i for i, _ in ax]
+        if L == 1:
             t = int(fvals.get("P", 0))
-            if "Z" in fvals:
-                self.tool_table_mm[t] = fvals["Z"] * u_scale[2]
-        else:
-            self.unsupported_block(line_no, f"G10 L{L} not supported (no axis moved)")
+            off = self.tool_off_mm.setdefault(t, np.zeros(6)).copy()
+            for i, v in ax:
+                off[i] = v * u_scale[i]
+            self.tool_off_mm[t] = off
+            self.tool_src[t] = f"{self.source}:{line_no} (G10 L1 P{t})"
+            return None
+        self.unsupported_block(line_no, f"G10 L{L} not supported (no axis moved)")
+        return None
+
+    def tool_offsets(self, h, u_scale, zero_ok, line_no, how):
+        """(offsets (6,) in program units, tool number in force, reason it is unknown or "") of tool / H number h."""
+        off = self.tool_off_mm.get(h)
+        if off is not None:
+            return off / u_scale, h, ""
+        if h == 0 or zero_ok:
+            return np.zeros(6), h, ""
+        self.warn(line_no, f"{how}: tool {h} is not in the tool table or setup; length 0 used")
+        return np.zeros(6), h, f"the length of tool {h} ({how}) was not given"
+
+    def tool_source(self, h, zero_ok):
+        if h in self.tool_src:
+            return self.tool_src[h]
+        return "H0: no offset" if h == 0 else ("--offsets-zero" if zero_ok else "not given")
 
     def arc(self, line_no, li, mm, fvals, ax, pos, plane, absolute, arc_abs, inch, feed, inverse, emit, words_mask):
         if inverse and "F" not in fvals:

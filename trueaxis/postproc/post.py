@@ -44,6 +44,7 @@ from .gcode import (
     RAPID,
     ROW_CYCLE,
     ROW_PROGRAMMED,
+    ROW_REFERENCE,
     WORD_BITS,
     GcodeError,
     Program,
@@ -114,6 +115,9 @@ class PostReport:
     max_residual_urad: float = 0.0
     max_split_deviation_um: float = 0.0
     max_split_deviation_urad: float = 0.0
+    setup: str = "none given"
+    setup_used: list = field(default_factory=list)
+    uncompensated: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -136,17 +140,51 @@ def compensate(
     report: dict | None = None,
     cl_feed_mm_min: float | None = None,
     cl_branch="nearest",
+    setup=None,
+    var=None,
+    tool_table=None,
+    machine_units: str = "mm",
+    offsets_zero: bool = False,
+    header: bool = True,
+    force: bool = False,
 ) -> str:
     """Compensated program text. ``program``: G-code text, CL data (CSV or APT, see ``cl``) or a path.
-    ``report``: a dict to fill with the report."""
+    ``report``: a dict to fill with the report.
+
+    The control's setup (DESIGN §5): ``var`` (LinuxCNC parameter file), ``tool_table`` (LinuxCNC tool table), both in
+    ``machine_units``; ``setup`` a setup file (path) or a :class:`~trueaxis.postproc.setup.Setup`; none of them: the
+    machine file's default setup, if it names one. ``offsets_zero``: work offsets, G92 shifts and tool lengths that
+    none of them gives are zero (without it a program that uses one is refused). ``header``: put the comment naming
+    the machine, mode and setup at the top of the output."""
     text, source = _read_input(program, source)
+    the_setup = resolve_setup(machine, setup=setup, var=var, tool_table=tool_table, machine_units=machine_units,
+                              offsets_zero=offsets_zero)
     out, rep = post_text(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
                          singular_deg=singular_deg, conditions=conditions,
                          passthrough_unsupported=passthrough_unsupported, source=source,
-                         cl_feed_mm_min=cl_feed_mm_min, cl_branch=cl_branch)
+                         cl_feed_mm_min=cl_feed_mm_min, cl_branch=cl_branch, setup=the_setup, header=header,
+                         force=force)
     if report is not None:
         report.update(rep.as_dict())
     return out
+
+
+def resolve_setup(machine: Machine, *, setup=None, var=None, tool_table=None, machine_units: str = "mm",
+                  offsets_zero: bool = False):
+    """The :class:`Setup` from the files given (a setup file path or a Setup object in ``setup``), else from the
+    machine file's default setup file (``[machine] setup``); with ``offsets_zero`` as the user said."""
+    from .setup import Setup, load_setup
+
+    if isinstance(setup, Setup):
+        out = setup
+        if var is not None or tool_table is not None:
+            out = load_setup(var=var, tool_table=tool_table, machine_units=machine_units).merged(out)
+        out.offsets_zero = out.offsets_zero or bool(offsets_zero)
+        return out
+    if setup is None and var is None and tool_table is None and getattr(machine, "setup", ""):
+        setup = machine.setup
+    return load_setup(var=var, tool_table=tool_table, setup_file=setup, machine_units=machine_units,
+                      offsets_zero=offsets_zero)
 
 
 def _read_input(program, source):
@@ -168,13 +206,21 @@ def _read_input(program, source):
 def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: float = 1.0,
               max_correction_mm: float = 0.5, singular_deg: float = 1.0, conditions: dict | None = None,
               passthrough_unsupported: bool = False, source: str = "<string>", cl_feed_mm_min: float | None = None,
-              cl_branch="nearest") -> tuple[str, PostReport]:
+              cl_branch="nearest", setup=None, header: bool = True, force: bool = False) -> tuple[str, PostReport]:
     """Compensate program text (G-code or CL data, told apart by content); returns (text, report).
 
     CL data (``GOTO/`` lines, or a CSV header naming x,y,z,i,j,k) first become machine-axis G-code through the
     machine's inverse kinematics (``cl.cl_program``: linearised within tol_um / 2 of the CL segments), which is then
     compensated within tol_um / 2, so the actual path stays within tol_um of the CL segments. Errors and the singular
-    blocks of the report then name lines of the CL file."""
+    blocks of the report then name lines of the CL file.
+
+    ``setup``: the control's setup (:class:`~trueaxis.postproc.setup.Setup`; None: none given). A work offset, G92
+    shift or tool length the program uses and the setup does not give is refused (``setup.offsets_zero``: zero).
+    ``header``: the output starts (after a leading ``%`` and program number) with a comment naming the machine, the
+    mode and the setup, and one line per offset and tool length used with where it came from.
+    ``force``: post a program that already carries that header (it was compensated already: refused otherwise)."""
+    if not force:
+        _refuse_posted(text, source)
     if mode not in MODES:
         raise ValueError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
     if not (math.isfinite(tol_um) and tol_um > 0):
@@ -186,11 +232,21 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     from .cl import cl_format
 
     if cl_format(text) is not None:
-        return _post_cl(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
-                        singular_deg=singular_deg, conditions=conditions, source=source,
-                        feed_mm_min=cl_feed_mm_min, branch=cl_branch)
-    prog = parse_program(text, source, passthrough_unsupported=passthrough_unsupported)
+        out, rep = _post_cl(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
+                            singular_deg=singular_deg, conditions=conditions, source=source,
+                            feed_mm_min=cl_feed_mm_min, branch=cl_branch, setup=setup)
+        return (with_header(out, rep, machine) if header else out), rep
+    from .setup import Setup, SetupError
+
+    setup = setup if setup is not None else Setup()
+    prog = parse_program(text, source, passthrough_unsupported=passthrough_unsupported, setup=setup,
+                         require_setup=True)
+    if setup.program_units is not None and prog.units != setup.program_units and len(prog):
+        raise SetupError(f"{source}: the program is in {prog.units} ({'G20' if prog.units == 'inch' else 'G21'}), "
+                         f"the setup ({setup.describe()}) is for programs in {setup.program_units}")
     rep = PostReport(source=source, machine=machine.name, mode=mode, tol_um=tol_um)
+    rep.setup = setup.describe()
+    rep.setup_used = prog.setup_used
     rep.blocks_in = len(prog.lines)
     rep.passthrough = [{"line": ln, "reason": r} for ln, r in prog.unsupported]
     rep.warnings = list(prog.warnings)
@@ -201,19 +257,109 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     # Nothing to compensate: mode none, no motion, or only G28/G30/G53 moves (machine positions, passed through).
     if mode == "none" or not np.isin(prog.kind, (ROW_PROGRAMMED, ROW_CYCLE)).any():
         rep.blocks_out = rep.blocks_in
-        return text, rep
-    return _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep).run()
+        out = text
+    else:
+        out, rep = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep).run()
+    if header:
+        out = with_header(out, rep, machine)
+    return out, rep
+
+
+def _refuse_posted(text: str, source: str):
+    """PostError when ``text`` carries the header of a trueaxis post: compensating it again would apply the
+    correction twice."""
+    at = text.find(HEADER_TAG)
+    if at < 0:
+        return
+    line_no = text.count("\n", 0, at) + 1
+    end = text.find(")", at)
+    raise PostError(source, line_no, f"the program was posted by trueaxis already ({text[at:end + 1][:160]}): "
+                                     "posting it again would compensate it twice; --force to post it anyway")
+
+
+def machine_fingerprint(machine: Machine) -> str:
+    """"FILE sha256 HASH": the machine file and the first 12 hex digits of the SHA-256 of its bytes (of the machine's
+    complete dump when it was not read from a file)."""
+    import hashlib
+
+    path = Path(machine.source)
+    if machine.source not in ("", "<string>", "<memory>") and path.is_file():
+        return f"{machine.source} sha256 {hashlib.sha256(path.read_bytes()).hexdigest()[:12]}"
+    from ..machine.machine_file import dump_machine
+
+    digest = hashlib.sha256(dump_machine(machine).encode("utf-8")).hexdigest()[:12]
+    return f"{machine.source} [not a file; its dump] sha256 {digest}"
+
+
+HEADER_TAG = "(trueaxis post: "
+_HEADER_SKIP = re.compile(r"^[ \t]*(?:%.*|[Oo][0-9]+.*)$")
+
+
+def header_lines(rep: PostReport, machine: Machine) -> list:
+    """The output's header comment lines (without line endings): the post, its machine, mode and setup, then every
+    offset and tool length the program used with where it came from. Parentheses in names become brackets."""
+    def clean(text):
+        return str(text).replace("(", "[").replace(")", "]")
+
+    from .. import __version__
+
+    lines = [f"{HEADER_TAG}trueaxis {__version__}, mode {rep.mode}, machine {clean(machine.name)})",
+             f"{HEADER_TAG}machine file {clean(machine_fingerprint(machine))})"]
+    lines += [f"{HEADER_TAG}setup {clean(part)})" for part in rep.setup.split(", ")]
+    for u in rep.setup_used:
+        if u.get("assumed"):
+            lines.append(f"(trueaxis setup: no work offset: {u['source']})")
+            continue
+        vals = u["values_mm_deg"]
+        words = " ".join(f"{a}{write_number(v, 4)}" for a, v in zip("XYZABC", vals) if v != 0.0) or "0"
+        rot = f" R{write_number(u['rotation_deg'], 4)}" if u.get("rotation_deg") else ""
+        units = "mm, deg" if rot or any(vals[3:]) else "mm"
+        how = f" by {u['applied_by']}" if u.get("applied_by") else ""
+        lines.append(f"(trueaxis setup: {u['what']} {words}{rot} {units}{how}, from {clean(u['source'])})")
+    return [_fit(line) for line in lines]
+
+
+def _fit(comment: str, limit: int = 250) -> str:
+    """A comment line shortened in its middle to ``limit`` characters (LinuxCNC refuses lines of 256 and more)."""
+    if len(comment) <= limit:
+        return comment
+    keep = (limit - 3) // 2
+    return comment[:keep] + "..." + comment[len(comment) - (limit - 3 - keep):]
+
+
+def with_header(text: str, rep: PostReport, machine: Machine) -> str:
+    """``text`` with ``header_lines`` inserted after its leading ``%`` / program number lines, in its line endings."""
+    lines_head = text[:4096].splitlines(keepends=True)
+    pos = 0
+    for line in lines_head[:3]:
+        if _HEADER_SKIP.match(line.rstrip("\r\n")) and line.endswith(("\n", "\r")):
+            pos += len(line)
+        else:
+            break
+    first = lines_head[0] if lines_head else "\n"
+    ending = "\r\n" if first.endswith("\r\n") else "\n"
+    lines = header_lines(rep, machine)
+    rep.blocks_out += len(lines)
+    return text[:pos] + "".join(line + ending for line in lines) + text[pos:]
+
+
+def without_header(text: str) -> str:
+    """``text`` with the lines ``with_header`` put in taken out (for comparing outputs with what the post wrote
+    before it had a header)."""
+    return "".join(line for line in text.splitlines(keepends=True)
+                   if not line.startswith(("(trueaxis post: ", "(trueaxis setup: ")))
 
 
 def _post_cl(text, machine, mode, *, tol_um, max_correction_mm, singular_deg, conditions, source, feed_mm_min,
-             branch):
+             branch, setup=None):
     from .cl import cl_program, read_cl
 
     cl = read_cl(text, source)
     gcode, line_map = cl_program(cl, machine, tol_um=tol_um / 2, feed_mm_min=feed_mm_min, branch=branch)
     try:
         out, rep = post_text(gcode, machine, mode, tol_um=tol_um / 2, max_correction_mm=max_correction_mm,
-                             singular_deg=singular_deg, conditions=conditions, source=source)
+                             singular_deg=singular_deg, conditions=conditions, source=source, header=False,
+                             setup=setup)  # the CL file's LOADTL selects a tool: its length comes from the setup
     except GcodeError as exc:
         line = line_map[min(max(exc.line_no, 1), len(line_map)) - 1]
         raise PostError(source, line, f"{exc.reason} (CL point; line {exc.line_no} of the machine-axis program "
@@ -261,6 +407,7 @@ class _Poster:
         self.names = machine.axis_names
         self.cols = [AXES.index(a) for a in self.names]
         self.orientation = any(a in prog.axes_present for a in machine.rotary_axes)
+        self.rotary_columns = [j for j, a in enumerate(self.names) if machine.axes[a].is_rotary]
         self.inch_rows = prog.inch
         self.stats = {"um": 0.0, "urad": 0.0, "urad_singular": 0.0, "singular_points": 0, "singular_lines": set()}
         self.fractions = {}  # program row -> piece boundaries (fractions of the move) of split moves
@@ -276,15 +423,16 @@ class _Poster:
                 q[:, j] = np.where(inch, q[:, j] * MM_PER_INCH, q[:, j])
         return q
 
-    def to_program_delta(self, dq, inch):
-        """(K, n_axes) correction mm / rad -> (K, 6) program units (inch or mm, degrees)."""
+    def to_program_delta(self, dq, inch, prog_rows):
+        """(K, n_axes) correction mm / rad of the program rows ``prog_rows`` (K,) -> (K, 6) program units (inch or
+        mm, degrees), in the rows' work system (its XY rotation undone)."""
         out = np.zeros((dq.shape[0], 6))
         for j, a in enumerate(self.names):
             if self.m.axes[a].is_rotary:
                 out[:, self.cols[j]] = np.degrees(dq[:, j])
             else:
                 out[:, self.cols[j]] = np.where(inch, dq[:, j] / MM_PER_INCH, dq[:, j])
-        return out
+        return self.p.to_program_delta(out, prog_rows)
 
     # --- forces --------------------------------------------------------------------------------------------------
     def forces(self, rows, direction, q):
@@ -392,6 +540,11 @@ class _Poster:
         pair = self._pair()
         if pair is not None:
             hold[:, pair[0].column] = self.singular_at(q)
+        held = hold.any(axis=1)  # the singular cone's held free axis
+        if not self.orientation:
+            # A program without rotary words on a machine with rotary axes: they stay where they are (their position
+            # in the program, 0, plus the setup's offset) and are not written; X Y Z alone place the tip.
+            hold[:, self.rotary_columns] = True
         res = solve_commanded(self.twin, q, force, orientation=self.orientation, hold=hold,
                               tol_um=self.solve_tol_um, tol_urad=SOLVE_TOL_URAD)
         bad = ~res.converged
@@ -400,7 +553,6 @@ class _Poster:
             raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
                             f"compensation did not converge (residual {res.position_residual_um[k]:.3g} um,"
                             f" {res.axis_residual_urad[k]:.3g} urad)")
-        held = hold.any(axis=1)
         st = self.stats
         st["um"] = max(st["um"], float(res.position_residual_um.max(initial=0.0)))
         if self.orientation:
@@ -439,9 +591,47 @@ class _Poster:
                                     f"corrected {a} = {v:.6g} lies outside its travel [{t[0]:g}, {t[1]:g}]")
 
     # --- the run -------------------------------------------------------------------------------------------------
+    def known_positions(self):
+        """(end known (M,) bool, start known (M,) bool, the axes not known at each row's end (M,) bit mask) of the
+        program's rows: an axis' position is known from its first absolute word (G90) on, and from a G28 / G30 that
+        homes every axis; before that the control is wherever it stands. Required are the machine's linear axes and
+        the rotary axes the program uses."""
+        p = self.p
+        need = [AXES.index(a) for a in self.names if not self.m.axes[a].is_rotary or a in p.axes_present]
+        bits = sum(1 << c for c in need)
+        given = np.where(p.incremental, 0, p.words.astype(np.int64) & bits)
+        homing = (p.kind == ROW_REFERENCE) & (p.words == 0)
+        second = np.r_[False, (p.line_index[1:] == p.line_index[:-1]) & (p.kind[:-1] == ROW_REFERENCE)]
+        given = np.where(homing & ~second, bits, given)
+        have = np.bitwise_or.accumulate(given) if given.size else given
+        missing = bits & ~have
+        end_known = missing == 0
+        return end_known, np.r_[False, end_known[:-1]], missing
+
     def run(self):
         p = self.p
         rows = np.nonzero((p.kind == ROW_PROGRAMMED) | (p.kind == ROW_CYCLE))[0]
+        # Positions are never invented: a block whose end the program has not yet fixed on every axis (or an arc
+        # whose start it has not) keeps its own words, uncompensated, and the report and stderr say so.
+        end_known, start_known, missing = self.known_positions()
+        self.start_known = start_known
+        unknown = ~end_known[rows] | (np.isin(p.motion[rows], (ARC_CW, ARC_CCW)) & ~start_known[rows])
+        if np.any(unknown):
+            bad_lines = np.unique(p.line_index[rows[unknown]])
+            keep = ~np.isin(p.line_index[rows], bad_lines)
+            for r in rows[unknown]:
+                li = int(p.line_index[r])
+                if self.rep.uncompensated and self.rep.uncompensated[-1]["line"] == li + 1:
+                    continue
+                axes = "".join(a for i, a in enumerate(AXES) if int(missing[r]) >> i & 1) or \
+                    "".join(a for i, a in enumerate(AXES) if int(missing[r - 1]) >> i & 1 if r > 0)
+                self.rep.uncompensated.append({"line": li + 1, "axes": axes})
+                self.rep.warnings.append(f"{p.source}:{li + 1}: the position of {' '.join(axes)} is not known here "
+                                         "(no absolute move of it before): block left as written, uncompensated")
+            rows = rows[keep]
+            if rows.size == 0:  # nothing left to compensate: the program as it was
+                self.rep.blocks_out = len(p.lines)
+                return "".join(p.lines), self.rep
         self.rep.moves = int(rows.size)
         delta_prog = np.empty((rows.size, 6))
         pieces, arc_mode = {}, {}
@@ -476,8 +666,8 @@ class _Poster:
         "arc" | "lines"}); k indexes ``rows``. Split moves' piece boundaries go to ``self.fractions`` (by row)."""
         p = self.p
         inch = p.inch[rows]
-        q_end = self.to_machine(p.end_machine[rows], inch)
-        q_start = self.to_machine((p.start + p.offset)[rows], inch)
+        q_end = self.to_machine(p.to_machine(p.end[rows], rows), inch)
+        q_start = self.to_machine(p.to_machine(p.start[rows], rows), inch)
         direction = np.zeros((rows.size, 3))
         lin = [j for j, a in enumerate(self.names) if not self.m.axes[a].is_rotary]
         direction[:, : len(lin)] = (q_end - q_start)[:, lin] if len(lin) == 3 else 0.0
@@ -488,10 +678,11 @@ class _Poster:
         q_cmd, singular = self.solve(q_end, force, rows)
         self.check(q_end, q_cmd, rows)
         dq = q_cmd - q_end
-        delta_prog = self.to_program_delta(dq, inch)
+        delta_prog = self.to_program_delta(dq, inch, rows)
 
         pieces, arc_mode = {}, {}
-        feed_rows = np.nonzero(p.motion[rows] == FEED)[0]
+        # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
+        feed_rows = np.nonzero((p.motion[rows] == FEED) & self.start_known[rows])[0]
         pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd))
         if np.any(arcs):
             arc_pieces, modes = self._arcs(rows, np.nonzero(arcs)[0], q_start, q_end, force, inch, delta_prog)
@@ -520,16 +711,25 @@ class _Poster:
 
     def _arc_end_tangent(self, arc_rows, q_end_mm):
         p = self.p
-        tang = np.zeros((arc_rows.size, 3))
-        center = p.arc_center[arc_rows] + p.offset[arc_rows, :3]
-        center = np.where(p.inch[arc_rows, None], center * MM_PER_INCH, center)
+        if p.rotation is None or not np.any(p.rotation[arc_rows]):
+            center = p.arc_center[arc_rows] + p.offset[arc_rows, :3]
+            center = np.where(p.inch[arc_rows, None], center * MM_PER_INCH, center)
+            plane = p.arc_plane[arc_rows]
+            normal = np.select([plane[:, None] == 17, plane[:, None] == 18, plane[:, None] == 19],
+                               [np.array([0, 0, 1.0]), np.array([0, 1.0, 0]), np.array([1.0, 0, 0])])
+            sense = np.where(p.motion[arc_rows] == ARC_CCW, 1.0, -1.0)
+            return np.cross(normal, q_end_mm[:, :3] - center) * sense[:, None]
+        # in program coordinates (the arc's plane is the work system's), then turned into the machine frame
+        radial6 = np.zeros((arc_rows.size, 6))
+        radial6[:, :3] = p.end[arc_rows, :3] - p.arc_center[arc_rows]
         plane = p.arc_plane[arc_rows]
         normal = np.select([plane[:, None] == 17, plane[:, None] == 18, plane[:, None] == 19],
                            [np.array([0, 0, 1.0]), np.array([0, 1.0, 0]), np.array([1.0, 0, 0])])
         sense = np.where(p.motion[arc_rows] == ARC_CCW, 1.0, -1.0)
-        radial = q_end_mm[:, :3] - center
-        tang = np.cross(normal, radial) * sense[:, None]
-        return tang
+        tang6 = np.zeros((arc_rows.size, 6))
+        tang6[:, :3] = np.cross(normal, radial6[:, :3]) * sense[:, None]
+        # a direction: turned by the rotation, not offset
+        return p.to_machine(tang6, arc_rows)[:, :3] - p.to_machine(np.zeros_like(tang6), arc_rows)[:, :3]
 
     def _split_lines(self, rows, feed_idx, q_start, q_end, force, inch, q_cmd_end, max_rounds=10):
         """Straight feed moves: split until the actual path stays within tolerance of the nominal path.
@@ -644,7 +844,7 @@ class _Poster:
         start6 = p.start[rows[mv]]
         end6 = p.end[rows[mv]]
         nom6 = start6 + fr[:, None] * (end6 - start6)
-        cmd6 = nom6 + self.to_program_delta(qc - q_nom, inch[mv])
+        cmd6 = nom6 + self.to_program_delta(qc - q_nom, inch[mv], rows[mv])
         bounds = np.split(np.arange(mv.size), np.nonzero(np.diff(mv))[0] + 1)
         for sel in bounds:
             i = int(mv[sel[0]])
@@ -691,7 +891,7 @@ class _Poster:
         owner = np.repeat(np.arange(lin.size), np.asarray(counts) + 1)
         q_c, q_pts = self._solve_arc_points(rows, lin, owner, pts6, force)
         self.check(q_pts, q_c, rows[lin][owner])
-        cmd6 = pts6 + self.to_program_delta(q_c - q_pts, p.inch[rows[lin]][owner])
+        cmd6 = pts6 + self.to_program_delta(q_c - q_pts, p.inch[rows[lin]][owner], rows[lin][owner])
         first = np.r_[0, np.cumsum(np.asarray(counts) + 1)[:-1]]
         for k, i in enumerate(lin):
             out[int(i)] = cmd6[first[k] + 1 : first[k] + counts[k] + 1]
@@ -703,7 +903,7 @@ class _Poster:
         """Commanded and nominal machine poses (K, n_axes) for points ``pts6`` (K, 6) on the arcs ``arc_idx[owner]``."""
         p = self.p
         r = rows[arc_idx][owner]
-        q_pts = self.to_machine(pts6 + p.offset[r], p.inch[r])
+        q_pts = self.to_machine(p.to_machine(pts6, r), p.inch[r])
         f = None if force is None else force[arc_idx][owner]
         if f is not None and f.shape[1] > 3:  # a lathe's loads: force and motion follow the arc (see .turning)
             from .turning import arc_point_loads

@@ -75,9 +75,11 @@ def _program_axes(program, machine: Machine, coordinates: str):
         start, end = program.start.astype(float), program.end.astype(float)
         center = program.arc_center.astype(float)
     elif coordinates == "machine":
-        start = program.start + program.offset
-        end = program.end + program.offset
-        center = program.arc_center + program.offset[:, :3]
+        start = program.to_machine(program.start)
+        end = program.to_machine(program.end)
+        c6 = np.zeros_like(program.start)
+        c6[:, :3] = program.arc_center
+        center = program.to_machine(c6)[:, :3]
     else:
         raise ValueError(f"coordinates must be 'program' or 'machine', got {coordinates!r}")
     lin = np.where(program.inch, MM_PER_INCH, 1.0)[:, None]

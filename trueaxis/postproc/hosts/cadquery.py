@@ -12,7 +12,9 @@ plugin module attaches it. Importing this module therefore registers:
 
 The hook for programs made from CadQuery models (by a CAM library, or by hand from the model's edges) is the API
 ``trueaxis.postproc.compensate(text, machine, mode="geometric")``: machine-axis G-code text in, compensated text out,
-``PostError`` (``file:line: reason``) when the post refuses. See ``docs/cadquery_example.py``::
+``PostError`` (``file:line: reason``) when the post refuses. The control's setup goes in as keywords, as on the
+command line: ``var=``, ``tool_table=``, ``machine_units=``, ``setup=`` (a setup file), ``offsets_zero=``
+(docs/setup_file.md). See ``docs/cadquery_example.py``::
 
     import cadquery as cq
     import trueaxis.postproc.hosts.cadquery  # registers Workplane.nas979 / Workplane.slotBlock

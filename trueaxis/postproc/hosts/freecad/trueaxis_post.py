@@ -3,12 +3,16 @@
 # Install: copy this file into FreeCAD's macro folder (`trueaxis freecad install` does it), then choose the post
 # processor "trueaxis" in the Job and give it arguments such as
 #     --machine /path/to/machine.toml --mode geometric --tol-um 1
+# and the control's setup, as for `trueaxis post` (work offsets and tool lengths live in the control; a program that
+# selects G54 or G43 H1 is refused unless they are given or --offsets-zero says zero is meant):
+#     --var /path/to/linuxcnc.var --tool-table /path/to/tool.tbl --machine-units mm
+#     --setup /path/to/setup.toml
 #
 # What it does, in order:
 # 1. writes the G-code exactly as FreeCAD's own `linuxcnc` post does (it runs a fresh copy of that module), with one
 #    addition: before each tool change and each operation a structured comment carrying the cutting conditions the
 #    job knows, e.g. `(trueaxis: ap=6 ae=3 fz=0.025 n=8000 d=6 z=3 mode=down)` (trueaxis DESIGN §5);
-# 2. runs `trueaxis post IN -o OUT --machine FILE --mode M --tol-um T` on it (the command is $TRUEAXIS_BIN, or
+# 2. runs `trueaxis post IN -o OUT --machine FILE --mode M --tol-um T [setup options]` on it (the command is $TRUEAXIS_BIN, or
 #    --trueaxis-bin, or `trueaxis` on PATH: FreeCAD's Python does not import trueaxis itself);
 # 3. writes the compensated program at the output file atomically (temporary file in the same folder, then rename).
 # If trueaxis refuses the program, export raises TrueaxisPostError naming the block and the reason, and nothing is
@@ -72,6 +76,13 @@ def _build_parser():
     p.add_argument("--max-correction-mm", default=None,
                    help="largest correction allowed, mm (trueaxis' default 0.5)")
     p.add_argument("--report", default=None, help="also write trueaxis' report (JSON) here")
+    p.add_argument("--var", default=None, help="the control's setup: LinuxCNC parameter file (work offsets, G92)")
+    p.add_argument("--tool-table", default=None, help="the control's setup: LinuxCNC tool table (tool lengths)")
+    p.add_argument("--machine-units", default=None, choices=("mm", "inch"),
+                   help="units of the .var and tool table (LinuxCNC's LINEAR_UNITS; trueaxis' default mm)")
+    p.add_argument("--setup", default=None, help="the control's setup file (TOML) for other controls")
+    p.add_argument("--offsets-zero", action="store_true",
+                   help="work offsets and tool lengths that the setup does not give are zero")
     p.add_argument("--trueaxis-bin", default=None,
                    help="the trueaxis executable (default: $TRUEAXIS_BIN, else trueaxis on PATH)")
     p.add_argument("--no-show-editor", action="store_true", help="don't pop up the editor before writing output")
@@ -314,6 +325,13 @@ def compensate(gcode, opts, label="program.ngc"):
             cmd += ["--max-correction-mm", str(opts.max_correction_mm)]
         if opts.report:
             cmd += ["--report", os.path.abspath(os.path.expanduser(opts.report))]
+        for option, value in (("--var", opts.var), ("--tool-table", opts.tool_table), ("--setup", opts.setup)):
+            if value:
+                cmd += [option, os.path.abspath(os.path.expanduser(value))]
+        if opts.machine_units:
+            cmd += ["--machine-units", opts.machine_units]
+        if opts.offsets_zero:
+            cmd.append("--offsets-zero")
         try:
             proc = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, text=True)
         except OSError as exc:

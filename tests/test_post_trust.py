@@ -1,0 +1,128 @@
+"""A post a shop can trust (issue 16): what the post does not know it does not invent, and it says what it did."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from conftest import MACHINES
+from trueaxis.machine import load_machine
+from trueaxis.postproc.post import compensate, without_header
+
+XH714 = MACHINES / "xh714.toml"
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "trueaxis.cli", *map(str, args)], capture_output=True, text=True,
+                           timeout=300)
+
+
+# --- (a) positions are never invented --------------------------------------------------------------------------------
+
+FIRST_MOVE_Z_ONLY = "G21 G90 G17\nG0 Z-20\nG0 X10 Y10\nG1 Z-25 F100\nG1 X50 Y20\nM2\n"
+
+
+def test_a_block_before_every_axis_is_known_keeps_its_words_and_stderr_says_which(tmp_path):
+    src, out, rep = tmp_path / "in.ngc", tmp_path / "out.ngc", tmp_path / "r.json"
+    src.write_text(FIRST_MOVE_Z_ONLY)
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--report", rep)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.strip().splitlines() == [f"{src}:2: the position of X Y is not known here (no absolute move of "
+                                             "it before): block left as written, uncompensated"]
+    lines = without_header(out.read_text()).splitlines()
+    assert lines[1] == "G0 Z-20"  # not "G0 X0.00066 Y-0.00204 Z-19.99836": no rapid towards an invented X0 Y0
+    assert lines[2].startswith("G0 X10.000") and lines[2] != "G0 X10 Y10"  # known from here: compensated
+    assert json.loads(rep.read_text())["uncompensated"] == [{"line": 2, "axes": "XY"}]
+
+
+def test_incremental_moves_from_an_unknown_start_stay_as_written():
+    m = load_machine(XH714)
+    report = {}
+    text = "G21 G91\nG0 Z5\nG0 X10 Y10\nG90 G0 X20 Y20 Z-10\nG1 X30 F100\nM2\n"
+    lines = without_header(compensate(text, m, "geometric", report=report)).splitlines()
+    assert lines[1:3] == ["G0 Z5", "G0 X10 Y10"]
+    assert [u["line"] for u in report["uncompensated"]] == [2, 3]
+    assert lines[3] != "G90 G0 X20 Y20 Z-10" and lines[4] != "G1 X30 F100"
+
+
+def test_a_g28_home_of_every_axis_makes_the_position_known():
+    m = load_machine(XH714)
+    report = {}
+    compensate("G21 G90\nG28\nG0 Z-20\nG1 X5 F100\nM2\n", m, "geometric", report=report)
+    assert report["uncompensated"] == []
+
+
+# --- (b) the header names what made the output; a posted program is not posted again ---------------------------------
+
+def test_the_header_names_version_machine_file_hash_mode_and_setup(tmp_path):
+    import hashlib
+
+    from trueaxis import __version__
+
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90\nG0 X0 Y0 Z-10\nG1 X50 F300\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--mode", "geometric")
+    assert r.returncode == 0, r.stderr
+    digest = hashlib.sha256(XH714.read_bytes()).hexdigest()[:12]
+    assert out.read_text().splitlines()[:3] == [
+        f"(trueaxis post: trueaxis {__version__}, mode geometric, machine XH714 vertical mill "
+        "[equivalent-cutting-force paper])",
+        f"(trueaxis post: machine file {XH714} sha256 {digest})",
+        "(trueaxis post: setup none given)"]
+
+
+def test_a_program_that_carries_the_header_is_refused_unless_forced(tmp_path):
+    src, out, again = tmp_path / "in.ngc", tmp_path / "out.ngc", tmp_path / "again.ngc"
+    src.write_text("%\nG21 G90\nG0 X0 Y0 Z-10\nG1 X50 F300\nM2\n%\n")
+    assert run_cli("post", src, "-o", out, "--machine", XH714).returncode == 0
+    r = run_cli("post", out, "-o", again, "--machine", XH714)
+    assert r.returncode != 0 and not again.exists()
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{out}:2: the program was posted by trueaxis already")
+    assert lines[0].endswith("posting it again would compensate it twice; --force to post it anyway")
+    r = run_cli("post", out, "-o", again, "--machine", XH714, "--force")
+    assert r.returncode == 0, r.stderr
+    assert again.read_text().count("(trueaxis post: trueaxis ") == 2
+
+
+# --- (c) three-axis programs on five-axis machines -------------------------------------------------------------------
+
+THREE_AXIS = "G21 G90 G17\nG0 X0 Y0 Z50\nG1 X20 Y10 Z40 F300\nG1 X30\nG2 X40 Y20 I0 J10\nM2\n"
+
+
+def test_a_three_axis_program_posts_on_a_five_axis_machine_from_the_command_line(tmp_path):
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text(THREE_AXIS)
+    r = run_cli("post", src, "-o", out, "--machine", MACHINES / "nmv1500dcg.toml", "--report", tmp_path / "r.json")
+    assert r.returncode == 0, r.stderr  # was "trueaxis post: Singular matrix", exit 2
+    body = without_header(out.read_text())
+    assert " B" not in body and " C" not in body  # the rotary axes stay where they are, not written
+    assert json.loads((tmp_path / "r.json").read_text())["singular_block_count"] == 0
+
+
+def test_a_three_axis_program_through_the_python_hook_puts_the_tip_on_the_nominal_points():
+    # the CadQuery hook is this function; the FreeCAD post runs the command line above
+    import numpy as np
+
+    from post_checks import actual_points, machine_rows
+    from trueaxis.postproc.gcode import parse_program
+
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    out = compensate(THREE_AXIS, m, "geometric")
+    actual, prog, rows = actual_points(out, m)
+    nominal_q, _ = machine_rows(parse_program(THREE_AXIS), m)
+    from trueaxis.machine import ErrorTwin
+
+    nominal = ErrorTwin(m).nominal_pose(nominal_q)[0]
+    # the programmed ends (the arc is split into lines: its end is the last row)
+    assert np.abs(actual[-1] - nominal[-1]).max() < 1e-4 and np.abs(actual[1] - nominal[1]).max() < 1e-4
+
+
+# --- (d) command-line habits -------------------------------------------------------------------------------------------
+
+def test_version_prints_the_package_version():
+    from trueaxis import __version__
+
+    r = run_cli("--version")
+    assert r.returncode == 0 and r.stdout.strip() == f"trueaxis {__version__}"
