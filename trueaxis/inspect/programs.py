@@ -432,7 +432,7 @@ def _header(title: list[str], machine: Machine, setup: str, n_rpm: float) -> lis
             [f"(machine: {machine.name.replace('(', '[').replace(')', ']')})", setup,
              "(X Y Z: tool tip in machine coordinates, the twin's axes with the machine file's tool of length "
              f"{machine.tool.length:g} mm; rotary axes in degrees)",
-             f"(setup expected: work offset G54 = machine zero [set below by G10 L2 P1], no G92 shift, no tool "
+             "(setup expected: work offset G54 = machine zero [set below by G10 L2 P1], no G92 shift, no tool "
              "length offset [G49]: post it without a setup)",
              "G21 G90 G17 G94 G40 G49", f"G10 L2 P1 {zero}", "G54", "T1 M6", f"S{n_rpm:g} M3"])
 
