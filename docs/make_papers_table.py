@@ -151,14 +151,14 @@ def lathe_coefficients() -> str:
 def lathe_comprehensive_post() -> str:
     """The operative correction posted: comprehensive minus geometric Z correction of a facing-out block, against the
     printed model 1 evaluated at its X and Kienzle's force."""
-    from trueaxis.postproc.post import compensate
+    from trueaxis.postproc.post import compensate, without_header
 
     m = _machine("lathe")
     prog = "G18 G21 G90 G94\n(trueaxis: ap=2 f=0.2 vc=180)\nG0 X40.000000 Z-5.000000\nG1 Z-50.000000 F100\nM30\n"
     z = []
     for mode in ("geometric", "comprehensive"):
         out = compensate(prog, m, mode, tol_um=50.0)
-        z.append(float(out.splitlines()[3].split("Z")[1].split()[0]))
+        z.append(float(without_header(out).splitlines()[3].split("Z")[1].split()[0]))
     cutting = tomllib.loads((MACHINES / "lathe.toml").read_text(encoding="utf-8"))["cutting"]
     fc = cutting["kc11"] * 2.0 * 0.2 ** (1.0 - cutting["mc"])
     P = cutting["feed_ratio"] * fc / 1000.0
