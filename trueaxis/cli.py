@@ -591,6 +591,11 @@ def _report_error(command: str, exc: Exception) -> int:
 
 
 def _report_interruption(command: str, exc: BaseException) -> int:
+    import signal
+
+    if threading_main():  # a signal still pending (or a second one) must not turn the exit status into a traceback
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     term = isinstance(exc, _Terminated)
     print(f"trueaxis {command}: {'terminated' if term else 'interrupted'}; outputs not finished were not written",
           file=sys.stderr)
