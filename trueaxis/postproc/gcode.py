@@ -27,7 +27,7 @@ Decisions (documented here once)
   ``unsupported``) where it cannot move an axis, refused with :class:`GcodeError` where it can.
 - Fanuc-only codes that do not move an axis (``G08 P1``, ``M29``, unknown M codes, ``G05.1``) pass through and are
   recorded; subprogram calls and control flow (M98, M99, G65, G66, LinuxCNC o-words) are refused, since the moves they
-  make are not in the text. With ``passthrough_unsupported=True`` such a block is left as it is (no row) and recorded.
+  make are not in the text. With ``passthrough_unsupported=True`` (``--passthrough-unsupported``) such a block is left as it is (no row) and recorded.
 - Cutter radius compensation (G41/G42): the rows are the programmed contour, not the tool centre path; the mode is in
   ``cutter_comp`` and a warning says so.
 - Everything after M2/M30 or a closing ``%`` is kept as text and not interpreted.
@@ -151,6 +151,7 @@ _MOVING_G = {
     330: "spindle-synchronised motion G33", 331: "rigid tapping G33.1", 760: "threading cycle G76",
     382: "probing G38.2", 383: "probing G38.3", 384: "probing G38.4", 385: "probing G38.5",
     50: "spline G5", 51: "spline G5.1", 52: "NURBS G5.2",
+    520: "local coordinate offset G52 (later positions read without it)",
     171: "plane G17.1", 181: "plane G18.1", 191: "plane G19.1",
 }
 _MOTION_G = (0, 10, 20, 30, 730, 740, 810, 820, 830, 840, 850, 860, 870, 880, 890)
@@ -242,6 +243,7 @@ class Program:
     axes_present: str
     warnings: list = field(default_factory=list)
     unsupported: list = field(default_factory=list)
+    source_line: np.ndarray | None = None  # flattened programs (see .flatten): 1-based source line of each text line
 
     def __len__(self) -> int:
         return int(self.motion.shape[0])
@@ -249,7 +251,7 @@ class Program:
     @property
     def line_no(self) -> np.ndarray:
         """(M,) int32, 1-based source line of each row."""
-        return self.line_index + 1
+        return self.line_index + 1 if self.source_line is None else self.source_line[self.line_index]
 
     @property
     def end_machine(self) -> np.ndarray:
@@ -509,7 +511,10 @@ def parse_program(
         raise GcodeError(source, text[: text.index("\x00")].count("\n") + 1, "binary data (NUL byte): not G-code")
     if not text.strip():
         raise GcodeError(source, 1, "empty program: no blocks")
-    return _Interpreter(text, source, passthrough_unsupported, tool_table, reference_points).run()
+    from .flatten import read_flat  # parameters, expressions, O-words and M98 evaluated; rs274's block checks
+
+    return read_flat(text, source, passthrough_unsupported, split_lines, lambda t: _Interpreter(
+        t, source, passthrough_unsupported, tool_table, reference_points).run())
 
 
 class _Interpreter:
@@ -878,7 +883,7 @@ class _Interpreter:
                         self.unsupported_block(line_no, refuse)
                         continue
                     raise self.err(line_no, refuse + " (the moves it makes are not in the text; "
-                                   "pass passthrough_unsupported=True to leave the block as it is)")
+                                   "--passthrough-unsupported leaves the block as it is)")
                 if macro_nonmoving:
                     self.unsupported_block(line_no, macro_nonmoving)
 

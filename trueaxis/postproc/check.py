@@ -1,0 +1,235 @@
+"""What a block may not contain, as LinuxCNC's ``interp_check`` says (checked against ``rs274``).
+
+:func:`check_blocks` refuses, with ``file:line:`` and rs274's reason in our words:
+
+- two G codes of one modal group in a block (``G1 G0 X10``; Fanuc's ``G0 G80`` / ``G1 G80``, the cycle cancelled and
+  the move made, is read as Fanuc controls read it: the fixtures' NIST programs use it), two M codes of one modal group (``M3 M4``), more than
+  five M codes;
+- two G codes that both use the axis words (``G0 G28 X1``: a motion and G10 / G28 / G30 / G52 / G92);
+- words that nothing in the block uses: axis words with no motion mode (``G80 X1``, or ``X1`` before any G0 / G1),
+  an R word with no arc, canned cycle or G10 (``R5``), I / J / K with no arc, P with no code that takes it, Q with no
+  peck cycle, L with no cycle or G10;
+  (with ``--passthrough-unsupported``, axis words after G80 are read as Fanuc controls read them, with the motion
+  mode from before the cycle: the reader warns);
+- a line number (N word) anywhere but at the start of the block; G4 without P or with a negative P;
+- G52 (LinuxCNC: a local offset that shares G92's; not evaluated by this reader) and cutter radius compensation
+  G41 / G42 / G41.1 / G42.1 (the controller offsets the path by the tool radius; this post neither computes that path
+  nor makes rs274's own refusals, an arc as the entry move or a concave corner the tool would gouge): both refused
+  unless ``--passthrough-unsupported``, which keeps G52 as it is (no row; later positions read without its offset)
+  and posts the programmed contour of a compensated path with its G41 / G42 kept.
+
+Cost: one regular-expression pass over the text finds the blocks that are not plain G0..G3 moves (or plain moves
+with I J K R and no G word); only those are checked word by word, with the motion mode in force taken from the last
+G0..G3 word before them.
+"""
+
+from __future__ import annotations
+
+import re
+
+__all__ = ["check_blocks"]
+
+_NUM = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)"
+# A plain block: N, G0..G3 (I J K R only after an explicit G2 / G3), axis words and F; nothing to check but the
+# motion mode in force when it has no G word.
+_NOT_PLAIN = re.compile(
+    r"^(?![ \t]*(?:N[0-9]+[ \t]*)?(?:(?:G0?[01](?![0-9.])[ \t]*)?(?:[XYZABCF][ \t]*" + _NUM + r"[ \t]*)*"
+    r"|G0?[23](?![0-9.])[ \t]*(?:[XYZABCFIJKR][ \t]*" + _NUM + r"[ \t]*)*)\r?$).+$",
+    re.MULTILINE,
+)
+_LAST_MOTION = re.compile(r"(?s).*G0?([0-3])(?![0-9.])")
+_LINE_START = re.compile(r"^", re.MULTILINE)
+_WORD = re.compile(r"(\([^)\n]*\)?)|(;[^\n]*)|([A-Za-z])[ \t]*(" + _NUM + r")?|([^\s])")
+
+# G code * 10 -> modal group (LinuxCNC's groups; 0 the non-modal group)
+_G_GROUP = {}
+for _group, _codes in {
+    0: (40, 100, 280, 281, 300, 301, 520, 530, 920, 921, 922, 923),
+    1: (0, 10, 20, 30, 50, 51, 52, 330, 331, 382, 383, 384, 385, 730, 740, 760, 800, 810, 820, 830, 840, 850, 860,
+        870, 880, 890),
+    2: (170, 180, 190, 171, 181, 191),
+    3: (900, 910),
+    4: (901, 911),
+    5: (930, 940, 950),
+    6: (200, 210),
+    7: (400, 410, 420, 411, 421),
+    8: (430, 431, 432, 490),
+    10: (980, 990),
+    12: (540, 550, 560, 570, 580, 590, 591, 592, 593),
+    13: (610, 611, 640),
+    14: (960, 970),
+    15: (70, 80),
+}.items():
+    for _c in _codes:
+        _G_GROUP[_c] = _group
+_GROUP_NAME = {0: "non-modal", 1: "motion", 2: "plane", 3: "distance mode", 4: "arc distance mode",
+               5: "feed mode", 6: "units", 7: "cutter compensation", 8: "tool length offset", 10: "canned cycle return",
+               12: "coordinate system", 13: "path control", 14: "spindle mode", 15: "lathe diameter mode"}
+
+
+def _m_group(m: int):
+    if m in (0, 1, 2, 30, 60):
+        return 4
+    if m == 6:
+        return 6
+    if m in (3, 4, 5):
+        return 7
+    if m in (7, 8, 9):
+        return 8
+    if 48 <= m <= 53:
+        return 9
+    if 62 <= m <= 68:
+        return 5
+    if 100 <= m <= 199:
+        return 10
+    return None
+
+
+_AXIS_USERS = (100, 280, 300, 520, 920)  # non-modal codes that take the axis words
+_CYCLES = frozenset((730, 810, 820, 830, 840, 850, 860, 870, 880, 890))
+_ARCS = (20, 30)
+_P_G = frozenset((20, 30, 40, 100, 640, 50, 52, 760, 820, 860, 880, 890))
+# (G8 P: Fanuc's look-ahead "G08 P1", which the reader passes through as such)
+_P_M = frozenset((50, 51, 52, 53, 62, 63, 64, 65, 66, 98))
+_G_NAME = lambda g: f"G{g // 10}" if g % 10 == 0 else f"G{g / 10:g}"  # noqa: E731
+
+
+def check_blocks(text: str, source: str, passthrough: bool, line_map=None) -> None:
+    """Raise :class:`~trueaxis.postproc.gcode.GcodeError` at the first block rs274 would refuse (see the module
+    docstring). ``line_map``: 1-based source line of each text line (a flattened program), or None."""
+    motion = None  # rs274 starts with no motion mode (G80)
+    pos = 0
+    for m in _NOT_PLAIN.finditer(text):
+        motion = _plain_blocks(text, pos, m.start(), motion, source, line_map, passthrough)
+        motion = _check_block(m.group(), motion, passthrough, lambda reason, s=m.start(): _raise(
+            text, s, source, line_map, reason))
+        pos = m.end()
+    _plain_blocks(text, pos, len(text), motion, source, line_map, passthrough)
+
+
+def _plain_blocks(text, a, b, motion, source, line_map, passthrough):
+    """The motion mode after the plain blocks text[a:b]; refuses axis words there while no motion mode is in force."""
+    if motion is None or (motion == 800 and not passthrough):
+        offset = a
+        for line in text[a:b].splitlines(keepends=True):
+            s = line.strip()
+            if s:
+                if "G" in s:
+                    break
+                if re.search("[XYZABC]", s):
+                    _raise(text, offset, source, line_map, _no_motion(motion))
+            offset += len(line)
+    gap = _LAST_MOTION.match(text, a, b)
+    return int(gap.group(1)) * 10 if gap is not None else motion
+
+
+def _no_motion(motion):
+    if motion == 800:
+        return ("axis words with G80 in force: no motion mode uses them (rs274 refuses them; Fanuc controls move with "
+                "the motion mode from before the cycle, which --passthrough-unsupported reads)")
+    return "axis words with no motion mode in force (no G0, G1, G2 or G3 yet): rs274 refuses them"
+
+
+def _raise(text, offset, source, line_map, reason):
+    from .gcode import GcodeError
+
+    line = text.count("\n", 0, offset) + text.count("\r", 0, offset) - text.count("\r\n", 0, offset) + 1
+    if line_map is not None:
+        line = line_map[min(line, len(line_map)) - 1]
+    raise GcodeError(source, line, reason)
+
+
+def _check_block(block: str, motion, passthrough: bool, fail):
+    """Check one block; returns the motion mode in force after it."""
+    gcodes, mcodes, letters = [], [], {}
+    first = True
+    stripped = block.lstrip()
+    if stripped[:1] == "%":
+        return motion
+    for com1, com2, letter, num, other in _WORD.findall(block):
+        if com1 or com2:
+            continue
+        if other:
+            if other == "/" and first:
+                continue
+            return motion  # macro syntax (passed through) or a character the reader refuses with its own message
+        if not num:
+            return motion  # "word with no number": the reader's message
+        L = letter.upper()
+        if L == "N" and not first:
+            fail(f"line number N{num} is not at the start of the block (rs274 reads an N word only there)")
+        first = False
+        try:
+            if L == "G":
+                gcodes.append(int(round(float(num) * 10)))
+            elif L == "M":
+                mcodes.append(int(round(float(num))))
+            elif L != "N":
+                letters[L] = float(num)
+        except (OverflowError, ValueError):
+            return motion  # a number out of range: the reader's message
+    if any(g not in _G_GROUP for g in gcodes):
+        return motion  # a code the reader refuses or passes through with its own message (G65, G5.3, G08 P1 ...)
+    # two codes of one modal group
+    seen = {}
+    for g in gcodes:
+        grp = _G_GROUP.get(g)
+        if grp is None:
+            continue
+        if grp in seen and not (grp == 1 and {seen[grp], g} in ({0, 800}, {10, 800})):
+            fail(f"two G codes of one modal group ({_GROUP_NAME[grp]}) in a block: {_G_NAME(seen[grp])} and "
+                 f"{_G_NAME(g)}")
+        if grp != 1 or g != 800 or 1 not in seen:
+            seen[grp] = g
+    mseen = {}
+    for m in mcodes:
+        grp = _m_group(m)
+        if grp is None:
+            continue
+        if grp in mseen:
+            fail(f"two M codes of one modal group in a block: M{mseen[grp]} and M{m}")
+        mseen[grp] = m
+    if len(mcodes) > 5:
+        fail(f"more than five M codes in a block ({len(mcodes)})")
+    g0 = seen.get(0)
+    g1 = seen.get(1)
+    axes = any(a in letters for a in "XYZABCUVW")
+    if g0 in _AXIS_USERS and g1 is not None and axes and g1 != 800:
+        fail(f"two G codes that both use the axis words: {_G_NAME(g1)} and {_G_NAME(g0)}")
+    if g0 == 520 and not passthrough:
+        fail("G52 (local coordinate offset) is not read here: LinuxCNC keeps it as the G92 offset, never a move; "
+             "set the offset with G92 or G54..G59.3, or pass --passthrough-unsupported to keep the block as it is "
+             "(later positions are then read without the offset)")
+    if seen.get(7) in (410, 420, 411, 421) and not passthrough:
+        fail(f"cutter radius compensation {_G_NAME(seen[7])} is not computed by this post (nor rs274's refusals of "
+             "an arc as entry move and of gouging concave corners); pass --passthrough-unsupported to post the "
+             "programmed contour with the compensation left to the control")
+    motion_after = g1 if g1 is not None else motion
+    if g1 is not None:
+        to_be = g1
+    elif axes and g0 not in _AXIS_USERS:
+        to_be = motion
+    else:
+        to_be = None
+    if axes and g0 not in _AXIS_USERS and g0 != 530 or (axes and g0 == 530):
+        if to_be is None or (to_be == 800 and not (passthrough and g1 is None)):
+            fail(_no_motion(to_be if g1 is not None or motion == 800 else None))
+    if "R" in letters and not (to_be in _ARCS or to_be in _CYCLES or g0 == 100):
+        fail("R word with no G code that uses it (an arc, a canned cycle or G10)")
+    for w in "IJK":
+        if w in letters and not (to_be in (20, 30, 50, 51, 330, 331, 760, 870) or g0 == 100):
+            fail(f"{w} word with no arc (G2 / G3), G87 or G10 to use it")
+    if "P" in letters and not (any(g in _P_G or g == 80 for g in gcodes) or (to_be in _P_G)
+                               or any(m in _P_M or 100 <= m <= 199 for m in mcodes)):
+        fail("P word with no G or M code that uses it (G4 dwell, G10, G64, arc turns, G82 / G86 / G88 / G89 "
+             "dwell, M62..M66)")
+    if "Q" in letters and not (to_be in (730, 830, 50, 760) or 640 in gcodes or 66 in mcodes):
+        fail("Q word with no G code that uses it (G73 / G83 peck, G64)")
+    if "L" in letters and not (g0 == 100 or to_be in _CYCLES or to_be == 760 or 66 in mcodes or 98 in mcodes):
+        fail("L word with no canned cycle or G10 to use it")
+    if g0 == 40:
+        if "P" not in letters:
+            fail("G4 dwell without a P word (its time)")
+        if letters["P"] < 0:
+            fail(f"G4 with a negative dwell time P{letters['P']:g}")
+    return motion_after
