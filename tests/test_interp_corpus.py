@@ -150,8 +150,11 @@ def run_rs274_verdict(text, tmp_path):
     exe = require_rs274()
     (tmp_path / "tools.tbl").write_text(tool_table_text({1: 0.0}))
     (tmp_path / "in.ngc").write_text(text)
-    proc = subprocess.run([exe, "-t", "tools.tbl", "-g", "in.ngc", "out.txt"], stdin=subprocess.DEVNULL,
-                          capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    for _ in range(5):  # rs274 now and then dies of a signal (SIGBUS) when two run at once: run it again then
+        proc = subprocess.run([exe, "-t", "tools.tbl", "-g", "in.ngc", "out.txt"], stdin=subprocess.DEVNULL,
+                              capture_output=True, text=True, timeout=60, cwd=tmp_path)
+        if proc.returncode >= 0:
+            break
     out = tmp_path / "out.txt"
     canon = out.read_text(errors="replace") if out.exists() else ""
     return proc.returncode, (proc.stdout + proc.stderr).strip(), machine_ends(canon)

@@ -97,19 +97,37 @@ _G_NAME = lambda g: f"G{g // 10}" if g % 10 == 0 else f"G{g / 10:g}"  # noqa: E7
 def check_blocks(text: str, source: str, passthrough: bool, line_map=None) -> None:
     """Raise :class:`~trueaxis.postproc.gcode.GcodeError` at the first block rs274 would refuse (see the module
     docstring). ``line_map``: 1-based source line of each text line (a flattened program), or None."""
-    motion = None  # rs274 starts with no motion mode (G80)
+    state = _State()
     pos = 0
     for m in _NOT_PLAIN.finditer(text):
-        motion = _plain_blocks(text, pos, m.start(), motion, source, line_map, passthrough)
-        motion = _check_block(m.group(), motion, passthrough, lambda reason, s=m.start(): _raise(
+        _plain_blocks(text, pos, m.start(), state, source, line_map, passthrough)
+        _check_block(m.group(), state, passthrough, lambda reason, s=m.start(): _raise(
             text, s, source, line_map, reason))
         pos = m.end()
-    _plain_blocks(text, pos, len(text), motion, source, line_map, passthrough)
+    _plain_blocks(text, pos, len(text), state, source, line_map, passthrough)
 
 
-def _plain_blocks(text, a, b, motion, source, line_map, passthrough):
-    """The motion mode after the plain blocks text[a:b]; refuses axis words there while no motion mode is in force."""
-    if motion is None or (motion == 800 and not passthrough):
+class _State:
+    """What the checks need of the modal state: the motion mode (None: none yet, as rs274 starts), the plane and
+    the arc distance mode."""
+
+    def __init__(self):
+        self.motion = None
+        self.plane = 170
+        self.arc_abs = False
+        self.feed_reset = False  # G93 / G94 / G95 set the feed rate to 0 (rs274) and no F word since
+
+
+def _plain_blocks(text, a, b, state, source, line_map, passthrough):
+    """Update ``state`` over the plain blocks text[a:b]; refuse axis words there while no motion mode is in force,
+    and check every arc there block by block while arc centres are absolute (G90.1)."""
+    if state.arc_abs or state.feed_reset:
+        offset = a
+        for line in text[a:b].splitlines(keepends=True):
+            _check_block(line, state, passthrough, lambda reason, s=offset: _raise(text, s, source, line_map, reason))
+            offset += len(line)
+        return
+    if state.motion is None or (state.motion == 800 and not passthrough):
         offset = a
         for line in text[a:b].splitlines(keepends=True):
             s = line.strip()
@@ -117,10 +135,11 @@ def _plain_blocks(text, a, b, motion, source, line_map, passthrough):
                 if "G" in s:
                     break
                 if re.search("[XYZABC]", s):
-                    _raise(text, offset, source, line_map, _no_motion(motion))
+                    _raise(text, offset, source, line_map, _no_motion(state.motion))
             offset += len(line)
     gap = _LAST_MOTION.match(text, a, b)
-    return int(gap.group(1)) * 10 if gap is not None else motion
+    if gap is not None:
+        state.motion = int(gap.group(1)) * 10
 
 
 def _no_motion(motion):
@@ -139,25 +158,28 @@ def _raise(text, offset, source, line_map, reason):
     raise GcodeError(source, line, reason)
 
 
-def _check_block(block: str, motion, passthrough: bool, fail):
-    """Check one block; returns the motion mode in force after it."""
+def _check_block(block: str, state, passthrough: bool, fail):
+    """Check one block and update ``state`` (:class:`_State`) with its modal codes."""
+    motion = state.motion
     gcodes, mcodes, letters = [], [], {}
     first = True
     stripped = block.lstrip()
     if stripped[:1] == "%":
-        return motion
+        return
     for com1, com2, letter, num, other in _WORD.findall(block):
         if com1 or com2:
             continue
         if other:
             if other == "/" and first:
                 continue
-            return motion  # macro syntax (passed through) or a character the reader refuses with its own message
+            return  # macro syntax (passed through) or a character the reader refuses with its own message
         if not num:
-            return motion  # "word with no number": the reader's message
+            return  # "word with no number": the reader's message
         L = letter.upper()
         if L == "N" and not first:
             fail(f"line number N{num} is not at the start of the block (rs274 reads an N word only there)")
+        if L == "N" and num[0] in "+-":
+            fail(f"line number N{num} has a sign (rs274 reads an unsigned number)")
         first = False
         try:
             if L == "G":
@@ -167,16 +189,16 @@ def _check_block(block: str, motion, passthrough: bool, fail):
             elif L != "N":
                 letters[L] = float(num)
         except (OverflowError, ValueError):
-            return motion  # a number out of range: the reader's message
+            return  # a number out of range: the reader's message
     if any(g not in _G_GROUP for g in gcodes):
-        return motion  # a code the reader refuses or passes through with its own message (G65, G5.3, G08 P1 ...)
+        return  # a code the reader refuses or passes through with its own message (G65, G5.3, G08 P1 ...)
     # two codes of one modal group
     seen = {}
     for g in gcodes:
         grp = _G_GROUP.get(g)
         if grp is None:
             continue
-        if grp in seen and not (grp == 1 and {seen[grp], g} in ({0, 800}, {10, 800})):
+        if grp in seen and seen[grp] != g and not (grp == 1 and {seen[grp], g} in ({0, 800}, {10, 800})):
             fail(f"two G codes of one modal group ({_GROUP_NAME[grp]}) in a block: {_G_NAME(seen[grp])} and "
                  f"{_G_NAME(g)}")
         if grp != 1 or g != 800 or 1 not in seen:
@@ -186,7 +208,7 @@ def _check_block(block: str, motion, passthrough: bool, fail):
         grp = _m_group(m)
         if grp is None:
             continue
-        if grp in mseen:
+        if grp in mseen and mseen[grp] != m:
             fail(f"two M codes of one modal group in a block: M{mseen[grp]} and M{m}")
         mseen[grp] = m
     if len(mcodes) > 5:
@@ -194,8 +216,10 @@ def _check_block(block: str, motion, passthrough: bool, fail):
     g0 = seen.get(0)
     g1 = seen.get(1)
     axes = any(a in letters for a in "XYZABCUVW")
-    if g0 in _AXIS_USERS and g1 is not None and axes and g1 != 800:
+    if g0 in _AXIS_USERS and g1 is not None and g1 != 800:
         fail(f"two G codes that both use the axis words: {_G_NAME(g1)} and {_G_NAME(g0)}")
+    if g0 in (520, 920) and not axes:
+        fail(f"{_G_NAME(g0)} with no axis word")
     if g0 == 520 and not passthrough:
         fail("G52 (local coordinate offset) is not read here: LinuxCNC keeps it as the G92 offset, never a move; "
              "set the offset with G92 or G54..G59.3, or pass --passthrough-unsupported to keep the block as it is "
@@ -204,7 +228,17 @@ def _check_block(block: str, motion, passthrough: bool, fail):
         fail(f"cutter radius compensation {_G_NAME(seen[7])} is not computed by this post (nor rs274's refusals of "
              "an arc as entry move and of gouging concave corners); pass --passthrough-unsupported to post the "
              "programmed contour with the compensation left to the control")
-    motion_after = g1 if g1 is not None else motion
+    if g1 is not None:
+        state.motion = g1
+    if 2 in seen:
+        state.plane = seen[2]
+    if 4 in seen:
+        state.arc_abs = seen[4] == 901
+    if 5 in seen:
+        state.feed_reset = True
+    if "F" in letters:
+        state.feed_reset = False
+
     if g1 is not None:
         to_be = g1
     elif axes and g0 not in _AXIS_USERS:
@@ -214,6 +248,11 @@ def _check_block(block: str, motion, passthrough: bool, fail):
     if axes and g0 not in _AXIS_USERS and g0 != 530 or (axes and g0 == 530):
         if to_be is None or (to_be == 800 and not (passthrough and g1 is None)):
             fail(_no_motion(to_be if g1 is not None or motion == 800 else None))
+    if state.feed_reset and (to_be in (10, 20, 30) or to_be in _CYCLES):
+        fail(f"{_G_NAME(to_be)} with zero feed rate: a feed mode code (G93 / G94 / G95) sets the feed rate to 0 in "
+             "rs274; give an F word after it")
+    if g0 == 530 and to_be not in (0, 10):
+        fail("G53 (a move in machine coordinates) needs axis words and G0 or G1")
     if "R" in letters and not (to_be in _ARCS or to_be in _CYCLES or g0 == 100):
         fail("R word with no G code that uses it (an arc, a canned cycle or G10)")
     for w in "IJK":
@@ -232,4 +271,8 @@ def _check_block(block: str, motion, passthrough: bool, fail):
             fail("G4 dwell without a P word (its time)")
         if letters["P"] < 0:
             fail(f"G4 with a negative dwell time P{letters['P']:g}")
-    return motion_after
+    if to_be in _ARCS and state.arc_abs and "R" not in letters:
+        need = {170: "IJ", 180: "IK", 190: "JK"}.get(state.plane, "")
+        missing = [w for w in need if w not in letters]
+        if missing:
+            fail(f"{missing[0]} word missing in an arc with absolute centre (G90.1)")

@@ -402,12 +402,13 @@ class _Flattener:
                 v, i = self.real_value(code, i + 1)
                 sets.append((key, v))
             elif c.isalpha():
-                if c == "n" and not words or (c == "n" and words == ["/"]):
-                    m = _NUMBER.match(code, i + 1)
-                    if m:
-                        words.append("N" + m.group())
-                        i = m.end()
-                        continue
+                if c == "n":
+                    m = re.compile(r"[0-9]+\.?[0-9]*").match(code, i + 1)
+                    if m is None:
+                        self.err("a line number (N word) must be an unsigned number, not an expression")
+                    words.append("N" + m.group())
+                    i = m.end()
+                    continue
                 v, i = self.real_value(code, i + 1)
                 if c in "gm":
                     v10 = round(v * 10)

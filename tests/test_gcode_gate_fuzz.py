@@ -1,0 +1,91 @@
+"""The G-code input gate fuzzed against LinuxCNC (issue 17): generated blocks, with parameters and expressions in
+their words, read by ``rs274`` and by us.
+
+- whatever we read, rs274 reads too, along the same path (end points in machine coordinates within 1e-4); what we
+  refuse and rs274 reads, we refuse saying what is not read (the option that passes it, or "not evaluated here");
+- ``trueaxis post`` on generated programs never shows a traceback: exit 0, 1 or 2 with one line on stderr, and rs274
+  reads what it writes.
+
+Bounded: one rs274 run per example, derandomized, about 200 examples in all (well under a minute on one core).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from conftest import MACHINES
+from test_interp_corpus import drop_repeats, run_rs274_verdict
+from trueaxis.cli import main as cli_main
+from trueaxis.postproc.gcode import GcodeError, parse_program
+
+SETTINGS = settings(deadline=None, derandomize=True, database=None,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+HEAD = "G21 G90 G17 G94 F100\n#1=2\n#<v>=3\nG0 X0 Y0 Z0\n"
+# what a refusal of a program rs274 reads must say: which feature is not read, and how to pass it
+NOT_READ = ("--passthrough-unsupported", "not evaluated here", "not supported")
+
+NUMBER = st.one_of(st.integers(-20, 20).map(str), st.floats(-20, 20, allow_nan=False).map(lambda v: f"{v:.3f}"))
+EXPRESSION = st.one_of(
+    NUMBER,
+    st.sampled_from(["#1", "#<v>", "-#1", "#2", "[#1*#<v>]", "[SQRT[2]]", "[ATAN[1]/[1]]", "[#1 GT 1]", "[1/0]",
+                     "[SIN[30]*4]", "[10 MOD 3]", "[2**3]", "[-2**0.5]", "#<undefined>", "[LN[0]]", "[FIX[2.5]]",
+                     "[ROUND[2.5]]", "[#1+]", "[ABS[-3]]", "#5221"]),
+    st.builds(lambda a, op, b: f"[{a} {op} {b}]", NUMBER, st.sampled_from(["+", "-", "*", "/", "MOD", "EQ", "LT"]),
+              NUMBER),
+)
+CODE = st.sampled_from(["G0", "G1", "G2", "G3", "G4", "G17", "G18", "G19", "G20", "G21", "G28", "G52", "G53", "G54",
+                        "G55", "G80", "G90", "G91", "G90.1", "G91.1", "G92", "G92.1", "G93", "G94", "G40", "G41",
+                        "G43", "G49", "G64", "M0", "M1", "M3", "M4", "M5", "M7", "M8", "M9", "M6"])
+WORD = st.builds(lambda letter, value: f"{letter}{value}", st.sampled_from(list("XYZXYZIJRPQLFN")), EXPRESSION)
+BLOCK = st.lists(st.one_of(CODE, WORD, WORD), min_size=1, max_size=4).map(" ".join)
+
+
+def ours(text):
+    try:
+        return parse_program(text, "fuzz.ngc"), None
+    except GcodeError as exc:
+        return None, str(exc)
+
+
+@SETTINGS
+@given(block=BLOCK)
+def test_generated_blocks_are_read_as_rs274_reads_them_or_refused_saying_what(block):
+    text = HEAD + block + "\nM2\n"
+    prog, refusal = ours(text)
+    with tempfile.TemporaryDirectory() as tmp:
+        rc, message, rs_end = run_rs274_verdict(text, Path(tmp))
+    if prog is not None:
+        assert rc == 0, f"we read a block rs274 refuses: {block!r}: {message[-200:]}"
+        mine, theirs = drop_repeats(prog.end_machine), drop_repeats(rs_end)
+        assert len(mine) == len(theirs), block
+        np.testing.assert_allclose(mine, theirs, atol=1e-4, err_msg=block)
+    elif rc == 0:
+        assert any(s in refusal for s in NOT_READ), f"we refuse a block rs274 reads: {block!r}: {refusal}"
+    else:
+        assert refusal.startswith("fuzz.ngc:") and len(refusal.splitlines()) == 1
+
+
+@settings(SETTINGS, max_examples=40)
+@given(blocks=st.lists(BLOCK, min_size=1, max_size=3))
+def test_the_post_command_never_shows_a_traceback_and_rs274_reads_its_output(blocks):
+    text = HEAD + "\n".join(blocks) + "\nG1 X5 Y5 Z-1\nM2\n"
+    with tempfile.TemporaryDirectory() as tmp:
+        src, out = Path(tmp) / "in.ngc", Path(tmp) / "out.ngc"
+        src.write_text(text)
+        err = io.StringIO()
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            code = cli_main(["post", str(src), "-o", str(out), "--machine", str(MACHINES / "xh714.toml")])
+        assert code in (0, 1, 2), (code, err.getvalue())
+        if code:
+            assert len(err.getvalue().strip().splitlines()) == 1, err.getvalue()
+            assert not out.exists()
+            return
+        rc, message, _ = run_rs274_verdict(out.read_text(), Path(tmp))
+        assert rc == 0, f"rs274 refuses our output: {message[-300:]}"
