@@ -2,8 +2,8 @@
 
 :func:`check_blocks` refuses, with ``file:line:`` and rs274's reason in our words:
 
-- two G codes of one modal group in a block (``G1 G0 X10``; Fanuc's ``G0 G80`` / ``G1 G80``, the cycle cancelled and
-  the move made, is read as Fanuc controls read it: the fixtures' NIST programs use it), two M codes of one modal group (``M3 M4``), more than
+- two G codes of one modal group in a block (``G1 G0 X10``, ``G90 G90``; G80 beside another motion code is let
+  pass, as rs274 lets it: the other code moves), two M codes of one modal group (``M3 M4``), more than
   five M codes;
 - two G codes that both use the axis words (``G0 G28 X1``: a motion and G10 / G28 / G30 / G52 / G92);
 - words that nothing in the block uses: axis words with no motion mode (``G80 X1``, or ``X1`` before any G0 / G1),
@@ -18,9 +18,9 @@
   unless ``--passthrough-unsupported``, which keeps G52 as it is (no row; later positions read without its offset)
   and posts the programmed contour of a compensated path with its G41 / G42 kept.
 
-Cost: one regular-expression pass over the text finds the blocks that are not plain G0..G3 moves (or plain moves
-with I J K R and no G word); only those are checked word by word, with the motion mode in force taken from the last
-G0..G3 word before them.
+Cost: one regular-expression pass over the text finds the blocks that are not plain G0..G3 moves; only those are
+checked word by word, with the motion mode in force taken from the last G0..G3 word before them; two more passes find
+I J K R words on plain blocks in G0 / G1 mode. A plain program costs a few per cent of its reading time.
 """
 
 from __future__ import annotations
@@ -30,13 +30,17 @@ import re
 __all__ = ["check_blocks"]
 
 _NUM = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)"
-# A plain block: N, G0..G3 (I J K R only after an explicit G2 / G3), axis words and F; nothing to check but the
-# motion mode in force when it has no G word.
-_NOT_PLAIN = re.compile(
-    r"^(?![ \t]*(?:N[0-9]+[ \t]*)?(?:(?:G0?[01](?![0-9.])[ \t]*)?(?:[XYZABCF][ \t]*" + _NUM + r"[ \t]*)*"
-    r"|G0?[23](?![0-9.])[ \t]*(?:[XYZABCFIJKR][ \t]*" + _NUM + r"[ \t]*)*)\r?$).+$",
-    re.MULTILINE,
-)
+# Where a block needs a word-by-word check (the rest are plain moves: N, one G0..G3, axis words, I J K R, F):
+# a character that is no part of a plain move, a G code other than G0..G3, two G codes, an N word after a number.
+_CANDIDATES = tuple(re.compile(p) for p in (
+    r"[^NGXYZABCFIJKR0-9.+\- \t\r\n]",  # a character no plain move has (M, T, comments, lower case ...)
+    r"G(?![ \t]*0?[0-3](?![0-9.]))",  # a G code other than G0..G3
+    r"G[^G\n]*G",  # two G codes
+    r"N(?<=[^\n]N)",  # an N word after the start of the line
+    r"N[ \t]*[-+]",  # a signed N word
+))
+_IJKR_LEAD = re.compile(r"[^G\nIJKR]*+(?:\n[^G\nIJKR]*+)*+[IJKR]")
+_IJKR_AFTER_LINEAR = re.compile(r"G0?[01](?![0-9.])[^G\nIJKR]*+(?:\n[^G\nIJKR]*+)*+[IJKR]")
 _LAST_MOTION = re.compile(r"(?s).*G0?([0-3])(?![0-9.])")
 _LINE_START = re.compile(r"^", re.MULTILINE)
 _WORD = re.compile(r"(\([^)\n]*\)?)|(;[^\n]*)|([A-Za-z])[ \t]*(" + _NUM + r")?|([^\s])")
@@ -98,13 +102,25 @@ def check_blocks(text: str, source: str, passthrough: bool, line_map=None) -> No
     """Raise :class:`~trueaxis.postproc.gcode.GcodeError` at the first block rs274 would refuse (see the module
     docstring). ``line_map``: 1-based source line of each text line (a flattened program), or None."""
     state = _State()
-    pos = 0
-    for m in _NOT_PLAIN.finditer(text):
-        _plain_blocks(text, pos, m.start(), state, source, line_map, passthrough)
-        _check_block(m.group(), state, passthrough, lambda reason, s=m.start(): _raise(
+    pos, n = 0, len(text)
+    # the next match of each candidate pattern (re-searched only once passed): one scan of the text per pattern
+    nxt = [p.search(text) for p in _CANDIDATES]
+    while True:
+        found = [m.start() for m in nxt if m is not None]
+        if not found:
+            break
+        at = min(found)
+        start = text.rfind("\n", 0, at) + 1
+        end = text.find("\n", at)
+        end = n if end < 0 else end + 1
+        if start < pos:  # (cannot happen: a match never starts before pos)
+            start = pos
+        _plain_blocks(text, pos, start, state, source, line_map, passthrough)
+        _check_block(text[start:end], state, passthrough, lambda reason, s=start: _raise(
             text, s, source, line_map, reason))
-        pos = m.end()
-    _plain_blocks(text, pos, len(text), state, source, line_map, passthrough)
+        pos = end
+        nxt = [m if m is None or m.start() >= pos else p.search(text, pos) for m, p in zip(nxt, _CANDIDATES)]
+    _plain_blocks(text, pos, n, state, source, line_map, passthrough)
 
 
 class _State:
@@ -137,9 +153,24 @@ def _plain_blocks(text, a, b, state, source, line_map, passthrough):
                 if re.search("[XYZABC]", s):
                     _raise(text, offset, source, line_map, _no_motion(state.motion))
             offset += len(line)
+    if a >= b:
+        return
+    if state.motion in (None, 0, 10, 800):
+        bad = _IJKR_LEAD.match(text, a, b)
+        if bad is not None:
+            _raise(text, bad.end() - 1, source, line_map, _ijkr_no_use(bad.group()[-1]))
+    bad = _IJKR_AFTER_LINEAR.search(text, a, b)
+    if bad is not None:
+        _raise(text, bad.end() - 1, source, line_map, _ijkr_no_use(bad.group()[-1]))
     gap = _LAST_MOTION.match(text, a, b)
     if gap is not None:
         state.motion = int(gap.group(1)) * 10
+
+
+def _ijkr_no_use(letter):
+    if letter == "R":
+        return "R word with no G code that uses it (an arc, a canned cycle or G10)"
+    return f"{letter} word with no arc (G2 / G3), G87 or G10 to use it"
 
 
 def _no_motion(motion):
@@ -198,7 +229,7 @@ def _check_block(block: str, state, passthrough: bool, fail):
         grp = _G_GROUP.get(g)
         if grp is None:
             continue
-        if grp in seen and seen[grp] != g and not (grp == 1 and {seen[grp], g} in ({0, 800}, {10, 800})):
+        if grp in seen and not (grp == 1 and 800 in (seen[grp], g)):
             fail(f"two G codes of one modal group ({_GROUP_NAME[grp]}) in a block: {_G_NAME(seen[grp])} and "
                  f"{_G_NAME(g)}")
         if grp != 1 or g != 800 or 1 not in seen:
@@ -208,7 +239,7 @@ def _check_block(block: str, state, passthrough: bool, fail):
         grp = _m_group(m)
         if grp is None:
             continue
-        if grp in mseen and mseen[grp] != m:
+        if grp in mseen:
             fail(f"two M codes of one modal group in a block: M{mseen[grp]} and M{m}")
         mseen[grp] = m
     if len(mcodes) > 5:
@@ -254,10 +285,10 @@ def _check_block(block: str, state, passthrough: bool, fail):
     if g0 == 530 and to_be not in (0, 10):
         fail("G53 (a move in machine coordinates) needs axis words and G0 or G1")
     if "R" in letters and not (to_be in _ARCS or to_be in _CYCLES or g0 == 100):
-        fail("R word with no G code that uses it (an arc, a canned cycle or G10)")
+        fail(_ijkr_no_use("R"))
     for w in "IJK":
         if w in letters and not (to_be in (20, 30, 50, 51, 330, 331, 760, 870) or g0 == 100):
-            fail(f"{w} word with no arc (G2 / G3), G87 or G10 to use it")
+            fail(_ijkr_no_use(w))
     if "P" in letters and not (any(g in _P_G or g == 80 for g in gcodes) or (to_be in _P_G)
                                or any(m in _P_M or 100 <= m <= 199 for m in mcodes)):
         fail("P word with no G or M code that uses it (G4 dwell, G10, G64, arc turns, G82 / G86 / G88 / G89 "
