@@ -148,6 +148,7 @@ CORPUS = [
 def run_rs274_verdict(text, tmp_path):
     """(returncode, message, machine end points (N, 6), move count) of rs274 reading ``text``."""
     exe = require_rs274()
+    tmp_path.mkdir(parents=True, exist_ok=True)
     (tmp_path / "tools.tbl").write_text(tool_table_text({1: 0.0}))
     (tmp_path / "in.ngc").write_text(text)
     for _ in range(5):  # rs274 now and then dies of a signal (SIGBUS) when two run at once: run it again then
@@ -240,3 +241,25 @@ def test_a_program_without_macros_is_not_touched():
 def test_the_corpus_covers_each_verdict_richly():
     verdicts = [v for _, v, _ in CORPUS]
     assert verdicts.count(OK) >= 40 and verdicts.count(REFUSED) >= 30 and len(CORPUS) >= 80
+
+
+def test_a_flattened_program_posts_and_rs274_reads_the_output_along_the_source_path(tmp_path):
+    """The post writes the flat program (saying so in its first line); rs274 reads it along the path it reads in the
+    source, up to the compensation (the xh714 twin corrects by at most a few um here)."""
+    from conftest import MACHINES
+    from trueaxis.machine import load_machine
+    from trueaxis.postproc.post import compensate
+
+    text = ("G21 G90 G17 F300\nG0 X0 Y0 Z-5\n#<_step>=4\no<row> sub\nG1 X[#1*#<_step>] Y0 Z-11\nG1 Y20\n"
+            "G2 X[#1*#<_step>+2] Y20 I1 J0\no<row> endsub\n#1=0\no1 while [#1 LT 5]\no<row> call [#1]\n"
+            "#1=[#1+1]\no1 endwhile\nG0 Z-5\nM2\n")
+    out = compensate(text, load_machine(MACHINES / "xh714.toml"), "geometric")
+    assert out.splitlines()[0].startswith("(flattened by trueaxis")
+    rc_in, msg_in, src_end = run_rs274_verdict(text, tmp_path / "in")
+    rc_out, msg_out, out_end = run_rs274_verdict(out, tmp_path / "out")
+    assert rc_in == 0 and rc_out == 0, (msg_in, msg_out)
+    assert len(src_end) == 1 + 5 * 3 + 1
+    assert len(out_end) >= len(src_end)  # moves may be split where the error varies along them
+    # every source end point is reached by the output within the compensation's size
+    d = np.abs(out_end[:, None, :3] - src_end[None, :, :3]).max(axis=2).min(axis=0)
+    assert d.max() < 0.02, d.max()

@@ -282,7 +282,7 @@ def _check_block(block: str, state, passthrough: bool, fail):
     if state.feed_reset and (to_be in (10, 20, 30) or to_be in _CYCLES):
         fail(f"{_G_NAME(to_be)} with zero feed rate: a feed mode code (G93 / G94 / G95) sets the feed rate to 0 in "
              "rs274; give an F word after it")
-    if g0 == 530 and to_be not in (0, 10):
+    if g0 == 530 and to_be not in (0, 10) and not (passthrough and to_be == 800 and g1 is None):
         fail("G53 (a move in machine coordinates) needs axis words and G0 or G1")
     if "R" in letters and not (to_be in _ARCS or to_be in _CYCLES or g0 == 100):
         fail(_ijkr_no_use("R"))

@@ -22,9 +22,10 @@ Decisions (documented here once)
   ``reference_points``). Their rows have ``kind == ROW_REFERENCE`` so a compensating writer leaves those lines alone.
 - A block with G0/G1 and no axis words is a zero-length move (LinuxCNC reports one too).
 - Block delete ``/`` lines are executed (the block-delete switch is off, as in ``rs274``).
-- Numbered parameters with literal values (``#501 = 1``) are remembered and ``#501`` / ``[#501]`` in later words are
-  substituted. Anything else with ``#`` or ``[...]`` expressions is a macro: passed through (recorded in
-  ``unsupported``) where it cannot move an axis, refused with :class:`GcodeError` where it can.
+- Parameters, expressions, O-word control flow and M98 / M99 are evaluated before this reader by :mod:`.flatten`
+  (the reader then sees a flat program), and every block first passes rs274's block checks (:mod:`.check`). With
+  ``passthrough_unsupported`` a macro layer the pre-pass refuses reaches this reader, which substitutes literal
+  parameters (``#501 = 1``) and passes the rest through (recorded in ``unsupported``) where it cannot move an axis.
 - Fanuc-only codes that do not move an axis (``G08 P1``, ``M29``, unknown M codes, ``G05.1``) pass through and are
   recorded; subprogram calls and control flow (M98, M99, G65, G66, LinuxCNC o-words) are refused, since the moves they
   make are not in the text. With ``passthrough_unsupported=True`` (``--passthrough-unsupported``) such a block is left as it is (no row) and recorded.
