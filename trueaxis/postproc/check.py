@@ -221,6 +221,8 @@ def _check_block(block: str, state, passthrough: bool, fail):
                 letters[L] = float(num)
         except (OverflowError, ValueError):
             return  # a number out of range: the reader's message
+        if L == "Q" and letters.get(L) == -1.0:
+            del letters[L]  # rs274 marks an absent Q with -1: Q-1 reads as no Q word there
     if any(g not in _G_GROUP for g in gcodes):
         return  # a code the reader refuses or passes through with its own message (G65, G5.3, G08 P1 ...)
     # two codes of one modal group

@@ -78,6 +78,27 @@ _BINOPS = (("**", 6), ("*", 5), ("/", 5), ("mod", 5), ("+", 4), ("-", 4), ("eq",
            ("ge", 3), ("lt", 3), ("le", 3), ("and", 2), ("or", 2), ("xor", 2))
 
 
+def _round(v):
+    return float(int(v + (-0.5 if v < 0 else 0.5)))
+
+
+_FUNCTION = {"abs": abs, "acos": lambda v: math.degrees(math.acos(v)), "asin": lambda v: math.degrees(math.asin(v)),
+             "cos": lambda v: math.cos(math.radians(v)), "sin": lambda v: math.sin(math.radians(v)),
+             "tan": lambda v: math.tan(math.radians(v)), "exp": math.exp, "fix": lambda v: float(math.floor(v)),
+             "fup": lambda v: float(math.ceil(v)), "ln": math.log, "round": _round, "sqrt": math.sqrt}
+
+
+def _c_value(f, *args):
+    """f(*args) as C computes it: NaN where Python raises ValueError (fmod by 0, sin of inf, floor of NaN), inf
+    where it raises OverflowError (exp, pow)."""
+    try:
+        return float(f(*args))
+    except ValueError:
+        return math.nan
+    except OverflowError:
+        return math.inf
+
+
 class FlattenError(Exception):
     """A macro the pre-pass refuses: ``line`` is the 1-based source line."""
 
@@ -270,38 +291,15 @@ class _Flattener:
                 self.err("ATAN needs two arguments: ATAN[y]/[x]")
             w, i = self.expression(s, i + 1)
             return math.degrees(math.atan2(v, w)), i
-        if f in ("acos", "asin") and not -1.0 <= v <= 1.0:
+        # rs274's domain checks (a NaN passes them, as in C); then the value as C's libm gives it: NaN or inf where
+        # Python raises
+        if f in ("acos", "asin") and (v < -1.0 or v > 1.0):
             self.err(f"argument to {f.upper()} out of range [-1, 1]: {v:g}")
         if f == "sqrt" and v < 0:
             self.err(f"negative argument to SQRT: {v:g}")
         if f == "ln" and v <= 0:
             self.err(f"zero or negative argument to LN: {v:g}")
-        if f == "abs":
-            return abs(v), i
-        if f == "acos":
-            return math.degrees(math.acos(v)), i
-        if f == "asin":
-            return math.degrees(math.asin(v)), i
-        if f == "cos":
-            return math.cos(math.radians(v)), i
-        if f == "sin":
-            return math.sin(math.radians(v)), i
-        if f == "tan":
-            return math.tan(math.radians(v)), i
-        if f == "exp":
-            try:
-                return math.exp(v), i
-            except OverflowError:
-                self.err(f"EXP[{v:g}] overflows")
-        if f == "fix":
-            return float(math.floor(v)), i
-        if f == "fup":
-            return float(math.ceil(v)), i
-        if f == "ln":
-            return math.log(v), i
-        if f == "round":
-            return float(int(v + (-0.5 if v < 0 else 0.5))), i
-        return math.sqrt(v), i
+        return _c_value(_FUNCTION[f], v), i
 
     def expression(self, s, i):
         """Value of the bracketed expression at s[i] == '[' and the index after its ']'."""
@@ -328,9 +326,13 @@ class _Flattener:
             values.append(v)
         while ops:
             self.reduce(values, ops)
+        if values[0] != values[0]:
+            self.err("calculation resulted in 'not a number' (NaN)")
         return values[0], i
 
     def reduce(self, values, ops):
+        """Apply the stacked operator to the two last values, as rs274's execute_binary does (C arithmetic: inf and
+        NaN carry on; the word that finally gets such a value is refused)."""
         name, _ = ops.pop()
         b = values.pop()
         a = values.pop()
@@ -339,17 +341,12 @@ class _Flattener:
                 self.err("division by zero")
             r = a / b
         elif name == "mod":
-            if b == 0.0:
-                self.err("MOD by zero")
-            r = math.fmod(a, b)
+            r = _c_value(math.fmod, a, b)
             r = r + abs(b) if r < 0 else r
         elif name == "**":
-            if a < 0 and math.floor(b) != b:
+            if a < 0 and (b != b or (math.isfinite(b) and math.floor(b) != b)):
                 self.err("negative number raised to a non-integer power")
-            try:
-                r = math.pow(a, b)
-            except (OverflowError, ValueError):
-                self.err(f"{a:g} ** {b:g} out of range")
+            r = _c_value(math.pow, a, b)
         elif name == "*":
             r = a * b
         elif name == "+":
@@ -374,8 +371,6 @@ class _Flattener:
             r = 1.0 if a > b else 0.0
         else:
             r = 1.0 if a < b else 0.0
-        if not math.isfinite(r):
-            self.err(f"expression value out of range ({a:g} {name.upper()} {b:g})")
         values.append(r)
 
     def assign(self, key, value):
@@ -422,6 +417,8 @@ class _Flattener:
                     i = m.end()
                     continue
                 v, i = self.real_value(code, i + 1)
+                if not math.isfinite(v):
+                    self.err(f"number out of range: the value of {c.upper()} is not a finite number ({v})")
                 if c in "gm":
                     v10 = round(v * 10)
                     if abs(v * 10 - v10) > 1e-3:
