@@ -125,3 +125,59 @@ def test_generated_expressions_have_the_value_rs274_gives_them(expression):
         return
     x = prog.end[-1, 0]
     assert abs(x - rs_end[-1, 0]) <= 5e-5 + 1e-9 * abs(x), (expression, x, rs_end[-1, 0])
+
+
+SMALL = st.recursive(st.sampled_from(["#1", "#2", "#3", "#<_g>", "1", "2.5", "-3", "0"]), lambda inner: st.one_of(
+    st.builds(lambda a, op, b: f"[{a} {op} {b}]", inner, st.sampled_from(["+", "-", "*", "GT", "LT", "EQ", "MOD"]),
+              inner),
+    st.builds(lambda f, a: f"{f}[{a}]", st.sampled_from(["ABS", "FIX", "ROUND", "SIN"]), inner)), max_leaves=3)
+SUBS = ("o<s1> sub\nG0 X#1 Y[#1*2]\n#1=[#1+1]\no<s1> endsub\n"
+        "o<s2> sub\n#<_g>=[#<_g>+#1]\no<s1> call [#<_g>]\nG0 Z#1\no<s2> endsub\n")
+
+
+@st.composite
+def statements(draw, depth=0, labels=None):
+    labels = labels if labels is not None else [100]
+    out = []
+    for _ in range(draw(st.integers(1, 3))):
+        kind = draw(st.sampled_from(["move", "move", "assign", "call"] + (["if", "while", "repeat", "do"]
+                                                                          if depth < 2 else [])))
+        if kind == "move":
+            out.append(f"G0 X{draw(SMALL)} Y{draw(SMALL)}")
+        elif kind == "assign":
+            out.append(f"{draw(st.sampled_from(['#1', '#2', '#3', '#<_g>']))}={draw(SMALL)}")
+        elif kind == "call":
+            out.append(f"o<s{draw(st.integers(1, 2))}> call [{draw(SMALL)}]")
+        else:
+            labels[0] += 1
+            lab = labels[0]
+            body = draw(statements(depth + 1, labels))
+            if kind == "if":
+                other = draw(statements(depth + 1, labels))
+                out.append(f"o{lab} if [{draw(SMALL)}]\n{body}\no{lab} else\n{other}\no{lab} endif")
+            elif kind == "while":
+                c = f"#{20 + depth}"
+                out.append(f"{c}=0\no{lab} while [{c} LT {draw(st.integers(0, 3))}]\n{body}\n{c}=[{c}+1]\n"
+                           f"o{lab} endwhile")
+            elif kind == "do":
+                c = f"#{20 + depth}"
+                out.append(f"{c}=0\no{lab} do\n{body}\n{c}=[{c}+1]\no{lab} while [{c} LT {draw(st.integers(0, 3))}]")
+            else:
+                out.append(f"o{lab} repeat [{draw(st.integers(0, 3))}]\n{body}\no{lab} endrepeat")
+    return "\n".join(out)
+
+
+@settings(SETTINGS, max_examples=150)
+@given(body=statements())
+def test_generated_control_flow_runs_the_path_rs274_runs(body):
+    """Subroutines, if / else, while, do-while and repeat nested at random: the flat program moves where rs274 moves."""
+    text = "G21 G90 G17 G94 F100\n#<_g>=1\n" + SUBS + "G0 X0 Y0 Z0\n" + body + "\nM2\n"
+    prog, refusal = ours(text)
+    with tempfile.TemporaryDirectory() as tmp:
+        rc, message, rs_end = run_rs274_verdict(text, Path(tmp))
+    if rc != 0:
+        assert prog is None, f"we read a program rs274 refuses: {message[-200:]}\n{text}"
+        return
+    assert prog is not None, f"we refuse what rs274 reads: {refusal}\n{text}"
+    assert len(prog) == len(rs_end), text
+    np.testing.assert_allclose(prog.end_machine, rs_end, atol=1e-4, err_msg=text)
