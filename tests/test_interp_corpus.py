@@ -263,3 +263,9 @@ def test_a_flattened_program_posts_and_rs274_reads_the_output_along_the_source_p
     # every source end point is reached by the output within the compensation's size
     d = np.abs(out_end[:, None, :3] - src_end[None, :, :3]).max(axis=2).min(axis=0)
     assert d.max() < 0.02, d.max()
+
+
+def test_brackets_and_hashes_in_comments_leave_the_program_untouched():
+    text = "G21 G90 (tool #3 [rough])\nG0 X1 Y2 ; note [a]\nG1 X3 F100\nM2\n%\n"
+    prog = parse_program(text)
+    assert "".join(prog.lines) == text and prog.source_line is None

@@ -505,6 +505,8 @@ class _Flattener:
             elif len(self.frames) == 1 and _END.search(code):
                 break  # program end: what follows is not executed
             k += 1
+        if src == list(range(1, len(src) + 1)) and all(a is b for a, b in zip(out, self.lines)):
+            return None  # '#' or '[' only in comments: nothing evaluated, every line as it is
         if out and not self.lines[-1].endswith(("\n", "\r")) and out[-1].endswith("\n") and \
                 self.lines[src[-1] - 1] is self.lines[-1]:
             out[-1] = out[-1][:-1]
@@ -683,7 +685,7 @@ def read_flat(text: str, source: str, passthrough: bool, split, interpret):
             if not passthrough:
                 raise GcodeError(source, exc.line, exc.reason) from None
             flat = None
-    if flat is None:
+    if flat is None:  # nothing to evaluate (or refused and passed through)
         check_blocks(text, source, passthrough, None)
         return interpret(text)
     flat_text = FLAT_NOTE + flat.text
