@@ -12,6 +12,8 @@
   (with ``--passthrough-unsupported``, axis words after G80 are read as Fanuc controls read them, with the motion
   mode from before the cycle: the reader warns);
 - a line number (N word) anywhere but at the start of the block; G4 without P or with a negative P;
+- a canned cycle before any G98 / G99 (the retract plane would depend on the control's start-up mode: rs274 starts
+  in G99, the reader in G98);
 - G52 (LinuxCNC: a local offset that shares G92's; not evaluated by this reader) and cutter radius compensation
   G41 / G42 / G41.1 / G42.1 (the controller offsets the path by the tool radius; this post neither computes that path
   nor makes rs274's own refusals, an arc as the entry move or a concave corner the tool would gouge): both refused
@@ -132,6 +134,7 @@ class _State:
         self.plane = 170
         self.arc_abs = False
         self.feed_reset = False  # G93 / G94 / G95 set the feed rate to 0 (rs274) and no F word since
+        self.retract_set = False  # G98 or G99 programmed
 
 
 def _plain_blocks(text, a, b, state, source, line_map, passthrough):
@@ -267,6 +270,11 @@ def _check_block(block: str, state, passthrough: bool, fail):
         state.plane = seen[2]
     if 4 in seen:
         state.arc_abs = seen[4] == 901
+    if 10 in seen:
+        state.retract_set = True
+    if g1 in _CYCLES and not state.retract_set:
+        fail(f"canned cycle {_G_NAME(g1)} with no G98 / G99 programmed before it: where it retracts depends on the "
+             "control's start-up mode (rs274 starts in G99, this reader in G98); program G98 or G99")
     if 5 in seen:
         state.feed_reset = True
     if "F" in letters:

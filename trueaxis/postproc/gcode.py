@@ -1341,9 +1341,9 @@ class _Interpreter:
             current_cc = old_cc
         clear_cc = r if retract_r else old_cc
         if current_cc <= r:
-            # measured with rs274 (LinuxCNC 2.9): starting at or below the R plane, the first positioning move
-            # is made at the initial level, not at the current height
-            current_cc = old_cc
+            # as LinuxCNC's CYCLE_MACRO: starting at or below the R plane, the first positioning move is made at the
+            # clear level (the initial level in G98, the R plane in G99), not at the current height
+            current_cc = clear_cc
 
         # sticky cycle words
         if mm in (820, 860, 880, 890, 740, 840):
