@@ -46,7 +46,8 @@ EXPRESSION = st.one_of(
 )
 CODE = st.sampled_from(["G0", "G1", "G2", "G3", "G4", "G17", "G18", "G19", "G20", "G21", "G28", "G52", "G53", "G54",
                         "G55", "G80", "G90", "G91", "G90.1", "G91.1", "G92", "G92.1", "G93", "G94", "G40", "G41",
-                        "G43", "G49", "G64", "G73", "G81", "G82", "G83", "G85", "G89", "G98", "G99", "M0", "M1", "M3", "M4", "M5", "M7", "M8", "M9", "M6"])
+                        "G43", "G49", "G64", "G73", "G81", "G82", "G83", "G85", "G89", "G98", "G99", "M0", "M1",
+                        "M3", "M4", "M5", "M7", "M8", "M9", "M6"])
 WORD = st.builds(lambda letter, value: f"{letter}{value}", st.sampled_from(list("XYZXYZIJRPQLFN")), EXPRESSION)
 BLOCK = st.lists(st.one_of(CODE, WORD, WORD), min_size=1, max_size=4).map(" ".join)
 

@@ -42,11 +42,13 @@ FIRST_STATE_PARAMETER = 5161
 LAST_PARAMETER = 5601
 # Predefined named parameters (LinuxCNC's "predefined named parameters"): the interpreter's state, not evaluated here
 _SYSTEM_NAMES = re.compile(
-    r"_(?:vmajor|vminor|line|motion_mode|plane|ccomp|metric|imperial|absolute|incremental|inverse_time|units_per_minute|"
-    r"units_per_rev|coord_system|tool_offset|retract_r_plane|retract_old_z|spindle_rpm_mode|spindle_css_mode|"
-    r"ijk_absolute_mode|lathe_diameter_mode|lathe_radius_mode|spindle_on|spindle_cw|mist|flood|speed_override|"
-    r"feed_override|adaptive_feed|feed_hold|feed|rpm|[xyzabcuvw]|abs_[xyzabcuvw]|current_tool|current_pocket|"
-    r"selected_tool|selected_pocket|value|value_returned|task|call_level|remap_level|ini\[.*\]|hal\[.*\])$"
+    r"_(?:" + "|".join((
+        "vmajor vminor line motion_mode plane ccomp metric imperial absolute incremental inverse_time units_per_minute "
+        "units_per_rev coord_system tool_offset retract_r_plane retract_old_z spindle_rpm_mode spindle_css_mode "
+        "ijk_absolute_mode lathe_diameter_mode lathe_radius_mode spindle_on spindle_cw mist flood speed_override "
+        "feed_override adaptive_feed feed_hold feed rpm current_tool current_pocket selected_tool selected_pocket "
+        "value value_returned task call_level remap_level").split())
+    + r"|[xyzabcuvw]|abs_[xyzabcuvw]|ini\[.*\]|hal\[.*\])$"
 )
 
 # A quick look decides: without '#', '[', an O-word with a keyword or M98 / M99 there is nothing to evaluate. (Each
@@ -116,7 +118,7 @@ class FlatProgram:
 
 
 def needs_flattening(text: str) -> bool:
-    """True when ``text`` has parameters, expressions, O-word control flow or M98 / M99 (one regular-expression scan)."""
+    """True when ``text`` may have parameters, expressions, O-word control flow or M98 / M99 (a few fast scans)."""
     return _FEATURES.search(text) is not None
 
 
