@@ -27,9 +27,11 @@ Decisions (documented here once)
   ``passthrough_unsupported`` a macro layer the pre-pass refuses reaches this reader, which substitutes literal
   parameters (``#501 = 1``) and passes the rest through (recorded in ``unsupported``) where it cannot move an axis.
 - Fanuc-only codes that do not move an axis (``G08 P1``, ``M29``, unknown M codes, ``G05.1``) pass through and are
-  recorded; subprogram calls and control flow (M98, M99, G65, G66, LinuxCNC o-words) are refused, since the moves they
-  make are not in the text. With ``passthrough_unsupported=True`` (``--passthrough-unsupported``) such a block is left as it is (no row) and recorded.
-- Cutter radius compensation (G41/G42): the rows are the programmed contour, not the tool centre path; the mode is in
+  recorded; subprogram calls and control flow the pre-pass does not evaluate (G65, G66, M98 to a program not in the
+  file, o-word calls to other files) are refused, since the moves they make are not in the text. With
+  ``passthrough_unsupported=True`` (``--passthrough-unsupported``) such a block is left as it is (no row) and recorded.
+- Cutter radius compensation (G41/G42; read only with ``passthrough_unsupported``, :mod:`.check` refuses it
+  otherwise): the rows are the programmed contour, not the tool centre path; the mode is in
   ``cutter_comp`` and a warning says so.
 - Everything after M2/M30 or a closing ``%`` is kept as text and not interpreted.
 """
