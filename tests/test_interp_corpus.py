@@ -268,3 +268,9 @@ def test_brackets_and_hashes_in_comments_leave_the_program_untouched():
     text = "G21 G90 (tool #3 [rough])\nG0 X1 Y2 ; note [a]\nG1 X3 F100\nM2\n%\n"
     prog = parse_program(text)
     assert "".join(prog.lines) == text and prog.source_line is None
+
+
+def test_flat_lines_keep_the_programs_line_endings():
+    prog = parse_program("G21\r\n#1=2\r\nG0 X#1 (a)\r\nG0 Y[#1*2]\r\nM2\r\n")
+    assert all(line.endswith("\r\n") for line in prog.lines)
+    assert prog.lines[2:4] == ["G0 X2 (a)\r\n", "G0 Y4\r\n"]

@@ -148,6 +148,11 @@ def _code_and_comments(raw: str):
     return "".join(code), comments
 
 
+def _ending(raw: str) -> str:
+    """The line ending of ``raw`` (\\n when it has none: the last line), kept on the flat line."""
+    return raw[len(raw.rstrip("\r\n")):] or "\n"
+
+
 class _Frame:
     def __init__(self, return_to, saved, line):
         self.return_to, self.saved, self.line = return_to, saved, line
@@ -449,8 +454,8 @@ class _Flattener:
                 call = ("M99",)
             return None, call
         if not words or words == ["/"]:
-            return ("".join(comments) + "\n") if comments else None, None
-        return " ".join(words + comments) + "\n", None
+            return ("".join(comments) + _ending(raw)) if comments else None, None
+        return " ".join(words + comments) + _ending(raw), None
 
     # -- the run ------------------------------------------------------------------------------------------------
     def run(self):
@@ -666,7 +671,7 @@ def flatten_program(text: str, lines: list | None = None, params: dict | None = 
 
 
 FLAT_NOTE = ("(flattened by trueaxis: parameters, expressions, O-word control flow and M98 subprograms evaluated as "
-             "LinuxCNC does)\n")
+             "LinuxCNC does)")
 
 
 def read_flat(text: str, source: str, passthrough: bool, split, interpret):
@@ -690,7 +695,7 @@ def read_flat(text: str, source: str, passthrough: bool, split, interpret):
     if flat is None:  # nothing to evaluate (or refused and passed through)
         check_blocks(text, source, passthrough, None)
         return interpret(text)
-    flat_text = FLAT_NOTE + flat.text
+    flat_text = FLAT_NOTE + _ending(split(text)[0]) + flat.text
     line_map = [1] + flat.source_line
     check_blocks(flat_text, source, passthrough, line_map)
     try:
