@@ -23,9 +23,19 @@ PRINT_TOL = 0.5 * 10.0 ** -PRINT_DECIMALS + 1e-9
 
 
 def test_lines_reproduce_the_text_byte_for_byte():
-    text = (NIST / "d2mi_827-9999-904_op1.nc").read_bytes().decode("iso-8859-1")
-    prog = parse_program(text, "d2mi")
+    text = (NIST / "mtc_cover_rev_a.nc").read_bytes().decode("iso-8859-1")
+    prog = parse_program(text, "mtc")
     assert "".join(prog.lines) == text
+
+
+def test_a_flattened_program_keeps_every_line_without_macros_byte_for_byte():
+    text = (NIST / "d2mi_827-9999-904_op1.nc").read_bytes().decode("iso-8859-1")
+    prog = parse_program(text, "d2mi", passthrough_unsupported=True)  # its G41: the control's part
+    src = text.splitlines(keepends=True)
+    assert prog.lines[0].startswith("(flattened by trueaxis")
+    kept = [line for line, n in zip(prog.lines[1:], prog.source_line[1:]) if "#" not in src[n - 1]]
+    assert kept == [line for line in src if "#" not in line][:len(kept)]
+    assert len(kept) > 1000
 
 
 def test_inch_program_positions_stay_in_inches():
@@ -51,7 +61,7 @@ def test_comments_line_numbers_and_block_delete_are_tokenized():
 
 
 def test_distance_modes_are_recorded_per_row_and_comments_do_not_set_them():
-    prog = parse_program("G21 G90\nG1 X1 F100 (G91 in a comment)\nG91 G1 X1 ; G90\nX2\nG90.1 G90 G91 G90 X3\n"
+    prog = parse_program("G21 G90\nG1 X1 F100 (G91 in a comment)\nG91 G1 X1 ; G90\nX2\nG90.1 G90 X3\n"
                          "G2 X4 I3.5 J0 ; G91.1\nG91.1 g91 G1 X1\n")
     assert prog.incremental.tolist() == [False, True, True, False, False, True]
     assert prog.arc_incremental.tolist() == [True, True, True, False, False, True]
@@ -100,7 +110,7 @@ def test_units_switch_converts_the_current_position():
 
 
 def test_fanuc_codes_pass_through_and_are_recorded():
-    prog = parse_file(NIST / "d2mi_827-9999-904_op1.nc")
+    prog = parse_file(NIST / "d2mi_827-9999-904_op1.nc", passthrough_unsupported=True)  # G41: the control's part
     assert len(prog) > 1000
     reasons = {reason for _, reason in prog.unsupported}
     assert any("G08" in r for r in reasons)
@@ -109,10 +119,9 @@ def test_fanuc_codes_pass_through_and_are_recorded():
 
 
 @pytest.mark.parametrize("text, reason", [
-    ("G21\n#1 = 2\nG0 X[#1 + 1]\n", "macro expression"),
-    ("G21\nM98 P1000\n", "subprogram call"),
-    ("G21\nG65 P9000 A1\n", "macro call"),
-    ("G21\no100 sub\nG0 X1\no100 endsub\n", "o-word"),
+    ("G21\nM98 P1000\n", "not in this file"),
+    ("G21\nG0 X0\nG65 P9000 A1\n", "macro call"),
+    ("G21\no100 call\n", "not in this file"),
 ])
 def test_blocks_that_could_move_are_refused_with_file_and_line(text, reason):
     with pytest.raises(GcodeError) as info:

@@ -361,7 +361,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="tilt below which the free rotary axis is held (default 1 deg)")
     po.add_argument("--report", help="write the report JSON here")
     po.add_argument("--passthrough-unsupported", action="store_true",
-                    help="leave blocks the reader does not understand as they are (counted in the report)")
+                    help="leave blocks the reader does not understand as they are (counted in the report): "
+                         "macros it cannot evaluate, G52, cutter radius compensation G41/G42")
     for key, what in (("ap", "axial depth, mm"), ("ae", "radial engagement, mm"), ("fz", "feed per tooth, mm"),
                       ("n", "spindle speed, rpm"), ("d", "tool diameter, mm"), ("z", "flutes")):
         po.add_argument(f"--{key}", type=POSITIVE if key != "z" else _number(int, low=1), help=f"cutting conditions: {what} "

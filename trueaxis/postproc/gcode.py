@@ -27,13 +27,16 @@ Decisions (documented here once)
   ``reference_points``). Their rows have ``kind == ROW_REFERENCE`` so a compensating writer leaves those lines alone.
 - A block with G0/G1 and no axis words is a zero-length move (LinuxCNC reports one too).
 - Block delete ``/`` lines are executed (the block-delete switch is off, as in ``rs274``).
-- Numbered parameters with literal values (``#501 = 1``) are remembered and ``#501`` / ``[#501]`` in later words are
-  substituted. Anything else with ``#`` or ``[...]`` expressions is a macro: passed through (recorded in
-  ``unsupported``) where it cannot move an axis, refused with :class:`GcodeError` where it can.
+- Parameters, expressions, O-word control flow and M98 / M99 are evaluated before this reader by :mod:`.flatten`
+  (the reader then sees a flat program), and every block first passes rs274's block checks (:mod:`.check`). With
+  ``passthrough_unsupported`` a macro layer the pre-pass refuses reaches this reader, which substitutes literal
+  parameters (``#501 = 1``) and passes the rest through (recorded in ``unsupported``) where it cannot move an axis.
 - Fanuc-only codes that do not move an axis (``G08 P1``, ``M29``, unknown M codes, ``G05.1``) pass through and are
-  recorded; subprogram calls and control flow (M98, M99, G65, G66, LinuxCNC o-words) are refused, since the moves they
-  make are not in the text. With ``passthrough_unsupported=True`` such a block is left as it is (no row) and recorded.
-- Cutter radius compensation (G41/G42): the rows are the programmed contour, not the tool centre path; the mode is in
+  recorded; subprogram calls and control flow the pre-pass does not evaluate (G65, G66, M98 to a program not in the
+  file, o-word calls to other files) are refused, since the moves they make are not in the text. With
+  ``passthrough_unsupported=True`` (``--passthrough-unsupported``) such a block is left as it is (no row) and recorded.
+- Cutter radius compensation (G41/G42; read only with ``passthrough_unsupported``, :mod:`.check` refuses it
+  otherwise): the rows are the programmed contour, not the tool centre path; the mode is in
   ``cutter_comp`` and a warning says so.
 - Everything after M2/M30 or a closing ``%`` is kept as text and not interpreted.
 """
@@ -157,6 +160,7 @@ _MOVING_G = {
     330: "spindle-synchronised motion G33", 331: "rigid tapping G33.1", 760: "threading cycle G76",
     382: "probing G38.2", 383: "probing G38.3", 384: "probing G38.4", 385: "probing G38.5",
     50: "spline G5", 51: "spline G5.1", 52: "NURBS G5.2",
+    520: "local coordinate offset G52 (later positions read without it)",
     171: "plane G17.1", 181: "plane G18.1", 191: "plane G19.1",
 }
 _MOTION_G = (0, 10, 20, 30, 730, 740, 810, 820, 830, 840, 850, 860, 870, 880, 890)
@@ -254,6 +258,7 @@ class Program:
     unsupported: list = field(default_factory=list)
     rotation: np.ndarray | None = None
     setup_used: list = field(default_factory=list)
+    source_line: np.ndarray | None = None  # flattened programs (see .flatten): 1-based source line of each text line
 
     def __len__(self) -> int:
         return int(self.motion.shape[0])
@@ -261,7 +266,7 @@ class Program:
     @property
     def line_no(self) -> np.ndarray:
         """(M,) int32, 1-based source line of each row."""
-        return self.line_index + 1
+        return self.line_index + 1 if self.source_line is None else self.source_line[self.line_index]
 
     @property
     def end_machine(self) -> np.ndarray:
@@ -563,8 +568,10 @@ def parse_program(
         raise GcodeError(source, text[: text.index("\x00")].count("\n") + 1, "binary data (NUL byte): not G-code")
     if not text.strip():
         raise GcodeError(source, 1, "empty program: no blocks")
-    return _Interpreter(text, source, passthrough_unsupported, tool_table, reference_points, setup,
-                        require_setup).run()
+    from .flatten import read_flat  # parameters, expressions, O-words and M98 evaluated; rs274's block checks
+
+    return read_flat(text, source, passthrough_unsupported, split_lines, lambda t: _Interpreter(
+        t, source, passthrough_unsupported, tool_table, reference_points, setup, require_setup).run())
 
 
 class _Interpreter:
@@ -1027,7 +1034,7 @@ class _Interpreter:
                         self.unsupported_block(line_no, refuse)
                         continue
                     raise self.err(line_no, refuse + " (the moves it makes are not in the text; "
-                                   "pass passthrough_unsupported=True to leave the block as it is)")
+                                   "--passthrough-unsupported leaves the block as it is)")
                 if macro_nonmoving:
                     self.unsupported_block(line_no, macro_nonmoving)
 
@@ -1632,9 +1639,9 @@ class _Interpreter:
             current_cc = old_cc
         clear_cc = r if retract_r else old_cc
         if current_cc <= r:
-            # measured with rs274 (LinuxCNC 2.9): starting at or below the R plane, the first positioning move
-            # is made at the initial level, not at the current height
-            current_cc = old_cc
+            # as LinuxCNC's CYCLE_MACRO: starting at or below the R plane, the first positioning move is made at the
+            # clear level (the initial level in G98, the R plane in G99), not at the current height
+            current_cc = clear_cc
 
         # sticky cycle words
         if mm in (820, 860, 880, 890, 740, 840):
