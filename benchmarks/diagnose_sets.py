@@ -600,8 +600,7 @@ def demo_timing(points: int = 8000) -> float:
     t0 = time.perf_counter()
     diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text)
     dt = time.perf_counter() - t0
-    print(f"
-diagnosis of a cone probed as make demo probes it ({int(cut.sum())} points, backlash_{tilt}): "
+    print(f"\ndiagnosis of a cone probed as make demo probes it ({int(cut.sum())} points, backlash_{tilt}): "
           f"{dt:.1f} s in one process (goal <= 60 s on 2 cores); answer {'+'.join(diag.chosen) or 'none'}")
     return dt
 
