@@ -262,3 +262,38 @@ def test_worn_tool_leaves_its_radius_loss_along_the_boss(xh714):
     assert np.ptp(pred[sel]) > 3.0
     np.testing.assert_allclose(got, pred[sel], atol=0.02)
     assert res.info["tool_wear"]["radius_loss_um"] > pred[sel].max()
+
+
+def test_interpolator_smoothing_bounds_acceleration_and_lags_a_ramp_by_half_its_window():
+    from trueaxis.sim.effects import smooth_command
+
+    v, T = 20.0, 24e-3
+    t = np.arange(400) * DT
+    q = np.column_stack([np.where(t < 0.1, 0.0, (t - 0.1) * v), -np.where(t < 0.1, 0.0, (t - 0.1) * v)])
+    qs = smooth_command(q, T, DT)
+    m = round(T / DT)
+    np.testing.assert_allclose(q[-1] - qs[-1], [v * (m - 1) * DT / 2, -v * (m - 1) * DT / 2], rtol=1e-9)
+    acc = np.diff(qs[:, 0], 2) / DT**2
+    assert acc.max() == pytest.approx(v / (m * DT), rel=1e-9)  # the velocity step became a ramp over T
+    np.testing.assert_allclose(qs[:, 0], -qs[:, 1], atol=1e-12)  # every axis alike: a straight move stays straight
+    np.testing.assert_array_equal(smooth_command(q, 0.0, DT), q)
+
+
+def test_auto_smoothing_keeps_the_feed_moves_within_the_acceleration_limits(xh714):
+    # A feed move that turns by 90 deg at 20 mm/s: a velocity step of 20 mm/s on both axes. "auto" picks the shortest
+    # window with 20 mm/s / T <= a, and the smoothed command then never exceeds a (it stays unsaturated).
+    a = 1000.0
+    eff = parse_effects({"servo": {"kv_per_s": {"X": 30.0, "Y": 30.0}, "accel": {"X": a, "Y": a},
+                                   "smoothing_ms": "auto"}}, machine=xh714)
+    t = np.arange(1000) * DT
+    q = np.zeros((t.size, 3))
+    q[:, 0] = np.minimum(t, 0.5) * 20.0
+    q[:, 1] = np.maximum(t - 0.5, 0.0) * 20.0
+    T = eff.servo.smoothing_s(q, xh714, DT)
+    assert T == pytest.approx(0.020)
+    from trueaxis.sim.effects import smooth_command
+
+    acc = np.abs(np.diff(smooth_command(q, T, DT), 2, axis=0)) / DT**2
+    assert acc.max() <= a * (1 + 1e-9)
+    with pytest.raises(EffectsFileError, match="needs acceleration limits"):
+        parse_effects({"servo": {"kv_per_s": {"X": 30.0}, "smoothing_ms": "auto"}}, machine=xh714)

@@ -21,6 +21,8 @@ are errors; lengths in um or mm as the key says, angles in urad)::
     kff = { X = 0.9, Y = 0.9, Z = 0.9, B = 0.9, C = 0.9 }   # velocity feed-forward, 0..1 (default 0)
     aff = { X = 0.5 }                         # acceleration feed-forward, 0..1 (default 0; acts on the velocity loop)
     velocity_loop_ms = { X = 3.0 }            # first-order velocity loop time constant, ms (default 0 = ideal)
+    smoothing_ms = 24.0                       # interpolator's acc/dec after interpolation (moving average), ms, or
+                                              # "auto": the shortest keeping the feed moves within the accel limits
 
     [backlash.X]                              # one table per axis, rotary ones too ([backlash.C]: urad and deg)
     amplitude = 4.0                           # um (linear) or urad (rotary): total lost motion
@@ -134,6 +136,12 @@ class ServoLag:
     trajectory's row and motion code are given (``apply(..., traj=...)``, as ``shop.simulate`` does); without them
     the command is taken as it is.
 
+    The interpolator's acceleration limits (``smoothing_ms``, default 0): the command is first smoothed by a moving
+    average over that time (``smooth_command``, the "acceleration/deceleration after interpolation" of a CNC), so that
+    the velocity steps at block junctions become ramps of dv / T that the drive can follow without saturating;
+    "auto" takes the shortest time that keeps every limited axis within its limit on the feed moves
+    (``smoothing_s``).
+
     Feed-forward and the velocity loop (``kff``, ``aff``, ``velocity_loop_ms``; per axis, default 0), as a real drive
     has them. The interpolator's velocity v_c[k] = (q_cmd[k+1] - q_cmd[k]) / dt and acceleration
     a_c[k] = (v_c[k] - v_c[k-1]) / dt are fed forward; the velocity loop is a first-order lag of time constant T_v
@@ -159,6 +167,7 @@ class ServoLag:
     kff: dict = field(default_factory=dict)
     aff: dict = field(default_factory=dict)
     velocity_loop_ms: dict = field(default_factory=dict)
+    smoothing_ms: float | str = 0.0
 
     #: in-position width of ``settle_time``: mm (linear), rad (rotary)
     IN_POSITION = {False: 1e-4, True: 1e-6}
@@ -172,7 +181,8 @@ class ServoLag:
     def settle_time(self, machine: Machine, rapid_mm_min: float = 10_000.0, rapid_deg_min: float = 3_600.0) -> float:
         """Hold after a rapid (s) for the planned rapid and the loop's decay to within IN_POSITION of its end: per
         axis the deceleration v/a of a rapid at the full rapid rate (0 if unlimited), then ln(e0 / width) / Kv, e0 the
-        lag left when the command stops (a/Kv^2 after a ramp at a, v/Kv after an unlimited stop)."""
+        lag left when the command stops (a/Kv^2 after a ramp at a, v/Kv after an unlimited stop), plus the smoothing
+        time and five velocity-loop time constants."""
         t = 0.0
         for name, kv in self.kv_per_s.items():
             rot = machine.axes[name].is_rotary
@@ -180,7 +190,27 @@ class ServoLag:
             a = self._accel_rad(machine, name)
             ramp, e0 = (0.0, v / kv) if a is None else (v / a, a / kv**2)
             t = max(t, ramp + max(0.0, math.log(e0 / self.IN_POSITION[rot])) / kv)
-        return t
+        # The smoothed command arrives smoothing_ms later; a velocity loop settles within a few of its time constants.
+        smooth = 0.1 if self.smoothing_ms == "auto" else 1e-3 * float(self.smoothing_ms)  # "auto": at most 100 ms
+        return t + smooth + 5e-3 * max(self.velocity_loop_ms.values(), default=0.0)
+
+    def smoothing_s(self, q, machine: Machine, dt: float, traj=None) -> float:
+        """The smoothing time (s): ``smoothing_ms``, or with "auto" the shortest that keeps every limited axis'
+        acceleration at the feed moves' velocity steps within its limit: max over axes of max |dv| / a (the command's
+        velocity steps between consecutive samples; rapids, planned apart, excluded when traj is given)."""
+        if self.smoothing_ms != "auto":
+            return float(self.smoothing_ms) * 1e-3
+        v = np.diff(q, axis=0) / dt
+        dv = np.abs(np.diff(v, axis=0))
+        if traj is not None:
+            feed = np.asarray(traj.motion) != 0
+            dv = dv[feed[1:-1] | feed[2:]]
+        t = 0.0
+        for col, name in enumerate(machine.axis_names):
+            a = self._accel_rad(machine, name)
+            if a is not None and dv.size:
+                t = max(t, float(dv[:, col].max()) / a)
+        return math.ceil(t / dt - 1e-9) * dt
 
     def plan_rapids(self, q, machine: Machine, dt: float, traj):
         """Commanded axes with every rapid block re-profiled within the acceleration limits (see the class)."""
@@ -229,6 +259,7 @@ class ServoLag:
         """Commanded axes (T, n) -> actual axes (T, n); traj: the ``Trajectory`` of q (row, motion, line), which
         lets the rapids be planned within the acceleration limits."""
         q = self.plan_rapids(np.asarray(q, float), machine, dt, traj)
+        q = smooth_command(q, self.smoothing_s(q, machine, dt, traj), dt)
         out = q.copy()
         for col, name in enumerate(machine.axis_names):
             if name not in self.kv_per_s:
@@ -282,6 +313,20 @@ def _servo_axis(qc, kv, amax, dt):
         m = min(decay_len, n - j)
         q[j + 1 : j + m] += delta * (1 - alpha) ** np.arange(1, m)
         k = j
+
+
+def smooth_command(q, T: float, dt: float):
+    """Acceleration/deceleration after interpolation, as CNCs bound the acceleration at block junctions: every axis'
+    command (T_samples, n) is replaced by its causal moving average over M = round(T / dt) samples (all axes alike,
+    so that a straight move stays on its line). A velocity step dv becomes a ramp of dv / (M dt) over M samples; a
+    ramp lags by (M - 1) dt / 2; a corner is rounded. T = 0: unchanged. Before the first sample the command is taken
+    at rest at its first value."""
+    m = int(round(T / dt))
+    if m <= 1:
+        return q
+    pad = np.concatenate([np.repeat(q[:1], m, axis=0), q])
+    c = np.cumsum(pad, axis=0)
+    return (c[m:] - c[:-m]) / m
 
 
 @numba.njit(cache=True)
@@ -742,7 +787,7 @@ class Effects:
 
 # ----------------------------------------------------------------------------------------------------- the file ----
 _ALLOWED = {
-    "servo": {"kv_per_s", "accel", "kff", "aff", "velocity_loop_ms", "enabled"},
+    "servo": {"kv_per_s", "accel", "kff", "aff", "velocity_loop_ms", "smoothing_ms", "enabled"},
     "force": {"compliance_um_per_n", "use_machine_compliance", "enabled"},
     "tool_deflection": {"stick_out_mm", "youngs_modulus_gpa", "diameter_factor", "enabled"},
     "thermal": {"file", "channels", "time_scale", "time_offset_s", "amplitude_scale", "relative_to_start", "enabled"},
@@ -842,7 +887,12 @@ def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machin
             for ax in table:
                 if ax not in kv:
                     problems.append(f"[servo].{name}.{ax}: {ax} has no kv_per_s (no loop to feed forward into)")
-        servo = ServoLag(kv, acc, kff, aff, tv)
+        sm = t.get("smoothing_ms", 0.0)
+        if sm != "auto":
+            sm = num("[servo].smoothing_ms", sm, nonneg=True) or 0.0
+        elif not acc:
+            problems.append('[servo].smoothing_ms = "auto" needs acceleration limits (accel)')
+        servo = ServoLag(kv, acc, kff, aff, tv, sm)
     t = data.get("force")
     if isinstance(t, dict) and enabled("[force]", t):
         c = None
