@@ -47,7 +47,8 @@ and the repository's fixtures: the one trueaxis is imported from, or $TRUEAXIS_R
 
 ``--cases N`` keeps N cases spread over the list (the case numbers and seeds stay those of the full list);
 ``--kinds`` keeps the cases holding one of the named effect kinds (``none`` for the controls); ``--list`` prints the
-case list without running it.
+case list without running it; ``--json FILE`` keeps every case's result and ``--rescore FILE`` prints its scores
+again; ``--demo-timing`` times one diagnosis of a cone probed with the demo's 8000 points.
 """
 
 from __future__ import annotations
@@ -566,17 +567,22 @@ def score(rows: list[dict], title: str) -> dict:
           f"{fig['right_without_known_truth']} right answers had no parameter with a known truth)")
     print(f"time per case (median): {fig['median_time_per_case_s']:.1f} s, of which diagnose "
           f"{fig['median_diagnose_s']:.1f} s")
-    labels_t = sorted({r["expected"] for r in done})
-    labels_a = sorted({r["answer"] for r in done})
-    conf = Counter((r["expected"], r["answer"]) for r in done)
+    # Rows: the effects the true machine had (with the expected answer where it differs); columns: the answers,
+    # numbered (legend below) to keep the table narrow.
+    truth = lambda r: ("+".join(sorted(r["kinds"])) or "control") + (  # noqa: E731
+        f" (-> {r['expected']})" if r["expected"] != "+".join(sorted(r["kinds"])) else "")
+    labels_t = sorted({truth(r) for r in done})
+    labels_a = sorted({r["answer"] for r in done}, key=lambda a: (a != "none", a))
+    conf = Counter((truth(r), r["answer"]) for r in done)
     if done:
-        w = max(len(x) for x in labels_t + ["expected \\ answer"]) + 1
-        cw = max(6, max(len(a) for a in labels_a) + 1)
-        print("\nconfusion matrix (rows: expected answer; columns: answer given)")
-        head = "expected \\ answer"
-        print(f"{head:{w}s}" + "".join(f"{a:>{cw}s}" for a in labels_a))
+        w = max(len(x) for x in labels_t) + 1
+        print("\nconfusion matrix (rows: effects of the true machine, '-> answer' where the expected answer differs; "
+              "columns: answer given, numbered)")
+        print(" " * w + "".join(f"{i + 1:>4d}" for i in range(len(labels_a))))
         for t in labels_t:
-            print(f"{t:{w}s}" + "".join(f"{conf[(t, a)] or '.':>{cw}}" for a in labels_a))
+            print(f"{t:{w}s}" + "".join(f"{conf[(t, a)] or '.':>4}" for a in labels_a))
+        print("answers: " + "; ".join(f"{i + 1} {a}" for i, a in enumerate(labels_a)))
+        fig["confusion"] = {t: {a: conf[(t, a)] for a in labels_a if conf[(t, a)]} for t in labels_t}
     return fig
 
 
@@ -638,7 +644,13 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="write every case's result to this JSON file")
     ap.add_argument("--list", action="store_true", help="print the case list and stop")
     ap.add_argument("--demo-timing", action="store_true", help="also time one diagnosis at the demo's 8000 points")
+    ap.add_argument("--rescore", default=None, help="print the scores of a --json file of an earlier run and stop")
     args = ap.parse_args(argv)
+    if args.rescore:
+        rows = json.loads(Path(args.rescore).read_text())["cases"]
+        for s in dict.fromkeys(r["set"] for r in rows):
+            score([r for r in rows if r["set"] == s], s)
+        return 0
     sets = ("tuning", "heldout") if args.set == "both" else (args.set,)
     cases = [c for s in sets for c in select(build_cases(s), args.cases, args.kinds)]
     if args.list:
