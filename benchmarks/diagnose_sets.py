@@ -144,10 +144,12 @@ def normalise(name: str) -> str:
 
 
 def kinds_for(machine_axes: tuple) -> list[str]:
-    """The in-library effect kinds a machine with these axes can hold."""
+    """The in-library effect kinds a machine with these axes can hold on the flank-milled cone. Not Z's backlash nor
+    a drift along Z: on a table machine the tool stays along machine Z, and moving a flank-milling tool along its own
+    axis leaves the flank where it is (both move the surface by 0.000 um; they belong to a part with a floor)."""
     rot = [a for a in machine_axes if a in "ABC"]
-    return ([f"backlash_{a}" for a in machine_axes] + ["servo"] + [f"rotary_motion_{a}" for a in rot]
-            + ["thermal_x", "thermal_y", "thermal_z", "force", "tool_deflection", "twin_parameters"])
+    return ([f"backlash_{a}" for a in machine_axes if a != "Z"] + ["servo"] + [f"rotary_motion_{a}" for a in rot]
+            + ["thermal_x", "thermal_y", "force", "tool_deflection", "twin_parameters"])
 
 
 def pairs_for(machine_axes: tuple) -> list[tuple]:
@@ -195,7 +197,7 @@ def effect_draws(kind: str, seed: int, machine) -> dict:
     names = machine.axis_names
     if kind.startswith("backlash_"):
         rot = machine.axes[kind[-1]].is_rotary
-        return {"amplitude": 20.0 if rot else 5.0, "transition": float(rng.uniform(0.02, 0.1) if rot else
+        return {"amplitude": 40.0 if rot else 5.0, "transition": float(rng.uniform(0.02, 0.1) if rot else
                                                                        rng.uniform(0.01, 0.05)),
                 "form": str(rng.choice(["tanh", "friction"]))}
     if kind == "servo":
@@ -222,7 +224,7 @@ def effect_draws(kind: str, seed: int, machine) -> dict:
         }, "linear_per_turn": {f"E{pos}{a}": float(rng.uniform(-8.0, 8.0))}}
     if kind.startswith("thermal_"):
         return {"channel": str(rng.choice(["ch3_um", "ch4_um", "ch5_um"])),
-                "time_offset_s": float(rng.uniform(20_000.0, 60_000.0)), "amplitude_scale": 0.3}
+                "time_offset_s": float(rng.uniform(20_000.0, 60_000.0)), "amplitude_scale": 1.0}
     if kind == "force":
         d = rng.uniform(0.01, 0.03, 3)
         c = np.diag(d)
@@ -234,7 +236,7 @@ def effect_draws(kind: str, seed: int, machine) -> dict:
     if kind == "twin_parameters":
         loc = machine.location_names()
         pick = [str(x) for x in rng.choice(loc, size=min(3, len(loc)), replace=False)]
-        return {"changes": {n: float(rng.normal(0.0, 8.0)) for n in pick}}
+        return {"changes": {n: float(rng.normal(0.0, 15.0)) for n in pick}}
     if kind == "tool_wear":
         return {"vb_run_in_um": float(rng.uniform(15.0, 30.0)), "run_in_mm": float(rng.uniform(100.0, 400.0)),
                 "vb_rate_um_per_m": float(rng.uniform(10.0, 30.0)), "clearance_deg": float(rng.uniform(6.0, 12.0))}
