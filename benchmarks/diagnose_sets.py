@@ -400,6 +400,16 @@ def setup_for(setup: dict, points: int):
     return _SETUPS[key]
 
 
+def _part_kwargs(part_json: dict) -> dict:
+    """The cone's dimensions for ``run_diagnosis`` when it accepts them (``part_json``): the held-out cones are not
+    the default size, and the twin's force model needs the stock's shape."""
+    import inspect
+
+    from trueaxis.diagnose.report import run_diagnosis
+
+    return {"part_json": part_json} if "part_json" in inspect.signature(run_diagnosis).parameters else {}
+
+
 def run_case(case: dict, points: int, noise_um: float = NOISE_UM) -> dict:
     """Cut, measure and diagnose one case; returns a plain dict (see ``score``). A failure of the harness or the
     shop is returned as a skipped case with its message (counted and printed), so that one case cannot stop a run."""
@@ -481,7 +491,7 @@ def _run_case(case: dict, points: int, noise_um: float) -> dict:
         return out
     t1 = time.perf_counter()
     try:
-        diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text)
+        diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text, **_part_kwargs(pj))
     except Exception as exc:  # a crash of the diagnosis is a wrong answer, reported with its message
         out.update(answer="ERROR", error=f"{type(exc).__name__}: {exc}", conf=0.0, t_sim=t1 - t0,
                    t_diag=time.perf_counter() - t1, t_case=time.perf_counter() - t0)
@@ -627,7 +637,7 @@ def demo_timing(points: int = 8000) -> float:
     r = simulate(prog.text, prog.machine, eff, part="nas979", part_json=pj, points=points, noise_um=NOISE_UM, seed=7)
     cut = np.isfinite(r.deviations_um)
     t0 = time.perf_counter()
-    diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text)
+    diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text, **_part_kwargs(pj))
     dt = time.perf_counter() - t0
     print(f"\ndiagnosis of a cone probed as make demo probes it ({int(cut.sum())} points, backlash_{tilt}): "
           f"{dt:.1f} s in one process (goal <= 60 s on 2 cores); answer {'+'.join(diag.chosen) or 'none'}")
