@@ -88,7 +88,9 @@ import numba
 import numpy as np
 from scipy.signal import lfilter
 
+from ..machine.kinematics import axis_motion, chain_links
 from ..machine.model import Machine
+from ..machine.transforms import compose
 
 UM = 1e-3
 URAD = 1e-6
@@ -496,9 +498,6 @@ class RotaryErrorMotion:
 
     def apply_pose(self, tip, u, q, machine: Machine):
         """Tool tips (T,3) mm and unit axes (T,3) in the part frame moved by the error motion at axes q (T, n)."""
-        from ..machine.kinematics import axis_motion, chain_links
-        from ..machine.transforms import compose
-
         links = chain_links(machine)
         k = next(i for i, lk in enumerate(links) if lk.axis == self.axis)
         upto = links[: k + 1] if links[k].branch == "workpiece" else links[:k]
