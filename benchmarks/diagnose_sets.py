@@ -608,14 +608,14 @@ def score(rows: list[dict], title: str) -> dict:
     # Rows: the effects the true machine had (with the expected answer where it differs); columns: the answers,
     # numbered (legend below) to keep the table narrow.
     truth = lambda r: ("+".join(sorted(r["kinds"])) or "control") + (  # noqa: E731
-        f" (-> {r['expected']})" if r["expected"] != "+".join(sorted(r["kinds"])) else "")
+        " (-> none)" if r["expected"] == "none" else "")
     labels_t = sorted({truth(r) for r in done})
     labels_a = sorted({r["answer"] for r in done}, key=lambda a: (a != "none", a))
     conf = Counter((truth(r), r["answer"]) for r in done)
     if done:
         w = max(len(x) for x in labels_t) + 1
-        print("\nconfusion matrix (rows: effects of the true machine, '-> answer' where the expected answer differs; "
-              "columns: answer given, numbered)")
+        print("\nconfusion matrix (rows: effects of the true machine, expected answer in EXPECTED; '-> none' where "
+              "no candidate describes them; columns: answer given, numbered)")
         print(" " * w + "".join(f"{i + 1:>4d}" for i in range(len(labels_a))))
         for t in labels_t:
             print(f"{t:{w}s}" + "".join(f"{conf[(t, a)] or '.':>4}" for a in labels_a))
