@@ -1,0 +1,741 @@
+"""Benchmark of ``trueaxis diagnose`` on two sets of virtual-shop cases: a TUNING set and a HELD-OUT set (issue 14).
+
+Every case cuts the NAS 979 cone on a *true* machine = the twin plus one or two effects of the virtual shop, in the
+shop's own physical forms (``trueaxis.sim.effects``: per-axis position loops with feed-forward and a velocity loop,
+backlash of every axis with a tanh or friction take-up, the ISO 230-7 error motions of the rotary axes in the
+kinematic chain, a measured thermal series, a full compliance matrix, a bending carbide tool, small changes of the
+twin's own location errors) or, outside the candidate library, a wearing tool or a part springing back from its
+clamping. The part is measured by the virtual CMM (1 um probe noise) and ``trueaxis.diagnose.report.run_diagnosis``
+(the library API) sees only the cloud, the program and the twin. Effects are scaled so that their RMS on the part is
+1x, 3x or 10x the probe noise (one noise-free calibration run per case; the servo loop's scale refined by a secant).
+Effect parameters are drawn per case from the set's seed (gains 25-45 1/s per axis, feed-forward about 0.9, phases of
+the error-motion harmonics, transition lengths, compliance terms, ...), so no case is the image of a candidate.
+
+THE TWO SETS. ``SETS`` below holds each set's seed, machines, part placements and cone sizes. The tuning set runs
+on nmv1500dcg (B-C, C's line through the machine zero); the held-out set, from another seed, on ac_trunnion (A-C)
+and bc_offset (B-C), both with their rotary lines off the machine zero, with other placements and cone sizes. The
+held-out set is generated ONLY from its own section of ``SETS``: tune the diagnosis on ``--set tuning`` and do not
+run ``--set heldout`` until its rules are frozen (DESIGN §8); nothing in the tuning set depends on the held-out one.
+
+EXPECTED ANSWERS. ``EXPECTED`` maps each effect kind to the answer the diagnosis should give (ISO-230 style names:
+``backlash_x`` ... ``backlash_b``, ``servo_lag``, ``rotary_radial_c``, ``rotary_axial_c``, ``rotary_tilt_c``,
+``rotary_angular_c``, ``thermal_x`` (its flexible spline ``thermal_spline_x`` counts as it), ``force_deflection``,
+``tool_deflection``, ``twin_parameters``; out-of-library effects and controls: ``none``, i.e. nothing chosen).
+``normalise`` maps the diagnosis' answers onto these (the older ``rotary_periodic_c`` counts as the angular motion). ``TRUTH`` gives the true value of the parameters a fitted candidate reports, by parameter name,
+for the std-coverage figure: adjust it there when the candidates' parameter names change.
+
+SCORES (each printed per set and for both):
+- strict attribution at >= 3x noise: the chosen set of effects equals the expected set (in-library cases);
+- controls flagged (any answer but "none"); out-of-library cases answered "none";
+- confidence: share right among answers with confidence >= 0.7; share of right answers at >= 3x with confidence
+  >= 0.7;
+- median share of the above-noise gap removed (right answers at >= 3x; also over all >= 3x cases);
+- held-out max gap not worse after the effect is added (right answers);
+- parameter std covering the truth (|value - truth| <= 2 std for every parameter with a known truth; the share of
+  right answers where it holds, and how many had no parameter with a known truth);
+- the confusion matrix (rows: expected answer; columns: answer given), and the time per case.
+
+RUNNING. Cases run as Dask tasks: a ``dask.distributed.LocalCluster`` (2 workers, 1 thread each) by default, or
+``--scheduler ADDRESS`` for a running cluster (this file is uploaded to its workers, which need trueaxis installed
+and the repository's fixtures: the one trueaxis is imported from, or $TRUEAXIS_ROOT).
+
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set tuning            # tune on this
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set tuning --cases 12 --points 600   # quick subset
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set tuning --kinds servo,backlash_B,none
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout           # once the rules are frozen
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set both --json out.json
+
+``--cases N`` keeps N cases spread over the list (the case numbers and seeds stay those of the full list);
+``--kinds`` keeps the cases holding one of the named effect kinds (``none`` for the controls); ``--list`` prints the
+case list without running it; ``--json FILE`` keeps every case's result and ``--rescore FILE`` prints its scores
+again; ``--demo-timing`` times one diagnosis of a cone probed with the demo's 8000 points.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import os
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+
+
+def _root() -> Path:
+    """The repository (fixtures, thermal series): $TRUEAXIS_ROOT (set by ``main`` for its workers), this file's
+    repository, or the one trueaxis is imported from (a worker that received this file by ``upload_file``)."""
+    if os.environ.get("TRUEAXIS_ROOT"):
+        return Path(os.environ["TRUEAXIS_ROOT"])
+    here = Path(__file__).resolve().parents[1]
+    if (here / "fixtures" / "machines").is_dir():
+        return here
+    import trueaxis
+
+    return Path(trueaxis.__file__).resolve().parents[1]
+
+
+ROOT = _root()
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+NOISE_UM = 1.0
+MAGNITUDES = (3.0, 10.0, 1.0)  # multiples of the probe noise (RMS of the effect on the part)
+MAX_SCALE = 20.0  # largest multiple of an effect's reference size a case scales it to (else: not visible, skipped)
+SERIES = "fixtures/thermal/spindle_thermal_drift_part1.csv"
+
+# --------------------------------------------------------------------------------------------------- the sets ----
+SETS = {
+    "tuning": {
+        "seed": 14_001,
+        "setups": [
+            {"machine": "nmv1500dcg", "placement_mm": (0.0, 0.0), "cone": {}},
+            {"machine": "nmv1500dcg", "placement_mm": (60.0, 0.0), "cone": {}},
+            {"machine": "nmv1500dcg", "placement_mm": (30.0, 30.0), "cone": {"base_diameter": 72.0, "height": 18.0}},
+        ],
+    },
+    # Held out: generated only from this section. Other seed, other machines (A-C and B-C, rotary lines off the
+    # machine zero), other placements and cone sizes.
+    "heldout": {
+        "seed": 92_717,
+        "setups": [
+            {"machine": "ac_trunnion", "placement_mm": (35.0, -20.0), "cone": {"base_diameter": 64.0, "height": 16.0}},
+            {"machine": "ac_trunnion", "placement_mm": (-30.0, 30.0), "cone": {}},
+            {"machine": "bc_offset", "placement_mm": (45.0, -10.0),
+             "cone": {"base_diameter": 70.0, "height": 18.0, "half_angle_deg": 12.0}},
+            {"machine": "bc_offset", "placement_mm": (0.0, 0.0), "cone": {"half_angle_deg": 18.0, "height": 18.0}},
+        ],
+    },
+}
+
+OUT_OF_LIBRARY = ("tool_wear", "clamping_bend")
+
+ROTARY_COMPONENTS = ("radial", "axial", "tilt", "angular")  # ISO 230-7 error motions of a rotary axis
+
+# The answer expected for each effect kind of the shop: the diagnosis' candidate names (as agreed with the diagnosis
+# side, /work/notes/14-requests.md: lower-case axis letters, ISO 230-7 component names). One table: adjust here.
+EXPECTED = {
+    **{f"backlash_{a}": f"backlash_{a.lower()}" for a in "XYZABC"},
+    "servo": "servo_lag",
+    **{f"rotary_{c}_{a}": f"rotary_{c}_{a.lower()}" for c in ROTARY_COMPONENTS for a in "ABC"},
+    **{f"thermal_{d}": f"thermal_{d}" for d in "xyz"},
+    "force": "force_deflection",
+    "tool_deflection": "tool_deflection",
+    "twin_parameters": "twin_parameters",
+    "tool_wear": "none",
+    "clamping_bend": "none",
+    "none": "none",
+}
+
+
+def normalise(name: str) -> str:
+    """A diagnosis' candidate name in the table's naming: lower case; the flexible thermal spline counts as its
+    direction's thermal drift (thermal_spline_x -> thermal_x); the older names rotary_periodic_c (-> the angular
+    error motion), servo and force are accepted."""
+    low = name.strip().lower()
+    if low.startswith("thermal_spline_"):
+        return "thermal_" + low[-1]
+    if low.startswith("rotary_periodic_"):
+        return "rotary_angular_" + low[-1]
+    return {"servo": "servo_lag", "force": "force_deflection"}.get(low, low)
+
+
+def kinds_for(machine_axes: tuple) -> list[str]:
+    """The in-library effect kinds a machine with these axes can hold on the flank-milled cone. Not Z's backlash nor
+    a drift along Z: on a table machine the tool stays along machine Z, and moving a flank-milling tool along its own
+    axis leaves the flank where it is (both move the surface by 0.000 um; they belong to a part with a floor)."""
+    rot = [a for a in machine_axes if a in "ABC"]
+    return ([f"backlash_{a}" for a in machine_axes if a != "Z"] + ["servo"]
+            + [f"rotary_{c}_{a}" for a in rot for c in ROTARY_COMPONENTS]
+            + ["thermal_x", "thermal_y", "force", "tool_deflection", "twin_parameters"])
+
+
+def pairs_for(machine_axes: tuple) -> list[tuple]:
+    """Two-effect cases: the issue's classes (a radial error motion of C once per turn with an angular one twice per
+    turn; a force deflection with a rotary error; rotary backlash with a drift) and a servo loop with backlash."""
+    tilt = next(a for a in machine_axes if a in "AB")
+    return [("rotary_radial_C", "rotary_angular_C"), ("force", "rotary_radial_C"), ("thermal_x", f"backlash_{tilt}"),
+            ("servo", "backlash_Y")]
+
+
+def build_cases(set_name: str) -> list[dict]:
+    """The case list of a set: deterministic from its section of SETS only."""
+    from trueaxis.machine import load_machine
+
+    cfg = SETS[set_name]
+    rng = np.random.default_rng(cfg["seed"])
+    setups = cfg["setups"]
+    cases = []
+
+    def add(kinds, mag, k_setup):
+        cases.append({"set": set_name, "n": len(cases), "kinds": list(kinds), "mag": float(mag),
+                      "setup": setups[k_setup], "seed": int(rng.integers(2**31 - 1))})
+
+    axes = {s["machine"]: load_machine(ROOT / "fixtures/machines" / f"{s['machine']}.toml").axis_names for s in setups}
+    kinds = list(dict.fromkeys(k for s in setups for k in kinds_for(axes[s["machine"]])))
+    for mag in MAGNITUDES:
+        for kind in kinds:
+            # A random setup whose machine holds the effect (backlash_A only on an A-C machine, ...).
+            usable = [i for i, s in enumerate(setups) if kind in kinds_for(axes[s["machine"]])]
+            add([kind], mag, int(rng.choice(usable)))
+        if mag != 1.0:
+            for k_setup, s in enumerate(setups):
+                # On C's line an error motion of C only turns the cone about itself: pairs with one go off it.
+                on_axis = not any(s["placement_mm"])
+                prs = [p for p in pairs_for(axes[s["machine"]])
+                       if not (on_axis and any(k.startswith("rotary_") and k.endswith("C") for k in p))]
+                for j in range(2):  # two pairs per setup, in turn
+                    add(prs[(2 * k_setup + j) % len(prs)], mag, k_setup)
+            for kind in OUT_OF_LIBRARY:
+                add([kind], mag, int(rng.integers(len(setups))))
+        add([], 0.0, int(rng.integers(len(setups))))  # a control
+    out = cases
+    for i, c in enumerate(out):
+        c["n"] = i
+    return out
+
+
+# ------------------------------------------------------------------------------------ effects of one case ----
+def effect_draws(kind: str, seed: int, machine) -> dict:
+    """Random physical parameters of an effect at its reference size (scale 1), drawn from the case's seed."""
+    rng = np.random.default_rng([seed, sum(map(ord, kind))])
+    names = machine.axis_names
+    if kind.startswith("backlash_"):
+        rot = machine.axes[kind[-1]].is_rotary
+        return {"amplitude": 40.0 if rot else 5.0, "transition": float(rng.uniform(0.02, 0.1) if rot else
+                                                                       rng.uniform(0.01, 0.05)),
+                "form": str(rng.choice(["tanh", "friction"]))}
+    if kind == "servo":
+        return {"kv": {a: float(rng.uniform(25.0, 45.0)) for a in names}, "kff0": float(rng.uniform(0.87, 0.93)),
+                "tv_ms": {a: float(rng.uniform(1.0, 4.0)) for a in names},
+                "aff": float(rng.choice([0.0, 0.5])),
+                # mm/s^2 and deg/s^2; the interpolator smooths the feed moves to stay within them ("auto").
+                "accel": {a: 4000.0 for a in names}}
+    if kind.startswith("rotary_"):
+        # One ISO 230-7 error motion of the axis: radial (two directions, once and twice per turn), axial (once and
+        # twice), tilt (two directions, once per turn), angular positioning (twice and three times per turn), each
+        # with random phases and a slope per turn; um (radial, axial) or urad (tilt, angular).
+        comp, a = kind.split("_")[1], kind[-1]
+        radial1, radial2, axial, tilt1, tilt2, pos = {"X": ("Y", "Z", "X", "B", "C", "A"),
+                                                       "Y": ("X", "Z", "Y", "A", "C", "B"),
+                                                       "Z": ("X", "Y", "Z", "A", "B", "C")}[machine.axes[a].about]
+        ph = rng.uniform(0, 2 * np.pi, 4)
+        h = lambda k, amp, p: [k, amp * math.cos(p), amp * math.sin(p)]  # noqa: E731
+        names, rows, slope = {
+            "radial": ([f"E{radial1}{a}", f"E{radial2}{a}"], [[h(1, 1.5, ph[0]), h(2, 0.4, ph[1])],
+                                                             [h(1, 1.2, ph[2]), h(2, 0.3, ph[3])]], 0.5),
+            "axial": ([f"E{axial}{a}"], [[h(1, 1.0, ph[0]), h(2, 0.4, ph[1])]], 0.3),
+            "tilt": ([f"E{tilt1}{a}", f"E{tilt2}{a}"], [[h(1, 4.0, ph[0])], [h(1, 3.0, ph[1])]], 1.0),
+            "angular": ([f"E{pos}{a}"], [[h(2, 20.0, ph[0]), h(3, 6.0, ph[1])]], 10.0),
+        }[comp]
+        return {"components": dict(zip(names, rows)),
+                "linear_per_turn": {n: float(rng.uniform(-slope, slope)) for n in names}}
+    if kind.startswith("thermal_"):
+        return {"channel": str(rng.choice(["ch3_um", "ch4_um", "ch5_um"])),
+                "time_offset_s": float(rng.uniform(20_000.0, 60_000.0)), "amplitude_scale": 1.0}
+    if kind == "force":
+        d = rng.uniform(0.01, 0.03, 3)
+        c = np.diag(d)
+        c[0, 2] = c[2, 0] = float(rng.uniform(-0.004, 0.004))
+        c[0, 1] = c[1, 0] = float(rng.uniform(-0.003, 0.003))
+        return {"compliance_um_per_n": c.tolist()}
+    if kind == "tool_deflection":
+        return {"stick_out_mm": float(rng.uniform(35.0, 45.0))}
+    if kind == "twin_parameters":
+        loc = machine.location_names()
+        pick = [str(x) for x in rng.choice(loc, size=min(3, len(loc)), replace=False)]
+        return {"changes": {n: float(rng.normal(0.0, 15.0)) for n in pick}}
+    if kind == "tool_wear":
+        return {"vb_run_in_um": float(rng.uniform(15.0, 30.0)), "run_in_mm": float(rng.uniform(100.0, 400.0)),
+                "vb_rate_um_per_m": float(rng.uniform(10.0, 30.0)), "clearance_deg": float(rng.uniform(6.0, 12.0))}
+    if kind == "clamping_bend":
+        return {"beam": str(rng.choice(["X", "Y"])), "span_mm": float(rng.uniform(90.0, 130.0)),
+                "center_offset_mm": float(rng.uniform(-15.0, 15.0))}
+    raise ValueError(f"unknown effect kind {kind!r}")
+
+
+def effect_table(kind: str, draws: dict, s: float, machine) -> dict:
+    """The EFFECTS tables of an effect at scale s (s = 1: the reference size of ``effect_draws``)."""
+    if kind.startswith("backlash_"):
+        return {"backlash": {kind[-1]: {"amplitude": draws["amplitude"] * s, "transition": draws["transition"],
+                                        "form": draws["form"]}}}
+    if kind == "servo":
+        # The loop's steady lag is (1 - kff) / kv: scale it by s through kff, then (kff at 0) through kv.
+        lag = s * (1.0 - draws["kff0"])
+        kff = max(0.0, 1.0 - lag)
+        kv = {a: v / max(1.0, lag) for a, v in draws["kv"].items()}
+        return {"servo": {"kv_per_s": kv, "accel": draws["accel"], "kff": {a: kff for a in kv},
+                          "aff": {a: draws["aff"] for a in kv}, "velocity_loop_ms": draws["tv_ms"],
+                          "smoothing_ms": "auto"}}
+    if kind.startswith("rotary_"):
+        comps = {}
+        for name, h in draws["components"].items():
+            comps[name] = {"harmonics": [[k, c * s, sn * s] for k, c, sn in h]}
+            if name in draws["linear_per_turn"]:
+                comps[name]["linear_per_turn"] = draws["linear_per_turn"][name] * s
+        return {"rotary_error_motion": {kind[-1]: comps}}
+    if kind.startswith("thermal_"):
+        return {"thermal": {"file": str(ROOT / SERIES), "channels": {kind[-1].upper(): draws["channel"]},
+                            "time_scale": 60.0, "time_offset_s": draws["time_offset_s"],
+                            "amplitude_scale": draws["amplitude_scale"] * s}}
+    if kind == "force":
+        return {"force": {"compliance_um_per_n": (np.asarray(draws["compliance_um_per_n"]) * s).tolist()}}
+    if kind == "tool_deflection":
+        return {"tool_deflection": {"stick_out_mm": draws["stick_out_mm"], "youngs_modulus_gpa": 600.0 / s}}
+    if kind == "tool_wear":
+        return {"tool_wear": {"vb_run_in_um": draws["vb_run_in_um"] * s, "run_in_mm": draws["run_in_mm"],
+                              "vb_rate_um_per_m": draws["vb_rate_um_per_m"] * s,
+                              "clearance_deg": draws["clearance_deg"]}}
+    if kind == "clamping_bend":
+        beam = [1.0, 0.0, 0.0] if draws["beam"] == "X" else [0.0, 1.0, 0.0]
+        centre = [0.0, 0.0, -12.0]
+        centre[0 if draws["beam"] == "X" else 1] += draws["center_offset_mm"]
+        return {"clamping": {"form": "bending", "amplitude_um": 5.0 * s, "center": centre,
+                             "span_mm": draws["span_mm"], "beam": beam, "direction": [0.0, 0.0, 1.0]}}
+    if kind == "twin_parameters":
+        return {}  # a change of the machine, not an effect table (see ``true_machine``)
+    raise ValueError(kind)
+
+
+def true_machine(machine, kinds, draws, scales):
+    """The twin with the case's small changes of its own location errors (kind twin_parameters), else the twin."""
+    if "twin_parameters" not in kinds:
+        return machine
+    names = machine.parameter_names()
+    v = machine.parameter_values().copy()
+    s = scales["twin_parameters"]
+    for n, dv in draws["twin_parameters"]["changes"].items():
+        v[names.index(n)] += dv * s
+    return machine.with_parameters(v)
+
+
+# What a fitted candidate should report, by parameter name: (kind, parameter) -> truth in the candidate's units, from
+# the case's draws and scale. A parameter not named here has no known truth (not counted). Adjust with the names.
+def truth_of(kind: str, draws: dict, s: float, param: str, unit: str, machine):
+    import re
+
+    if kind.startswith("backlash_"):
+        if param.lower() in (f"lost_motion_{kind[-1]}".lower(), f"backlash_{kind[-1]}".lower(), "lost_motion"):
+            return draws["amplitude"] * s
+        return None
+    if kind == "servo":
+        t = effect_table("servo", draws, s, machine)["servo"]
+        m = re.fullmatch(r"(kv|kff|lag_ms|lag_time|tau|lag)_?([XYZABC])(?:_.*)?", param, re.I)
+        if m:
+            ax = m.group(2)
+            kv, kff = t["kv_per_s"][ax], t["kff"][ax]
+            lag = 1e3 * (1 - kff) / kv  # ms
+            return {"kv": kv, "kff": kff, "lag_ms": lag, "lag_time": lag, "tau": lag, "lag": lag}[m.group(1).lower()]
+        return None
+    if kind.startswith("rotary_"):
+        a = kind[-1]
+        pos = {"X": "A", "Y": "B", "Z": "C"}[machine.axes[a].about]
+        m = re.fullmatch(rf"(?:(E[XYZABC]{a})_|{a}_)(\d)(cos|sin)", param, re.I)
+        if not m:
+            return None
+        name = (m.group(1) or f"E{pos}{a}").upper()
+        if name not in draws["components"]:
+            return None  # a component of another case kind (a pair holds it)
+        k = int(m.group(2))
+        for kk, c, sn in draws["components"][name]:
+            if kk == k:
+                return (c if m.group(3).lower() == "cos" else sn) * s
+        return 0.0
+    if kind == "force":
+        m = re.fullmatch(r"compliance_([XYZ])", param)
+        if m:
+            i = "XYZ".index(m.group(1))
+            return draws["compliance_um_per_n"][i][i] * s
+        return None
+    if kind == "twin_parameters":
+        if param.startswith("d") and param[1:] in draws["changes"]:
+            return draws["changes"][param[1:]] * s
+        return None
+    if kind.startswith("thermal_"):
+        m = re.search(r"at_(\d+(?:\.\d+)?)s", param)
+        if m:
+            from trueaxis.sim.effects import ThermalDrift
+
+            t = effect_table(kind, draws, s, machine)["thermal"]
+            td = ThermalDrift(t["file"], t["channels"], t["time_scale"], t["time_offset_s"], t["amplitude_scale"])
+            return float(td.drift_um(np.array([float(m.group(1))]))[0, "XYZ".index(kind[-1].upper())])
+        return None
+    return None
+
+
+# ------------------------------------------------------------------------------------------- worker side ----
+# The force tables of the cutting model take ~1.5 s per call and depend only on the tool and the coefficients: cache
+# them in each worker (the shop's code is not changed).
+_TABLE_ARGS: dict = {}
+_SETUPS: dict = {}
+
+
+def _install_force_table_cache():
+    from trueaxis.sim import cutting as _cutting
+
+    if getattr(_cutting, "_bench_cached", False):
+        return
+    orig = _cutting._force_tables
+
+    @functools.lru_cache(maxsize=16)
+    def cached(key, d, z, mode):
+        return orig(_TABLE_ARGS[key], d, z, mode)
+
+    def tables(coeffs, d, z, mode, n_ae=256):
+        key = repr(coeffs)
+        _TABLE_ARGS[key] = coeffs
+        return cached(key, float(d), float(z), str(mode))
+
+    _cutting._force_tables = tables
+    _cutting._bench_cached = True
+
+
+def setup_for(setup: dict, points: int):
+    """(twin, program, part JSON, noise-free base deviations) of a setup, cached per worker process."""
+    key = (json.dumps(setup, sort_keys=True), points)
+    if key not in _SETUPS:
+        from trueaxis.inspect.parts import Nas979Params, nas979_description
+        from trueaxis.inspect.programs import nas979_program
+        from trueaxis.machine import load_machine
+        from trueaxis.sim.shop import simulate
+
+        _install_force_table_cache()
+        m = load_machine(ROOT / "fixtures/machines" / f"{setup['machine']}.toml")
+        params = Nas979Params(**setup["cone"])
+        prog = nas979_program(m, params, compensation="none", step_deg=2.0, chord_tol_um=None,
+                              placement_mm=setup["placement_mm"])
+        pj = nas979_description(params)
+        base = simulate(prog.text, prog.machine, None, part="nas979", part_json=pj, points=points)
+        _SETUPS[key] = (m, prog, pj, base.deviations_um)
+    return _SETUPS[key]
+
+
+def _merge(into: dict, more: dict) -> dict:
+    """Deep merge of EFFECTS tables (two error motions of one axis, or two backlash axes, share a table)."""
+    for k, v in more.items():
+        if isinstance(v, dict) and isinstance(into.get(k), dict):
+            _merge(into[k], v)
+        else:
+            into[k] = v
+    return into
+
+
+def _part_kwargs(part_json: dict) -> dict:
+    """The cone's dimensions for ``run_diagnosis`` when it accepts them (``part_json``): the held-out cones are not
+    the default size, and the twin's force model needs the stock's shape."""
+    import inspect
+
+    from trueaxis.diagnose.report import run_diagnosis
+
+    return {"part_json": part_json} if "part_json" in inspect.signature(run_diagnosis).parameters else {}
+
+
+def run_case(case: dict, points: int, noise_um: float = NOISE_UM) -> dict:
+    """Cut, measure and diagnose one case; returns a plain dict (see ``score``). A failure of the harness or the
+    shop is returned as a skipped case with its message (counted and printed), so that one case cannot stop a run."""
+    try:
+        return _run_case(case, points, noise_um)
+    except Exception as exc:  # noqa: BLE001
+        import traceback
+
+        return {**{k: case[k] for k in ("set", "n", "kinds", "mag", "seed")},
+                "setup": f"{case['setup']['machine']}@{tuple(case['setup']['placement_mm'])}",
+                "skipped": f"HARNESS ERROR {type(exc).__name__}: {exc}", "harness_error": traceback.format_exc(),
+                "t_case": 0.0}
+
+
+def _run_case(case: dict, points: int, noise_um: float) -> dict:
+
+    from trueaxis.diagnose.report import run_diagnosis
+    from trueaxis.sim.effects import parse_effects
+    from trueaxis.sim.shop import simulate
+
+    t0 = time.perf_counter()
+    m, prog, pj, base = setup_for(case["setup"], points)
+    placed = prog.machine
+    kinds = case["kinds"]
+    out = {k: case[k] for k in ("set", "n", "kinds", "mag", "seed")}
+    out["setup"] = f"{case['setup']['machine']}@{tuple(case['setup']['placement_mm'])}" + (
+        f" cone {case['setup']['cone']}" if case["setup"]["cone"] else "")
+    out["expected"] = "+".join(sorted({EXPECTED[k] for k in kinds} - {"none"})) or "none"
+    draws = {k: effect_draws(k, case["seed"], m) for k in kinds}
+
+    def run(scales, noise=0.0, seed=0):
+        tables: dict = {}
+        for k in kinds:
+            _merge(tables, effect_table(k, draws[k], scales[k], m))
+        true = true_machine(placed, kinds, draws, scales)
+        eff = parse_effects(tables, machine=true) if tables else None
+        return simulate(prog.text, true, eff, part="nas979", part_json=pj, points=points, noise_um=noise,
+                        seed=seed, force_stride=50)
+
+    def rms_of(res):
+        return float(np.sqrt(np.nanmean((res.deviations_um - base) ** 2)))
+
+    scales = {}
+    try:
+        for k in kinds:
+            # Each effect alone at its reference size, then scaled to the target (a secant for the servo loop,
+            # whose effect is not linear in the scale).
+            target = case["mag"] * noise_um
+            others = {kk: 0.0 for kk in kinds if kk != k}
+            ref = rms_of(run({**others, k: 1.0}))
+            if ref * MAX_SCALE < target:
+                out.update(skipped=f"{k} not visible on this part ({ref:.3f} um rms at its reference size)",
+                           t_case=time.perf_counter() - t0)
+                return out
+            s = target / ref
+            if k == "servo":
+                pts = [(1.0, ref)]
+                for _ in range(3):
+                    rms = rms_of(run({**others, k: s}))
+                    if abs(rms / target - 1.0) < 0.05:
+                        break
+                    s0, r0 = pts[-1]
+                    pts.append((s, rms))
+                    p = np.log(rms / r0) / np.log(s / s0) if s != s0 and rms > 0 and r0 > 0 else 1.0
+                    s *= (target / max(rms, 1e-9)) ** (1.0 / min(max(p, 0.5), 3.0))
+            scales[k] = s
+        r = run(scales, noise=noise_um, seed=1000 + case["n"] + case["seed"] % 1000)
+    except ValueError as exc:
+        out.update(skipped=f"the shop refuses the scaled effect: {exc}", t_case=time.perf_counter() - t0)
+        return out
+    cut = np.isfinite(r.deviations_um)
+    out["effect_rms_um"] = float(np.sqrt(np.mean((r.deviations_um - base)[cut] ** 2))) if kinds else 0.0
+    out["scales"] = scales
+    if out["effect_rms_um"] > 3.0 * case["mag"] * noise_um * max(1, len(kinds)):
+        # Scaled to the target the effect did not stay near it (an effect far from linear in its scale): not a case.
+        out.update(skipped=f"scaled to {case['mag']:.0f}x it moves the surface by {out['effect_rms_um']:.1f} um rms",
+                   t_case=time.perf_counter() - t0)
+        return out
+    t1 = time.perf_counter()
+    try:
+        diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text, **_part_kwargs(pj))
+    except Exception as exc:  # a crash of the diagnosis is a wrong answer, reported with its message
+        out.update(answer="ERROR", error=f"{type(exc).__name__}: {exc}", conf=0.0, t_sim=t1 - t0,
+                   t_diag=time.perf_counter() - t1, t_case=time.perf_counter() - t0)
+        return out
+    t2 = time.perf_counter()
+    answer = "+".join(sorted(normalise(c) for c in diag.chosen)) or "none"
+    out.update(answer=answer, raw_answer=list(diag.chosen), conf=float(diag.confidence),
+               alternatives=list(diag.alternatives), verdict=diag.verdict,
+               shrink=float(diag.shrink_above_noise), shrink_raw=float(diag.shrink_raw),
+               before=dict(diag.gap_before), after=dict(diag.gap_after), sigma=float(diag.noise_um),
+               t_sim=t1 - t0, t_diag=t2 - t1, t_case=time.perf_counter() - t0)
+    # Parameters against the truth (by name, see ``truth_of``).
+    cover, known = [], 0
+    f = diag.chosen_fit
+    if f is not None and out["answer"] == out["expected"]:
+        # The fitted parameters, and the derived ones the candidate reports (per-axis servo lags, ms).
+        derived = [(d["name"], d.get("unit", ""), d["value"], d["std"]) for d in (f.extra or {}).get("derived", [])]
+        for name, unit, v, sd in [*zip(f.parameters, f.units, f.value, f.std), *derived]:
+            for k in kinds:
+                t = truth_of(k, draws[k], scales.get(k, 1.0), name, unit, m)
+                if t is not None:
+                    known += 1
+                    cover.append({"name": name, "unit": unit, "value": float(v), "std": float(sd), "truth": float(t),
+                                  "covered": bool(abs(v - t) <= 2 * sd)})
+                    break
+        out["parameters"] = [dict(name=n, unit=u, value=float(v), std=float(sd))
+                             for n, u, v, sd in zip(f.parameters, f.units, f.value, f.std)]
+    out["truth_checks"] = cover
+    return out
+
+
+# ------------------------------------------------------------------------------------------------- scoring ----
+def share(xs):
+    xs = list(xs)
+    return (float(np.mean(xs)) if xs else float("nan")), len(xs)
+
+
+def score(rows: list[dict], title: str) -> dict:
+    """Print and return the figures of the issue's "Done when" for these rows."""
+    done = [r for r in rows if "answer" in r]
+    skipped = [r for r in rows if "skipped" in r]
+    right = lambda r: r["answer"] == r["expected"]  # noqa: E731
+    lib = [r for r in done if r["kinds"] and r["expected"] != "none"]
+    strong = [r for r in lib if r["mag"] >= 3.0]
+    weak = [r for r in lib if r["mag"] < 3.0]
+    controls = [r for r in done if not r["kinds"]]
+    ool = [r for r in done if r["kinds"] and r["expected"] == "none"]
+    hi = [r for r in done if r["conf"] >= 0.7]
+    strong_right = [r for r in strong if right(r)]
+    errors = [r for r in rows if "harness_error" in r]
+    fig = {
+        "cases": len(rows), "run": len(done), "skipped": len(skipped), "harness_errors": len(errors),
+        "strict_attribution_3x": share(right(r) for r in strong),
+        "weak_1x_right": share(right(r) for r in weak),
+        "controls_flagged": share(r["answer"] != "none" for r in controls),
+        "out_of_library_none": share(r["answer"] == "none" for r in ool),
+        "right_among_conf_ge_0.7": share(right(r) for r in hi),
+        "right_3x_with_conf_ge_0.7": share(r["conf"] >= 0.7 for r in strong_right),
+        "median_shrink_above_noise_right_3x": (float(np.median([r["shrink"] for r in strong_right]))
+                                               if strong_right else float("nan"), len(strong_right)),
+        "median_shrink_above_noise_all_3x": (float(np.median([r["shrink"] for r in strong]))
+                                             if strong else float("nan"), len(strong)),
+        "max_gap_not_worse_right": share(r["after"]["max"] <= r["before"]["max"] + 1e-9
+                                         for r in done if right(r) and r["expected"] != "none"),
+        "std_covers_truth_right": share(all(c["covered"] for c in r["truth_checks"])
+                                        for r in done if right(r) and r.get("truth_checks")),
+        "right_without_known_truth": sum(1 for r in done if right(r) and r["expected"] != "none"
+                                         and not r.get("truth_checks")),
+        "median_time_per_case_s": float(np.median([r["t_case"] for r in done])) if done else float("nan"),
+        "median_diagnose_s": float(np.median([r["t_diag"] for r in done])) if done else float("nan"),
+    }
+    pct = lambda v: "  n/a" if v[1] == 0 or not math.isfinite(v[0]) else f"{100 * v[0]:4.0f} % of {v[1]}"  # noqa
+    print(f"\n==== {title}: {fig['run']} cases run, {fig['skipped']} skipped (effect not visible / refused"
+          f"{'; ' + str(len(errors)) + ' HARNESS ERRORS' if errors else ''}) ====")
+    print(f"strict attribution at >= 3x noise          {pct(fig['strict_attribution_3x'])}   (goal >= 90 %)")
+    print(f"1x noise cases named right                 {pct(fig['weak_1x_right'])}")
+    print(f"controls flagged                           {pct(fig['controls_flagged'])}   (goal 0)")
+    print(f"out-of-library answered 'none'             {pct(fig['out_of_library_none'])}   (goal 100 %)")
+    print(f"right among answers with confidence >= 0.7 {pct(fig['right_among_conf_ge_0.7'])}   (goal >= 95 %)")
+    print(f"right answers >= 3x with confidence >= 0.7 {pct(fig['right_3x_with_conf_ge_0.7'])}   (goal >= 80 %)")
+    v = fig["median_shrink_above_noise_right_3x"]
+    w = fig["median_shrink_above_noise_all_3x"]
+    print(f"median above-noise gap removed, right >= 3x {'n/a' if not v[1] else f'{100 * v[0]:.0f} %'} "
+          f"(of {v[1]}; all >= 3x: {'n/a' if not w[1] else f'{100 * w[0]:.0f} %'})   (goal >= 80 %)")
+    print(f"held-out max gap not worse, right answers  {pct(fig['max_gap_not_worse_right'])}   (goal >= 90 %)")
+    print(f"std covers the truth (2 std), right answers {pct(fig['std_covers_truth_right'])}   (goal >= 90 %; "
+          f"{fig['right_without_known_truth']} right answers had no parameter with a known truth)")
+    print(f"time per case (median): {fig['median_time_per_case_s']:.1f} s, of which diagnose "
+          f"{fig['median_diagnose_s']:.1f} s")
+    # Rows: the effects the true machine had (with the expected answer where it differs); columns: the answers,
+    # numbered (legend below) to keep the table narrow.
+    truth = lambda r: ("+".join(sorted(r["kinds"])) or "control") + (  # noqa: E731
+        " (-> none)" if r["expected"] == "none" else "")
+    labels_t = sorted({truth(r) for r in done})
+    labels_a = sorted({r["answer"] for r in done}, key=lambda a: (a != "none", a))
+    conf = Counter((truth(r), r["answer"]) for r in done)
+    if done:
+        w = max(len(x) for x in labels_t) + 1
+        print("\nconfusion matrix (rows: effects of the true machine, expected answer in EXPECTED; '-> none' where "
+              "no candidate describes them; columns: answer given, numbered)")
+        print(" " * w + "".join(f"{i + 1:>4d}" for i in range(len(labels_a))))
+        for t in labels_t:
+            print(f"{t:{w}s}" + "".join(f"{conf[(t, a)] or '.':>4}" for a in labels_a))
+        print("answers: " + "; ".join(f"{i + 1} {a}" for i, a in enumerate(labels_a)))
+        fig["confusion"] = {t: {a: conf[(t, a)] for a in labels_a if conf[(t, a)]} for t in labels_t}
+    return fig
+
+
+def print_row(r: dict) -> None:
+    tag = f"[{r['set'][:4]} {r['n']:3d}]"
+    what = "+".join(r["kinds"]) or "control"
+    if "skipped" in r:
+        print(f"{tag} skip {what} {r['mag']:.0f}x on {r['setup']}: {r['skipped']}", flush=True)
+        return
+    ok = "ok " if r["answer"] == r["expected"] else "BAD"
+    extra = f" error {r['error']}" if "error" in r else (
+        f" conf {r['conf']:.2f} shrink {100 * r['shrink']:5.1f} % max {r['before']['max']:.1f}->{r['after']['max']:.1f}"
+        f" um alts {','.join(r['alternatives']) or '-'}")
+    print(f"{tag} {ok} {what:32s} {r['mag']:4.0f}x (rms {r.get('effect_rms_um', 0):5.2f} um) on {r['setup']} -> "
+          f"{r['answer']}{extra} [{r['t_case']:.0f} s]", flush=True)
+
+
+# ---------------------------------------------------------------------------------------------------- main ----
+def select(cases: list[dict], n_cases: int, kinds: str) -> list[dict]:
+    if kinds:
+        want = set(kinds.split(","))
+        cases = [c for c in cases if want & (set(c["kinds"]) or {"none"})]
+    if n_cases and n_cases < len(cases):
+        idx = np.unique(np.linspace(0, len(cases) - 1, n_cases).round().astype(int))
+        cases = [cases[i] for i in idx]
+    return cases
+
+
+def demo_timing(points: int = 8000) -> float:
+    """Wall time (s) of ``run_diagnosis`` on a cone probed as ``make demo`` probes it (8000 points), in this process;
+    the case: the tuning set's first setup with the B backlash at 3x the noise."""
+    from trueaxis.diagnose.report import run_diagnosis
+    from trueaxis.sim.effects import parse_effects
+    from trueaxis.sim.shop import simulate
+
+    setup = SETS["tuning"]["setups"][0]
+    m, prog, pj, _ = setup_for(setup, points)
+    tilt = next(a for a in m.axis_names if a in "AB")
+    eff = parse_effects({"backlash": {tilt: {"amplitude": 60.0, "transition": 0.05}}}, machine=prog.machine)
+    r = simulate(prog.text, prog.machine, eff, part="nas979", part_json=pj, points=points, noise_um=NOISE_UM, seed=7)
+    cut = np.isfinite(r.deviations_um)
+    t0 = time.perf_counter()
+    diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text, **_part_kwargs(pj))
+    dt = time.perf_counter() - t0
+    print(f"\ndiagnosis of a cone probed as make demo probes it ({int(cut.sum())} points, backlash_{tilt}): "
+          f"{dt:.1f} s in one process (goal <= 60 s on 2 cores); answer {'+'.join(diag.chosen) or 'none'}")
+    return dt
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--set", choices=("tuning", "heldout", "both"), default="tuning")
+    ap.add_argument("--cases", type=int, default=0, help="run this many cases per set, spread over the list (0 = all)")
+    ap.add_argument("--kinds", default="", help="only cases holding one of these effect kinds (comma list; 'none' "
+                    "for the controls)")
+    ap.add_argument("--points", type=int, default=800, help="probe points per part (800)")
+    ap.add_argument("--scheduler", default=None, help="address of a running Dask scheduler (default: a local cluster)")
+    ap.add_argument("--workers", type=int, default=2, help="local cluster: worker processes (1 thread each)")
+    ap.add_argument("--json", default=None, help="write every case's result to this JSON file")
+    ap.add_argument("--list", action="store_true", help="print the case list and stop")
+    ap.add_argument("--demo-timing", action="store_true", help="also time one diagnosis at the demo's 8000 points")
+    ap.add_argument("--rescore", default=None, help="print the scores of a --json file of an earlier run and stop")
+    args = ap.parse_args(argv)
+    if args.rescore:
+        rows = json.loads(Path(args.rescore).read_text())["cases"]
+        for s in dict.fromkeys(r["set"] for r in rows):
+            score([r for r in rows if r["set"] == s], s)
+        return 0
+    sets = ("tuning", "heldout") if args.set == "both" else (args.set,)
+    cases = [c for s in sets for c in select(build_cases(s), args.cases, args.kinds)]
+    if args.list:
+        for c in cases:
+            print(c["set"], c["n"], "+".join(c["kinds"]) or "control", f"{c['mag']:.0f}x", c["setup"])
+        return 0
+    t_all = time.perf_counter()
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    # Worker processes: one BLAS thread each (two cores, two workers), this file importable on every worker.
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    os.environ["TRUEAXIS_ROOT"] = str(ROOT)
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(ROOT), str(ROOT / "benchmarks"),
+                                                *filter(None, [os.environ.get("PYTHONPATH")])])
+    cluster = None
+    if args.scheduler:
+        client = Client(args.scheduler)
+    else:
+        cluster = LocalCluster(n_workers=args.workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        client = Client(cluster)
+    client.upload_file(__file__)
+    import diagnose_sets as mod  # this file as a module, so that workers import it by name (and keep its caches)
+
+    print(f"{len(cases)} cases ({', '.join(sets)}), {args.points} points, noise {NOISE_UM} um, "
+          f"scheduler {client.scheduler.address}", flush=True)
+    futures = [client.submit(mod.run_case, c, args.points, NOISE_UM, pure=False) for c in cases]
+    rows = []
+    for fut in as_completed(futures):
+        r = fut.result()
+        rows.append(r)
+        print_row(r)
+    rows.sort(key=lambda r: (r["set"], r["n"]))
+    figures = {s: score([r for r in rows if r["set"] == s], s) for s in sets}
+    if len(sets) == 2:
+        figures["both"] = score(rows, "both sets")
+    print(f"\ntotal {time.perf_counter() - t_all:.0f} s on {len(client.scheduler_info()['workers'])} workers")
+    client.close()
+    if cluster is not None:
+        cluster.close()
+    if args.demo_timing:
+        figures["demo_diagnose_s"] = demo_timing()
+    if args.json:
+        Path(args.json).write_text(json.dumps({"figures": figures, "cases": rows}, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
