@@ -68,6 +68,7 @@ CONF_FLOOR = 0.2
 CONF_Z0, CONF_Z1 = 1.0, 5.0
 CONF_SHARE0, CONF_SHARE1 = 0.6, 0.85
 CLOSEST = 4
+RCOND_PLAUSIBLE = 1e-2
 
 SEPARATING_MEASUREMENT = {
     frozenset({"force_deflection", "tool_deflection"}): "a cut with a different tool stick-out or radial engagement "
@@ -288,14 +289,16 @@ def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray, boun
     f_p = float(stats.f.sf(f_stat, max(rank, 1), dof))
     gain = float(d.mean())
     z = gain / max(float(d.std(ddof=1)) / math.sqrt(n), 1e-300)
-    # At a bound the unbounded fit wanted a value outside the plausible range: the candidate is stretched.
-    theta_free = _solve(S, g)[0] if at_bound else theta
+    # Plausibility is judged on what the data determine: the free solution in the directions of parameter space
+    # that the part resolves (singular values above ``RCOND_PLAUSIBLE`` of the largest; a combination the part
+    # cannot see, such as two radial directions whose columns differ only by a lever arm, takes no value). A
+    # solution outside the bounds, or at one (the bounded value is then a floor or a ceiling, not an estimate), is
+    # not plausible and cannot be a verdict.
+    theta_free = _solve(S, g, RCOND_PLAUSIBLE)[0]
     form = [c.form_bound(i) for c in cands for i in range(c.n_parameters)]
-    plausible = all(b is None or f or (b[0] <= v <= b[1]) for v, b, f in zip(theta_free, bounds, form))
-    # Fitted at the edge of a physical bound: not a verdict either (the bounded value is a floor or a ceiling,
-    # not an estimate).
-    edge = any(b is not None and not f and abs(v - (b[0] if abs(v - b[0]) < abs(v - b[1]) else b[1]))
-               <= 1e-6 * max(abs(b[0]), abs(b[1]), 1.0) for v, b, f in zip(theta, bounds, form))
+    plausible = all(b is None or f or (b[0] + 1e-6 * abs(b[0]) < v < b[1] - 1e-6 * abs(b[1]))
+                    for v, b, f in zip(theta_free, bounds, form))
+    edge = False
     extra = {}
     if len(options) > 1:
         extra["variant"] = cands[0].variants[variant][0]
