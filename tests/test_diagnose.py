@@ -373,7 +373,9 @@ def test_rotary_error_motion_columns_match_the_twin(cone):
     diff = simulate(prog.text, true, None, part="nas979", probe=(P, N)).deviations_um - dev0
     rad, tilt = build("rotary_radial_c", st), build("rotary_tilt_c", st)
     assert rad.parameters[:2] == ["EXC_1cos", "EXC_1sin"] and "EYC_4sin" in rad.parameters
-    assert tilt.units[0] == "urad" and tilt.units[-1] == "urad/rad"
+    assert tilt.units[0] == "urad" and len(tilt.parameters) == 16  # two directions, 4 harmonics, cos and sin
+    assert not any(p.endswith("_per_rad") for p in rad.parameters + tilt.parameters)  # C turns on: no linear term
+    assert "EXB_per_rad" in build("rotary_radial_b", st).parameters  # B's travel is limited
     th_r = np.zeros(rad.n_parameters)
     th_r[[rad.parameters.index("EXC_1cos"), rad.parameters.index("EXC_1sin")]] = 5.0, -3.0
     th_t = np.zeros(tilt.n_parameters)
@@ -396,7 +398,7 @@ def test_rotary_backlash_is_named_with_its_lost_motion(cone):
 
 
 def test_error_motion_made_of_its_own_form_is_recovered_within_its_std(cone):
-    # A gap made exactly of the radial error motion's columns (twice per turn) plus 1 um noise: every one of the 18
+    # A gap made exactly of the radial error motion's columns (twice per turn) plus 1 um noise: every one of the 16
     # parameters lands within 3 std of its true value, and the radial motion is named -- tied with the axial one,
     # which on a cone cut at one place of the machine projects on the normal the same way (said so, confidence low).
     from trueaxis.diagnose.analysis import fit_candidate, make_folds

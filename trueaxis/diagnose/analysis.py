@@ -96,6 +96,12 @@ def family(name: str) -> str:
     return name
 
 
+def effect_of(name: str) -> str:
+    """The physical effect a candidate stands for: the flexible and the constrained thermal drift along one
+    direction are one effect in two forms (neither is a rival of the other)."""
+    return name.replace("thermal_spline_", "thermal_")
+
+
 def separating_measurement(a: str, b: str) -> str:
     fa, fb = family(a), family(b)
     if fa == fb:
@@ -592,7 +598,7 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
                 tied[m] = [n for f in tie_fits for n in f.members
                            if set(other) <= set(f.members) and n not in chosen_fit.members]
         else:
-            tied[chosen_fit.name] = [f.name for f in tie_fits]
+            tied[chosen_fit.name] = [f.name for f in tie_fits if effect_of(f.name) != effect_of(chosen_fit.name)]
         if not chosen_fit.explains:
             notes.append(f"{chosen_fit.name} comes closest but does not explain the gap: it removes "
                          f"{chosen_fit.explained_share * 100:.0f} % of the gap above the noise on held-out points and "
@@ -601,9 +607,10 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
                          f"noise)")
             chosen_fit, tied = None, {}
     if chosen_fit is not None:
+        mine = sorted(effect_of(m) for m in chosen_fit.members)
         others = [f for f in fits + pairs if f is not chosen_fit and "ruled_out_by" not in f.extra
-                  and f.significant and sorted(f.members) != sorted(chosen_fit.members)
-                  and not set(f.members) < set(chosen_fit.members)]
+                  and f.significant and sorted(effect_of(m) for m in f.members) != mine
+                  and not {effect_of(m) for m in f.members} < set(mine)]
         # The best rival: another explanation of the gap (a single candidate or pair that is not the chosen one nor
         # a part of it; a part of a chosen pair was beaten by Z_PAIR already).
         rival = max(others, key=lambda f: f.gain_um2) if others else None

@@ -305,7 +305,7 @@ def _component_response(state: TwinState, axis: str) -> np.ndarray:
 
 def rotary_error_motion(state: TwinState, axis: str, motion: str) -> Candidate | None:
     """ISO 230-7 error motion ``motion`` of rotary ``axis``: each of its components as harmonics 1..4 per turn of
-    the commanded angle plus a term linear in the angle (um or urad per rad)."""
+    the commanded angle, plus a term linear in the angle (um or urad per rad) on an axis of limited travel."""
     if axis not in state.rotary:
         return None
     j = state.axis_names.index(axis)
@@ -315,6 +315,10 @@ def rotary_error_motion(state: TwinState, axis: str, motion: str) -> Candidate |
     from ..machine.model import ERROR_DIRECTIONS
 
     R = _component_response(state, axis)
+    # The term linear in the angle only for an axis of limited travel (a tilting axis): a continuous rotary axis'
+    # error motion repeats every turn, and over the one turn of a pass a linear term is a drift in time, which the
+    # thermal candidates describe.
+    limited = state.machine.axes[axis].travel is not None
     cols, names, units, bounds = [], [], [], []
     for comp in _motion_components(state, axis, motion):
         r = R[:, ERROR_DIRECTIONS.index(comp[1])]
@@ -326,10 +330,11 @@ def rotary_error_motion(state: TwinState, axis: str, motion: str) -> Candidate |
             names += [f"{comp}_{k}cos", f"{comp}_{k}sin"]
             units += [u, u]
             bounds += [(-b, b), (-b, b)]
-        cols.append(r * theta)
-        names.append(f"{comp}_per_rad")
-        units.append(f"{u}/rad")
-        bounds.append((-b, b))
+        if limited:
+            cols.append(r * theta)
+            names.append(f"{comp}_per_rad")
+            units.append(f"{u}/rad")
+            bounds.append((-b, b))
     label = {"radial": "radial error motion", "axial": "axial error motion", "tilt": "tilt error motion",
              "angular": "angular positioning error motion"}[motion]
     return Candidate(f"rotary_{motion}_{axis.lower()}", np.column_stack(cols), names, units, bounds,
