@@ -3,11 +3,14 @@
 Two kinds, applied in this order by ``shop.simulate``:
 
 1. On the axes (commanded q -> actual q, before the twin's kinematics and geometric errors):
-   ``ServoLag`` (position-loop dynamics at the interpolation period), ``Backlash`` (lost motion at reversals),
-   ``RotaryPeriodic`` (harmonics of a rotary axis' own angle).
-2. On the tool pose in the part frame (after ``ErrorTwin.actual_pose``): ``ForceDeflection`` (machine compliance times
+   ``ServoLag`` (position loops per axis with feed-forward and a velocity loop, at the interpolation period),
+   ``Backlash`` (lost motion at reversals, every axis), ``RotaryPeriodic`` (harmonics of a rotary axis' own angle).
+2. In the kinematic chain: ``RotaryErrorMotion`` (the ISO 230-7 error motions of a rotary axis, as a small transform
+   at that axis).
+3. On the tool pose in the part frame (after ``ErrorTwin.actual_pose``): ``ForceDeflection`` (machine compliance times
    the cutting force), ``ToolDeflection`` (carbide cantilever), ``ThermalDrift`` (a measured series), ``Clamping``
-   (a smooth deformation field of the clamped part).
+   (a smooth deformation field of the clamped part) or ``ClampingBend`` (a bent part springing back), then
+   ``ToolWear`` (the tool's radius and length along its cut path).
 
 EFFECTS.toml (every table optional; a table present switches its effect on unless ``enabled = false``; unknown keys
 are errors; lengths in um or mm as the key says, angles in urad)::
@@ -15,13 +18,25 @@ are errors; lengths in um or mm as the key says, angles in urad)::
     [servo]                                   # first-order position loop per axis
     kv_per_s = { X = 30.0, Y = 30.0, Z = 30.0, B = 25.0, C = 25.0 }
     accel = { X = 2000.0, Y = 2000.0, Z = 2000.0, B = 360.0, C = 720.0 }   # mm/s^2 (linear), deg/s^2 (rotary)
+    kff = { X = 0.9, Y = 0.9, Z = 0.9, B = 0.9, C = 0.9 }   # velocity feed-forward, 0..1 (default 0)
+    aff = { X = 0.5 }                         # acceleration feed-forward, 0..1 (default 0; acts on the velocity loop)
+    velocity_loop_ms = { X = 3.0 }            # first-order velocity loop time constant, ms (default 0 = ideal)
 
-    [backlash.X]                              # one table per axis
+    [backlash.X]                              # one table per axis, rotary ones too ([backlash.C]: urad and deg)
     amplitude = 4.0                           # um (linear) or urad (rotary): total lost motion
-    transition = 0.02                         # mm or deg of travel after a reversal over which it is taken up (tanh)
+    transition = 0.02                         # mm or deg of travel after a reversal over which it is taken up
+    form = "tanh"                             # "tanh" (default) or "friction" (Dahl: 1 - exp(-s / transition))
 
     [rotary_periodic.C]
     harmonics_urad = [[1, 12.0, -5.0], [2, 3.0, 0.0]]   # [k per turn, cos, sin] of the axis' angle error
+
+    [rotary_error_motion.C]                   # ISO 230-7 error motions, in the chain at C (see RotaryErrorMotion)
+    EXC = { harmonics = [[1, 2.0, 0.0]] }     # radial (um): [k per turn, cos, sin] ...
+    EYC = { harmonics = [[1, 0.0, -2.0]] }    #   (EXC, EYC = e cos, -e sin once per turn: an eccentric table)
+    EZC = { harmonics = [[2, 0.5, 0.3]] }     # axial (um)
+    EAC = { harmonics = [[1, 4.0, -2.5]] }    # tilt (urad), also EBC
+    ECC = { harmonics = [[2, 8.0, 0.0]], linear_per_turn = 10.0 }   # angular positioning (urad), + slope per turn
+    relative_to_zero = true                   # subtract each component's value at angle 0 (default)
 
     [force]                                   # deflection from the cutting force (needs cutting conditions)
     compliance_um_per_n = [[0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.01]]  # extra, tool relative to workpiece, machine frame
@@ -45,6 +60,15 @@ are errors; lengths in um or mm as the key says, angles in urad)::
     center = [0.0, 0.0, 0.0]
     length_mm = 30.0
     direction = [0.0, 0.0, 1.0]
+    # or form = "bending": the part springs back from a beam's bending (ClampingBend): keys amplitude_um (mid-span
+    # deflection), center, span_mm, beam (beam direction), direction (deflection direction), part frame
+
+    [tool_wear]                               # flank wear along the cut path (ToolWear)
+    vb_run_in_um = 30.0                       # VB reached by the run-in, um
+    run_in_mm = 200.0                         # run-in path length, mm
+    vb_rate_um_per_m = 10.0                   # steady VB growth, um per m of cut
+    clearance_deg = 8.0                       # peripheral clearance: radius loss VB tan(alpha)
+    end_clearance_deg = 0.0                   # end clearance: length loss VB tan(alpha_e) (0 = none)
 
 Every effect works on arrays of samples (no per-sample Python loop), except the saturating part of the servo loop,
 which steps through the few samples where the acceleration limit is active (see ``ServoLag``).
@@ -58,6 +82,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 from scipy.signal import lfilter
 
@@ -79,6 +104,8 @@ class ServoLag:
 
     kv_per_s : axis -> Kv, 1/s (axes not named follow the command exactly).
     accel : axis -> acceleration limit a, mm/s^2 (linear) or deg/s^2 (rotary); absent = unlimited.
+    kff : axis -> velocity feed-forward gain (0..1, typically 0.9); aff : axis -> acceleration feed-forward gain (0..1);
+    velocity_loop_ms : axis -> time constant of the velocity loop, ms (0 = ideal). See "Feed-forward" below.
 
     Model (continuous form; q in mm or rad, t in s). The following error e = q_cmd - q obeys
         de/dt = v_cmd - v,   v = Kv e   (unsaturated: de/dt = v_cmd - Kv e),   |dv/dt| <= a.
@@ -107,6 +134,21 @@ class ServoLag:
     trajectory's row and motion code are given (``apply(..., traj=...)``, as ``shop.simulate`` does); without them
     the command is taken as it is.
 
+    Feed-forward and the velocity loop (``kff``, ``aff``, ``velocity_loop_ms``; per axis, default 0), as a real drive
+    has them. The interpolator's velocity v_c[k] = (q_cmd[k+1] - q_cmd[k]) / dt and acceleration
+    a_c[k] = (v_c[k] - v_c[k-1]) / dt are fed forward; the velocity loop is a first-order lag of time constant T_v
+    (beta = 1 - exp(-dt / T_v), beta = 1 for an ideal loop):
+
+        v_ref[k] = Kv (q_cmd[k] - q[k]) + kff v_c[k] + aff a_c[k] dt (1 - beta) / beta
+        v[k] = v[k-1] + beta (v_ref[k] - v[k-1]),  clamped to |v[k] - v[k-1]| <= a dt
+        q[k+1] = q[k] + v[k] dt
+
+    A constant-speed ramp then lags by exactly (1 - kff) v / Kv (any T_v); the acceleration term cancels the velocity
+    loop's lag v (1 - beta) / beta per sample under a constant acceleration (T_v a as dt -> 0), so that with kff = aff
+    = 1 a parabola is followed without error. With kff = aff = T_v = 0 it is the loop above; with Kv dt < 1 it is stable
+    for any T_v (see ``servo_axis_ff``). It is stepped sample by sample in a compiled loop
+    (``_servo_ff_loop``, numba): exact for this model, saturation included.
+
     The vectorised solution: the linear part is ``scipy.signal.lfilter``; where the clamp is active the loop is
     stepped sample by sample until it is unsaturated again, and the linear solution after it is corrected by the
     decaying difference (the loop is linear there, so the difference decays as (1 - Kv dt)^k). Exact for this model.
@@ -114,6 +156,9 @@ class ServoLag:
 
     kv_per_s: dict
     accel: dict = field(default_factory=dict)
+    kff: dict = field(default_factory=dict)
+    aff: dict = field(default_factory=dict)
+    velocity_loop_ms: dict = field(default_factory=dict)
 
     #: in-position width of ``settle_time``: mm (linear), rad (rotary)
     IN_POSITION = {False: 1e-4, True: 1e-6}
@@ -188,7 +233,13 @@ class ServoLag:
         for col, name in enumerate(machine.axis_names):
             if name not in self.kv_per_s:
                 continue
-            out[:, col] = _servo_axis(q[:, col], float(self.kv_per_s[name]), self._accel_rad(machine, name), dt)
+            kv, amax = float(self.kv_per_s[name]), self._accel_rad(machine, name)
+            kff, aff = float(self.kff.get(name, 0.0)), float(self.aff.get(name, 0.0))
+            tv = 1e-3 * float(self.velocity_loop_ms.get(name, 0.0))
+            if kff == 0.0 and aff == 0.0 and tv == 0.0:
+                out[:, col] = _servo_axis(q[:, col], kv, amax, dt)
+            else:
+                out[:, col] = servo_axis_ff(q[:, col], kv, dt, kff=kff, aff=aff, tv_s=tv, amax=amax)
         return out
 
 
@@ -233,19 +284,70 @@ def _servo_axis(qc, kv, amax, dt):
         k = j
 
 
+@numba.njit(cache=True)
+def _servo_ff_loop(qc, vff, aff_term, kv, beta, dv_max, dt):  # pragma: no cover - compiled
+    n = qc.shape[0]
+    q = np.empty(n)
+    q[0] = qc[0]
+    v = 0.0
+    for k in range(n - 1):
+        v_ref = kv * (qc[k] - q[k]) + vff[k] + aff_term[k]
+        vn = v + beta * (v_ref - v)
+        if vn > v + dv_max:
+            vn = v + dv_max
+        elif vn < v - dv_max:
+            vn = v - dv_max
+        v = vn
+        q[k + 1] = q[k] + v * dt
+    return q
+
+
+def servo_axis_ff(qc, kv: float, dt: float, *, kff: float = 0.0, aff: float = 0.0, tv_s: float = 0.0,
+                  amax: float | None = None):
+    """One axis' position loop with velocity / acceleration feed-forward and a first-order velocity loop (see
+    ``ServoLag``). qc : (T,) commanded positions (mm or rad) at period dt (s); amax : acceleration limit (mm/s^2 or
+    rad/s^2; None = unlimited). Returns the actual positions (T,). Starts at rest on the command."""
+    qc = np.ascontiguousarray(qc, dtype=float)
+    if not 0 < kv * dt < 1:
+        raise ValueError(f"servo: Kv dt must be in (0, 1), got {kv * dt:g}")
+    if not (0.0 <= kff <= 1.0 and 0.0 <= aff <= 1.0 and tv_s >= 0.0):
+        raise ValueError(f"servo: kff and aff must be in [0, 1] and the velocity loop's time >= 0 (got kff {kff:g}, "
+                         f"aff {aff:g}, {tv_s * 1e3:g} ms)")
+    beta = 1.0 if tv_s == 0.0 else -math.expm1(-dt / tv_s)
+    # The unsaturated loop, states (q[k], v[k-1]), has the matrix [[1 - b Kv dt, (1 - b) dt], [-b Kv, 1 - b]]: its
+    # determinant is 1 - b < 1 (complex poles inside the unit circle) and a real pole at -1 would need
+    # b Kv dt > 4 - 2 b > 2, so Kv dt < 1 keeps it stable for every velocity loop.
+    vc = np.zeros_like(qc)
+    if qc.size > 1:
+        vc[:-1] = np.diff(qc) / dt
+    ac = np.diff(vc, prepend=0.0) / dt
+    aff_term = aff * ac * dt * (1.0 - beta) / beta
+    dv_max = np.inf if amax is None else float(amax) * dt
+    return _servo_ff_loop(qc, kff * vc, aff_term, float(kv), float(beta), dv_max, float(dt))
+
+
 @dataclass(frozen=True)
 class Backlash:
     """Lost motion at direction reversals of one axis, taken up smoothly.
 
     amplitude : total lost motion b, um (linear) or urad (rotary).  transition : travel after a reversal over which it
-    is taken up, mm or deg (tanh). Moving steadily in direction d the axis lags by b/2: e = -(b/2) d; after a reversal
-    to d at travel s from the turning point, e = (b/2) d (1 - 2 tanh(s / transition)). Before the first motion the
-    axis is taken as settled in its first direction.
+    is taken up, mm or deg. Moving steadily in direction d the axis lags by b/2: e = -(b/2) d; after a reversal
+    to d at travel s from the turning point, e = (b/2) d (1 - 2 f(s / transition)), with the take-up f:
+
+    - ``form = "tanh"``: f = tanh (a gap closed with a soft start and end);
+    - ``form = "friction"``: f = 1 - exp(-x), the first-order (Dahl) friction law dF/ds = k (1 - F sgn(v) / F_c)
+      of a preloaded nut or a clamped rotary table's seal friction: steepest right at the reversal, then the
+      elastic take-up creeps in (at s = transition 63 % taken up against tanh's 76 %, at 3 transitions 95 % against
+      99.5 %).
+
+    Works in the axis' own units: a rotary axis' b in urad and transition in deg (both turned into rad). Before the
+    first motion the axis is taken as settled in its first direction.
     """
 
     axis: str
     amplitude: float
     transition: float = 0.01
+    form: str = "tanh"
 
     def apply(self, q, machine: Machine):
         col = machine.axis_names.index(self.axis)
@@ -265,7 +367,13 @@ class Backlash:
         rev[1:] = d[1:] != d[:-1]
         r = np.maximum.accumulate(np.where(rev, idx, 0))
         travel = np.where(r > 0, np.abs(x - x[np.maximum(r - 1, 0)]), np.inf)
-        e = 0.5 * b * d * (1.0 - 2.0 * np.tanh(travel / lam))
+        if self.form == "tanh":
+            taken = np.tanh(travel / lam)
+        elif self.form == "friction":
+            taken = -np.expm1(-travel / lam)
+        else:
+            raise ValueError(f"backlash {self.axis}: form must be 'tanh' or 'friction', got {self.form!r}")
+        e = 0.5 * b * d * (1.0 - 2.0 * taken)
         out = q.copy()
         out[:, col] += e
         return out
@@ -288,6 +396,89 @@ class RotaryPeriodic:
         out = q.copy()
         out[:, col] += e * URAD
         return out
+
+
+#: ISO 230-7 error motions of a rotary axis about X / Y / Z: (radial 1, radial 2, axial, tilt 1, tilt 2, positioning)
+ERROR_MOTION_NAMES = {"X": ("EYA", "EZA", "EXA", "EBA", "ECA", "EAA"), "Y": ("EXB", "EZB", "EYB", "EAB", "ECB", "EBB"),
+                      "Z": ("EXC", "EYC", "EZC", "EAC", "EBC", "ECC")}
+
+
+@dataclass(frozen=True)
+class RotaryErrorMotion:
+    """The ISO 230-7 error motions of one rotary axis, as the small transform of that axis in the kinematic chain.
+
+    components : ISO name -> (harmonics, linear_per_turn). The names are E + error direction + axis letter
+    (``ERROR_MOTION_NAMES``: for C radial EXC and EYC, axial EZC, tilt EAC and EBC, angular positioning ECC);
+    directions X Y Z A B C are machine directions (translations along, rotations about X, Y, Z). Each component is
+
+        e(theta) = sum_k c_k cos(k theta) + s_k sin(k theta) + linear_per_turn theta / (2 pi)   (- e(0))
+
+    in um (translations) or urad (rotations), theta the axis' actual angle (rad); ``relative_to_zero`` subtracts
+    e(0) so that the axis at zero carries no error (the machine files' convention for component tables; the rest of
+    a constant error is a location error).
+
+    Where it acts (DESIGN §3's relative chain T = P^-1 G_1 ... G_n, ``machine.kinematics``): the error transform
+    E(x) = R_eps (x - c) + c + d (exact rotation by the vector eps about the axis' pivot c, then the translation d; in
+    the frame of the body that carries the axis, M at zero) is inserted next to the axis' factor: after it on the
+    workpiece branch (between the table and its carrier: G_C E G_B for a B-C table), before it on the tool branch
+    (E G_B for a head), as the twin places its component errors. The tool pose T becomes A E A^-1 T, A the nominal
+    chain up to that place. (The twin's own errors change A by a few urad: their product with this effect is of
+    second order, < 0.01 um at 100 urad x 100 mm.) A radial error once per turn written as d = e (cos t, -sin t, 0) on
+    C is an eccentric table: in the part frame a constant shift (a circle cut with C turning moves its centre by e).
+    """
+
+    axis: str
+    components: tuple  # ((name, ((k, cos, sin), ...), linear_per_turn), ...)
+    relative_to_zero: bool = True
+
+    def values(self, theta):
+        """(T, 3) translation d (mm) and (T, 3) rotation eps (rad), machine directions, at angles theta (T,)."""
+        theta = np.asarray(theta, float)
+        d = np.zeros((theta.size, 3))
+        eps = np.zeros((theta.size, 3))
+        for name, harmonics, slope in self.components:
+            e = slope * theta / (2 * np.pi)
+            for k, c, s_ in harmonics:
+                e = e + c * np.cos(k * theta) + s_ * np.sin(k * theta)
+                if self.relative_to_zero:
+                    e = e - c
+            letter = name[1]
+            if letter in "XYZ":
+                d[:, "XYZ".index(letter)] += e * UM
+            else:
+                eps[:, "ABC".index(letter)] += e * URAD
+        return d, eps
+
+    def apply_pose(self, tip, u, q, machine: Machine):
+        """Tool tips (T,3) mm and unit axes (T,3) in the part frame moved by the error motion at axes q (T, n)."""
+        from ..machine.kinematics import axis_motion, chain_links
+        from ..machine.transforms import compose
+
+        links = chain_links(machine)
+        k = next(i for i, lk in enumerate(links) if lk.axis == self.axis)
+        upto = links[: k + 1] if links[k].branch == "workpiece" else links[:k]
+        n = tip.shape[0]
+        R = np.broadcast_to(np.eye(3), (n, 3, 3))
+        t = np.broadcast_to(-machine.workpiece_origin, (n, 3))
+        for lk in upto:
+            (Rg, tg), _ = axis_motion(lk, q[:, lk.column])
+            R, t = compose(R, t, Rg, tg)
+        d, eps = self.values(q[:, links[k].column])
+        ang = np.linalg.norm(eps, axis=1)
+        axis_e = np.where(ang[:, None] > 0, eps / np.where(ang > 0, ang, 1.0)[:, None], np.array([0.0, 0.0, 1.0]))
+        # Exact rotation by eps (Rodrigues, per sample: the axis of eps changes with theta).
+        K = np.zeros((n, 3, 3))
+        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -axis_e[:, 2], axis_e[:, 1], -axis_e[:, 0]
+        K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = axis_e[:, 2], -axis_e[:, 1], axis_e[:, 0]
+        Re = np.eye(3) + np.sin(ang)[:, None, None] * K + (1 - np.cos(ang))[:, None, None] * (K @ K)
+        c = links[k].pivot
+        # Local coordinates x = A^-1 tip, then E, then back: tip' = A (R_eps (x - c) + c + d).
+        x = np.einsum("nji,nj->ni", R, tip - t)
+        x_new = np.einsum("nij,nj->ni", Re, x - c) + c + d
+        tip_new = np.einsum("nij,nj->ni", R, x_new) + t
+        u_loc = np.einsum("nji,nj->ni", R, u)
+        u_new = np.einsum("nij,nj->ni", R, np.einsum("nij,nj->ni", Re, u_loc))
+        return tip_new, u_new
 
 
 # ------------------------------------------------------------------------------------------------- pose effects ----
@@ -406,6 +597,101 @@ class Clamping:
 
 
 @dataclass(frozen=True)
+class ClampingBend:
+    """A part bent by its clamps and springing back when they are released (Euler-Bernoulli beam kinematics).
+
+    While clamped, the part (a block held at two ends, pressed at its middle or, equally, by a uniform clamp load) is
+    a simply supported beam along the unit direction ``beam`` between supports at xi = -span/2 and +span/2 about
+    ``center`` (xi = (x - center) . beam), deflected along the unit ``direction`` (normal to beam) by the uniform-load
+    elastic line normalised to the amplitude w0 at mid-span:
+
+        w(xi) = w0 (16/5) (s - 2 s^3 + s^4),   s = xi / span + 1/2     (w = w0 at xi = 0, 0 at the supports)
+
+    Plane sections stay plane and normal to the neutral plane (through ``center``, normal to ``direction``), so a
+    material point at eta = (x - center) . direction from it also moves along the beam by -eta w'(xi):
+
+        d(x) = w(xi) e_d - eta w'(xi) e_b          (um, part frame)
+
+    The surface cut at y in the clamped state ends, after the part springs back, at y - d(y) (to first order in the
+    field's gradient: the tool moved to tip - d(tip) and its axis turned by -(grad d) u, as ``Clamping``). Outside
+    the supports the polynomial is continued (it is smooth there).
+    """
+
+    amplitude_um: float
+    center: np.ndarray
+    span_mm: float
+    beam: np.ndarray
+    direction: np.ndarray
+
+    def _w(self, xi):
+        L = self.span_mm
+        s = xi / L + 0.5
+        w = (16.0 / 5.0) * (s - 2 * s**3 + s**4)
+        dw = (16.0 / 5.0) * (1 - 6 * s**2 + 4 * s**3) / L
+        ddw = (16.0 / 5.0) * (-12 * s + 12 * s**2) / L**2
+        return w, dw, ddw
+
+    def field(self, x):
+        """Displacement (N,3) mm and gradient (N,3,3) (d_i / dx_j) at points x (N,3) mm."""
+        eb = self.beam / np.linalg.norm(self.beam)
+        ed = self.direction - (self.direction @ eb) * eb
+        ed = ed / np.linalg.norm(ed)
+        r = np.asarray(x, float) - self.center
+        xi, eta = r @ eb, r @ ed
+        w, dw, ddw = self._w(xi)
+        a = self.amplitude_um * UM
+        d = a * (w[:, None] * ed - (eta * dw)[:, None] * eb)
+        grad = a * (dw[:, None, None] * ed[None, :, None] * eb[None, None, :]
+                    - dw[:, None, None] * eb[None, :, None] * ed[None, None, :]
+                    - (eta * ddw)[:, None, None] * eb[None, :, None] * eb[None, None, :])
+        return d, grad
+
+    def apply(self, tip, axis):
+        d, grad = self.field(tip)
+        new_axis = axis - np.einsum("nij,nj->ni", grad, axis)
+        return tip - d, new_axis / np.linalg.norm(new_axis, axis=1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class ToolWear:
+    """The cutter wearing along its cut: flank wear VB grows with the cut path length, and the worn edge cuts a
+    smaller radius (and, on the end face, a shorter tool).
+
+    Flank wear over the cut path length l (mm of tool-tip path in the part frame while feeding, G1/G2/G3; rapids do
+    not wear it), the usual three-stage curve's first two stages (initial run-in, then steady linear growth):
+
+        VB(l) = vb_run_in_um (1 - exp(-l / run_in_mm)) + vb_rate_um_per_m l / 1000         (um)
+
+    The worn flank land, at clearance angle alpha, moves the cutting edge inwards by VB tan(alpha) (radial wear,
+    peripheral clearance ``clearance_deg``, typically 6-12 deg) and the end cutting edge upwards by VB tan(alpha_e)
+    (``end_clearance_deg``; 0 = no length wear). The radius and the tip of every tool instance follow:
+    R(l) = R0 - VB tan(alpha), tip(l) = tip + VB tan(alpha_e) u.
+    """
+
+    vb_run_in_um: float = 30.0
+    run_in_mm: float = 200.0
+    vb_rate_um_per_m: float = 10.0
+    clearance_deg: float = 8.0
+    end_clearance_deg: float = 0.0
+
+    def flank_wear_um(self, path_mm):
+        """VB (um) after a cut path of path_mm (mm)."""
+        l = np.asarray(path_mm, float)
+        return self.vb_run_in_um * -np.expm1(-l / self.run_in_mm) + self.vb_rate_um_per_m * l * 1e-3
+
+    def losses_mm(self, path_mm):
+        """(radius loss, length loss) in mm after path_mm of cut."""
+        vb = self.flank_wear_um(path_mm) * UM
+        return vb * math.tan(math.radians(self.clearance_deg)), vb * math.tan(math.radians(self.end_clearance_deg))
+
+    @staticmethod
+    def cut_path_mm(tip, feeding):
+        """(T,) cumulative tool-tip path (mm) over feed samples: tip (T,3) part frame, feeding (T,) bool."""
+        step = np.linalg.norm(np.diff(tip, axis=0), axis=1) * feeding[1:]
+        return np.r_[0.0, np.cumsum(step)]
+
+
+@dataclass(frozen=True)
 class Effects:
     """The effects of one run; None = off."""
 
@@ -415,8 +701,10 @@ class Effects:
     force: ForceDeflection | None = None
     tool_deflection: ToolDeflection | None = None
     thermal: ThermalDrift | None = None
-    clamping: Clamping | None = None
+    clamping: Clamping | ClampingBend | None = None
     source: str = "<none>"
+    rotary_error_motion: tuple = ()
+    tool_wear: ToolWear | None = None
 
     @property
     def needs_force(self) -> bool:
@@ -454,13 +742,15 @@ class Effects:
 
 # ----------------------------------------------------------------------------------------------------- the file ----
 _ALLOWED = {
-    "servo": {"kv_per_s", "accel", "enabled"},
+    "servo": {"kv_per_s", "accel", "kff", "aff", "velocity_loop_ms", "enabled"},
     "force": {"compliance_um_per_n", "use_machine_compliance", "enabled"},
     "tool_deflection": {"stick_out_mm", "youngs_modulus_gpa", "diameter_factor", "enabled"},
     "thermal": {"file", "channels", "time_scale", "time_offset_s", "amplitude_scale", "relative_to_start", "enabled"},
-    "clamping": {"amplitude_um", "center", "length_mm", "direction", "enabled"},
+    "clamping": {"form", "amplitude_um", "center", "length_mm", "direction", "span_mm", "beam", "enabled"},
+    "tool_wear": {"vb_run_in_um", "run_in_mm", "vb_rate_um_per_m", "clearance_deg", "end_clearance_deg", "enabled"},
 }
-_PER_AXIS = {"backlash": {"amplitude", "transition", "enabled"}, "rotary_periodic": {"harmonics_urad", "enabled"}}
+_PER_AXIS = {"backlash": {"amplitude", "transition", "form", "enabled"}, "rotary_periodic": {"harmonics_urad", "enabled"},
+             "rotary_error_motion": {"relative_to_zero", "enabled"}}  # plus the ISO component names, checked below
 
 
 def load_effects(path, machine: Machine | None = None) -> Effects:
@@ -529,12 +819,14 @@ def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machin
             if k not in allowed:
                 problems.append(f"[{key}].{k}: unknown key (known: {', '.join(sorted(allowed))})")
 
-    servo = force = tool = thermal = clamping = None
+    servo = force = tool = thermal = clamping = tool_wear = None
     t = data.get("servo")
     if isinstance(t, dict) and enabled("[servo]", t):
-        kv, acc = {}, {}
-        for name, table, out, kwargs in (("kv_per_s", t.get("kv_per_s", {}), kv, {"positive": True}),
-                                         ("accel", t.get("accel", {}), acc, {"positive": True})):
+        kv, acc, kff, aff, tv = {}, {}, {}, {}, {}
+        for name, out, kwargs in (("kv_per_s", kv, {"positive": True}), ("accel", acc, {"positive": True}),
+                                  ("kff", kff, {"nonneg": True}), ("aff", aff, {"nonneg": True}),
+                                  ("velocity_loop_ms", tv, {"nonneg": True})):
+            table = t.get(name, {})
             if not isinstance(table, dict):
                 problems.append(f"[servo].{name}: expected a table axis = value")
                 continue
@@ -542,9 +834,15 @@ def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machin
                 if ax not in axes:
                     problems.append(f"[servo].{name}.{ax}: unknown axis (machine axes: {' '.join(axes)})")
                 out[ax] = num(f"[servo].{name}.{ax}", v, **kwargs)
+                if name in ("kff", "aff") and out[ax] is not None and out[ax] > 1.0:
+                    problems.append(f"[servo].{name}.{ax}: a feed-forward gain is at most 1, got {v!r}")
         if "kv_per_s" not in t:
             problems.append("[servo].kv_per_s: required")
-        servo = ServoLag(kv, acc)
+        for name, table in (("kff", kff), ("aff", aff), ("velocity_loop_ms", tv)):
+            for ax in table:
+                if ax not in kv:
+                    problems.append(f"[servo].{name}.{ax}: {ax} has no kv_per_s (no loop to feed forward into)")
+        servo = ServoLag(kv, acc, kff, aff, tv)
     t = data.get("force")
     if isinstance(t, dict) and enabled("[force]", t):
         c = None
@@ -590,11 +888,41 @@ def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machin
         if "relative_to_start" in t:
             kw["relative_to_start"] = boolean("[thermal].relative_to_start", t["relative_to_start"])
         thermal = ThermalDrift(f if isinstance(f, str) else "", dict(ch), **{k: v for k, v in kw.items() if v is not None})
+    t = data.get("tool_wear")
+    if isinstance(t, dict) and enabled("[tool_wear]", t):
+        kw = {k: num(f"[tool_wear].{k}", t[k], positive=k == "run_in_mm", nonneg=k != "run_in_mm")
+              for k in t if k != "enabled"}
+        for k in ("clearance_deg", "end_clearance_deg"):
+            if kw.get(k) is not None and kw[k] >= 45.0:
+                problems.append(f"[tool_wear].{k}: a clearance angle is below 45 deg, got {kw[k]:g}")
+        tool_wear = ToolWear(**{k: v for k, v in kw.items() if v is not None})
     t = data.get("clamping")
-    if isinstance(t, dict) and enabled("[clamping]", t):
+    form = t.get("form", "bump") if isinstance(t, dict) else None
+    if isinstance(t, dict) and form not in ("bump", "bending"):
+        problems.append(f"[clamping].form: 'bump' or 'bending', got {form!r}")
+    elif isinstance(t, dict) and form == "bending" and enabled("[clamping]", t):
+        keys = ("amplitude_um", "center", "span_mm", "beam", "direction")
+        missing = [k for k in keys if k not in t]
+        extra = [k for k in ("length_mm",) if k in t]
+        if missing or extra:
+            problems.append(f"[clamping] (bending): missing {', '.join(missing) or '-'}; not used: {', '.join(extra) or '-'}")
+        else:
+            a = num("[clamping].amplitude_um", t["amplitude_um"])
+            c = vec3("[clamping].center", t["center"])
+            sp = num("[clamping].span_mm", t["span_mm"], positive=True)
+            b = vec3("[clamping].beam", t["beam"])
+            d = vec3("[clamping].direction", t["direction"])
+            if b is not None and d is not None:
+                nb, nd = np.linalg.norm(b), np.linalg.norm(d)
+                if nb == 0 or nd == 0 or np.linalg.norm(np.cross(b / nb, d / nd)) < 0.5:
+                    problems.append("[clamping]: beam and direction must be non-zero and far from parallel")
+                elif None not in (a, sp) and c is not None:
+                    clamping = ClampingBend(a, c, sp, b / nb, d / nd)
+    elif isinstance(t, dict) and enabled("[clamping]", t):
         missing = [k for k in ("amplitude_um", "center", "length_mm", "direction") if k not in t]
-        if missing:
-            problems.append(f"[clamping]: missing {', '.join(missing)}")
+        extra = [k for k in ("span_mm", "beam") if k in t]
+        if missing or extra:
+            problems.append(f"[clamping]: missing {', '.join(missing) or '-'}; not used: {', '.join(extra) or '-'}")
         else:
             a = num("[clamping].amplitude_um", t["amplitude_um"])
             c = vec3("[clamping].center", t["center"])
@@ -605,7 +933,7 @@ def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machin
             if None not in (a, ln) and c is not None and d is not None:
                 clamping = Clamping(a, c, ln, d)
 
-    backlash, periodic = [], []
+    backlash, periodic, motions = [], [], []
     for key, allowed in _PER_AXIS.items():
         table = data.get(key)
         if table is None:
@@ -621,9 +949,16 @@ def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machin
             if not isinstance(sub, dict):
                 problems.append(f"{where}: expected a table")
                 continue
+            iso = ()
+            if key == "rotary_error_motion":
+                about = machine.axes[ax].about if machine is not None and machine.axes[ax].is_rotary else None
+                if machine is not None and about is None:
+                    problems.append(f"{where}: {ax} is not a rotary axis")
+                    continue
+                iso = tuple(f"E{d}{ax}" for d in "XYZABC")
             for k in sub:
-                if k not in allowed:
-                    problems.append(f"{where}.{k}: unknown key (known: {', '.join(sorted(allowed))})")
+                if k not in allowed and k not in iso:
+                    problems.append(f"{where}.{k}: unknown key (known: {', '.join(sorted([*allowed, *iso]))})")
             if not enabled(where, sub):
                 continue
             if key == "backlash":
@@ -632,8 +967,37 @@ def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machin
                     continue
                 amp = num(f"{where}.amplitude", sub["amplitude"], nonneg=True)
                 tr = num(f"{where}.transition", sub.get("transition", 0.01), positive=True)
-                if amp is not None and tr is not None:
-                    backlash.append(Backlash(ax, amp, tr))
+                form = sub.get("form", "tanh")
+                if form not in ("tanh", "friction"):
+                    problems.append(f"{where}.form: 'tanh' or 'friction', got {form!r}")
+                elif amp is not None and tr is not None:
+                    backlash.append(Backlash(ax, amp, tr, form))
+            elif key == "rotary_error_motion":
+                comps = []
+                for name in iso:
+                    if name not in sub:
+                        continue
+                    c = sub[name]
+                    cw = f"{where}.{name}"
+                    if not isinstance(c, dict) or set(c) - {"harmonics", "linear_per_turn"}:
+                        problems.append(f"{cw}: expected {{ harmonics = [[k, cos, sin], ...], linear_per_turn = x }}")
+                        continue
+                    rows = []
+                    for i, row in enumerate(c.get("harmonics", [])):
+                        if (not isinstance(row, list) or len(row) != 3 or not all(
+                                isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
+                                or int(row[0]) != row[0] or row[0] < 1):
+                            problems.append(f"{cw}.harmonics[{i}]: expected [k >= 1 integer, cos, sin]")
+                        else:
+                            rows.append((int(row[0]), float(row[1]), float(row[2])))
+                    slope = num(f"{cw}.linear_per_turn", c.get("linear_per_turn", 0.0))
+                    if slope is not None:
+                        comps.append((name, tuple(rows), slope))
+                if not comps:
+                    problems.append(f"{where}: give at least one of {', '.join(iso)}")
+                else:
+                    rel = boolean(f"{where}.relative_to_zero", sub.get("relative_to_zero", True))
+                    motions.append(RotaryErrorMotion(ax, tuple(comps), rel))
             else:
                 if machine is not None and not machine.axes[ax].is_rotary:
                     problems.append(f"{where}: {ax} is not a rotary axis")
@@ -654,4 +1018,5 @@ def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machin
                     periodic.append(RotaryPeriodic(ax, tuple(rows)))
     if problems:
         raise EffectsFileError(f"{source}:\n  " + "\n  ".join(problems))
-    return Effects(servo, tuple(backlash), tuple(periodic), force, tool, thermal, clamping, source=source)
+    return Effects(servo, tuple(backlash), tuple(periodic), force, tool, thermal, clamping, source=source,
+                   rotary_error_motion=tuple(motions), tool_wear=tool_wear)

@@ -59,8 +59,10 @@ class EnvelopeResult:
         return self.deviation_mm * 1e3
 
 
-def line_tool_intersection(x0, n, tip, axis, radius: float, length: float):
+def line_tool_intersection(x0, n, tip, axis, radius, length: float):
     """Exact intersection of lines with flat-end-mill solids (cylinder of radius R from the tip up ``length``).
+
+    radius : float, or (P,) per line (a worn tool's radius changes along the cut).
 
     x0, n : (P, 3) line points and unit directions, mm.  tip, axis : (P, 3) tool tips (mm) and unit axes.
     Returns s_in, s_out : (P,) float, the parameters where each line x0 + s n enters and leaves the solid
@@ -204,7 +206,12 @@ def _envelope(
         raise ValueError(f"points and normals must both be (N, 3); got {points.shape} and {normals.shape}")
     if tips.ndim != 2 or tips.shape[1] != 3 or axes.shape != tips.shape:
         raise ValueError(f"tips and axes must both be (I, 3); got {tips.shape} and {axes.shape}")
-    if not (radius > 0 and length > 0 and search_mm > 0):
+    # radius: one for every instance, or (I,) per instance (a wearing tool, ``effects.ToolWear``).
+    per_instance = np.ndim(radius) > 0
+    radius = np.asarray(radius, float) if per_instance else float(radius)
+    if per_instance and radius.shape != (tips.shape[0],):
+        raise ValueError(f"radius must be a number or one per instance ({tips.shape[0]}), got shape {radius.shape}")
+    if not (np.all(radius > 0) and length > 0 and search_mm > 0):
         raise ValueError("radius, length and search_mm must be positive")
     for name, arr in (("points", points), ("normals", normals), ("tips", tips), ("axes", axes)):
         if not np.all(np.isfinite(arr)):
@@ -236,7 +243,7 @@ def _envelope(
     z = (np.arange(k) + 0.5) / k
     samples = (ga[:, None, :] + z[None, :, None] * (gb - ga)[:, None, :]).reshape(-1, 3)
     sample_group = np.repeat(np.arange(starts.size), k)
-    reach = radius + search_mm
+    reach = float(np.max(radius)) + search_mm
     r_query = reach + float(rho.max()) + 0.5 * hz * max(1.0, float(np.linalg.norm(gu, axis=1).max()))
     tree = cKDTree(samples)
 
@@ -274,7 +281,8 @@ def _envelope(
             pp = np.repeat(p_sub, r_sub)
             offs = np.arange(pp.size) - np.repeat(np.cumsum(r_sub) - r_sub, r_sub)
             ii = np.repeat(starts[g_sub], r_sub) + offs
-            s_in, _ = line_tool_intersection(pts[pp], normals[sl][pp], tips[ii], axes[ii], radius, length)
+            s_in, _ = line_tool_intersection(pts[pp], normals[sl][pp], tips[ii], axes[ii],
+                                             radius[ii] if per_instance else radius, length)
             n_pairs += pp.size
             # Per point minimum and its first arg-minimum (pairs are sorted by point).
             seg = np.nonzero(np.diff(pp, prepend=-1))[0]
@@ -297,7 +305,7 @@ def envelope_deviation(points, normals, tips, axes, radius: float, length: float
 
     points : (N, 3) mm, nominal surface points, part frame.  normals : (N, 3) unit, out of the material.
     tips, axes : (I, 3) actual tool tips (mm) and unit tool axes of the cutting instances, part frame, in time order.
-    radius, length : tool radius and flute length, mm.
+    radius, length : tool radius (a number, or (I,) per instance) and flute length, mm.
     search_mm : the window |s| <= search_mm (mm) in which cuts are looked for; points with no cut in it get NaN. The
         number of candidate pairs grows as sqrt(search_mm). "auto": a pilot run on ``pilot_points`` evenly chosen
         points with ``search_max_mm`` sets it to 1.25 max |s*| + 5 um, and the points that then come out NaN are run

@@ -4,10 +4,12 @@
     write_cmm(result, "cmm.ply")          # cmm.ply (part frame, x y z nx ny nz) + cmm.truth.json (tests only)
 
 Pipeline, per sample of the 1 ms interpolation (``trajectory``):
-commanded axes -> axis effects (servo lag, backlash, rotary harmonics) -> the twin's actual pose (geometric errors,
-``ErrorTwin.actual_pose``; with the cutting force when the effects ask for the machine's own compliance) -> pose
-effects (force and tool deflection from the cutting force with the real engagement, thermal drift, clamping) ->
-the machined surface as the envelope of the cutting instances (``envelope``) along each probe normal -> probe noise.
+commanded axes -> axis effects (servo loops, backlash, rotary harmonics) -> the twin's actual pose (geometric errors,
+``ErrorTwin.actual_pose``; with the cutting force when the effects ask for the machine's own compliance) and the
+rotary axes' error motions in their places in the chain -> pose effects (force and tool deflection from the cutting
+force with the real engagement, thermal drift) -> tool wear (radius and length along the cut path) ->
+the machined surface as the envelope of the cutting instances (``envelope``) along each probe normal, with the part's
+spring-back from its clamping deformation -> probe noise.
 
 Command line (wired by ``trueaxis.cli``): ``main_simulate(args)`` with an argparse namespace holding
 ``program, machine, effects, part, part_dir, output, points, noise_um, seed`` (see its docstring).
@@ -164,7 +166,15 @@ def simulate(
     t1 = time.perf_counter()
     q_act = effects.apply_axes(traj.q, machine, dt, traj=traj)
     twin = ErrorTwin(machine)
-    tip, u = _pose_chunked(twin, q_act)
+
+    def geometric_pose(q, force=None):
+        """The twin's pose, then the rotary axes' error motions in their places in the chain."""
+        p, v = _pose_chunked(twin, q, force)
+        for motion in effects.rotary_error_motion:
+            p, v = motion.apply_pose(p, v, q, machine)
+        return p, v
+
+    tip, u = geometric_pose(q_act)
     cutting = traj.motion != 0
     ci = np.nonzero(cutting)[0]
     force_part = np.zeros((len(traj), 3))
@@ -180,7 +190,7 @@ def simulate(
         R = machine_to_part_rotation(machine, q_act[ci])
         f_machine = np.einsum("nji,nj->ni", R, fr.force_part)  # R^T F: part frame -> machine frame
         if effects.force is not None and effects.force.use_machine_compliance:
-            tip[ci], u[ci] = _pose_chunked(twin, q_act[ci], f_machine)
+            tip[ci], u[ci] = geometric_pose(q_act[ci], f_machine)
         if effects.force is not None and effects.force.compliance_um_per_n is not None:
             d_m = f_machine @ np.asarray(effects.force.compliance_um_per_n).T * 1e-3
             tip[ci] += np.einsum("nij,nj->ni", R, d_m)
@@ -194,13 +204,21 @@ def simulate(
     if effects.thermal is not None:
         R = machine_to_part_rotation(machine, q_act)
         tip += np.einsum("nij,nj->ni", R, effects.thermal.drift_um(traj.t) * 1e-3)
-    if effects.clamping is not None:
-        tip, u = effects.clamping.apply(tip, u)
+    R_tool, L_tool = machine.tool.radius, machine.tool.flute_length
+    radius = None
+    if effects.tool_wear is not None:
+        path = effects.tool_wear.cut_path_mm(tip, cutting)
+        dr, dl = effects.tool_wear.losses_mm(path)
+        if np.any(dr >= R_tool):
+            raise ValueError(f"tool wear: the radius loss reaches {dr.max():.3f} mm, the whole tool radius")
+        radius = R_tool - dr
+        tip = tip + dl[:, None] * u
+        info["tool_wear"] = {"cut_path_mm": float(path[-1]), "radius_loss_um": float(dr[-1] * 1e3),
+                             "length_loss_um": float(dl[-1] * 1e3)}
     timings["poses_s"] = time.perf_counter() - t1
 
     # Cutting instances, thinned along straight steady motion.
     t2 = time.perf_counter()
-    R_tool, L_tool = machine.tool.radius, machine.tool.flute_length
     breaks = np.r_[True, traj.row[ci][1:] != traj.row[ci][:-1]] if ci.size else None
     keep = (thin_instances(tip[ci], u[ci], R_tool, L_tool, thin_tol_um * 1e-3, breaks=breaks)
             if thin_tol_um > 0 and ci.size else np.ones(ci.size, bool))
@@ -210,7 +228,19 @@ def simulate(
         pts, nrm = _cmm.probe_pattern(part_data, points)
     else:
         pts, nrm = (np.asarray(a, float) for a in probe)
-    env = envelope_deviation(pts, nrm, tip[inst], u[inst], R_tool, L_tool, search_mm=search_mm, progress=progress)
+    # Clamping: the part is cut deformed and springs back when released. The material point z (released) sat at
+    # z + d(z) while cut, so the released surface meets the probe line p + s n where the clamped (cut) surface meets
+    # the line through p + d_t(p) (d's tangential part) at s + d_n(p): the envelope is taken on the shifted probe
+    # points and d_n is subtracted. Exact to first order in the field's gradient times the deviation (not in the
+    # gradient times the tool radius, as moving the tool by d(tip) would be).
+    pts_env, d_n = pts, 0.0
+    if effects.clamping is not None:
+        d_clamp, _ = effects.clamping.field(pts)
+        d_n = np.einsum("ij,ij->i", d_clamp, nrm)
+        pts_env = pts + d_clamp - d_n[:, None] * nrm
+    env = envelope_deviation(pts_env, nrm, tip[inst], u[inst], R_tool if radius is None else radius[inst], L_tool,
+                             search_mm=search_mm, progress=progress)
+    env.deviation_mm = env.deviation_mm - d_n
     timings["envelope_s"] = time.perf_counter() - t2
     info["pairs"] = env.n_pairs
     info["points"] = int(pts.shape[0])
