@@ -305,7 +305,9 @@ def _component_response(state: TwinState, axis: str) -> np.ndarray:
 
 def rotary_error_motion(state: TwinState, axis: str, motion: str) -> Candidate | None:
     """ISO 230-7 error motion ``motion`` of rotary ``axis``: each of its components as harmonics 1..4 per turn of
-    the commanded angle, plus a term linear in the angle (um or urad per rad) on an axis of limited travel."""
+    the commanded angle, plus a term linear in the angle (um or urad per rad) on an axis of limited travel. Each
+    term is zero at the axis' zero angle (a_k (cos k theta - 1) + b_k sin k theta): a constant part of a component
+    error is a location error, which ``twin_parameters`` holds."""
     if axis not in state.rotary:
         return None
     j = state.axis_names.index(axis)
@@ -326,7 +328,7 @@ def rotary_error_motion(state: TwinState, axis: str, motion: str) -> Candidate |
         u = "urad" if angular else "um"
         b = 300.0 if angular else 30.0
         for k in HARMONICS:
-            cols += [r * np.cos(k * theta), r * np.sin(k * theta)]
+            cols += [r * (np.cos(k * theta) - 1.0), r * np.sin(k * theta)]
             names += [f"{comp}_{k}cos", f"{comp}_{k}sin"]
             units += [u, u]
             bounds += [(-b, b), (-b, b)]
