@@ -14,25 +14,16 @@ column), which is the machine-to-part rotation applied to e_k.
 How they differ from the virtual shop's effects (``trueaxis.sim.effects``; DESIGN §8 -- written independently, and
 deliberately poorer, so that a fit is a test and not an identity):
 
-- ``backlash_x/y/z``: a pure step, -(b/2) sign(velocity) (the last direction while the axis stands), applied at the
-  cut sample. The shop takes the lost motion up smoothly (tanh over a transition travel) after every reversal, on the
+- ``backlash_<axis>`` (every axis, rotary ones in urad): e = (b/2) d (1 - 2 tanh(s / lambda)) at the cut sample,
+  d the direction of motion, s the travel since the last reversal, lambda from a grid (``BACKLASH_TRANSITIONS``,
+  0 = a step) chosen by the fit. The shop takes the lost motion up (tanh or exponential friction form) on the
   servo-lagged axes, and the envelope picks the deepest cut of any tool instance.
-- ``servo_lag``: the following error of a first-order position loop per axis, e_j = -tau_j (h_tau_j * v_j), v_j the
-  commanded axis velocity, h_tau(t) = exp(-t/tau)/tau (unit DC gain), tau_j = 1/Kv_j the lag time. It is not only the
-  steady lag v/Kv (along the path on a straight wall, invisible with equal gains) but its transient, which is what a
-  real loop leaves on the part: the inside of every corner (ln2 sin(theta/2) v/Kv for a turn by theta), the stops.
-  Linear in its parameters: the shared loop is a positive mixture of loops with fixed lag times tau_m (4, 12, 35 ms,
-  ``state.LAG_TAUS_S``), weights c_m >= 0 in ms, so that the response's DC gain, the lag time, is sum_m c_m (a loop of
-  lag tau_m is c_m = tau_m exactly; one in between is bracketed by its neighbours); and a gain mismatch, each further
-  moving axis' lag time minus the first one's (d_j ms, first order, on the 12 ms loop), which is what a contour shows
-  at steady speed. 3 + (moving axes - 1) parameters rather than a mixture per axis (3 per axis): the corner transient
-  is shared by the axes when their gains are alike, the mismatch is a steady effect, and fewer columns keep the
-  held-out fit honest and the candidate from mimicking others. Each loop is evaluated where its lagged tool cuts the
-  point (``state.lagged_cut``): the loop's tool is the twin's tool tau earlier plus a small transient, so the twin's
-  own instances, shifted in time and moved by the transient to first order, give the envelope. The shop steps a
-  discrete loop per axis with its own gain, acceleration limits (saturation at corners when Kv |dv| > a) and rapids
-  planned within them; the candidate has no limits, no rapids (taken as settled), one shared dynamics and a
-  first-order mismatch.
+- ``servo_lag``: per axis j a lag L_j = sum_m c_jm (ms) over first-order filters of the commanded velocity (time
+  constants 4, 12, 35 ms, ``state.LAG_TAUS_S``), c_jm >= 0: a loop of gain kv and velocity feed-forward ff follows
+  with e = -(1 - ff) (1/kv) w_{1/kv}, so the weights carry (1 - ff)/kv on the filter nearest 1/kv. Two variants of
+  the same parameters (see ``servo_lag``): small lags (feed-forward) to first order at the twin's cut sample, large
+  lags (plain loops) at the lagged tool's deepest cut. The shop steps a discrete loop per axis with its own gain,
+  feed-forward, acceleration limits and planned rapids; the candidate has no limits.
 - ``force_deflection``: a diagonal machine-frame compliance (c_X, c_Y >= 0 and an axial c_Z whose sign is free, as
   it also takes up the X/Y-Z coupling of a real matrix), times the force the twin's simulation estimated at the cut
   sample. The shop uses a full 3x3 matrix (and/or the machine's own force model) with the force recomputed on the
@@ -40,10 +31,14 @@ deliberately poorer, so that a fit is a test and not an identity):
 - ``tool_deflection``: a straight lever, deflection = F_perp (c0 + c1 h) at contact height h, c0 >= 0: isotropic in
   the plane normal to the tool (a round tool). The shop bends a carbide cantilever (cubic in the load position, load
   at the centre of the engaged flute) and tilts the tool.
-- ``thermal_x/y/z``: drift along one machine direction as a linear spline of program time through zero at the start,
-  knots at T/3, 2T/3 and T (the parameters are the drift there, um). The shop interpolates a measured thermal series.
-- ``rotary_periodic_c/_b/_a``: once- and twice-per-turn harmonics of the commanded angle, as a first-order axis
-  error through the Jacobian. The shop may hold any harmonic and applies it before the full kinematics.
+- ``thermal_<k>``: drift along one machine direction, D (1 - exp(-t/tau)) / (1 - exp(-T/tau)), tau from a grid
+  of multiples of the program's duration T (infinite: linear); ``thermal_spline_<k>``: a linear spline of time
+  through zero at the start, knots at T/3, 2T/3 and T. The shop interpolates a measured thermal series.
+- ``rotary_<motion>_<axis>``: the ISO 230-7 error motions, radial (two directions normal to the axis), axial, tilt
+  (about the two directions normal to it) and angular positioning, each component E<dir><axis> as harmonics 1-4 of
+  the commanded angle, zero at angle 0, plus a term linear in the angle on an axis of limited travel, through the
+  twin's exact parameter Jacobian of a constant component error. The shop applies its error motions (any
+  harmonics, a linear term per turn) as a transform at the axis, at the axis' actual angle.
 - ``twin_parameters``: re-identification of the twin's own location errors (``machine.location_names()``) through
   the exact parameter Jacobian (``ErrorTwin.parameter_jacobian``) projected on the normals, so that a wrong value in
   the machine file is not mistaken for a missing effect. Component tables are left out (too many columns for one
@@ -249,6 +244,20 @@ def thermal(state: TwinState, k: int) -> Candidate:
                      [(-200.0, 200.0)],
                      f"thermal drift along machine {letter}: monotone first-order response to the spindle's running "
                      f"time, zero at the program start", variants=variants)
+
+
+def uniform_wear(state: TwinState) -> Candidate:
+    """Not a library candidate: the shadow of an effect outside the library, a cutter losing radius as it cuts
+    (tool wear): the surface moves out along its own normal by a monotone first-order (run-in) or linear amount of
+    the cut time. A verdict whose fit this form matches as well is not a verdict the part can support on its own
+    (see ``analysis.diagnose_state``)."""
+    T = max(state.t_end_s, 1e-9)
+    variants = []
+    for f in THERMAL_TAUS_OF_T:
+        shape = state.t_s / T if math.isinf(f) else -np.expm1(-state.t_s / (f * T)) / -math.expm1(-1.0 / f)
+        variants.append((f"time constant {'inf' if math.isinf(f) else f'{f:g} T'}", shape[:, None]))
+    return Candidate("uniform normal offset growing with the cut (tool wear, outside the library)", variants[0][1],
+                     ["offset_at_end"], ["um"], [(-200.0, 200.0)], "tool wear-like shadow", variants=variants)
 
 
 def thermal_spline(state: TwinState, k: int, knots: int = 3) -> Candidate:
