@@ -477,3 +477,20 @@ def test_per_axis_servo_lag_with_feed_forward_is_recovered(slots):
     lag = {d["name"]: d for d in diag.chosen_fit.extra["derived"]}
     for a, v in truth.items():
         assert abs(lag[a]["value"] - v) < 3 * lag[a]["std"]
+
+
+def test_wearing_tool_is_none_of_the_candidates_not_thermal(cone):
+    # The shop's cutter wearing along its cut (outside the library): on a cone cut on a rotary table its gap is a
+    # uniform offset along the normal growing with the cut, which a thermal drift along X mimics closely; the
+    # wear-like shadow beats it on held-out points, so the answer is "none of the candidates", thermal drift listed
+    # among the closest ones with the reason.
+    m, prog, P, N, dev0, st = cone
+    eff = parse_effects({"tool_wear": {"vb_run_in_um": 60.0, "run_in_mm": 200.0, "vb_rate_um_per_m": 20.0}},
+                        machine=prog.machine)
+    r = simulate(prog.text, prog.machine, eff, part="nas979", points=300, noise_um=1.0, seed=7)
+    cut = np.isfinite(r.deviations_um)
+    assert np.sqrt(np.mean((r.deviations_um[cut] - r.noise_um[cut] - dev0) ** 2)) > 3.0  # >= 3x the noise
+    diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text, candidates=CONE_CANDIDATES)
+    assert diag.verdict == "none of the candidates" and diag.chosen == []
+    assert diag.confidence_basis["z_over_tool_wear_shadow"] < -2.0
+    assert any(c["why_not"] == "a wearing tool (outside the library) explains the gap better" for c in diag.closest)

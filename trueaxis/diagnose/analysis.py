@@ -44,7 +44,8 @@ The rules, in order:
    "none of the candidates", with the "where" ranking and the closest candidates (``Diagnosis.closest``, each with
    the reason it is not the answer).
 6. A uniform offset along the normal growing with the cut (a wearing tool, outside the library) is fitted as a
-   shadow: where it explains the gap as well as the verdict (within one standard error), the report says so and the
+   shadow: where it explains the held-out gap better than the verdict (paired z > ``Z_SHADOW``), the answer is
+   "none of the candidates"; where about as well (within one standard error), the report says so and the
    confidence is at most 0.5.
 
 Confidence (``confidence_of``): CONF_FLOOR + (1 - CONF_FLOOR) * sep * share, with sep the paired held-out z of the
@@ -83,6 +84,7 @@ CONF_FLOOR = 0.2
 CONF_Z0, CONF_Z1 = 1.0, 5.0
 CONF_SHARE0, CONF_SHARE1 = 0.6, 0.85
 CLOSEST = 4
+Z_SHADOW = 2.0
 RCOND_PLAUSIBLE = 1e-2
 FORM_REL = 0.05
 
@@ -630,6 +632,22 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
                          f"{sigma:.2f} um (needed: {EXPLAIN_SHARE * 100:.0f} %, or a residual consistent with the "
                          f"noise)")
             chosen_fit, tied = None, {}
+    shadow_z, shadowed = None, None
+    if chosen_fit is not None:
+        # An effect outside the library: a uniform offset along the normal growing with the cut (a wearing tool).
+        # Where it explains the held-out gap better than the verdict (by ``Z_SHADOW`` standard errors), the gap is
+        # not the verdict's: "none of the candidates". Where it explains it about as well (within one standard
+        # error), the part cannot tell them apart: said so, and the confidence is at most one chance in two.
+        from .candidates import uniform_wear
+
+        shadow = fit_candidate([uniform_wear(state)], g, folds)
+        shadow_z = paired_z(g, chosen_fit.held_out_pred_um, shadow.held_out_pred_um)
+        if shadow_z < -Z_SHADOW:
+            notes.append(f"a uniform offset along the normal growing with the cut (a wearing tool, which no "
+                         f"candidate describes) explains the gap better than {chosen_fit.name} (held-out z "
+                         f"{-shadow_z:.1f}): none of the candidates is the answer")
+            shadowed = chosen_fit.name
+            chosen_fit, tied = None, {}
     if chosen_fit is not None:
         mine = sorted(effect_of(m) for m in chosen_fit.members)
         others = [f for f in fits + pairs if f is not chosen_fit and "ruled_out_by" not in f.extra
@@ -640,21 +658,13 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         rival = max(others, key=lambda f: f.gain_um2) if others else None
         n_tied = sum(len(t) for t in tied.values())
         confidence, conf_info = confidence_of(chosen_fit, rival, g, n_tied)
-        # An effect outside the library that this part cannot tell from the verdict: a uniform offset along the
-        # normal growing with the cut (a wearing tool). Where it explains the gap as well as the verdict does (not
-        # worse by one standard error on held-out points), the verdict is a guess between the two: said so, and
-        # its confidence at most one chance in two.
-        from .candidates import uniform_wear
-
-        shadow = fit_candidate([uniform_wear(state)], g, folds)
-        zs = paired_z(g, chosen_fit.held_out_pred_um, shadow.held_out_pred_um)
-        conf_info["z_over_tool_wear_shadow"] = zs
-        if zs < Z_TIE:
+        if shadow_z < Z_TIE:
             confidence = min(confidence, 0.5)
             notes.append(f"a uniform offset along the normal growing with the cut (a wearing tool, which no "
                          f"candidate describes) explains the gap about as well as {chosen_fit.name} on this part "
-                         f"(held-out z {zs:.1f}): a second part cut with a fresh tool, or the same program with the "
-                         f"passes in another order, would tell them apart")
+                         f"(held-out z {shadow_z:.1f}): a second part cut with a fresh tool, or the same program with "
+                         f"the passes in another order, would tell them apart")
+        conf_info["z_over_tool_wear_shadow"] = shadow_z
         alternatives = [f.name for f in sig if f.name not in chosen_fit.members
                         and (f.gain_um2 >= ALMOST * chosen_fit.gain_um2 or any(f.name in t for t in tied.values()))]
         seps = [separating_measurement(m, t[0]) for m, t in tied.items() if t]
@@ -669,18 +679,23 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
     else:
         after_r = g
         verdict = "none of the candidates"
+        conf_info = {"z_over_tool_wear_shadow": shadow_z}
         # How sure "none" is: the closest candidate's share of the gap above the noise against what a verdict needs.
         closest_share = max([f.explained_share for f in sig] or [0.0])
         confidence = float(np.clip(1.0 - closest_share / EXPLAIN_SHARE, 0.0, 1.0)) * 0.5 + 0.5 if sig else \
             float(min(0.99, 0.5 + 0.5 * (1.0 - max(0.0, fits[0].z if fits else 0.0) / Z_MIN)))
-        if ms_before > sigma**2 * (1.0 + CHI_Z * math.sqrt(2.0 / max(g.size, 1))):
+        if shadowed is not None:
+            # The wear-like shadow beat the best candidate on held-out points: the stronger, the surer.
+            confidence = 0.5 + 0.3 * float(np.clip((-shadow_z - Z_SHADOW) / 4.0, 0.0, 1.0))
+        elif ms_before > sigma**2 * (1.0 + CHI_Z * math.sqrt(2.0 / max(g.size, 1))):
             # The gap is well above the noise and nothing here explains it: an effect outside the library, or one
             # the library holds in a form too poor for it. "None" is then the honest answer, but not a sure one.
             confidence = min(confidence, 0.6)
     closest = [{"effect": f.name, "explained_share_above_noise": f.explained_share,
                 "held_out_rms_after_um": f.rms_after_um, "significant": f.significant, "plausible": f.plausible,
                 "explains": f.explains,
-                "why_not": None if (chosen_fit is not None and f.name == chosen_fit.name) else (
+                "why_not": None if (chosen_fit is not None and f.name == chosen_fit.name) else
+                "a wearing tool (outside the library) explains the gap better" if f.name == shadowed else (
                     "not significant" if not f.significant else "fit at or beyond its plausible bounds"
                     if not f.plausible else "no better than the constrained drift"
                     if f.extra.get("not_beyond_constrained") else "leaves structured residual above the noise"
