@@ -254,7 +254,10 @@ def _solve_bounded(S, g, bounds):
 
     scale = np.sqrt(np.mean(S**2, axis=0))
     scale = np.where(scale > 0, scale, 1.0)
-    r = lsq_linear(S / scale, g, bounds=(lo * scale, hi * scale), method="bvls", lsmr_tol="auto")
+    # The same bounded problem on the p x p triangle of a QR factorisation: ||S t - g||^2 = ||R t - Q^T g||^2 + a
+    # constant, so the solver's iterations cost p^2, not N p.
+    Q, R = np.linalg.qr(S / scale)
+    r = lsq_linear(R, Q.T @ g, bounds=(lo * scale, hi * scale), method="bvls", lsmr_tol="auto")
     return r.x / scale, True
 
 
