@@ -6,17 +6,21 @@ Modules: ``state`` (the twin cuts the program in the virtual shop; the gap and t
 point), ``candidates`` (the library of candidate effects, sensitivities linear in their parameters), ``analysis``
 (held-out folds, noise estimate, where / which / how far), ``report`` (JSON + HTML with pictures, the command).
 
-Candidate effect names (``--candidates all`` or a comma-separated list of these):
+Candidate effect names (``--candidates all`` or a comma-separated list of these), named the ISO 230 way where a
+name exists:
 
-- ``backlash_x``, ``backlash_y``, ``backlash_z``: lost motion of a linear axis, a step with the direction of motion.
-- ``servo_lag``: following error of first-order position loops, transients at corners and stops included: a
-  positive mixture of loops with lag times 4, 12 and 35 ms shared by the axes (the lag time is the sum of the
-  weights, ms) and each further axis' lag-time mismatch against the first moving axis.
+- ``backlash_x/y/z/a/b/c``: reversal error (lost motion) of any axis, linear or rotary, taken up over a transition
+  travel after each reversal (the transition chosen from a grid by the fit).
+- ``servo_lag``: following error of each axis' position loop, its own lag per axis (what velocity feed-forward
+  leaves, (1 - ff) / kv) as a positive mixture over loop time constants 4, 12, 35 ms; rotary axes included.
 - ``force_deflection``: machine compliance (diagonal: X, Y and Z apart) times the estimated cutting force.
 - ``tool_deflection``: tool bending, force normal to the tool times a compliance linear in the contact height.
-- ``thermal_x``, ``thermal_y``, ``thermal_z``: drift along a machine direction, a linear spline of time from zero.
-- ``rotary_periodic_c``, ``rotary_periodic_b``, ``rotary_periodic_a``: once/twice-per-turn harmonics of a rotary
-  axis' angle error.
+- ``thermal_x/y/z``: drift along a machine direction, a monotone first-order response to the running time;
+  ``thermal_spline_x/y/z``: the same drift as a free linear spline, named only when it beats the first-order form
+  on held-out points by a margin.
+- ``rotary_radial_<axis>``, ``rotary_axial_<axis>``, ``rotary_tilt_<axis>``, ``rotary_angular_<axis>``: the ISO
+  230-7 error motions of a rotary axis (e.g. C: EXC/EYC, EZC, EAC/EBC, ECC), harmonics 1 to 4 per turn (plus a
+  term linear in the angle on an axis of limited travel).
 - ``twin_parameters``: re-identification of the twin's own location errors (a wrong value, not a missing effect).
 
 A candidate that cannot move the surface on the given part and program (no such axis, an axis that does not turn, a

@@ -14,25 +14,16 @@ column), which is the machine-to-part rotation applied to e_k.
 How they differ from the virtual shop's effects (``trueaxis.sim.effects``; DESIGN §8 -- written independently, and
 deliberately poorer, so that a fit is a test and not an identity):
 
-- ``backlash_x/y/z``: a pure step, -(b/2) sign(velocity) (the last direction while the axis stands), applied at the
-  cut sample. The shop takes the lost motion up smoothly (tanh over a transition travel) after every reversal, on the
+- ``backlash_<axis>`` (every axis, rotary ones in urad): e = (b/2) d (1 - 2 tanh(s / lambda)) at the cut sample,
+  d the direction of motion, s the travel since the last reversal, lambda from a grid (``BACKLASH_TRANSITIONS``,
+  0 = a step) chosen by the fit. The shop takes the lost motion up (tanh or exponential friction form) on the
   servo-lagged axes, and the envelope picks the deepest cut of any tool instance.
-- ``servo_lag``: the following error of a first-order position loop per axis, e_j = -tau_j (h_tau_j * v_j), v_j the
-  commanded axis velocity, h_tau(t) = exp(-t/tau)/tau (unit DC gain), tau_j = 1/Kv_j the lag time. It is not only the
-  steady lag v/Kv (along the path on a straight wall, invisible with equal gains) but its transient, which is what a
-  real loop leaves on the part: the inside of every corner (ln2 sin(theta/2) v/Kv for a turn by theta), the stops.
-  Linear in its parameters: the shared loop is a positive mixture of loops with fixed lag times tau_m (4, 12, 35 ms,
-  ``state.LAG_TAUS_S``), weights c_m >= 0 in ms, so that the response's DC gain, the lag time, is sum_m c_m (a loop of
-  lag tau_m is c_m = tau_m exactly; one in between is bracketed by its neighbours); and a gain mismatch, each further
-  moving axis' lag time minus the first one's (d_j ms, first order, on the 12 ms loop), which is what a contour shows
-  at steady speed. 3 + (moving axes - 1) parameters rather than a mixture per axis (3 per axis): the corner transient
-  is shared by the axes when their gains are alike, the mismatch is a steady effect, and fewer columns keep the
-  held-out fit honest and the candidate from mimicking others. Each loop is evaluated where its lagged tool cuts the
-  point (``state.lagged_cut``): the loop's tool is the twin's tool tau earlier plus a small transient, so the twin's
-  own instances, shifted in time and moved by the transient to first order, give the envelope. The shop steps a
-  discrete loop per axis with its own gain, acceleration limits (saturation at corners when Kv |dv| > a) and rapids
-  planned within them; the candidate has no limits, no rapids (taken as settled), one shared dynamics and a
-  first-order mismatch.
+- ``servo_lag``: per axis j a lag L_j = sum_m c_jm (ms) over first-order filters of the commanded velocity (time
+  constants 4, 12, 35 ms, ``state.LAG_TAUS_S``), c_jm >= 0: a loop of gain kv and velocity feed-forward ff follows
+  with e = -(1 - ff) (1/kv) w_{1/kv}, so the weights carry (1 - ff)/kv on the filter nearest 1/kv. Two variants of
+  the same parameters (see ``servo_lag``): small lags (feed-forward) to first order at the twin's cut sample, large
+  lags (plain loops) at the lagged tool's deepest cut. The shop steps a discrete loop per axis with its own gain,
+  feed-forward, acceleration limits and planned rapids; the candidate has no limits.
 - ``force_deflection``: a diagonal machine-frame compliance (c_X, c_Y >= 0 and an axial c_Z whose sign is free, as
   it also takes up the X/Y-Z coupling of a real matrix), times the force the twin's simulation estimated at the cut
   sample. The shop uses a full 3x3 matrix (and/or the machine's own force model) with the force recomputed on the
@@ -40,10 +31,14 @@ deliberately poorer, so that a fit is a test and not an identity):
 - ``tool_deflection``: a straight lever, deflection = F_perp (c0 + c1 h) at contact height h, c0 >= 0: isotropic in
   the plane normal to the tool (a round tool). The shop bends a carbide cantilever (cubic in the load position, load
   at the centre of the engaged flute) and tilts the tool.
-- ``thermal_x/y/z``: drift along one machine direction as a linear spline of program time through zero at the start,
-  knots at T/3, 2T/3 and T (the parameters are the drift there, um). The shop interpolates a measured thermal series.
-- ``rotary_periodic_c/_b/_a``: once- and twice-per-turn harmonics of the commanded angle, as a first-order axis
-  error through the Jacobian. The shop may hold any harmonic and applies it before the full kinematics.
+- ``thermal_<k>``: drift along one machine direction, D (1 - exp(-t/tau)) / (1 - exp(-T/tau)), tau from a grid
+  of multiples of the program's duration T (infinite: linear); ``thermal_spline_<k>``: a linear spline of time
+  through zero at the start, knots at T/3, 2T/3 and T. The shop interpolates a measured thermal series.
+- ``rotary_<motion>_<axis>``: the ISO 230-7 error motions, radial (two directions normal to the axis), axial, tilt
+  (about the two directions normal to it) and angular positioning, each component E<dir><axis> as harmonics 1-4 of
+  the commanded angle, zero at angle 0, plus a term linear in the angle on an axis of limited travel, through the
+  twin's exact parameter Jacobian of a constant component error. The shop applies its error motions (any
+  harmonics, a linear term per turn) as a transform at the axis, at the axis' actual angle.
 - ``twin_parameters``: re-identification of the twin's own location errors (``machine.location_names()``) through
   the exact parameter Jacobian (``ErrorTwin.parameter_jacobian``) projected on the normals, so that a wrong value in
   the machine file is not mistaken for a missing effect. Component tables are left out (too many columns for one
@@ -54,6 +49,8 @@ Parameter units are given per parameter in ``Candidate.units``; values stay in t
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -70,7 +67,12 @@ class Candidate:
 
     name : library name.  columns : (N, p) sensitivity, um per parameter unit.  parameters : p names.
     units : p unit strings.  plausible : p (low, high) bounds of a physically plausible value (None = any).
-    describe : one-line physical description.
+    describe : one-line physical description.  form : per parameter, True when its bounds are the candidate's form
+    (see ``form_bound``).  variants : [(label, (N, p) columns)]: alternative shapes of the same parameters (a
+    non-linear shape parameter on a grid: backlash's transition length, thermal's time constant); the fit picks
+    the one that fits the training points best, fold by fold (``columns`` is the first until then).
+    derived : [(name, unit, parameter indices)]: sums of parameters reported with their own std (a servo axis' lag
+    over its filters).
     """
 
     name: str
@@ -80,6 +82,12 @@ class Candidate:
     plausible: list = field(default_factory=list)
     describe: str = ""
     form: list = field(default_factory=list)
+    variants: list = field(default_factory=list)
+    derived: list = field(default_factory=list)
+
+    def with_variant(self, i: int) -> "Candidate":
+        """The candidate with its columns set to variant i (a copy; the variants stay listed)."""
+        return dataclasses.replace(self, columns=self.variants[i][1])
 
     def form_bound(self, i: int) -> bool:
         """True when parameter i's bounds are a constraint of the candidate's form (the weights of a positive
@@ -108,38 +116,84 @@ def _machine_direction(state: TwinState, k: int) -> np.ndarray:
     return np.tile(np.eye(3)[k], (len(state), 1))
 
 
+def _angle_scale(state: TwinState, axis: str) -> float:
+    """The candidates' unit of an axis error in the axis' own unit: 1e-3 mm per um (linear), 1e-6 rad per urad
+    (rotary); times 1e3 for um of deviation."""
+    return 1e-3 if axis in state.rotary else 1.0
+
+
+#: Transition lengths of the reversal candidate (mm for a linear axis, deg for a rotary one): a step, and the lost
+#: motion taken up over a short or a long travel after the reversal. The one that fits the training points best is
+#: used (``Candidate.variants``, chosen fold by fold).
+BACKLASH_TRANSITIONS = (0.0, 0.005, 0.02, 0.06, 0.2)
+
+
 def backlash(state: TwinState, axis: str) -> Candidate | None:
     if axis not in state.axis_names:
         return None
     j = state.axis_names.index(axis)
-    col = -0.5 * state.direction[:, j] * _axis_response(state, axis)  # um per um of lost motion
-    return Candidate(f"backlash_{axis.lower()}", col[:, None], [f"lost_motion_{axis}"], ["um"], [(-60.0, 60.0)],
-                     f"lost motion of {axis} at reversals: a step of b/2 against the direction of motion")
+    rotary = axis in state.rotary
+    resp = _axis_response(state, axis) * _angle_scale(state, axis)  # um per um (urad) of the axis
+    d = state.direction[:, j]
+    if not np.any(d):
+        return None
+    s = state.reversal_travel[:, j] if state.reversal_travel is not None else np.full(len(state), np.inf)
+    variants = []
+    for lam in BACKLASH_TRANSITIONS:
+        lam_i = math.radians(lam) if rotary else lam
+        # e = (b/2) d (1 - 2 tanh(s / lambda)): -(b/2) d once taken up, +(b/2) d at the turning point.
+        shape = -np.ones_like(s) if lam == 0.0 else 1.0 - 2.0 * np.tanh(s / lam_i)
+        variants.append((f"transition {lam:g} {'deg' if rotary else 'mm'}", (0.5 * d * shape * resp)[:, None]))
+    unit = "urad" if rotary else "um"
+    bound = 500.0 if rotary else 60.0
+    return Candidate(f"backlash_{axis.lower()}", variants[0][1], [f"lost_motion_{axis}"], [unit], [(-bound, bound)],
+                     f"reversal error (lost motion) of {axis}: b/2 against the direction of motion, taken up over a "
+                     f"transition travel after each reversal", variants=variants)
 
 
 def servo_lag(state: TwinState) -> Candidate | None:
-    if state.lag_deviation is None or not len(state.lag_taus_s):
+    """Per-axis following error: each axis' lag L_j (ms) as a positive mixture over the filters' time constants
+    (the loop's 1/kv); L_j = (1 - ff_j) / kv_j with velocity feed-forward ff_j. Two variants of the same
+    parameters, chosen by the fit:
+
+    - "feed-forward": the lag is small (a few ms), the loop's tool is the twin's moved by e_j = -L_j w_j, to first
+      order at the twin's cut sample: column (j, m) = -(n . M_j) w_jm;
+    - "plain loops": the lag is the loop's time constant (no feed-forward, 6-60 ms), large enough for the lagged
+      tool to cut a point at another sample than the twin's (the inside of a corner): the deviation at the lagged
+      cut (``state.lagged_cut``), per axis to first order (``lag_axis``) plus the envelope's remainder
+      (``lag_deviation`` minus the axes' sum) shared among the axes in proportion to their part, so that equal lags
+      on every axis give the whole loop's deviation exactly."""
+    if state.lag_velocity is None or not len(state.lag_taus_s):
         return None
     taus_ms = 1e3 * np.asarray(state.lag_taus_s, float)
-    mid = len(taus_ms) // 2
-    ax = state.lag_axis
-    moving = [j for j in range(len(state.axis_names)) if np.ptp(ax[:, j, :]) > 1e-9 or abs(ax[0, j, 0]) > 1e-9]
-    if not moving:
-        return None  # no axis' lag moves the surface: no lag can be seen
-    # The loop shared by all axes, a positive mixture of first-order loops of lag tau_m: the deviation of loop m per
-    # ms of lag (c_m = tau_m gives loop m exactly; the lag time is sum c_m).
-    cols = [state.lag_deviation[:, m] for m in range(len(taus_ms))]
-    names = [f"lag_{t:.0f}ms" for t in taus_ms]
-    bounds = [(0.0, 100.0)] * len(taus_ms)
-    # A gain mismatch, to first order: each further moving axis' lag time minus the first one's, d_j, on the middle
-    # filter (the first moving axis is the reference: a common change of all lag times is the shared loop's).
-    cols += [ax[:, j, mid] for j in moving[1:]]
-    names += [f"lag_mismatch_{state.axis_names[j]}" for j in moving[1:]]
-    bounds += [(-30.0, 30.0)] * (len(moving) - 1)
-    return Candidate("servo_lag", np.column_stack(cols), names, ["ms"] * len(names), bounds,
-                     "following error of the position loops (first order, lag time 1000 / kv ms): a positive mixture "
-                     "of first-order loops shared by all axes, plus each axis' mismatch of lag time",
-                     form=[True] * len(taus_ms) + [False] * (len(names) - len(taus_ms)))
+    cut_cols, lag_cols, names, derived = [], [], [], []
+    la = state.lag_axis
+    if la is not None:
+        remainder = state.lag_deviation - la.sum(axis=1)  # (N, M)
+        weight = np.abs(la) / np.maximum(np.abs(la).sum(axis=1, keepdims=True), 1e-300)
+    for j, a in enumerate(state.axis_names):
+        resp = _axis_response(state, a)  # mm per mm (rad)
+        w = state.lag_velocity[:, j, :]  # mm/s (rad/s) through each loop's filter
+        if not np.any(w):
+            continue
+        first = len(names)
+        for m, t in enumerate(taus_ms):
+            # Following error e = -L w (L ms of lag): deviation -resp w L 1e-3 mm = -resp w L um.
+            cut_cols.append(-resp * w[:, m])
+            if la is not None:
+                lag_cols.append(la[:, j, m] + weight[:, j, m] * remainder[:, m])
+            names.append(f"lag_{a}_{t:.0f}ms")
+        derived.append((f"lag_{a}", "ms", list(range(first, len(names)))))
+    if not names:
+        return None
+    variants = [("feed-forward (small lag, at the cut)", np.column_stack(cut_cols))]
+    if lag_cols:
+        variants.append(("plain loops (lag = time constant, at the lagged cut)", np.column_stack(lag_cols)))
+    return Candidate("servo_lag", variants[0][1], names, ["ms"] * len(names), [(0.0, 100.0)] * len(names),
+                     "following error of each axis' position loop: per axis a positive mixture of first-order loops "
+                     "(time constant 1/kv), weight = lag left after velocity feed-forward, (1 - ff) / kv, ms; the "
+                     "axis' lag is the sum of its weights",
+                     form=[True] * len(names), variants=variants, derived=derived)
 
 
 def force_deflection(state: TwinState) -> Candidate | None:
@@ -170,7 +224,43 @@ def tool_deflection(state: TwinState) -> Candidate | None:
                      "tool bending: force normal to the tool times a compliance linear in the contact height")
 
 
-def thermal(state: TwinState, k: int, knots: int = 3) -> Candidate:
+#: Time constants of the constrained thermal candidate, as multiples of the program's duration T (inf: a drift
+#: linear in time, the start of a slow response).
+THERMAL_TAUS_OF_T = (0.15, 0.4, 1.0, 3.0, math.inf)
+
+
+def thermal(state: TwinState, k: int) -> Candidate:
+    """Constrained thermal drift along machine direction k: a monotone first-order response to the spindle's running
+    time, d(t) = D (1 - exp(-t/tau)) / (1 - exp(-T/tau)) (D: the drift at the program's end, um), zero at the start.
+    A spindle already warm when the program starts gives the same form (a later stretch of the same exponential)."""
+    letter = AXIS_LETTERS[k]
+    T = max(state.t_end_s, 1e-9)
+    proj = np.einsum("ij,ij->i", state.normals, _machine_direction(state, k))
+    variants = []
+    for f in THERMAL_TAUS_OF_T:
+        shape = state.t_s / T if math.isinf(f) else -np.expm1(-state.t_s / (f * T)) / -math.expm1(-1.0 / f)
+        variants.append((f"time constant {'inf' if math.isinf(f) else f'{f:g} T'}", (proj * shape)[:, None]))
+    return Candidate(f"thermal_{letter.lower()}", variants[0][1], [f"drift_{letter}_at_end"], ["um"],
+                     [(-200.0, 200.0)],
+                     f"thermal drift along machine {letter}: monotone first-order response to the spindle's running "
+                     f"time, zero at the program start", variants=variants)
+
+
+def uniform_wear(state: TwinState) -> Candidate:
+    """Not a library candidate: the shadow of an effect outside the library, a cutter losing radius as it cuts
+    (tool wear): the surface moves out along its own normal by a monotone first-order (run-in) or linear amount of
+    the cut time. A verdict whose fit this form matches as well is not a verdict the part can support on its own
+    (see ``analysis.diagnose_state``)."""
+    T = max(state.t_end_s, 1e-9)
+    variants = []
+    for f in THERMAL_TAUS_OF_T:
+        shape = state.t_s / T if math.isinf(f) else -np.expm1(-state.t_s / (f * T)) / -math.expm1(-1.0 / f)
+        variants.append((f"time constant {'inf' if math.isinf(f) else f'{f:g} T'}", shape[:, None]))
+    return Candidate("uniform normal offset growing with the cut (tool wear, outside the library)", variants[0][1],
+                     ["offset_at_end"], ["um"], [(-200.0, 200.0)], "tool wear-like shadow", variants=variants)
+
+
+def thermal_spline(state: TwinState, k: int, knots: int = 3) -> Candidate:
     letter = AXIS_LETTERS[k]
     T = max(state.t_end_s, 1e-9)
     at = T * np.arange(1, knots + 1) / knots
@@ -178,23 +268,89 @@ def thermal(state: TwinState, k: int, knots: int = 3) -> Candidate:
     grid = np.r_[0.0, at]
     hats = np.column_stack([np.interp(state.t_s, grid, np.eye(knots + 1)[m + 1]) for m in range(knots)])
     proj = np.einsum("ij,ij->i", state.normals, _machine_direction(state, k))
-    return Candidate(f"thermal_{letter.lower()}", proj[:, None] * hats,
+    return Candidate(f"thermal_spline_{letter.lower()}", proj[:, None] * hats,
                      [f"drift_{letter}_at_{t:.0f}s" for t in at], ["um"] * knots, [(-200.0, 200.0)] * knots,
-                     f"thermal drift along machine {letter}: linear spline of time, zero at the program start")
+                     f"thermal drift along machine {letter}, flexible: linear spline of time, zero at the program "
+                     f"start (chosen only when it beats the constrained form on held-out points by a margin)")
 
 
-def rotary_periodic(state: TwinState, axis: str) -> Candidate | None:
+#: ISO 230-7 error motions of a rotary axis, by the component errors E<direction><axis> they are made of: radial
+#: (the two directions normal to the axis), axial (along it), tilt (about the two directions normal to it) and
+#: angular positioning (about the axis itself).
+ERROR_MOTIONS = ("radial", "axial", "tilt", "angular")
+HARMONICS = (1, 2, 3, 4)
+
+
+def _motion_components(state: TwinState, axis: str, motion: str) -> list[str]:
+    about = state.machine.axes[axis].about
+    normal = [d for d in "XYZ" if d != about]
+    rot = {"X": "A", "Y": "B", "Z": "C"}
+    dirs = {"radial": normal, "axial": [about], "tilt": [rot[d] for d in normal], "angular": [rot[about]]}[motion]
+    return [f"E{d}{axis}" for d in dirs]
+
+
+def _component_response(state: TwinState, axis: str) -> np.ndarray:
+    """(N, 6) deviation (um) per um / urad of each constant component error E<X..C><axis> at the cut, through the
+    twin's exact parameter Jacobian (a probe copy of the twin whose only component functions are constants of this
+    axis), projected on the normals at the contact height."""
+    key = ("component_response", axis)
+    if key in state.memo:
+        return state.memo[key]
+    from ..machine.error_functions import legendre_series
+    from ..machine.model import ERROR_DIRECTIONS, ErrorSet
+
+    m = state.machine
+    comps = {f"E{d}{axis}": legendre_series([0.0], (-1e3, 1e3)) for d in ERROR_DIRECTIONS}
+    probe = dataclasses.replace(m, errors=ErrorSet(location=dict(m.errors.location), components={axis: comps}),
+                                loaded=None, loaded_force_n=None)
+    names = probe.parameter_names()
+    Jp = ErrorTwin(probe).parameter_jacobian(state.q)
+    idx = [names.index(f"E{d}{axis}.P0") for d in ERROR_DIRECTIONS]
+    J = Jp[:, :, idx]
+    out = np.einsum("ij,ijk->ik", state.normals, J[:, :3] + 1e-3 * state.height_mm[:, None, None] * J[:, 3:])
+    state.memo[key] = out
+    return out
+
+
+def rotary_error_motion(state: TwinState, axis: str, motion: str) -> Candidate | None:
+    """ISO 230-7 error motion ``motion`` of rotary ``axis``: each of its components as harmonics 1..4 per turn of
+    the commanded angle, plus a term linear in the angle (um or urad per rad) on an axis of limited travel. Each
+    term is zero at the axis' zero angle (a_k (cos k theta - 1) + b_k sin k theta): a constant part of a component
+    error is a location error, which ``twin_parameters`` holds."""
     if axis not in state.rotary:
         return None
     j = state.axis_names.index(axis)
     theta = state.q[:, j]
     if np.ptp(theta) < np.radians(30.0):
         return None  # the axis hardly turns while cutting: no harmonic can be told from an offset
-    r = _axis_response(state, axis) * 1e-3  # um per urad
-    cols = np.column_stack([r * f(k * theta) for k in (1, 2) for f in (np.cos, np.sin)])
-    names = [f"{axis}_{k}{w}" for k in (1, 2) for w in ("cos", "sin")]
-    return Candidate(f"rotary_periodic_{axis.lower()}", cols, names, ["urad"] * 4, [(-300.0, 300.0)] * 4,
-                     f"angular positioning error of {axis}: once- and twice-per-turn harmonics of its angle")
+    from ..machine.model import ERROR_DIRECTIONS
+
+    R = _component_response(state, axis)
+    # The term linear in the angle only for an axis of limited travel (a tilting axis): a continuous rotary axis'
+    # error motion repeats every turn, and over the one turn of a pass a linear term is a drift in time, which the
+    # thermal candidates describe.
+    limited = state.machine.axes[axis].travel is not None
+    cols, names, units, bounds = [], [], [], []
+    for comp in _motion_components(state, axis, motion):
+        r = R[:, ERROR_DIRECTIONS.index(comp[1])]
+        angular = comp[1] in "ABC"
+        u = "urad" if angular else "um"
+        b = 300.0 if angular else 30.0
+        for k in HARMONICS:
+            cols += [r * (np.cos(k * theta) - 1.0), r * np.sin(k * theta)]
+            names += [f"{comp}_{k}cos", f"{comp}_{k}sin"]
+            units += [u, u]
+            bounds += [(-b, b), (-b, b)]
+        if limited:
+            cols.append(r * theta)
+            names.append(f"{comp}_per_rad")
+            units.append(f"{u}/rad")
+            bounds.append((-b, b))
+    label = {"radial": "radial error motion", "axial": "axial error motion", "tilt": "tilt error motion",
+             "angular": "angular positioning error motion"}[motion]
+    return Candidate(f"rotary_{motion}_{axis.lower()}", np.column_stack(cols), names, units, bounds,
+                     f"ISO 230-7 {label} of {axis} ({', '.join(_motion_components(state, axis, motion))}): "
+                     f"harmonics 1-4 per turn plus a term linear in the angle")
 
 
 def twin_parameters(state: TwinState, min_norm_um: float = 1e-3) -> Candidate | None:
@@ -216,37 +372,46 @@ def twin_parameters(state: TwinState, min_norm_um: float = 1e-3) -> Candidate | 
                      "changes of the twin's own location errors (re-identification), not a new effect")
 
 
-LIBRARY = ("backlash_x", "backlash_y", "backlash_z", "servo_lag", "force_deflection", "tool_deflection",
-           "thermal_x", "thermal_y", "thermal_z", "rotary_periodic_c", "rotary_periodic_b", "rotary_periodic_a",
-           "twin_parameters")
+LIBRARY = ("backlash_x", "backlash_y", "backlash_z", "backlash_a", "backlash_b", "backlash_c", "servo_lag",
+           "force_deflection", "tool_deflection", "thermal_x", "thermal_y", "thermal_z",
+           "thermal_spline_x", "thermal_spline_y", "thermal_spline_z",
+           *(f"rotary_{m}_{a}" for a in "abc" for m in ERROR_MOTIONS), "twin_parameters")
 
 
 def build(name: str, state: TwinState) -> Candidate | None:
     """The candidate ``name`` (one of ``LIBRARY``) at the state's points; None when it does not apply to this
     machine / program (no such axis, the axis does not turn, no force estimate)."""
+    if name not in LIBRARY:
+        raise ValueError(f"unknown candidate {name!r} (known: {', '.join(LIBRARY)})")
     if name.startswith("backlash_"):
         return backlash(state, name[-1].upper())
+    if name.startswith("thermal_spline_"):
+        return thermal_spline(state, AXIS_LETTERS.index(name[-1].upper()))
     if name.startswith("thermal_"):
         return thermal(state, AXIS_LETTERS.index(name[-1].upper()))
-    if name.startswith("rotary_periodic_"):
-        return rotary_periodic(state, name[-1].upper())
+    if name.startswith("rotary_"):
+        _, motion, a = name.split("_")
+        return rotary_error_motion(state, a.upper(), motion)
     fn = {"servo_lag": servo_lag, "force_deflection": force_deflection, "tool_deflection": tool_deflection,
-          "twin_parameters": twin_parameters}.get(name)
-    if fn is None:
-        raise ValueError(f"unknown candidate {name!r} (known: {', '.join(LIBRARY)})")
+          "twin_parameters": twin_parameters}[name]
     return fn(state)
 
 
 def visible(c: Candidate, min_um: float = 0.5) -> Candidate | None:
     """The candidate with only the parameters that can change the deviation by more than ``min_um`` (rms) within
     their plausible bounds; None when none can (the effect cannot be seen on this part and program)."""
-    reach = np.sqrt(np.mean(c.columns**2, axis=0)) * np.array([max(abs(b[0]), abs(b[1])) for b in c.plausible])
+    span = np.array([max(abs(b[0]), abs(b[1])) for b in c.plausible])
+    sets = [v for _, v in c.variants] if c.variants else [c.columns]
+    reach = np.max([np.sqrt(np.mean(v**2, axis=0)) for v in sets], axis=0) * span
     keep = np.isfinite(reach) & (reach > min_um)
     if not np.any(keep):
         return None
     idx = np.nonzero(keep)[0]
+    new = {int(i): k for k, i in enumerate(idx)}
+    derived = [(n, u, [new[i] for i in ii if i in new]) for n, u, ii in c.derived]
     return Candidate(c.name, c.columns[:, idx], [c.parameters[i] for i in idx], [c.units[i] for i in idx],
-                     [c.plausible[i] for i in idx], c.describe, [c.form_bound(i) for i in idx])
+                     [c.plausible[i] for i in idx], c.describe, [c.form_bound(i) for i in idx],
+                     [(lab, v[:, idx]) for lab, v in c.variants], [d for d in derived if d[2]])
 
 
 def build_all(names, state: TwinState) -> tuple[list[Candidate], list[str]]:

@@ -77,8 +77,8 @@ def _fit_dict(f) -> dict:
                            for n, u, v, s in zip(f.parameters, f.units, f.value, f.std)],
             "held_out_gain_um2": f.gain_um2, "held_out_rms_after_um": f.rms_after_um,
             "explained_share_above_noise": f.explained_share, "z": f.z, "f_stat": f.f_stat, "f_p_value": f.f_p,
-            "significant": f.significant, "plausible": f.plausible, "n_parameters": f.n_parameters,
-            "effective_rank": f.rank, **f.extra}
+            "significant": f.significant, "plausible": f.plausible, "explains": f.explains,
+            "n_parameters": f.n_parameters, "effective_rank": f.rank, **f.extra}
 
 
 def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None) -> dict:
@@ -86,7 +86,11 @@ def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None
     if diag.chosen_fit is not None:
         f = diag.chosen_fit
         chosen.append({"effect": f.name, "members": f.members,
-                       "parameters": _fit_dict(f)["parameters"], "confidence": diag.confidence,
+                       "parameters": _fit_dict(f)["parameters"],
+                       "derived_parameters": [{"name": d["name"], f"value_{d['unit']}": d["value"],
+                                               f"std_{d['unit']}": d["std"], "unit": d["unit"]}
+                                              for d in f.extra.get("derived", [])],
+                       "variant": f.extra.get("variant"), "confidence": diag.confidence,
                        "plausible": f.plausible, "alternatives": diag.alternatives,
                        "separating_measurement": diag.separating_measurement})
     return {
@@ -102,6 +106,8 @@ def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None
         "alternatives": diag.alternatives,
         "separating_measurement": diag.separating_measurement,
         "ruled_out": diag.ruled_out,
+        "closest_candidates": diag.closest,
+        "confidence_basis": diag.confidence_basis,
         "candidates": [_fit_dict(f) for f in diag.fits],
         "candidates_not_applicable": diag.skipped,
         "gap_um": {"before": diag.gap_before, "after": diag.gap_after},
@@ -190,12 +196,16 @@ def _html(data: dict, pngs: dict) -> str:
         f"<p><b>{e(c['effect'])}</b> (confidence {c['confidence']:.2f}): " + ", ".join(
             f"{e(p['name'])} = {p[next(k for k in p if k.startswith('value_'))]:.4g} ± "
             f"{p[next(k for k in p if k.startswith('std_'))]:.2g} {e(p['unit'])}" for p in c["parameters"]) + "</p>"
-        for c in data["chosen"]) or "<p><b>none of the candidates</b> explains the gap beyond the probe noise.</p>"
+        for c in data["chosen"]) or "<p><b>none of the candidates</b> explains the gap.</p>"
     alt = ""
     if data["alternatives"]:
         alt = (f"<p>Almost as good: {e(', '.join(data['alternatives']))}. "
                f"To separate them: {e(data['separating_measurement'] or 'a second placement')}.</p>")
-    alt += "".join(f"<p>Ruled out: {e(r)}.</p>" for r in data.get("ruled_out", []))
+    alt += "".join(f"<p>Note: {e(r)}.</p>" for r in data.get("ruled_out", []))
+    if not data["chosen"] and data.get("closest_candidates"):
+        alt += "<p>Closest candidates (none explains the gap): " + "; ".join(
+            f"{e(c['effect'])}: {c['explained_share_above_noise'] * 100:.0f} % of the gap above the noise, "
+            f"{e(c['why_not'] or '')}" for c in data["closest_candidates"]) + ".</p>"
     b, a = data["gap_um"]["before"], data["gap_um"]["after"]
     imgs = "".join(f'<h3>{e(k)}</h3><img src="data:image/png;base64,{base64.b64encode(v).decode()}">'
                    for k, v in pngs.items())

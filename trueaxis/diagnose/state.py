@@ -48,9 +48,15 @@ class TwinState:
     force_n : (N, 3) cutting force on the tool estimated by the twin's simulation, part frame, N (zeros when the
         machine file has no [cutting] coefficients; ``has_force`` says which).
     axis_jacobian : (N, 6, n_axes) d(tip mm, unit axis)/d(q) at the cut (``ErrorTwin.axis_jacobian``).
-    lag_deviation : (N, M) the deviation a first-order position loop of lag time tau_m (``lag_taus_s``, the same on
-        every axis) adds at each point, per ms of lag (um/ms), read at the lagged tool's deepest cut (``lagged_cut``).
-    lag_axis : (N, n_axes, M) the deviation per ms of a further lag of one axis alone there (um/ms): a gain mismatch.
+    reversal_travel : (N, n_axes) each axis' travel since its last reversal at the cut (mm or rad; inf before the
+        first reversal).
+    lag_velocity : (N, n_axes, M) each axis' commanded velocity at the cut through first-order filters of unit DC
+        gain with the time constants ``lag_taus_s`` (``lag_filtered_velocity``), mm/s or rad/s: a position loop of
+        time constant tau_m and velocity feed-forward ff follows with the error -(1 - ff) tau_m w.
+    lag_deviation : (N, M) the deviation a first-order position loop of time constant tau_m on every axis (no
+        feed-forward: lag = tau_m) adds at each point, per ms of lag (um/ms), read at the lagged tool's deepest cut
+        (``lagged_cut``).
+    lag_axis : (N, n_axes, M) the deviation per ms of a further lag of one axis alone there (um/ms).
     axis_names, rotary : the machine's axis names and its rotary ones.  machine : the twin (placed as the program says).
     part : "nas979" | "slots".  dropped : number of measured points the twin's program did not cut.
     """
@@ -76,10 +82,13 @@ class TwinState:
     machine: Machine
     part: str
     dropped: int = 0
+    reversal_travel: np.ndarray | None = None
+    lag_velocity: np.ndarray | None = None
     lag_deviation: np.ndarray | None = None
     lag_axis: np.ndarray | None = None
     lag_taus_s: tuple = ()
     timings: dict = field(default_factory=dict)
+    memo: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.gap_um.shape[0])
@@ -90,6 +99,7 @@ class TwinState:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             out[f.name] = v[keep] if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == len(self) else v
+        out["memo"] = {}
         return TwinState(**out)
 
 
@@ -124,12 +134,12 @@ def _last_direction(qdot_all: np.ndarray) -> np.ndarray:
     return np.where(d == 0, first_sign[None, :], d)
 
 
-#: Time constants (s) of the servo-lag candidate's filters. A position loop's lag time 1/Kv is 6-60 ms on real
-#: machine tools (Kv 1-10 (m/min)/mm = 17-170 /s) and the benchmark's scaled loops reach down to ~1.5 ms; three
-#: filters spaced by about 3x bracket that range: a loop with a lag time between two of them is matched by a positive
-#: mixture of the two to a few per cent of its corner transient, and below the shortest one (or above the longest)
-#: the transient is short (long) compared with the others and the nearest one still takes it up. More filters would
-#: add parameters whose columns differ only at the few points cut within ~3 tau of a velocity change.
+#: Time constants (s) of the servo-lag candidate's filters. A position loop's time constant 1/Kv is 6-60 ms on real
+#: machine tools (Kv 1-10 (m/min)/mm = 17-170 /s; 22-40 ms at kv 25-45 /s); three filters spaced by about 3x bracket
+#: that range: a loop with a time constant between two of them is matched by a positive mixture of the two to a few
+#: per cent of its transient. With velocity feed-forward ff the loop's error is (1 - ff) times the plain loop's, so
+#: the mixture's weights are (1 - ff) tau, the lag the drive leaves. More filters would add parameters whose columns
+#: differ only at the few points cut within ~3 tau of a velocity change.
 LAG_TAUS_S = (0.004, 0.012, 0.035)
 #: How far from the twin's cut sample a lagged tool's cut is looked for (s): 4 tau_max.
 LAG_WINDOW_S = 4.0 * max(LAG_TAUS_S)
@@ -254,6 +264,22 @@ def _last_tied_sample(res, points, normals, twin, machine) -> np.ndarray:
     return np.where(env.instance >= 0, ci[np.maximum(env.instance, 0)], -1)
 
 
+def reversal_travel(q: np.ndarray) -> np.ndarray:
+    """(T, n) each axis' travel since its last reversal (mm or rad), inf before its first reversal.
+
+    q : (T, n) commanded axes along the trajectory. The direction at a sample is that of the step ending there (the
+    last one the axis moved in while it stands); a reversal is a change of that direction."""
+    step = np.diff(q, axis=0, prepend=q[:1])
+    T, n = q.shape
+    d = _last_direction(step)
+    idx = np.arange(T)[:, None]
+    rev = np.zeros((T, n), bool)
+    rev[1:] = d[1:] != d[:-1]
+    r = np.maximum.accumulate(np.where(rev, idx, 0), axis=0)
+    turn = np.take_along_axis(q, np.maximum(r - 1, 0), axis=0)
+    return np.where(r > 0, np.abs(q - turn), np.inf)
+
+
 def twin_state(points, normals, machine: Machine, program_text: str, part: str, *, want_force: bool = True,
                force_stride: int = 10) -> TwinState:
     """Simulate the twin ``machine`` cutting ``program_text`` and read the gap and the state at ``points``.
@@ -294,8 +320,8 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
     height = np.einsum("ij,ij->i", points[cut] - tip, u)
     direction = _last_direction(traj.qdot)[s]
     jac = twin.axis_jacobian(q)
+    lag_velocity = lag_filtered_velocity(traj, LAG_TAUS_S)[s]
     move = jac[:, :3] + height[:, None, None] * jac[:, 3:]  # (N, 3, n_axes) tool displacement per axis
-    response = np.einsum("ij,ijk->ik", normals[cut], move)
     # The lagged cut (see ``lagged_cut``) around the twin's first and last tied cut samples.
     last = _last_tied_sample(res, points[cut], normals[cut], twin, machine)
     anchors = np.column_stack([s, np.where(last >= 0, last, s)])
@@ -306,12 +332,14 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
     tips_all[ks], axes_all[ks] = twin.actual_pose(traj.q[ks])
     lag_dev, lag_axis = lagged_cut(points[cut], normals[cut], traj, anchors, tips_all, axes_all, machine.tool.radius,
                                    machine.tool.flute_length, move, LAG_TAUS_S, LAG_WINDOW_S)
+    travel = reversal_travel(np.asarray(traj.q, float))[s]
     return TwinState(
         points=points[cut], normals=normals[cut], gap_um=-res.deviations_um[cut], t_s=traj.t[s],
         t_end_s=float(traj.t[-1]), q=q, qdot=traj.qdot[s], direction=direction,
         feed_mm_min=traj.feed_mm_min[s], block_line=res.block_line[cut], tip=tip, axis=u, height_mm=height,
         force_n=res.force_n[cut], has_force=has_force, axis_jacobian=jac,
         axis_names=tuple(machine.axis_names), rotary=tuple(machine.rotary_axes), machine=machine, part=part,
-        dropped=int((~cut).sum()), lag_deviation=lag_dev, lag_axis=lag_axis,
+        dropped=int((~cut).sum()), reversal_travel=travel, lag_velocity=lag_velocity, lag_deviation=lag_dev,
+        lag_axis=lag_axis,
         lag_taus_s=tuple(LAG_TAUS_S),
         timings={"twin_simulation_s": time.perf_counter() - t0, **res.timings})
