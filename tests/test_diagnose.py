@@ -497,3 +497,18 @@ def test_wearing_tool_is_none_of_the_candidates_not_thermal(cone):
     assert diag.verdict == "none of the candidates" and diag.chosen == []
     assert diag.confidence_basis["z_over_tool_wear_shadow"] < -2.0
     assert any(c["why_not"] == "a wearing tool (outside the library) explains the gap better" for c in diag.closest)
+
+
+def test_a_cloud_of_another_part_or_far_from_the_cut_is_refused_before_a_verdict(slots):
+    """A cloud of the slot block given as the cone (here: the slot block's own points), and the right part's cloud
+    moved 2 mm along its normals, are refused with a reason; neither gets an effect named (issue: a 7860 um gap)."""
+    from trueaxis.inspect.cloud import CloudError
+
+    m, prog, base = slots
+    with pytest.raises(CloudError, match="nas979"):
+        run_diagnosis(base.points, base.normals, "nas979", m, prog.text)
+    with pytest.raises(CloudError, match="exceeds the slots part by 1.4 mm in Z"):
+        run_diagnosis(base.points + 2.0 * base.normals, base.normals, "slots", m, prog.text)
+    # 0.8 mm into the material: inside the block, but no machine effect is that large
+    with pytest.raises(ValueError, match=r"lies (79\d|80\d) um \(RMS\) from the part this program cuts"):
+        run_diagnosis(base.points - 0.8 * base.normals, base.normals, "slots", m, prog.text)

@@ -57,16 +57,39 @@ def run_diagnosis(points, normals, part: str, machine, program_text: str, *, can
                   noise_um=None, force_stride: int = 200) -> tuple[Diagnosis, TwinState]:
     """Twin simulation, candidates, judgement. points (N,3) mm part frame; normals (N,3) or None."""
     names = parse_candidates(candidates) if isinstance(candidates, str) or candidates is None else list(candidates)
+    check_cloud_for_part(points, part)
     normals = cloud_normals(np.asarray(points, float), normals, part)
     state = twin_state(points, normals, machine, program_text, part,
                        want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride)
     if len(state) < 20:
         raise ValueError(f"only {len(state)} measured points were cut by the program: too few to diagnose")
+    gap_rms = float(np.sqrt(np.mean(state.gap_um ** 2)))
+    if not gap_rms <= MAX_GAP_RMS_UM:
+        raise ValueError(f"the cloud lies {gap_rms:.0f} um (RMS) from the part this program cuts on this twin: not a "
+                         f"measurement of that cut (another part, another frame, another program?); a sim-to-real "
+                         f"gap is at most a few tens of um")
     t0 = time.perf_counter()
     cands, skipped = build_all(names, state)
     diag = diagnose_state(state, cands, split=split, noise_um=noise_um, skipped=skipped)
     state.timings["diagnosis_s"] = time.perf_counter() - t0
     return diag, state
+
+
+MAX_GAP_RMS_UM = 500.0  # the post's default correction bound: a larger gap is not a machine effect but a wrong input
+
+
+def check_cloud_for_part(points, part: str) -> None:
+    """The input gate of a measured cloud (as ``inspect`` has it): finite points inside the part's bounding box, 1 mm
+    allowance; a cloud of another part, or in another frame or unit, is refused before any simulation."""
+    from ..inspect.cloud import check_extent
+    from ..inspect.deviation import part_bbox
+    from ..inspect.report import EXTENT_TOLERANCE_MM
+    from ..sim.shop import load_part
+
+    pts = np.asarray(points, float)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 20:
+        raise ValueError(f"a cloud of at least 20 points (n, 3) is needed, got shape {pts.shape}")
+    check_extent(pts, *part_bbox(load_part(part)), EXTENT_TOLERANCE_MM, part=part)
 
 
 # ---------------------------------------------------------------------------------------------------- JSON ----
