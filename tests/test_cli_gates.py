@@ -190,3 +190,16 @@ def test_a_reader_that_goes_away_ends_the_command_quietly():
     p = subprocess.run(f"{sys.executable} -m trueaxis.cli machine show {MACHINES / 'lathe.toml'} | head -c 10; "
                        "exit ${PIPESTATUS[0]}", shell=True, executable="/bin/bash", capture_output=True, text=True)
     assert p.stderr == "" and p.returncode in (0, 141)
+
+
+def test_one_over_long_number_does_not_set_the_precision_of_every_block(tmp_path):
+    """Precision is the dialect's (at least the input's usual decimals, at most 6 in mm), never one number's 40."""
+    prog = tmp_path / "long.ngc"
+    prog.write_text("G21 G90 G17\nG0 X0 Y0 Z10 B0 C0\nG1 X10.1234567890123456789012345678901234567890 Y5 Z-1 F500\n"
+                    "G1 X20 Y-5 B10 C30\nM30\n")
+    out = tmp_path / "out.ngc"
+    r = run("post", str(prog), "-o", str(out), "--machine", BC)
+    assert r.returncode == 0, r.stderr
+    words = [w for line in out.read_text().splitlines() if not line.startswith("(")
+             for w in line.split() if w[0] in "XYZBC" and "." in w]
+    assert words and max(len(w.split(".")[1]) for w in words) == 6

@@ -1169,9 +1169,15 @@ class _Poster:
 # --------------------------------------------------------------------------------------------------- helpers -----
 
 
+# The most decimals written: 1 nm in mm, 2.5 nm in inch, 1e-6 deg (0.02 urad) for rotary words. Far below any
+# machine's resolution; one over-long number in the input must not set the precision of every block (it did: ~64).
+MAX_DECIMALS = {"mm": 6, "inch": 7, "rotary": 6}
+
+
 class _Numbers:
     """Numbers in the input's dialect: its leading zero and trailing point, and per word letter the input's
-    precision but at least 5 decimals (6 for inch lengths), so that writing does not eat the 0.1 um / 1 urad budget."""
+    precision but at least 5 decimals (6 for inch lengths), so that writing does not eat the 0.1 um / 1 urad budget,
+    and at most MAX_DECIMALS."""
 
     def __init__(self, info):
         self.info = info
@@ -1181,7 +1187,8 @@ class _Numbers:
         key = (letter, inch)
         if key not in self._decimals:
             floor = 5 if letter in "ABC" else (6 if inch else 5)
-            self._decimals[key] = max(floor, self.info.decimals.get(letter, 0))
+            cap = MAX_DECIMALS["rotary" if letter in "ABC" else ("inch" if inch else "mm")]
+            self._decimals[key] = min(max(floor, self.info.decimals.get(letter, 0)), cap)
         return self._decimals[key]
 
     def formatter(self, inch: bool):
