@@ -126,3 +126,49 @@ def test_version_prints_the_package_version():
 
     r = run_cli("--version")
     assert r.returncode == 0 and r.stdout.strip() == f"trueaxis {__version__}"
+
+
+# --- (e) every warning on stderr as file:line; what changes the meaning is refused; --strict --------------------------
+
+TCP = "G21 G90 G17\nG0 X0 Y0 Z-10\nG43.4 H1\nG1 X10 F100\nM2\n"
+
+
+def test_tcp_g43_4_is_refused_with_its_line_unless_passed_through(tmp_path):
+    src, out = tmp_path / "tcp.ngc", tmp_path / "out.ngc"
+    src.write_text(TCP)
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero")
+    assert r.returncode == 2 and f"{src}:3: G43.4 / G43.5 tool centre point control" in r.stderr, r.stderr
+    assert not out.exists() and "Traceback" not in r.stderr
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero", "--passthrough-unsupported")
+    assert r.returncode == 0, r.stderr
+    assert f"{src}:3: passed through uninterpreted: G43.4 / G43.5" in r.stderr
+    assert "G43.4 H1" in out.read_text().splitlines()
+
+
+def test_an_unknown_modal_code_is_refused_unless_passed_through(tmp_path):
+    m = load_machine(XH714)
+    for code in ("G12.5", "M250", "G10 L3 P1"):
+        text = f"G21 G90\nG0 X0 Y0 Z-10\n{code}\nG1 X10 F100\nM2\n"
+        try:
+            compensate(text, m, "geometric", source="p.ngc")
+        except Exception as exc:  # noqa: BLE001 - the class is checked below
+            assert type(exc).__name__ == "GcodeError" and str(exc).startswith("p.ngc:3: "), exc
+        else:
+            raise AssertionError(f"{code} was not refused")
+        report = {}
+        compensate(text, m, "geometric", source="p.ngc", passthrough_unsupported=True, report=report)
+        assert [w.split(": ", 1)[0] for w in report["warnings"]] == ["p.ngc:3"]
+
+
+def test_every_warning_goes_to_stderr_as_file_line_and_strict_makes_it_an_error(tmp_path):
+    src, out = tmp_path / "w.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90 G17\nG0 X0 Y0 Z-10\nG41 D1\nG1 X10 F100\nG40\nM250\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--passthrough-unsupported")
+    assert r.returncode == 0, r.stderr
+    warned = [line for line in r.stderr.splitlines() if line.startswith(f"{src}:")]
+    assert [w.split(": ", 1)[0] for w in warned] == [f"{src}:3", f"{src}:6"], r.stderr
+    assert "G41 cutter radius compensation" in warned[0] and "M250" in warned[1]
+    out.unlink()
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--passthrough-unsupported", "--strict")
+    assert r.returncode == 3 and not out.exists(), r.stderr
+    assert f"{src}:3: G41" in r.stderr and "--strict: 2 warnings" in r.stderr

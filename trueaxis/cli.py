@@ -168,10 +168,13 @@ def cmd_post(args) -> int:
                             singular_deg=args.singular_deg, conditions=conditions,
                             passthrough_unsupported=args.passthrough_unsupported, source=source,
                             cl_feed_mm_min=args.cl_feed, cl_branch=branch, setup=setup, force=args.force)
+    for warning in report.warnings:  # each 'file:line: message'
+        print(warning, file=sys.stderr)
+    if args.strict and report.warnings:
+        print(f"trueaxis post: --strict: {len(report.warnings)} warning{'s' if len(report.warnings) > 1 else ''}; "
+              f"{args.output} not written", file=sys.stderr)
+        return EXIT_REFUSED
     atomic_write(args.output, out)
-    for item in report.uncompensated:
-        print(f"{source}:{item['line']}: the position of {' '.join(item['axes'])} is not known here (no absolute move "
-              "of it before): block left as written, uncompensated", file=sys.stderr)
     if args.report:
         atomic_write(args.report, json.dumps(report.as_dict(), indent=2))
     corr = ", ".join(f"{a} {max(v.values()):.2f}" for a, v in report.correction.items())
@@ -361,7 +364,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="tilt below which the free rotary axis is held (default 1 deg)")
     po.add_argument("--report", help="write the report JSON here")
     po.add_argument("--passthrough-unsupported", action="store_true",
-                    help="leave blocks the reader does not understand as they are (counted in the report)")
+                    help="leave blocks the reader does not understand as they are (G43.4, unknown G and M codes, "
+                         "macros: refused otherwise; each one a warning on stderr)")
+    po.add_argument("--strict", action="store_true",
+                    help="every warning is an error: exit 3, nothing written")
     for key, what in (("ap", "axial depth, mm"), ("ae", "radial engagement, mm"), ("fz", "feed per tooth, mm"),
                       ("n", "spindle speed, rpm"), ("d", "tool diameter, mm"), ("z", "flutes")):
         po.add_argument(f"--{key}", type=POSITIVE if key != "z" else _number(int, low=1), help=f"cutting conditions: {what} "

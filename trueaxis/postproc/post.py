@@ -521,7 +521,7 @@ class _Poster:
                 self._pair_cache = _rotary_pair(self.m)
             except NotImplementedError as exc:
                 self._pair_cache = None
-                self.rep.warnings.append(f"singular cone not handled for this layout: {exc}")
+                self.rep.warnings.append(f"{self.p.source}:1: singular cone not handled for this layout: {exc}")
         return self._pair_cache
 
     def singular_at(self, q):
