@@ -137,7 +137,7 @@ def test_tcp_g43_4_is_refused_with_its_line_unless_passed_through(tmp_path):
     src, out = tmp_path / "tcp.ngc", tmp_path / "out.ngc"
     src.write_text(TCP)
     r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero")
-    assert r.returncode == 2 and f"{src}:3: G43.4 / G43.5 tool centre point control" in r.stderr, r.stderr
+    assert r.returncode == 3 and f"{src}:3: G43.4 / G43.5 tool centre point control" in r.stderr, r.stderr
     assert not out.exists() and "Traceback" not in r.stderr
     r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero", "--passthrough-unsupported")
     assert r.returncode == 0, r.stderr
@@ -172,3 +172,25 @@ def test_every_warning_goes_to_stderr_as_file_line_and_strict_makes_it_an_error(
     r = run_cli("post", src, "-o", out, "--machine", XH714, "--passthrough-unsupported", "--strict")
     assert r.returncode == 3 and not out.exists(), r.stderr
     assert f"{src}:3: G41" in r.stderr and "--strict: 2 warnings" in r.stderr
+
+
+# --- (f) exit statuses: usage 2, refused input 3, other failure 1 ----------------------------------------------------
+
+def test_a_usage_error_and_a_refused_program_exit_differently(tmp_path):
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90\nG0 X0 Y0 Z-10\nG1 X10 Q F100\nM2\n")  # a word with no number: the program is refused
+    refused = run_cli("post", src, "-o", out, "--machine", XH714)
+    assert refused.returncode == 3 and refused.stderr.startswith(f"{src}:3: word 'Q'"), refused.stderr
+    missing = run_cli("post", tmp_path / "none.ngc", "-o", out, "--machine", XH714)
+    assert missing.returncode == 2 and "no such file" in missing.stderr, missing.stderr
+    option = run_cli("post", src, "-o", out, "--machine", XH714, "--mode", "best")
+    assert option.returncode == 2 and "--mode" in option.stderr
+    bad_machine = tmp_path / "m.toml"
+    bad_machine.write_text("[machine]\nname = 'x'\nkind = 'mill'\nformat = 99\n")
+    machine = run_cli("post", src, "-o", out, "--machine", bad_machine)
+    assert machine.returncode == 3 and str(bad_machine) in machine.stderr, machine.stderr
+    assert not out.exists() and "Traceback" not in refused.stderr + missing.stderr + machine.stderr
+    good = tmp_path / "ok.ngc"
+    good.write_text("G21 G90\nG0 X0 Y0 Z-10\nG1 X10 F100\nM2\n")
+    system = run_cli("post", good, "-o", "/sys/trueaxis_out.ngc", "--machine", XH714)  # /sys refuses even root
+    assert system.returncode == 1 and "/sys/trueaxis_out.ngc" in system.stderr, system.stderr

@@ -1,8 +1,10 @@
 """The command line: ``trueaxis <command>`` (and ``inspect`` = ``trueaxis inspect``).
 
-Thin glue: parse arguments, call the package, print. A bad input ends with one line per problem on stderr and exit
-status 2, never a traceback; a computed result that is refused (an identification that does not explain the part,
-with --write) ends with one line on stderr and exit status 3, nothing written.
+Thin glue: parse arguments, call the package, print. A usage error (an option, a value, a path) ends with one line on
+stderr and exit status 2, never a traceback; an input the product refuses (a program, CL data, a machine file, a
+setup, a cloud: ``file:line: reason``) or a computed result it refuses (an identification that does not explain the
+part, with --write) with exit status 3, nothing written; a failure of the system (a file that cannot be read or
+written) with 1 (README "How it fails").
 """
 
 from __future__ import annotations
@@ -15,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-EXIT_BAD_INPUT = 2
-EXIT_REFUSED = 3  # a computed result refused (an identification that does not explain the part): nothing written
+EXIT_BAD_INPUT = 2  # usage: an option, a value or a path
+EXIT_REFUSED = 3  # an input or a computed result refused: nothing written
 
 
 class UsageError(ValueError):
@@ -327,9 +329,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(prog="trueaxis", description="Machine-tool error compensation: post, inspect, diagnose.",
                                 epilog="Exit status: 0 done; 1 the system refused (a file that cannot be read or "
-                                       "written); 2 bad input or usage, nothing written; 3 a computed result "
-                                       "refused (an identification that does not explain the part), nothing "
-                                       "written; 130 / 143 interrupted (SIGINT / SIGTERM).")
+                                       "written); 2 usage (an option, a value, a path), nothing written; 3 an "
+                                       "input refused (a program, CL data, a machine file, a setup, a cloud, "
+                                       "tolerances; a --strict warning) or a computed result refused (an "
+                                       "identification that does not explain the part), nothing written; "
+                                       "130 / 143 interrupted (SIGINT / SIGTERM).")
     p.add_argument("--version", action="version", version=f"trueaxis {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -496,6 +500,21 @@ def _located_errors() -> tuple:
     return tuple(found)
 
 
+# inputs that are always file paths (a machine file may be a fixture's name): one that does not exist is a usage error
+_NAMED_FILES = ("input", "program", "cloud", "--cloud", "--program", "--cad")
+
+
+def _refusal_errors() -> tuple:
+    """The error classes of inputs the product refuses whose messages do not carry a line (clouds, tolerances, the
+    inspection, effects files): exit status 3 like the located ones. Taken lazily, as in :func:`_located_errors`."""
+    found = []
+    for module, name in (("trueaxis.inspect.cloud", "CloudError"), ("trueaxis.inspect.tolerances", "ToleranceError"),
+                         ("trueaxis.inspect.deviation", "InspectionError"), ("trueaxis.sim.effects", "EffectsFileError")):
+        if module in sys.modules:
+            found.append(getattr(sys.modules[module], name))
+    return tuple(found)
+
+
 def _paths(args) -> tuple[list, list]:
     """The command's input files and outputs, for the output gate: ([(option, path)], [(option, path, is_folder)])."""
     g = lambda name: getattr(args, name, None)  # noqa: E731 (options a subcommand does not have are None)
@@ -550,8 +569,8 @@ EXIT_BROKEN_PIPE = 141  # as a shell reports a process ended by SIGPIPE
 
 
 def main(argv=None) -> int:
-    """Run one command. Exit status: 0 done; 2 bad input or usage (one line per problem on stderr, nothing written);
-    3 a computed result refused (nothing written); 1 the system refused (a file that cannot be read or written: one
+    """Run one command. Exit status: 0 done; 2 usage (one line per problem on stderr, nothing written); 3 an input
+    or a computed result refused (``file:line: reason`` where it has a line; nothing written); 1 the system refused (a file that cannot be read or written: one
     line); 130 / 143 interrupted by SIGINT / SIGTERM (one line; earlier outputs intact, no temporary file left)."""
     import signal
 
@@ -565,6 +584,8 @@ def main(argv=None) -> int:
         for option, path in inputs:
             if path is not None and Path(path).is_dir():
                 raise UsageError(f"{option} {path}: is a folder; name a file")
+            if option in _NAMED_FILES and path is not None and path != "-" and not Path(path).exists():
+                raise UsageError(f"{option} {path}: cannot read the file: no such file")
         check_outputs(inputs, outputs)
         return int(args.func(args) or 0)
     except (KeyboardInterrupt, _Terminated) as exc:
@@ -579,7 +600,10 @@ def _report_error(command: str, exc: Exception) -> int:
 
     if isinstance(exc, _located_errors()):  # already 'file:line: reason'
         print(str(exc), file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return EXIT_REFUSED
+    if isinstance(exc, _refusal_errors()):  # an input the product refuses (a cloud, tolerances, effects)
+        print(f"trueaxis {command}: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
     if isinstance(exc, (UsageError, OutputPathError, ValueError, FileNotFoundError)):
         print(f"trueaxis {command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
