@@ -194,3 +194,21 @@ def test_a_usage_error_and_a_refused_program_exit_differently(tmp_path):
     good.write_text("G21 G90\nG0 X0 Y0 Z-10\nG1 X10 F100\nM2\n")
     system = run_cli("post", good, "-o", "/sys/trueaxis_out.ngc", "--machine", XH714)  # /sys refuses even root
     assert system.returncode == 1 and "/sys/trueaxis_out.ngc" in system.stderr, system.stderr
+
+
+# --- (g) - for stdin and stdout ----------------------------------------------------------------------------------------
+
+def test_post_reads_stdin_and_writes_stdout_with_messages_on_stderr(tmp_path):
+    text = FIRST_MOVE_Z_ONLY
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text(text)
+    assert run_cli("post", src, "-o", out, "--machine", XH714).returncode == 0
+    r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", "-", "-o", "-", "--machine", str(XH714)],
+                       input=text, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert without_header(r.stdout) == without_header(out.read_text())  # the same program, to the byte
+    assert r.stderr.splitlines()[0].startswith("<stdin>:2: the position of X Y is not known")
+    assert "<stdout>: 6 blocks in" in r.stderr and sorted(p.name for p in tmp_path.iterdir()) == ["in.ngc", "out.ngc"]
+    refused = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", "-", "-o", "-", "--machine", str(XH714)],
+                             input=b"G1 X1\x00", capture_output=True, timeout=300)
+    assert refused.returncode == 3 and refused.stdout == b"" and refused.stderr.startswith(b"<stdin>:1: binary")

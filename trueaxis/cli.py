@@ -153,14 +153,18 @@ def cmd_error(args) -> int:
 
 
 def cmd_post(args) -> int:
-    from .fileio import atomic_write
     from .machine import load_machine
     from .postproc.post import post_text, _read_input, resolve_setup
 
     machine = load_machine(args.machine)
     setup = resolve_setup(machine, setup=args.setup, var=args.var, tool_table=args.tool_table,
                           machine_units=args.machine_units, offsets_zero=args.offsets_zero)
-    text, source = _read_input(Path(args.input), None) if Path(args.input).exists() else (None, args.input)
+    if args.output == "-" and args.report == "-":
+        raise UsageError("-o - and --report - both name stdout; name a file for one of them")
+    if args.input == "-":  # the program on stdin: read whole, refused as a file would be (NUL bytes, encoding)
+        text, source = _decode_program(sys.stdin.buffer.read(), "<stdin>")
+    else:
+        text, source = _read_input(Path(args.input), None) if Path(args.input).exists() else (None, args.input)
     if text is None:
         raise UsageError(f"{args.input}: no such file")
     conditions = {k: getattr(args, k) for k in ("ap", "ae", "fz", "n", "d", "z")}
@@ -176,15 +180,40 @@ def cmd_post(args) -> int:
         print(f"trueaxis post: --strict: {len(report.warnings)} warning{'s' if len(report.warnings) > 1 else ''}; "
               f"{args.output} not written", file=sys.stderr)
         return EXIT_REFUSED
-    atomic_write(args.output, out)
+    _write_or_stdout(args.output, out)
     if args.report:
-        atomic_write(args.report, json.dumps(report.as_dict(), indent=2))
+        _write_or_stdout(args.report, json.dumps(report.as_dict(), indent=2))
     corr = ", ".join(f"{a} {max(v.values()):.2f}" for a, v in report.correction.items())
     cl = (f"CL data ({report.input_format[3:]}, {report.cl_points} points, {report.cl_program_blocks} machine-axis "
           "blocks) -> " if report.input_format.startswith("cl-") else "")
-    print(f"{args.output}: {cl}{report.blocks_in} blocks in, {report.blocks_out} out; {report.moves_split} moves split; "
-          f"max correction {corr} (um/urad); {len(report.singular_blocks)} singular blocks")
+    print(f"{'<stdout>' if args.output == '-' else args.output}: {cl}{report.blocks_in} blocks in, "
+          f"{report.blocks_out} out; {report.moves_split} moves split; max correction {corr} (um/urad); "
+          f"{len(report.singular_blocks)} singular blocks", file=sys.stderr if "-" in (args.output, args.report)
+          else sys.stdout)  # stdout carries the program (or the report) then
     return 0
+
+
+def _decode_program(data: bytes, source: str) -> tuple[str, str]:
+    """Program bytes (stdin) as the post reads a file: NUL bytes refused, UTF-8 else Latin-1."""
+    from .postproc.post import PostError
+
+    if b"\x00" in data:
+        raise PostError(source, 1, "binary data (NUL bytes): not G-code")
+    try:
+        return data.decode("utf-8"), source
+    except UnicodeDecodeError:
+        return data.decode("latin-1"), source
+
+
+def _write_or_stdout(path: str, text: str) -> None:
+    """``-``: stdout (no atomic file then); else the file, written atomically."""
+    if path == "-":
+        sys.stdout.write(text)
+        sys.stdout.flush()
+        return
+    from .fileio import atomic_write
+
+    atomic_write(path, text)
 
 
 def _parse_placement(text):
@@ -358,15 +387,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     po = sub.add_parser("post", help="compensate an NC program with a machine's error twin")
     po.add_argument("input", help="G-code program (machine axes), or CL data in the part frame: CSV with a header "
-                    "naming x,y,z,i,j,k[,f] or APT (GOTO/x,y,z,i,j,k, FEDRAT/f, RAPID); told apart by content")
-    po.add_argument("-o", "--output", required=True, help="compensated program (written atomically)")
+                    "naming x,y,z,i,j,k[,f] or APT (GOTO/x,y,z,i,j,k, FEDRAT/f, RAPID); told apart by content; - for stdin")
+    po.add_argument("-o", "--output", required=True, help="compensated program (written atomically); - for stdout "
+                    "(messages stay on stderr)")
     po.add_argument("--machine", required=True, help="machine file (TOML)")
     po.add_argument("--mode", default="geometric", choices=["none", "geometric", "comprehensive"])
     po.add_argument("--tol-um", type=_number(low=1e-4), default=1.0, help="path tolerance, um (default 1)")
     po.add_argument("--max-correction-mm", type=POSITIVE, default=0.5, help="largest correction allowed (default 0.5)")
     po.add_argument("--singular-deg", type=_number(low=0.0, high=90.0), default=1.0,
                     help="tilt below which the free rotary axis is held (default 1 deg)")
-    po.add_argument("--report", help="write the report JSON here")
+    po.add_argument("--report", help="write the report JSON here (- for stdout)")
     po.add_argument("--passthrough-unsupported", action="store_true",
                     help="leave blocks the reader does not understand as they are (G43.4, unknown G and M codes, "
                          "macros: refused otherwise; each one a warning on stderr)")
