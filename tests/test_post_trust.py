@@ -212,3 +212,42 @@ def test_post_reads_stdin_and_writes_stdout_with_messages_on_stderr(tmp_path):
     refused = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", "-", "-o", "-", "--machine", str(XH714)],
                              input=b"G1 X1\x00", capture_output=True, timeout=300)
     assert refused.returncode == 3 and refused.stdout == b"" and refused.stderr.startswith(b"<stdin>:1: binary")
+
+
+# --- (h) LinuxCNC's rotary sense (xyzbc-trt-kins) as a machine-file option -----------------------------------------
+
+def _negate_rotary(text, axes="BC"):
+    import re
+
+    return re.sub(rf"([{axes}])(-?)(\d)", lambda m: m.group(1) + ("" if m.group(2) else "-") + m.group(3), text)
+
+
+def test_linuxcnc_trt_rotary_sense_reads_and_writes_rotary_words_negated(tmp_path):
+    import numpy as np
+
+    from conftest import DATA
+    from trueaxis.machine import parse_machine
+    from trueaxis.machine.machine_file import MachineFileError, dump_machine
+    from trueaxis.postproc.gcode import parse_program
+
+    iso_text = (DATA / "bc_table.toml").read_text()
+    trt_text = iso_text.replace('bed_to_tool = ["Y", "X", "Z"]',
+                                'bed_to_tool = ["Y", "X", "Z"]\nrotary_sense = "linuxcnc-trt"')
+    iso, trt = load_machine(DATA / "bc_table.toml"), parse_machine(trt_text)
+    assert trt.rotary_sense == "linuxcnc-trt" and list(trt.word_signs()) == [1, 1, 1, -1, -1]
+    assert parse_machine(dump_machine(trt)).rotary_sense == "linuxcnc-trt"  # written back
+    program = "G21 G90 G17\nG0 X0 Y0 Z10 B0 C0\nG1 X10 Y5 Z-1 F500\nG1 X20 Y-5 B10 C30\nG1 X-20 B25.5 C-140\nM30\n"
+    out_iso = without_header(compensate(program, iso, "geometric"))
+    # the same motion written in LinuxCNC's sense: B and C words negated going in, and coming out
+    out_trt = without_header(compensate(_negate_rotary(program), trt, "geometric"))
+    a, b = parse_program(out_iso, "iso"), parse_program(out_trt, "trt")
+    assert len(a.end) == len(b.end) and len(a.end) > 4
+    np.testing.assert_array_equal(b.end[:, :3], a.end[:, :3])
+    np.testing.assert_allclose(b.end[:, 4:], -a.end[:, 4:], atol=1e-12)
+    assert np.abs(a.end[:, 4:]).max() > 0  # rotary words were written
+    try:
+        parse_machine(trt_text.replace('"linuxcnc-trt"', '"trt"'))
+    except MachineFileError as exc:
+        assert "rotary_sense" in str(exc) and "linuxcnc-trt" in str(exc)
+    else:
+        raise AssertionError("an unknown rotary_sense was accepted")
