@@ -158,6 +158,9 @@ def test_an_unknown_modal_code_is_refused_unless_passed_through(tmp_path):
         report = {}
         compensate(text, m, "geometric", source="p.ngc", passthrough_unsupported=True, report=report)
         assert [w.split(": ", 1)[0] for w in report["warnings"]] == ["p.ngc:3"]
+    report = {}  # LinuxCNC's M19 (spindle orientation) moves no axis: neither refused nor warned
+    compensate("G21 G90\nG0 X0 Y0 Z-10\nM19 R0\nG1 X10 F100\nM2\n", m, "geometric", report=report)
+    assert report["warnings"] == []
 
 
 def test_every_warning_goes_to_stderr_as_file_line_and_strict_makes_it_an_error(tmp_path):

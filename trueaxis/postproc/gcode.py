@@ -149,7 +149,7 @@ def _add(pos: list, delta) -> None:
 # plane: (first, second, normal) axis indices as LinuxCNC orders them in ARC_FEED
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}
 _CENTER_WORD = {0: "I", 1: "J", 2: "K"}
-_KNOWN_M = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 30, 48, 49, 50, 51, 52, 53, 60, 61, 62, 63, 64, 65, 66, 67, 68, 70, 71, 72, 73}
+_KNOWN_M = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 19, 30, 48, 49, 50, 51, 52, 53, 60, 61, 62, 63, 64, 65, 66, 67, 68, 70, 71, 72, 73}
 _MOVING_M = {98: "subprogram call M98", 99: "subprogram return M99"}
 # G codes (x10) whose moves the reader cannot reproduce: refused (or passed through on request)
 _MOVING_G = {
