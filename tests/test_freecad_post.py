@@ -113,6 +113,29 @@ def test_without_correction_the_post_is_the_linuxcnc_post_plus_conditions(freeca
 
 
 @pytest.mark.external
+def test_line_numbers_and_no_comments_hold_for_the_compensated_and_split_blocks(freecad_job):
+    numbered = without_header(freecad_job.files["trueaxis_numbered.ngc"]).splitlines()
+    assert all(re.match(r"N\d+ ", line) for line in numbered)  # split blocks too (spacing: the linuxcnc post's)
+    n = [int(line.split()[0][1:]) for line in numbered]
+    assert n == list(range(n[0], n[0] + 10 * len(n), 10))
+    assert not any("(" in line for line in numbered)  # neither the linuxcnc post's comments nor the conditions
+    # the same compensated blocks as without the options
+    plain = [line for line in without_header(freecad_job.files["trueaxis.ngc"]).splitlines() if line[:1] != "("]
+    assert [" ".join(line.split()[1:]) for line in numbered] == [" ".join(line.split()) for line in plain]
+    linuxcnc = freecad_job.files["linuxcnc.ngc"].splitlines()
+    assert len(numbered) > len([line for line in linuxcnc if line[:1] != "("])  # moves were split, and numbered
+
+
+def test_precision_below_the_corrections_is_said_and_options_parsed():
+    post = load_post_module()
+    text = "(trueaxis post: x)\nN100 G0 X1\nG1 X2\nN110 (trueaxis: ap=1)\nN120 G1 X3\n"
+    out, notes = post.honour_linuxcnc_options(text, "--line-numbers --no-comments --precision 2")
+    assert out == "(trueaxis post: x)\nN100 G0 X1\nN110 G1 X2\nN120 G1 X3\n"
+    assert notes and "--precision 2" in notes[0] and "5 decimals" in notes[0]
+    assert post.honour_linuxcnc_options(text, "--precision=6") == (text, [])
+
+
+@pytest.mark.external
 def test_conditions_stand_before_the_tool_change_and_each_operation(freecad_job):
     lines = freecad_job.files["trueaxis.ngc"].splitlines()
     tool = freecad_job.facts["tool"]

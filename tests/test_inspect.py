@@ -304,14 +304,14 @@ def test_cli_reads_csv_and_xyz_clouds(tmp_path):
         assert json.loads((tmp_path / (name + "_rep") / "report.json").read_text())["points"] == len(p)
 
 
-def _refusal(tmp_path, name, content, message):
+def _refusal(tmp_path, name, content, message, code=3):
     cloud = tmp_path / name
     if isinstance(content, bytes):
         cloud.write_bytes(content)
     elif content is not None:
         cloud.write_text(content)
     r = run("inspect", str(cloud), "--part", "nas979", "-o", str(tmp_path / "rep"))
-    assert r.returncode == 2, r.stdout
+    assert r.returncode == code, r.stdout  # 3: a cloud refused; 2: a path that does not exist (usage)
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0] and "Traceback" not in r.stderr, r.stderr
     assert not (tmp_path / "rep").exists()
@@ -323,7 +323,7 @@ def test_refuses_an_empty_cloud(tmp_path):
 
 
 def test_refuses_an_unreadable_cloud(tmp_path):
-    _refusal(tmp_path, "missing.ply", None, "cannot read")
+    _refusal(tmp_path, "missing.ply", None, "cannot read", code=2)
     _refusal(tmp_path, "junk.ply", b"ply\nformat binary_little_endian 1.0\nelement vertex 5\n"
              b"property double x\nproperty double y\nproperty double z\nend_header\n\x00\x01", "truncated")
 
@@ -341,7 +341,7 @@ def test_refuses_a_cloud_that_cannot_be_the_part_and_says_how_far_off(tmp_path):
     _refusal(tmp_path, "metres.xyz", None, "cannot be the nas979 part")
     np.savetxt(tmp_path / "slots.xyz", p + [100.0, 40.0, -2.0])
     r = run("inspect", str(tmp_path / "slots.xyz"), "--part", "slots", "-o", str(tmp_path / "rep"))
-    assert r.returncode == 2 and "exceeds the slots part" in r.stderr and not (tmp_path / "rep").exists()
+    assert r.returncode == 3 and "exceeds the slots part" in r.stderr and not (tmp_path / "rep").exists()
 
 
 def test_identify_needs_its_machine_and_program(tmp_path):
@@ -357,7 +357,7 @@ def test_a_failed_inspection_keeps_the_previous_report(tmp_path):
     assert run("inspect", str(tmp_path / "good.xyz"), "--part", "nas979", "-o", str(tmp_path / "rep")).returncode == 0
     before = (tmp_path / "rep" / "report.json").read_text()
     (tmp_path / "bad.xyz").write_text("1 2 nan\n")
-    assert run("inspect", str(tmp_path / "bad.xyz"), "--part", "nas979", "-o", str(tmp_path / "rep")).returncode == 2
+    assert run("inspect", str(tmp_path / "bad.xyz"), "--part", "nas979", "-o", str(tmp_path / "rep")).returncode == 3
     assert (tmp_path / "rep" / "report.json").read_text() == before
 
 
@@ -416,7 +416,7 @@ def test_bad_tolerance_files_are_refused_naming_the_key(tmp_path, text, message)
     (tmp_path / "tol.toml").write_text(text)
     r = run("inspect", str(tmp_path / "c.ply"), "--part", "nas979", "--tolerances", str(tmp_path / "tol.toml"),
             "-o", str(tmp_path / "rep"))
-    assert r.returncode == 2 and message in r.stderr and "tol.toml" in r.stderr, r.stderr
+    assert r.returncode == 3 and message in r.stderr and "tol.toml" in r.stderr, r.stderr
     assert not (tmp_path / "rep").exists()
 
 
@@ -443,7 +443,7 @@ def test_cad_without_its_part_json_is_refused_asking_for_the_json(tmp_path):
     (tmp_path / "slots.step").write_text("ISO-10303-21;\nEND-ISO-10303-21;\n")
     r = run("inspect", str(tmp_path / "c.ply"), "--part", "slots", "--cad", str(tmp_path / "slots.step"),
             "-o", str(tmp_path / "rep"))
-    assert r.returncode == 2 and "no part JSON beside it (slots.json)" in r.stderr, r.stderr
+    assert r.returncode == 3 and "no part JSON beside it (slots.json)" in r.stderr, r.stderr
     assert "trueaxis part slots -o DIR" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "rep").exists()
 

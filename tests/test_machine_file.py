@@ -83,12 +83,12 @@ def test_not_toml_is_one_clear_line():
     assert len(found) == 1 and found[0].startswith("not valid TOML")
 
 
-def test_machine_check_exits_2_with_one_line_per_problem_and_no_traceback(tmp_path):
+def test_machine_check_exits_3_with_one_line_per_problem_and_no_traceback(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text(GOOD.replace("[tool]", "[tool]\ncolour = 3").replace("XOC = 15.0", "XOA = 15.0"))
     run = subprocess.run([sys.executable, "-m", "trueaxis.cli", "machine", "check", str(bad)],
                          capture_output=True, text=True)
-    assert run.returncode == 2
+    assert run.returncode == 3  # a machine file refused
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 2 and all(line.startswith(f"{bad}: ") for line in lines)
     assert "Traceback" not in run.stderr

@@ -224,13 +224,13 @@ def test_a_program_for_axes_the_machine_lacks_is_refused(xh714):
 
 
 @pytest.mark.parametrize("data, reason", [(b"", "empty"), (b"\x00\x01\x02G1 X1", "binary")])
-def test_cli_refuses_empty_and_binary_files_with_exit_2_and_writes_nothing(tmp_path, data, reason):
+def test_cli_refuses_empty_and_binary_files_with_exit_3_and_writes_nothing(tmp_path, data, reason):
     src = tmp_path / "in.ngc"
     src.write_bytes(data)
     out = tmp_path / "out.ngc"
     r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", str(src), "-o", str(out), "--machine",
                         str(XH714)], capture_output=True, text=True)
-    assert r.returncode == 2 and reason in r.stderr and "Traceback" not in r.stderr
+    assert r.returncode == 3 and reason in r.stderr and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert not out.exists()
 

@@ -446,7 +446,7 @@ def test_read_cl_refuses_what_is_not_cl():
     assert str(info.value).startswith("p.ngc:1:")
 
 
-def test_cli_posts_cl_data_and_refuses_bad_cl_with_exit_2(tmp_path):
+def test_cli_posts_cl_data_and_refuses_bad_cl_with_exit_3(tmp_path):
     out, rep = tmp_path / "out.ngc", tmp_path / "r.json"
     nmv_file = str(MACHINES / "nmv1500dcg.toml")
     r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", str(CL_CSV), "-o", str(out), "--machine",
@@ -460,7 +460,7 @@ def test_cli_posts_cl_data_and_refuses_bad_cl_with_exit_2(tmp_path):
     out2 = tmp_path / "out2.ngc"
     r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", str(bad), "-o", str(out2), "--machine",
                         nmv_file], capture_output=True, text=True)
-    assert r.returncode == 2 and f"{bad}:3:" in r.stderr and "Traceback" not in r.stderr
+    assert r.returncode == 3 and f"{bad}:3:" in r.stderr and "Traceback" not in r.stderr
     assert not out2.exists()
 
 

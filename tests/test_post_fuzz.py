@@ -168,7 +168,7 @@ def test_token_soup_posts_or_stops_with_file_line_reason(text):
 @given(st.one_of(mutated_fixture(), SOUP))
 def test_the_command_line_posts_or_prints_one_line_and_exits_2(tmp_path_factory, capsys, text):
     # The command line in this process (a subprocess per example would take minutes): exit 0 and a file (stderr:
-    # only `file:line:` notes of blocks left uncompensated), or exit 2, one `file:line: reason` line and no file.
+    # only `file:line:` warnings), or exit 3 (a program refused), one `file:line: reason` line and no file.
     work = tmp_path_factory.mktemp("cli")
     src, out = work / "in.ngc", work / "out.ngc"
     src.write_bytes(text.encode("utf-8"))
@@ -179,10 +179,9 @@ def test_the_command_line_posts_or_prints_one_line_and_exits_2(tmp_path_factory,
     err = capsys.readouterr().err
     if code == 0:
         assert out.exists()
-        assert all(DIAGNOSTIC.match(line) and line.startswith(str(src)) and line.endswith("uncompensated")
-                   for line in err.splitlines()), err
+        assert all(DIAGNOSTIC.match(line) and line.startswith(str(src)) for line in err.splitlines()), err
     else:
-        assert code == 2 and not out.exists()
+        assert code == 3 and not out.exists()
         lines = err.strip().splitlines()
         assert len(lines) == 1 and DIAGNOSTIC.match(lines[0]) and lines[0].startswith(str(src)), err
 
@@ -228,12 +227,12 @@ def test_cli_posts_an_inch_program_for_a_mm_machine_and_the_report_says_so(tmp_p
     ("axes the machine lacks", b"G21 G90\nG1 X1 Y1 Z-10 B30 F100\nM2\n", "axis B"),
     ("bytes that are not text", bytes(range(0x80, 0x100)) * 4, "unexpected character"),
 ])
-def test_cli_refuses_bad_input_with_one_line_and_exit_2_and_writes_nothing(tmp_path, wide_machine, name, data,
+def test_cli_refuses_bad_input_with_one_line_and_exit_3_and_writes_nothing(tmp_path, wide_machine, name, data,
                                                                            reason):
     src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
     src.write_bytes(data)
     r = run_cli("post", src, "-o", out, "--machine", wide_machine)
-    assert r.returncode == 2, (r.returncode, r.stdout, r.stderr)
+    assert r.returncode == 3, (r.returncode, r.stdout, r.stderr)
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert reason in r.stderr and r.stderr.startswith(f"{src}:"), r.stderr
     assert not out.exists() and r.stdout == ""

@@ -126,3 +126,131 @@ def test_version_prints_the_package_version():
 
     r = run_cli("--version")
     assert r.returncode == 0 and r.stdout.strip() == f"trueaxis {__version__}"
+
+
+# --- (e) every warning on stderr as file:line; what changes the meaning is refused; --strict --------------------------
+
+TCP = "G21 G90 G17\nG0 X0 Y0 Z-10\nG43.4 H1\nG1 X10 F100\nM2\n"
+
+
+def test_tcp_g43_4_is_refused_with_its_line_unless_passed_through(tmp_path):
+    src, out = tmp_path / "tcp.ngc", tmp_path / "out.ngc"
+    src.write_text(TCP)
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero")
+    assert r.returncode == 3 and f"{src}:3: G43.4 / G43.5 tool centre point control" in r.stderr, r.stderr
+    assert not out.exists() and "Traceback" not in r.stderr
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero", "--passthrough-unsupported")
+    assert r.returncode == 0, r.stderr
+    assert f"{src}:3: passed through uninterpreted: G43.4 / G43.5" in r.stderr
+    assert "G43.4 H1" in out.read_text().splitlines()
+
+
+def test_an_unknown_modal_code_is_refused_unless_passed_through(tmp_path):
+    m = load_machine(XH714)
+    for code in ("G12.5", "M250", "G10 L3 P1"):
+        text = f"G21 G90\nG0 X0 Y0 Z-10\n{code}\nG1 X10 F100\nM2\n"
+        try:
+            compensate(text, m, "geometric", source="p.ngc")
+        except Exception as exc:  # noqa: BLE001 - the class is checked below
+            assert type(exc).__name__ == "GcodeError" and str(exc).startswith("p.ngc:3: "), exc
+        else:
+            raise AssertionError(f"{code} was not refused")
+        report = {}
+        compensate(text, m, "geometric", source="p.ngc", passthrough_unsupported=True, report=report)
+        assert [w.split(": ", 1)[0] for w in report["warnings"]] == ["p.ngc:3"]
+    report = {}  # LinuxCNC's M19 (spindle orientation) moves no axis: neither refused nor warned
+    compensate("G21 G90\nG0 X0 Y0 Z-10\nM19 R0\nG1 X10 F100\nM2\n", m, "geometric", report=report)
+    assert report["warnings"] == []
+
+
+def test_every_warning_goes_to_stderr_as_file_line_and_strict_makes_it_an_error(tmp_path):
+    src, out = tmp_path / "w.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90 G17\nG0 X0 Y0 Z-10\nG41 D1\nG1 X10 F100\nG40\nM250\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--passthrough-unsupported")
+    assert r.returncode == 0, r.stderr
+    warned = [line for line in r.stderr.splitlines() if line.startswith(f"{src}:")]
+    assert [w.split(": ", 1)[0] for w in warned] == [f"{src}:3", f"{src}:6"], r.stderr
+    assert "G41 cutter radius compensation" in warned[0] and "M250" in warned[1]
+    out.unlink()
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--passthrough-unsupported", "--strict")
+    assert r.returncode == 3 and not out.exists(), r.stderr
+    assert f"{src}:3: G41" in r.stderr and "--strict: 2 warnings" in r.stderr
+
+
+# --- (f) exit statuses: usage 2, refused input 3, other failure 1 ----------------------------------------------------
+
+def test_a_usage_error_and_a_refused_program_exit_differently(tmp_path):
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90\nG0 X0 Y0 Z-10\nG1 X10 Q F100\nM2\n")  # a word with no number: the program is refused
+    refused = run_cli("post", src, "-o", out, "--machine", XH714)
+    assert refused.returncode == 3 and refused.stderr.startswith(f"{src}:3: word 'Q'"), refused.stderr
+    missing = run_cli("post", tmp_path / "none.ngc", "-o", out, "--machine", XH714)
+    assert missing.returncode == 2 and "no such file" in missing.stderr, missing.stderr
+    option = run_cli("post", src, "-o", out, "--machine", XH714, "--mode", "best")
+    assert option.returncode == 2 and "--mode" in option.stderr
+    bad_machine = tmp_path / "m.toml"
+    bad_machine.write_text("[machine]\nname = 'x'\nkind = 'mill'\nformat = 99\n")
+    machine = run_cli("post", src, "-o", out, "--machine", bad_machine)
+    assert machine.returncode == 3 and str(bad_machine) in machine.stderr, machine.stderr
+    assert not out.exists() and "Traceback" not in refused.stderr + missing.stderr + machine.stderr
+    good = tmp_path / "ok.ngc"
+    good.write_text("G21 G90\nG0 X0 Y0 Z-10\nG1 X10 F100\nM2\n")
+    system = run_cli("post", good, "-o", "/sys/trueaxis_out.ngc", "--machine", XH714)  # /sys refuses even root
+    assert system.returncode == 1 and "/sys/trueaxis_out.ngc" in system.stderr, system.stderr
+
+
+# --- (g) - for stdin and stdout ----------------------------------------------------------------------------------------
+
+def test_post_reads_stdin_and_writes_stdout_with_messages_on_stderr(tmp_path):
+    text = FIRST_MOVE_Z_ONLY
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text(text)
+    assert run_cli("post", src, "-o", out, "--machine", XH714).returncode == 0
+    r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", "-", "-o", "-", "--machine", str(XH714)],
+                       input=text, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert without_header(r.stdout) == without_header(out.read_text())  # the same program, to the byte
+    assert r.stderr.splitlines()[0].startswith("<stdin>:2: the position of X Y is not known")
+    assert "<stdout>: 6 blocks in" in r.stderr and sorted(p.name for p in tmp_path.iterdir()) == ["in.ngc", "out.ngc"]
+    refused = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", "-", "-o", "-", "--machine", str(XH714)],
+                             input=b"G1 X1\x00", capture_output=True, timeout=300)
+    assert refused.returncode == 3 and refused.stdout == b"" and refused.stderr.startswith(b"<stdin>:1: binary")
+
+
+# --- (h) LinuxCNC's rotary sense (xyzbc-trt-kins) as a machine-file option -----------------------------------------
+
+def _negate_rotary(text, axes="BC"):
+    import re
+
+    return re.sub(rf"([{axes}])(-?)(\d)", lambda m: m.group(1) + ("" if m.group(2) else "-") + m.group(3), text)
+
+
+def test_linuxcnc_trt_rotary_sense_reads_and_writes_rotary_words_negated(tmp_path):
+    import numpy as np
+
+    from conftest import DATA
+    from trueaxis.machine import parse_machine
+    from trueaxis.machine.machine_file import MachineFileError, dump_machine
+    from trueaxis.postproc.gcode import parse_program
+
+    iso_text = (DATA / "bc_table.toml").read_text()
+    trt_text = iso_text.replace('bed_to_tool = ["Y", "X", "Z"]',
+                                'bed_to_tool = ["Y", "X", "Z"]\nrotary_sense = "linuxcnc-trt"')
+    iso, trt = load_machine(DATA / "bc_table.toml"), parse_machine(trt_text)
+    assert trt.rotary_sense == "linuxcnc-trt" and list(trt.word_signs()) == [1, 1, 1, -1, -1]
+    assert parse_machine(dump_machine(trt)).rotary_sense == "linuxcnc-trt"  # written back
+    program = "G21 G90 G17\nG0 X0 Y0 Z10 B0 C0\nG1 X10 Y5 Z-1 F500\nG1 X20 Y-5 B10 C30\nG1 X-20 B25.5 C-140\nM30\n"
+    out_iso = without_header(compensate(program, iso, "geometric"))
+    # the same motion written in LinuxCNC's sense: B and C words negated going in, and coming out
+    out_trt = without_header(compensate(_negate_rotary(program), trt, "geometric"))
+    a, b = parse_program(out_iso, "iso"), parse_program(out_trt, "trt")
+    assert len(a.end) == len(b.end) and len(a.end) > 4
+    np.testing.assert_array_equal(b.end[:, :3], a.end[:, :3])
+    np.testing.assert_allclose(b.end[:, 4:], -a.end[:, 4:], atol=1e-12)
+    assert np.abs(a.end[:, 4:]).max() > 0  # rotary words were written
+    try:
+        parse_machine(trt_text.replace('"linuxcnc-trt"', '"trt"'))
+    except MachineFileError as exc:
+        assert "rotary_sense" in str(exc) and "linuxcnc-trt" in str(exc)
+    else:
+        raise AssertionError("an unknown rotary_sense was accepted")

@@ -280,7 +280,7 @@ def test_the_same_program_without_offsets_is_refused_and_accepted_with_offsets_z
     src, out = tmp_path / "cover.nc", tmp_path / "out.nc"
     src.write_text((NIST / "mtc_cover_rev_a.nc").read_text())
     r = run_cli("post", src, "-o", out, "--machine", machine_file)
-    assert r.returncode == 2 and not out.exists()
+    assert r.returncode == 3 and not out.exists()
     # (line 5 is the first move: "G0" without axis words, a move of zero length, in the system active at start)
     assert r.stderr.strip() == (f"{src}:5: work offset G54 (X Y Z) was not given: give the control's setup (--var / "
                                 "--setup), or --offsets-zero if zero is meant")
@@ -323,7 +323,7 @@ BAD_VAR_LINES = var_text(WORK_INCH).splitlines()
     ("tool line", var_text(WORK_INCH), "T1 P1 Z2.5\nT2 P2 Zfoo\n", "tools.tbl:2: cannot read 'Zfoo'"),
     ("tool without T", var_text(WORK_INCH), "P1 Z2.5\n", "tools.tbl:1: no T word"),
 ])
-def test_bad_setup_input_gets_one_line_and_exit_2_and_nothing_is_written(tmp_path, machine_file, what, var, tbl,
+def test_bad_setup_input_gets_one_line_and_exit_3_and_nothing_is_written(tmp_path, machine_file, what, var, tbl,
                                                                           message):
     (tmp_path / "params.var").write_text(var)
     (tmp_path / "tools.tbl").write_text(tbl)
@@ -331,7 +331,7 @@ def test_bad_setup_input_gets_one_line_and_exit_2_and_nothing_is_written(tmp_pat
     src.write_text(MM_PROGRAM)
     r = run_cli("post", src, "-o", out, "--machine", machine_file, "--var", tmp_path / "params.var",
                 "--tool-table", tmp_path / "tools.tbl", "--machine-units", "inch")
-    assert r.returncode == 2 and not out.exists()
+    assert r.returncode == 3 and not out.exists()
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0] and "Traceback" not in r.stderr, r.stderr
 
@@ -343,7 +343,7 @@ def test_a_setup_for_inch_programs_refuses_a_mm_program(tmp_path, machine_file):
     src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
     src.write_text(MM_PROGRAM.replace("G55", "G54"))
     r = run_cli("post", src, "-o", out, "--machine", machine_file, "--setup", setup)
-    assert r.returncode == 2 and not out.exists()
+    assert r.returncode == 3 and not out.exists()
     assert r.stderr.strip().endswith("is for programs in inch") and "the program is in mm (G21)" in r.stderr
 
 
@@ -392,7 +392,7 @@ def test_the_machine_file_names_a_default_setup(tmp_path):
     src.write_text((NIST / "mtc_cover_rev_a.nc").read_text())
     r = run_cli("post", src, "-o", tmp_path / "out.nc", "--machine", tmp_path / "mill.toml")
     # the program parks in G58, which the shop's setup does not give
-    assert r.returncode == 2 and r.stderr.startswith(f"{src}:1463: work offset G58 (X Y Z) was not given")
+    assert r.returncode == 3 and r.stderr.startswith(f"{src}:1463: work offset G58 (X Y Z) was not given")
     (tmp_path / "shop.toml").write_text((tmp_path / "shop.toml").read_text() + "G58 = { X = 0, Y = 0, Z = 0 }\n")
     r = run_cli("post", src, "-o", tmp_path / "out.nc", "--machine", tmp_path / "mill.toml", "--report",
                 tmp_path / "r.json")

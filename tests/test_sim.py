@@ -402,3 +402,13 @@ def test_force_and_tool_deflection_with_real_engagement(cone):
     h = (res.points @ np.asarray(cone["axis"]))
     low, high = d[h < 6].mean(), d[h > 14].mean()
     assert low > high
+
+
+def test_the_envelope_progress_bar_is_not_written_off_a_terminal(capfd):
+    # trueaxis simulate asks for the bar; redirected into a log (stderr not a terminal) it must write nothing
+    tips, axes = _straight_pass(0.010)
+    pts = np.column_stack([np.linspace(-5, 5, 50), np.full(50, -R), np.full(50, 10.0)])
+    res = envelope_deviation(pts, np.tile([0.0, 1.0, 0.0], (50, 1)), tips, axes, R, L, progress=True, chunk_points=10)
+    np.testing.assert_allclose(res.deviation_um, 10.0, atol=0.003)
+    out, err = capfd.readouterr()
+    assert out == "" and err == "", err

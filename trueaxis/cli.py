@@ -1,8 +1,10 @@
 """The command line: ``trueaxis <command>`` (and ``inspect`` = ``trueaxis inspect``).
 
-Thin glue: parse arguments, call the package, print. A bad input ends with one line per problem on stderr and exit
-status 2, never a traceback; a computed result that is refused (an identification that does not explain the part,
-with --write) ends with one line on stderr and exit status 3, nothing written.
+Thin glue: parse arguments, call the package, print. A usage error (an option, a value, a path) ends with one line on
+stderr and exit status 2, never a traceback; an input the product refuses (a program, CL data, a machine file, a
+setup, a cloud: ``file:line: reason``) or a computed result it refuses (an identification that does not explain the
+part, with --write) with exit status 3, nothing written; a failure of the system (a file that cannot be read or
+written) with 1 (README "How it fails").
 """
 
 from __future__ import annotations
@@ -15,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-EXIT_BAD_INPUT = 2
-EXIT_REFUSED = 3  # a computed result refused (an identification that does not explain the part): nothing written
+EXIT_BAD_INPUT = 2  # usage: an option, a value or a path
+EXIT_REFUSED = 3  # an input or a computed result refused: nothing written
 
 
 class UsageError(ValueError):
@@ -151,14 +153,18 @@ def cmd_error(args) -> int:
 
 
 def cmd_post(args) -> int:
-    from .fileio import atomic_write
     from .machine import load_machine
     from .postproc.post import post_text, _read_input, resolve_setup
 
     machine = load_machine(args.machine)
     setup = resolve_setup(machine, setup=args.setup, var=args.var, tool_table=args.tool_table,
                           machine_units=args.machine_units, offsets_zero=args.offsets_zero)
-    text, source = _read_input(Path(args.input), None) if Path(args.input).exists() else (None, args.input)
+    if args.output == "-" and args.report == "-":
+        raise UsageError("-o - and --report - both name stdout; name a file for one of them")
+    if args.input == "-":  # the program on stdin: read whole, refused as a file would be (NUL bytes, encoding)
+        text, source = _decode_program(sys.stdin.buffer.read(), "<stdin>")
+    else:
+        text, source = _read_input(Path(args.input), None) if Path(args.input).exists() else (None, args.input)
     if text is None:
         raise UsageError(f"{args.input}: no such file")
     conditions = {k: getattr(args, k) for k in ("ap", "ae", "fz", "n", "d", "z")}
@@ -168,18 +174,46 @@ def cmd_post(args) -> int:
                             singular_deg=args.singular_deg, conditions=conditions,
                             passthrough_unsupported=args.passthrough_unsupported, source=source,
                             cl_feed_mm_min=args.cl_feed, cl_branch=branch, setup=setup, force=args.force)
-    atomic_write(args.output, out)
-    for item in report.uncompensated:
-        print(f"{source}:{item['line']}: the position of {' '.join(item['axes'])} is not known here (no absolute move "
-              "of it before): block left as written, uncompensated", file=sys.stderr)
+    for warning in report.warnings:  # each 'file:line: message'
+        print(warning, file=sys.stderr)
+    if args.strict and report.warnings:
+        print(f"trueaxis post: --strict: {len(report.warnings)} warning{'s' if len(report.warnings) > 1 else ''}; "
+              f"{args.output} not written", file=sys.stderr)
+        return EXIT_REFUSED
+    _write_or_stdout(args.output, out)
     if args.report:
-        atomic_write(args.report, json.dumps(report.as_dict(), indent=2))
+        _write_or_stdout(args.report, json.dumps(report.as_dict(), indent=2))
     corr = ", ".join(f"{a} {max(v.values()):.2f}" for a, v in report.correction.items())
     cl = (f"CL data ({report.input_format[3:]}, {report.cl_points} points, {report.cl_program_blocks} machine-axis "
           "blocks) -> " if report.input_format.startswith("cl-") else "")
-    print(f"{args.output}: {cl}{report.blocks_in} blocks in, {report.blocks_out} out; {report.moves_split} moves split; "
-          f"max correction {corr} (um/urad); {len(report.singular_blocks)} singular blocks")
+    print(f"{'<stdout>' if args.output == '-' else args.output}: {cl}{report.blocks_in} blocks in, "
+          f"{report.blocks_out} out; {report.moves_split} moves split; max correction {corr} (um/urad); "
+          f"{len(report.singular_blocks)} singular blocks", file=sys.stderr if "-" in (args.output, args.report)
+          else sys.stdout)  # stdout carries the program (or the report) then
     return 0
+
+
+def _decode_program(data: bytes, source: str) -> tuple[str, str]:
+    """Program bytes (stdin) as the post reads a file: NUL bytes refused, UTF-8 else Latin-1."""
+    from .postproc.post import PostError
+
+    if b"\x00" in data:
+        raise PostError(source, 1, "binary data (NUL bytes): not G-code")
+    try:
+        return data.decode("utf-8"), source
+    except UnicodeDecodeError:
+        return data.decode("latin-1"), source
+
+
+def _write_or_stdout(path: str, text: str) -> None:
+    """``-``: stdout (no atomic file then); else the file, written atomically."""
+    if path == "-":
+        sys.stdout.write(text)
+        sys.stdout.flush()
+        return
+    from .fileio import atomic_write
+
+    atomic_write(path, text)
 
 
 def _parse_placement(text):
@@ -324,9 +358,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(prog="trueaxis", description="Machine-tool error compensation: post, inspect, diagnose.",
                                 epilog="Exit status: 0 done; 1 the system refused (a file that cannot be read or "
-                                       "written); 2 bad input or usage, nothing written; 3 a computed result "
-                                       "refused (an identification that does not explain the part), nothing "
-                                       "written; 130 / 143 interrupted (SIGINT / SIGTERM).")
+                                       "written); 2 usage (an option, a value, a path), nothing written; 3 an "
+                                       "input refused (a program, CL data, a machine file, a setup, a cloud, "
+                                       "tolerances; a --strict warning) or a computed result refused (an "
+                                       "identification that does not explain the part), nothing written; "
+                                       "130 / 143 interrupted (SIGINT / SIGTERM).")
     p.add_argument("--version", action="version", version=f"trueaxis {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -351,18 +387,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     po = sub.add_parser("post", help="compensate an NC program with a machine's error twin")
     po.add_argument("input", help="G-code program (machine axes), or CL data in the part frame: CSV with a header "
-                    "naming x,y,z,i,j,k[,f] or APT (GOTO/x,y,z,i,j,k, FEDRAT/f, RAPID); told apart by content")
-    po.add_argument("-o", "--output", required=True, help="compensated program (written atomically)")
+                    "naming x,y,z,i,j,k[,f] or APT (GOTO/x,y,z,i,j,k, FEDRAT/f, RAPID); told apart by content; - for stdin")
+    po.add_argument("-o", "--output", required=True, help="compensated program (written atomically); - for stdout "
+                    "(messages stay on stderr)")
     po.add_argument("--machine", required=True, help="machine file (TOML)")
     po.add_argument("--mode", default="geometric", choices=["none", "geometric", "comprehensive"])
     po.add_argument("--tol-um", type=_number(low=1e-4), default=1.0, help="path tolerance, um (default 1)")
     po.add_argument("--max-correction-mm", type=POSITIVE, default=0.5, help="largest correction allowed (default 0.5)")
     po.add_argument("--singular-deg", type=_number(low=0.0, high=90.0), default=1.0,
                     help="tilt below which the free rotary axis is held (default 1 deg)")
-    po.add_argument("--report", help="write the report JSON here")
+    po.add_argument("--report", help="write the report JSON here (- for stdout)")
     po.add_argument("--passthrough-unsupported", action="store_true",
-                    help="leave blocks the reader does not understand as they are (counted in the report): "
-                         "macros it cannot evaluate, G52, cutter radius compensation G41/G42")
+                    help="leave blocks the reader does not understand as they are (G43.4, unknown G and M codes, "
+                         "macros it cannot evaluate, G52, cutter radius compensation G41/G42: refused otherwise; "
+                         "each one a warning on stderr)")
+    po.add_argument("--strict", action="store_true",
+                    help="every warning is an error: exit 3, nothing written")
     for key, what in (("ap", "axial depth, mm"), ("ae", "radial engagement, mm"), ("fz", "feed per tooth, mm"),
                       ("n", "spindle speed, rpm"), ("d", "tool diameter, mm"), ("z", "flutes")):
         po.add_argument(f"--{key}", type=POSITIVE if key != "z" else _number(int, low=1), help=f"cutting conditions: {what} "
@@ -491,6 +531,21 @@ def _located_errors() -> tuple:
     return tuple(found)
 
 
+# inputs that are always file paths (a machine file may be a fixture's name): one that does not exist is a usage error
+_NAMED_FILES = ("input", "program", "cloud", "--cloud", "--program", "--cad")
+
+
+def _refusal_errors() -> tuple:
+    """The error classes of inputs the product refuses whose messages do not carry a line (clouds, tolerances, the
+    inspection, effects files): exit status 3 like the located ones. Taken lazily, as in :func:`_located_errors`."""
+    found = []
+    for module, name in (("trueaxis.inspect.cloud", "CloudError"), ("trueaxis.inspect.tolerances", "ToleranceError"),
+                         ("trueaxis.inspect.deviation", "InspectionError"), ("trueaxis.sim.effects", "EffectsFileError")):
+        if module in sys.modules:
+            found.append(getattr(sys.modules[module], name))
+    return tuple(found)
+
+
 def _paths(args) -> tuple[list, list]:
     """The command's input files and outputs, for the output gate: ([(option, path)], [(option, path, is_folder)])."""
     g = lambda name: getattr(args, name, None)  # noqa: E731 (options a subcommand does not have are None)
@@ -545,8 +600,8 @@ EXIT_BROKEN_PIPE = 141  # as a shell reports a process ended by SIGPIPE
 
 
 def main(argv=None) -> int:
-    """Run one command. Exit status: 0 done; 2 bad input or usage (one line per problem on stderr, nothing written);
-    3 a computed result refused (nothing written); 1 the system refused (a file that cannot be read or written: one
+    """Run one command. Exit status: 0 done; 2 usage (one line per problem on stderr, nothing written); 3 an input
+    or a computed result refused (``file:line: reason`` where it has a line; nothing written); 1 the system refused (a file that cannot be read or written: one
     line); 130 / 143 interrupted by SIGINT / SIGTERM (one line; earlier outputs intact, no temporary file left)."""
     import signal
 
@@ -560,6 +615,8 @@ def main(argv=None) -> int:
         for option, path in inputs:
             if path is not None and Path(path).is_dir():
                 raise UsageError(f"{option} {path}: is a folder; name a file")
+            if option in _NAMED_FILES and path is not None and path != "-" and not Path(path).exists():
+                raise UsageError(f"{option} {path}: cannot read the file: no such file")
         check_outputs(inputs, outputs)
         return int(args.func(args) or 0)
     except (KeyboardInterrupt, _Terminated) as exc:
@@ -574,7 +631,10 @@ def _report_error(command: str, exc: Exception) -> int:
 
     if isinstance(exc, _located_errors()):  # already 'file:line: reason'
         print(str(exc), file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return EXIT_REFUSED
+    if isinstance(exc, _refusal_errors()):  # an input the product refuses (a cloud, tolerances, effects)
+        print(f"trueaxis {command}: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
     if isinstance(exc, (UsageError, OutputPathError, ValueError, FileNotFoundError)):
         print(f"trueaxis {command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -19,6 +19,7 @@ Outputs in TRUEAXIS_TEST_OUT:
   trueaxis.ngc         trueaxis_post, --no-header, geometric compensation
   trueaxis_return.ngc  what trueaxis_post's export returned for that file
   trueaxis_none.ngc    trueaxis_post with --mode none (no correction: the linuxcnc program plus the comments)
+  trueaxis_numbered.ngc  trueaxis_post, geometric, with the linuxcnc post's --line-numbers --no-comments
   job.json             what the job says (tool, speeds, operations) and the outcome of a refused post
 freecadcmd exits 0 even when a script raises, so any failure here ends the process with status 1.
 """
@@ -92,6 +93,7 @@ try:
         f.write(returned)
 
     trueaxis.export(postlist, os.path.join(OUT, "trueaxis_none.ngc"), args.replace("geometric", "none"))
+    trueaxis.export(postlist, os.path.join(OUT, "trueaxis_numbered.ngc"), args + " --line-numbers --no-comments")
 
     refused_path = os.path.join(OUT, "refused.ngc")
     try:

@@ -150,7 +150,8 @@ def nominal_tool_path(program, machine: Machine, *, dt: float = 1e-3, spacing_mm
     rows = np.nonzero((prog.motion != 0) & (traj.row_duration > 0))[0]
     cols = [AXES.index(a) for a in machine.axis_names]
     lin = np.where(prog.inch[rows], MM_PER_INCH, 1.0)[:, None]
-    ends = np.concatenate([prog.end[rows, :3] * lin, np.radians(prog.end[rows, 3:])], axis=1)[:, cols]
+    ends = np.concatenate([prog.end[rows, :3] * lin, np.radians(prog.end[rows, 3:]) * machine.word_signs6()[3:]],
+                          axis=1)[:, cols]
     q_all = np.concatenate([q[keep], ends])
     t_all = np.r_[traj.t[cut][keep], traj.row_start_t[rows] + traj.row_duration[rows]]
     line_all = np.r_[traj.line[cut][keep], prog.line_index[rows]]

@@ -325,7 +325,7 @@ def _out_of_travel(machine: Machine, q: np.ndarray) -> str:
 def _words(machine: Machine, row: np.ndarray) -> str:
     out = []
     for c, a in enumerate(machine.axis_names):
-        v = math.degrees(row[c]) if machine.axes[a].is_rotary else row[c]
+        v = math.degrees(row[c]) * machine.word_signs()[c] if machine.axes[a].is_rotary else row[c]
         out.append(f"{a}{v + 0.0:.6f}")
     return " ".join(out)
 

@@ -157,6 +157,12 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
 
     axes = _read_axes(data.get("axes", {}), ck)
     wp, tl = _read_kinematics(data.get("kinematics", {}), axes, ck)
+    rotary_sense = data.get("kinematics", {}).get("rotary_sense", "iso") if isinstance(data.get("kinematics"),
+                                                                                        dict) else "iso"
+    if rotary_sense not in ROTARY_SENSES:
+        ck.fail("kinematics.rotary_sense", f"expected one of {', '.join(map(repr, ROTARY_SENSES))}, got "
+                f"{rotary_sense!r}")
+        rotary_sense = "iso"
     axes = {a: Axis(**{**ax.__dict__, "branch": "workpiece" if a in wp else "tool"}) for a, ax in axes.items()}
 
     t = ck.table(
@@ -233,6 +239,7 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
         note=note,
         source=source,
         setup=setup,
+        rotary_sense=rotary_sense,
     )
 
 
@@ -277,8 +284,12 @@ def _read_axes(data, ck: _Checker) -> dict[str, Axis]:
     return axes
 
 
+ROTARY_SENSES = ("iso", "linuxcnc-trt")
+
+
 def _read_kinematics(data, axes, ck: _Checker):
-    k = ck.table(data, "kinematics", {"bed_to_workpiece", "bed_to_tool"}, ("bed_to_workpiece", "bed_to_tool"))
+    k = ck.table(data, "kinematics", {"bed_to_workpiece", "bed_to_tool", "rotary_sense"},
+                 ("bed_to_workpiece", "bed_to_tool"))
     branches = []
     for key in ("bed_to_workpiece", "bed_to_tool"):
         value = k.get(key, [])
@@ -483,7 +494,10 @@ def dump_machine(machine: Machine) -> str:
     if machine.setup:
         out.append(f"setup = {_toml_str(machine.setup)}")
     out += ["", "[kinematics]", f"bed_to_workpiece = {_toml_list(machine.bed_to_workpiece)}",
-            f"bed_to_tool = {_toml_list(machine.bed_to_tool)}", "", "[axes]"]
+            f"bed_to_tool = {_toml_list(machine.bed_to_tool)}"]
+    if machine.rotary_sense != "iso":
+        out.append(f"rotary_sense = {_toml_str(machine.rotary_sense)}")
+    out += ["", "[axes]"]
     for name in machine.axis_names:
         ax = machine.axes[name]
         items = [f'type = "{ax.kind}"']

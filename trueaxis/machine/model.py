@@ -118,6 +118,22 @@ class Machine:
     note: str = ""
     source: str = "<memory>"
     setup: str = ""  # the control's default setup file (``[machine] setup``), a path; "" when none
+    # How the programs' rotary words turn ([kinematics] rotary_sense): "iso" (ISO 841, the model's sense: the tool
+    # relative to the workpiece, right-handed) or "linuxcnc-trt" (LinuxCNC's xyzbc/xyzac-trt-kins: the table turns
+    # right-handed, so a word is the negative of the model's angle). Only programs' words change, nothing else.
+    rotary_sense: str = "iso"
+
+    def word_signs6(self) -> np.ndarray:
+        """(6,) the signs of :meth:`word_signs` over the columns X Y Z A B C (1 for axes the machine lacks)."""
+        signs = np.ones(6)
+        for a, s in zip(self.axis_names, self.word_signs()):
+            signs[AXIS_ORDER.index(a)] = s
+        return signs
+
+    def word_signs(self) -> np.ndarray:
+        """(n_axes,) +1 or -1: a program word of each axis is its sign times the model's position (degrees / mm)."""
+        flip = self.rotary_sense == "linuxcnc-trt"
+        return np.array([-1.0 if flip and self.axes[a].is_rotary else 1.0 for a in self.axis_names])
 
     # --- names ---------------------------------------------------------------------------------------------------
     @property

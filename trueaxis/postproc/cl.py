@@ -657,7 +657,7 @@ def cl_program(cl: ClData, machine: Machine, *, tol_um: float = 1.0, linearise: 
 
     names = machine.axis_names
     rot = np.array([machine.axes[a].is_rotary for a in names])
-    vals = np.where(rot[None, :], np.degrees(q_out), q_out)
+    vals = np.where(rot[None, :], np.degrees(q_out), q_out) * machine.word_signs()  # [kinematics] rotary_sense
     name = (title or f"CL data {cl.source}").replace("(", "[").replace(")", "]")
     out = ["%", f"({name}, machine axes for {machine.name.replace('(', '[').replace(')', ']')})", "G21 G90 G17"]
     line_map = [int(cl.line[0])] * 3

@@ -152,7 +152,7 @@ def _add(pos: list, delta) -> None:
 # plane: (first, second, normal) axis indices as LinuxCNC orders them in ARC_FEED
 _PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}
 _CENTER_WORD = {0: "I", 1: "J", 2: "K"}
-_KNOWN_M = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 30, 48, 49, 50, 51, 52, 53, 60, 61, 62, 63, 64, 65, 66, 67, 68, 70, 71, 72, 73}
+_KNOWN_M = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 19, 30, 48, 49, 50, 51, 52, 53, 60, 61, 62, 63, 64, 65, 66, 67, 68, 70, 71, 72, 73}
 _MOVING_M = {98: "subprogram call M98", 99: "subprogram return M99"}
 # G codes (x10) whose moves the reader cannot reproduce: refused (or passed through on request)
 _MOVING_G = {
@@ -623,6 +623,14 @@ class _Interpreter:
     def unsupported_block(self, line_no, reason):
         self.unsupported.append((line_no, reason))
         self.warn(line_no, f"passed through uninterpreted: {reason}")
+
+    def not_understood(self, line_no, reason):
+        """A code the reader does not understand: it may change the meaning of what follows (G43.4 tool centre point,
+        a work offset G10 L2 sets), so it is refused unless the user asked for it to be passed through."""
+        if not self.passthrough:
+            raise self.err(line_no, reason + " (it may change what the program's positions mean; "
+                           "--passthrough-unsupported leaves the block as it is)")
+        self.unsupported_block(line_no, reason)
 
     def run(self) -> Program:
         lines = split_lines(self.text)
@@ -1142,7 +1150,9 @@ class _Interpreter:
                             self.unsupported_block(line_no, "Fanuc G08 P (look-ahead) is not an RS-274 code")
                         # else LinuxCNC's G8 (lathe radius mode), the default: nothing to do
                     else:
-                        self.unsupported_block(line_no, f"G{g / 10:g} not understood (no axis moved)")
+                        self.not_understood(line_no, "G43.4 / G43.5 tool centre point control: the post reads and "
+                                            "writes machine-axis (joint) positions, not tool-tip positions"
+                                            if g in (434, 435) else f"G{g / 10:g} not understood")
 
                 # feed, spindle, tool
                 if "F" in fvals:
@@ -1165,7 +1175,7 @@ class _Interpreter:
                     elif m in (2, 30):
                         ended = True
                     elif m not in _KNOWN_M and not (100 <= m <= 199):
-                        self.unsupported_block(line_no, f"M{m} is not an RS-274 code (no axis moved)")
+                        self.not_understood(line_no, f"M{m} is not an RS-274 code")
                 # tool length offset
                 for g in gnums:
                     if g not in (430, 431, 432, 490):
@@ -1522,7 +1532,7 @@ class _Interpreter:
             self.tool_off_mm[t] = off
             self.tool_src[t] = f"{self.source}:{line_no} (G10 L1 P{t})"
             return None
-        self.unsupported_block(line_no, f"G10 L{L} not supported (no axis moved)")
+        self.not_understood(line_no, f"G10 L{L} not supported")
         return None
 
     def tool_offsets(self, h, u_scale, zero_ok, line_no, how):

@@ -408,6 +408,7 @@ class _Poster:
         self.cols = [AXES.index(a) for a in self.names]
         self.orientation = any(a in prog.axes_present for a in machine.rotary_axes)
         self.rotary_columns = [j for j, a in enumerate(self.names) if machine.axes[a].is_rotary]
+        self.word_sign = machine.word_signs()  # [kinematics] rotary_sense: -1 for LinuxCNC trt rotary words
         self.inch_rows = prog.inch
         self.stats = {"um": 0.0, "urad": 0.0, "urad_singular": 0.0, "singular_points": 0, "singular_lines": set()}
         self.fractions = {}  # program row -> piece boundaries (fractions of the move) of split moves
@@ -418,7 +419,7 @@ class _Poster:
         q = prog6[:, self.cols].copy()
         for j, a in enumerate(self.names):
             if self.m.axes[a].is_rotary:
-                q[:, j] = np.radians(q[:, j])
+                q[:, j] = np.radians(q[:, j]) * self.word_sign[j]
             else:
                 q[:, j] = np.where(inch, q[:, j] * MM_PER_INCH, q[:, j])
         return q
@@ -429,7 +430,7 @@ class _Poster:
         out = np.zeros((dq.shape[0], 6))
         for j, a in enumerate(self.names):
             if self.m.axes[a].is_rotary:
-                out[:, self.cols[j]] = np.degrees(dq[:, j])
+                out[:, self.cols[j]] = np.degrees(dq[:, j]) * self.word_sign[j]
             else:
                 out[:, self.cols[j]] = np.where(inch, dq[:, j] / MM_PER_INCH, dq[:, j])
         return self.p.to_program_delta(out, prog_rows)
@@ -521,7 +522,7 @@ class _Poster:
                 self._pair_cache = _rotary_pair(self.m)
             except NotImplementedError as exc:
                 self._pair_cache = None
-                self.rep.warnings.append(f"singular cone not handled for this layout: {exc}")
+                self.rep.warnings.append(f"{self.p.source}:1: singular cone not handled for this layout: {exc}")
         return self._pair_cache
 
     def singular_at(self, q):
@@ -587,8 +588,10 @@ class _Poster:
                     k = int(np.argmax(out))
                     v = np.degrees(q_cmd[k, j]) if ax.is_rotary else q_cmd[k, j]
                     t = np.degrees(ax.travel) if ax.is_rotary else ax.travel
+                    word = f" (program word {a}{v * self.word_sign[j]:.6g}, rotary_sense {self.m.rotary_sense})" \
+                        if self.word_sign[j] < 0 else ""
                     raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
-                                    f"corrected {a} = {v:.6g} lies outside its travel [{t[0]:g}, {t[1]:g}]")
+                                    f"corrected {a} = {v:.6g}{word} lies outside its travel [{t[0]:g}, {t[1]:g}]")
 
     # --- the run -------------------------------------------------------------------------------------------------
     def known_positions(self):

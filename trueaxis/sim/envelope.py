@@ -252,7 +252,8 @@ def _envelope(
     if progress:
         from tqdm import tqdm
 
-        chunks = tqdm(chunks, desc="envelope", unit="chunk", total=(n_pts + chunk_points - 1) // chunk_points)
+        chunks = tqdm(chunks, desc="envelope", unit="chunk", total=(n_pts + chunk_points - 1) // chunk_points,
+                      disable=None)  # None: shown on a terminal only, never written into a redirected log
     for c0 in chunks:
         sl = slice(c0, min(n_pts, c0 + chunk_points))
         pts = points[sl]

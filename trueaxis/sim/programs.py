@@ -88,7 +88,7 @@ def cone_flank_program(machine, cone: dict, n_blocks: int = 3600, speed_mm_min: 
         def words(row):
             ws = []
             for c, nme in enumerate(names):
-                v = math.degrees(row[c]) if machine.axes[nme].is_rotary else row[c]
+                v = math.degrees(row[c]) * machine.word_signs()[c] if machine.axes[nme].is_rotary else row[c]
                 ws.append(f"{nme}{v:.6f}")
             return " ".join(ws)
 

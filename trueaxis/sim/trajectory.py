@@ -83,8 +83,9 @@ def _program_axes(program, machine: Machine, coordinates: str):
     else:
         raise ValueError(f"coordinates must be 'program' or 'machine', got {coordinates!r}")
     lin = np.where(program.inch, MM_PER_INCH, 1.0)[:, None]
-    start = np.concatenate([start[:, :3] * lin, np.radians(start[:, 3:])], axis=1)
-    end = np.concatenate([end[:, :3] * lin, np.radians(end[:, 3:])], axis=1)
+    sign = machine.word_signs6()[3:]  # [kinematics] rotary_sense: LinuxCNC trt words are the model's angles negated
+    start = np.concatenate([start[:, :3] * lin, np.radians(start[:, 3:]) * sign], axis=1)
+    end = np.concatenate([end[:, :3] * lin, np.radians(end[:, 3:]) * sign], axis=1)
     center = center * lin
     return start, end, center
 

@@ -346,6 +346,60 @@ def compensate(gcode, opts, label="program.ngc"):
             return f.read()
 
 
+_CONDITIONS_LINE = re.compile(r"^(?:N\d+ ?)?\(trueaxis: [^)]*\)\r?\n", re.MULTILINE)
+_N_WORD = re.compile(r"^N\d+ ?")
+_HEADER = ("(trueaxis post: ", "(trueaxis setup: ")
+# decimals trueaxis writes at least (mm, inch): fewer would round the micrometre corrections away
+MIN_DECIMALS = {"mm": 5, "inch": 6}
+
+
+def _linuxcnc_option(args, name):
+    """The value of ``--name V`` / ``--name=V`` among the linuxcnc post's arguments (a list), True for a bare flag,
+    else None."""
+    for k, a in enumerate(args):
+        if a == name:
+            return args[k + 1] if k + 1 < len(args) and not args[k + 1].startswith("--") else True
+        if a.startswith(name + "="):
+            return a.split("=", 1)[1]
+    return None
+
+
+def honour_linuxcnc_options(text, linuxcnc_args):
+    """The compensated program with the linuxcnc post's output options applied to what trueaxis added too:
+    ``--no-comments``: the structured cutting-conditions comments this script put in for trueaxis are taken out
+    again (the header that names the machine file stays: it is what makes a second post refuse the program);
+    ``--line-numbers``: every block after the header is numbered again, split blocks included, from the linuxcnc
+    post's first number in its steps of 10. Returns (text, notes): notes for the user (``--precision`` below what the
+    corrections need: the compensated blocks keep trueaxis' decimals)."""
+    args = shlex.split(linuxcnc_args or "")
+    notes = []
+    precision = _linuxcnc_option(args, "--precision")
+    if precision not in (None, True):
+        try:
+            asked = int(precision)
+        except ValueError:
+            asked = None
+        units = "inch" if _linuxcnc_option(args, "--inches") else "mm"
+        if asked is not None and asked < MIN_DECIMALS[units]:
+            notes.append(f"trueaxis post: --precision {asked}: the compensated blocks carry {MIN_DECIMALS[units]} "
+                         f"decimals ({units}): fewer would round the corrections (micrometres) away")
+    if _linuxcnc_option(args, "--no-comments"):
+        text = _CONDITIONS_LINE.sub("", text)
+    if _linuxcnc_option(args, "--line-numbers"):
+        lines = text.splitlines(keepends=True)
+        numbers = [int(m.group(0)[1:].strip()) for line in lines if (m := _N_WORD.match(line))]
+        n, step = (numbers[0] if numbers else 100), 10  # the linuxcnc post's LINENR and LINEINCR
+        out = []
+        for line in lines:
+            if line.startswith(_HEADER) or not line.strip() or line.strip() == "%":
+                out.append(line)
+                continue
+            out.append(f"N{n} " + _N_WORD.sub("", line, count=1))
+            n += step
+        text = "".join(out)
+    return text, notes
+
+
 def write_atomically(filename, text):
     """Write text at filename through a temporary file in the same folder and a rename."""
     folder = os.path.dirname(os.path.abspath(filename))
@@ -390,6 +444,9 @@ def export(objectslist, filename, argstring):
     except TrueaxisPostError as exc:
         FreeCAD.Console.PrintError(str(exc) + "\n")
         raise
+    final, notes = honour_linuxcnc_options(final, linuxcnc_args)
+    for note in notes:
+        FreeCAD.Console.PrintWarning(note + "\n")
     if FreeCAD.GuiUp and not opts.no_show_editor:
         final = _show_editor(lc, final)
     if filename and filename != "-":
