@@ -12,15 +12,19 @@ from __future__ import annotations
 import sys
 import time
 
+import numpy as np
+
+
+def _mid(ax) -> float:
+    """A linear axis' position about mid-travel (mm, whole), a rotary axis' 0."""
+    return 0.0 if ax.is_rotary or ax.travel is None else float(round(0.5 * (ax.travel[0] + ax.travel[1])))
+
 
 def _programs(machine) -> list:
     """Small programs for ``machine`` (its linear axes about mid-travel): plain blocks (the compiled reader and
     writer), an arc (three-axis mills), rotary moves (five-axis)."""
     names = machine.axis_names
-    mid = {}
-    for a in names:
-        ax = machine.axes[a]
-        mid[a] = 0.0 if ax.is_rotary or ax.travel is None else round(0.5 * (ax.travel[0] + ax.travel[1]))
+    mid = {a: _mid(machine.axes[a]) for a in names}
 
     def block(**delta):
         return " ".join(f"{a}{mid[a] + delta.get(a, 0.0):g}" for a in names if a in mid and (a in delta or
@@ -44,6 +48,7 @@ def warm(out=sys.stderr) -> None:
     from .machine.error_functions import _unit_coefficients
     from .postproc.post import PostError, post_text
     from .postproc.setup import Setup
+    from .machine.twin import PARALLEL_MIN
     from .resources import machine_files
 
     t0 = time.perf_counter()
@@ -54,7 +59,13 @@ def warm(out=sys.stderr) -> None:
                 for fn in comps.values():
                     if fn.kind == "cubic":
                         _unit_coefficients(fn.at, fn.periodic)
-        ErrorTwin(m)  # the twin's tables
+        twin = ErrorTwin(m)
+        # the chain's parallel kernels (long programs), with and without force
+        q = np.tile([_mid(m.axes[a]) for a in m.axis_names], (PARALLEL_MIN, 1))
+        for force in (None, np.array([10.0, 20.0, -30.0])):
+            twin.pose_and_axis_jacobian(q, force)
+            twin.actual_pose(q, force)
+        twin.nominal_pose(q)
         for text in _programs(m):
             for mode in ("geometric", "comprehensive"):
                 try:
