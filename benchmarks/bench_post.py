@@ -92,11 +92,11 @@ def three_axis_case(work: Path, blocks: int):
     return prog, mach
 
 
-def timed(cmd, cwd=None, stdin=subprocess.DEVNULL):
+def timed(cmd, cwd=None, stdin=subprocess.DEVNULL, env=None):
     """(seconds, peak RSS in MB of the child, return code, stderr tail) of one run."""
     t0 = time.perf_counter()
     with open(os.devnull, "wb") as devnull:
-        proc = subprocess.Popen(cmd, cwd=cwd, stdin=stdin, stdout=devnull, stderr=subprocess.PIPE)
+        proc = subprocess.Popen(cmd, cwd=cwd, stdin=stdin, stdout=devnull, stderr=subprocess.PIPE, env=env)
         err_chunks = []
         # stderr is small (one line per problem); read it while waiting
         err = proc.stderr.read()
@@ -135,8 +135,12 @@ def run_case(name, prog: Path, mach: Path, work: Path):
         tbl = work / "tools.tbl"
         tbl.write_text("".join(f"T{t} P{t} D0.1 Z+0.0 ;\n" for t in range(1, 40)))
         with open(os.devnull, "rb") as devnull:
+            # HOME of its own: LinuxCNC 2.9's rs274 keeps the tool table in $HOME/.tool.mmap, shared by every rs274
+            # of the user (another one running reads or truncates it: "Requested tool 23 not found", SIGBUS)
+            home = work / "rs274_home"
+            home.mkdir(exist_ok=True)
             t_rs, mem_rs, rc_rs, err_rs = timed([rs274, "-t", str(tbl), "-g", str(prog), str(work / "canon.txt")],
-                                                cwd=work, stdin=devnull)
+                                                cwd=work, stdin=devnull, env={**os.environ, "HOME": str(home)})
         if rc_rs != 0:
             print(f"{name}: rs274 exit {rc_rs}: {err_rs}", file=sys.stderr)
     n_lines = sum(1 for _ in open(prog, "rb"))
