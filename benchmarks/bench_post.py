@@ -36,6 +36,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 NIST = ROOT / "fixtures" / "programs" / "nist"
+# the command line as this interpreter runs it (the venv's console script may belong to another checkout)
+TRUEAXIS = [sys.executable, "-m", "trueaxis.cli"]
 CONE = {"axis": [float(np.sin(np.radians(10))), 0.0, float(np.cos(np.radians(10)))], "half_angle_deg": 15.0,
         "base_radius": 40.0, "height_range": [0.0, 20.0]}
 
@@ -110,22 +112,20 @@ def timed(cmd, cwd=None, stdin=subprocess.DEVNULL, env=None):
 def warm_up(prog: Path, mach: Path, work: Path):
     """Post the first 200 lines once, untimed: the first use of the compiled kernels compiles them (about 20 s, once
     per installation, then cached), which is not the post's running time."""
-    trueaxis = shutil.which("trueaxis") or str(ROOT / ".venv" / "bin" / "trueaxis")
     with open(prog) as f:
         head = "".join(line for _, line in zip(range(200), f))
     small = work / f"warm_{prog.stem}.ngc"
     small.write_text(head + "M30\n")
-    subprocess.run([trueaxis, "post", str(small), "-o", str(work / "warm.out.ngc"), "--machine", str(mach),
+    subprocess.run([*TRUEAXIS, "post", str(small), "-o", str(work / "warm.out.ngc"), "--machine", str(mach),
                     "--offsets-zero"],
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
 
 
 def run_case(name, prog: Path, mach: Path, work: Path):
-    trueaxis = shutil.which("trueaxis") or str(ROOT / ".venv" / "bin" / "trueaxis")
     warm_up(prog, mach, work)
     out = work / f"{prog.stem}.out.ngc"
     # the NIST programs select G54 / G58: their offsets are not at hand, zero is said explicitly
-    t_post, mem_post, rc, err = timed([trueaxis, "post", str(prog), "-o", str(out), "--machine", str(mach),
+    t_post, mem_post, rc, err = timed([*TRUEAXIS, "post", str(prog), "-o", str(out), "--machine", str(mach),
                                        "--offsets-zero"])
     if rc != 0:
         print(f"{name}: trueaxis post failed (exit {rc}): {err}", file=sys.stderr)
@@ -152,12 +152,11 @@ def run_case(name, prog: Path, mach: Path, work: Path):
 def small_program(prog: Path, mach: Path, work: Path, blocks: int = 100, runs: int = 5):
     """A ``blocks``-block program end to end (process start to file written), warm: ``runs`` runs after one untimed
     one; (best wall s, median wall s, median CPU s of the child, the program's path)."""
-    trueaxis = shutil.which("trueaxis") or str(ROOT / ".venv" / "bin" / "trueaxis")
     with open(prog) as f:
         head = "".join(line for _, line in zip(range(blocks), f))
     small = work / f"small{blocks}_{prog.stem}.ngc"
     small.write_text(head + "M30\n")
-    cmd = [trueaxis, "post", str(small), "-o", str(work / f"{small.stem}.out.ngc"), "--machine", str(mach),
+    cmd = [*TRUEAXIS, "post", str(small), "-o", str(work / f"{small.stem}.out.ngc"), "--machine", str(mach),
            "--offsets-zero"]
     # warm includes Python's bytecode cache (a session that sets PYTHONDONTWRITEBYTECODE recompiles every module)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
