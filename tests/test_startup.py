@@ -34,9 +34,11 @@ def test_cubic_coefficients_read_back_from_the_disk_cache_are_scipys_bytes(tmp_p
     values = rng.normal(0.0, 10.0, at.size)
     key = (at.tobytes(), periodic)
     monkeypatch.delitem(ef._SPLINES, key, raising=False)
+    monkeypatch.delitem(ef._UNIT_COEFFICIENTS, key, raising=False)
     written = table(at, values, "cubic", periodic=periodic).compiled_form()  # computed by scipy, stored
     assert len(list((tmp_path / "splines").glob("*.npy"))) == 1
     ef._SPLINES.pop(key)  # the next one comes from the disk
+    monkeypatch.delitem(ef._UNIT_COEFFICIENTS, key, raising=False)
     fn = table(at, values, "cubic", periodic=periodic)
     read = fn.compiled_form()
     c, dc = _scipy_form(fn)
@@ -52,6 +54,7 @@ def test_a_damaged_cache_file_is_recomputed(tmp_path, monkeypatch):
     (path,) = (tmp_path / "splines").glob("*.npy")
     path.write_bytes(b"not an array")
     ef._SPLINES.pop((at.tobytes(), False))
+    ef._UNIT_COEFFICIENTS.pop((at.tobytes(), False), None)
     fn = table(at, values, "cubic")
     assert fn.compiled_form()[2].tobytes() == np.ascontiguousarray(_scipy_form(fn)[0]).tobytes()
 

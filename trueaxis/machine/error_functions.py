@@ -228,6 +228,9 @@ def _unit_spline(at_bytes: bytes, periodic: bool):
     return _SPLINES[key]
 
 
+_UNIT_COEFFICIENTS: dict = {}  # the disk cache's arrays, once read
+
+
 def _unit_coefficients(at: np.ndarray, periodic: bool) -> np.ndarray:
     """(4, n - 1, n): the PPoly coefficients of ``_unit_spline`` (scipy's CubicSpline through the identity), read
     from a disk cache when there (the same numbers: scipy's, stored), else computed with scipy and stored. Importing
@@ -236,6 +239,8 @@ def _unit_coefficients(at: np.ndarray, periodic: bool) -> np.ndarray:
     key = (at.tobytes(), periodic)
     if key in _SPLINES:
         return _SPLINES[key].c
+    if key in _UNIT_COEFFICIENTS:
+        return _UNIT_COEFFICIENTS[key]
     import hashlib
     import os
 
@@ -245,6 +250,7 @@ def _unit_coefficients(at: np.ndarray, periodic: bool) -> np.ndarray:
     try:
         c = np.load(path, allow_pickle=False)
         if c.shape == (4, n - 1, n) and c.dtype == np.float64:
+            _UNIT_COEFFICIENTS[key] = c
             return c
     except (OSError, ValueError):
         pass
