@@ -58,6 +58,8 @@ _ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _ZERO3 = (0.0, 0.0, 0.0)
 _Z = (0.0, 0.0, 1.0)
 
+# Poses per block of the parallel kernels (numba prange; the twin takes them for PARALLEL_MIN poses and more).
+PARALLEL_BLOCK = 1024
 _jit = numba.njit(cache=True)
 _jit_inline = numba.njit(cache=True, inline="always")
 
@@ -278,19 +280,40 @@ def _unit(u):
 def pose(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed):
     """Tool tip (n, 3) mm and unit tool axis (n, 3), part frame (arguments: module docstring)."""
     n = q.shape[0]
+    tip, axis = np.empty((n, 3)), np.empty((n, 3))
+    _pose_rows(0, n, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed,
+               tip, axis)
+    return tip, axis
+
+
+@numba.njit(cache=True, parallel=True)
+def pose_parallel(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed):
+    """``pose``, the poses in blocks of PARALLEL_BLOCK over the threads: the same numbers (each pose is computed
+    alone, by the same operations)."""
+    n = q.shape[0]
+    tip, axis = np.empty((n, 3)), np.empty((n, 3))
+    nb = (n + PARALLEL_BLOCK - 1) // PARALLEL_BLOCK
+    for b in numba.prange(nb):
+        _pose_rows(b * PARALLEL_BLOCK, min(n, (b + 1) * PARALLEL_BLOCK), q, column, rotary, tool, direction, pivot,
+                   origin, bed_at, tilt, offset, zero, d_act, comp, bed, tip, axis)
+    return tip, axis
+
+
+@_jit
+def _pose_rows(lo, hi, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
+               bed, tip, axis):
+    """``pose`` for poses lo..hi-1, into tip and axis (a workspace of its own)."""
     K = 2 * column.shape[0] + 2
     R, t, dR, dt = np.empty((K, 9)), np.empty((K, 3)), np.empty((K, 9)), np.empty((K, 3))
     col = np.empty(K, np.int64)
     p_after, u_after = np.empty((K, 3)), np.empty((K, 3))
-    tip, axis = np.empty((n, 3)), np.empty((n, 3))
-    for i in range(n):
+    for i in range(lo, hi):
         # No derivatives: comp stands in for dcomp, unread.
         _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
                      bed, comp, False, R, t, dR, dt, col)
         p, u_raw = _tip_and_axis(R, t, p_after, u_after)
         _store(tip, i, p)
         _store(axis, i, _unit(u_raw)[0])
-    return tip, axis
 
 
 @numba.njit(cache=True)
@@ -303,12 +326,35 @@ def pose_and_axis_jacobian(q, column, rotary, tool, direction, pivot, origin, be
     The tip and axis are the same numbers ``pose`` gives.
     """
     n, n_axes = q.shape
+    tip, axis, J = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 6, n_axes))
+    _jacobian_rows(0, n, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
+                   bed, dcomp, dbed, tip, axis, J)
+    return tip, axis, J
+
+
+@numba.njit(cache=True, parallel=True)
+def pose_and_axis_jacobian_parallel(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero,
+                                    d_act, comp, bed, dcomp, dbed):
+    """``pose_and_axis_jacobian``, the poses in blocks of PARALLEL_BLOCK over the threads: the same numbers."""
+    n, n_axes = q.shape
+    tip, axis, J = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 6, n_axes))
+    nb = (n + PARALLEL_BLOCK - 1) // PARALLEL_BLOCK
+    for b in numba.prange(nb):
+        _jacobian_rows(b * PARALLEL_BLOCK, min(n, (b + 1) * PARALLEL_BLOCK), q, column, rotary, tool, direction,
+                       pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed, dcomp, dbed, tip, axis, J)
+    return tip, axis, J
+
+
+@_jit
+def _jacobian_rows(lo, hi, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
+                   bed, dcomp, dbed, tip, axis, J):
+    """``pose_and_axis_jacobian`` for poses lo..hi-1, into tip, axis and J (zeros there; a workspace of its own)."""
+    n_axes = q.shape[1]
     K = 2 * column.shape[0] + 2
     R, t, dR, dt = np.empty((K, 9)), np.empty((K, 3)), np.empty((K, 9)), np.empty((K, 3))
     col = np.empty(K, np.int64)
     p_after, u_after = np.empty((K, 3)), np.empty((K, 3))
-    tip, axis, J = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 6, n_axes))
-    for i in range(n):
+    for i in range(lo, hi):
         k_bed = _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act,
                              comp, bed, dcomp, True, R, t, dR, dt, col)
         idb = i if dbed.shape[0] > 1 else 0
@@ -338,4 +384,3 @@ def pose_and_axis_jacobian(q, column, rotary, tool, direction, pivot, origin, be
             s = u[0] * J[i, 3, c] + u[1] * J[i, 4, c] + u[2] * J[i, 5, c]
             for j in range(3):
                 J[i, 3 + j, c] = (J[i, 3 + j, c] - u[j] * s) / norm
-    return tip, axis, J

@@ -108,8 +108,11 @@ class ErrorFunction:
             # The slopes as np.interp computes them.
             form = (error_kernel.LINEAR, at, v, (v[1:] - v[:-1]) / (at[1:] - at[:-1]))
         elif self.kind == "cubic":
-            sp = self._value_spline()
-            form = (error_kernel.CUBIC, self.at, sp.c.T.ravel(), sp.derivative().c.T.ravel())
+            # the value spline's PPoly coefficients and its derivative's (PPoly.derivative: c[:-1] times 3, 2, 1),
+            # without scipy when the unit spline is in the disk cache (the post's start-up)
+            c = np.tensordot(_unit_coefficients(self.at, self.periodic), self._folded_values(), axes=([2], [0]))
+            dc = c[:-1] * np.array([3.0, 2.0, 1.0])[:, None]
+            form = (error_kernel.CUBIC, self.at, c.T.ravel(), dc.T.ravel())
         elif self.kind == "legendre":
             d = npleg.legder(self.values) if self.values.size > 1 else empty
             form = (error_kernel.LEGENDRE, np.asarray(self.domain, dtype=float), self.values, d)
@@ -223,6 +226,54 @@ def _unit_spline(at_bytes: bytes, periodic: bool):
             unit[-1] = unit[0]
         _SPLINES[key] = CubicSpline(at, unit, bc_type="periodic" if periodic else "not-a-knot")
     return _SPLINES[key]
+
+
+_UNIT_COEFFICIENTS: dict = {}  # the disk cache's arrays, once read
+
+
+def _unit_coefficients(at: np.ndarray, periodic: bool) -> np.ndarray:
+    """(4, n - 1, n): the PPoly coefficients of ``_unit_spline`` (scipy's CubicSpline through the identity), read
+    from a disk cache when there (the same numbers: scipy's, stored), else computed with scipy and stored. Importing
+    scipy.interpolate costs the post about 0.25 s of CPU at start-up; the cache is filled by the first run (or
+    ``python -m trueaxis.warm`` at install)."""
+    key = (at.tobytes(), periodic)
+    if key in _SPLINES:
+        return _SPLINES[key].c
+    if key in _UNIT_COEFFICIENTS:
+        return _UNIT_COEFFICIENTS[key]
+    import hashlib
+    import os
+
+    name = hashlib.sha256(key[0] + bytes([periodic])).hexdigest()[:32] + ".npy"
+    path = _spline_cache_dir() / name
+    n = at.size
+    try:
+        c = np.load(path, allow_pickle=False)
+        if c.shape == (4, n - 1, n) and c.dtype == np.float64:
+            _UNIT_COEFFICIENTS[key] = c
+            return c
+    except (OSError, ValueError):
+        pass
+    c = np.ascontiguousarray(_unit_spline(key[0], periodic).c, dtype=float)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        with open(tmp, "wb") as f:
+            np.save(f, c, allow_pickle=False)
+        os.replace(tmp, path)
+    except OSError:
+        pass  # a read-only installation: computed each time
+    return c
+
+
+def _spline_cache_dir():
+    """Where the unit splines' coefficients are kept: $TRUEAXIS_CACHE_DIR, else beside numba's kernel caches (this
+    package's __pycache__)."""
+    import os
+    from pathlib import Path
+
+    env = os.environ.get("TRUEAXIS_CACHE_DIR")
+    return Path(env) / "splines" if env else Path(__file__).resolve().parent / "__pycache__" / "trueaxis_splines"
 
 
 def table(at, values, interpolation: str = "linear", periodic: bool = False, label_unit: str = "mm") -> ErrorFunction:

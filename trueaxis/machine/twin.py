@@ -46,6 +46,8 @@ from .transforms import UNIT, skew
 UM = 1e-3  # mm per um
 URAD = 1e-6  # rad per urad
 DEFAULT_CHUNK = 20_000
+# From this many poses on, the compiled chain runs on all threads (numba prange; NUMBA_NUM_THREADS sets how many).
+PARALLEL_MIN = 4096
 
 
 def _internal(name: str) -> float:
@@ -564,9 +566,13 @@ class ErrorTwin:
         compiled chain: the numbers of ``_evaluate(..., cols="axes")`` up to round-off."""
         q = np.ascontiguousarray(q)
         values = self._chain_values(q, force_n, motion, errors, jacobian)
+        # many poses: the parallel kernels (the same numbers, pose by pose); few: the serial ones (no thread start-up)
+        parallel = q.shape[0] >= PARALLEL_MIN
         if jacobian:
-            return chain_kernel.pose_and_axis_jacobian(q, *self._layout, *values)
-        return (*chain_kernel.pose(q, *self._layout, *values), None)
+            kernel = chain_kernel.pose_and_axis_jacobian_parallel if parallel else chain_kernel.pose_and_axis_jacobian
+            return kernel(q, *self._layout, *values)
+        kernel = chain_kernel.pose_parallel if parallel else chain_kernel.pose
+        return (*kernel(q, *self._layout, *values), None)
 
     # ------------------------------------------------------------------------------------ the chain, in numpy ----
     def _evaluate(self, q, force_n, motion, errors: bool, jacobian: bool, cols: str = "all"):
