@@ -60,6 +60,24 @@ from .solver import corrected_directions, solve_commanded
 MODES = ("none", "geometric", "comprehensive")
 AXES = "XYZABC"
 _CONDITIONS = re.compile(r"\(\s*trueaxis:([^)]*)\)", re.IGNORECASE)
+
+
+def condition_marks(lines, source: str) -> list[tuple[int, dict]]:
+    """The structured cutting-conditions comments ``(trueaxis: key=value ...)`` of a program: [(0-based line index,
+    {key: value text})] in program order (milling and turning read the same comments; each takes its keys)."""
+    marks = []
+    for i, line in enumerate(lines):
+        if "trueaxis" not in line.lower():
+            continue
+        for m in _CONDITIONS.finditer(line):
+            fields = {}
+            for item in m.group(1).split():
+                if "=" not in item:
+                    raise PostError(source, i + 1, f"structured comment: expected key=value, got {item!r}")
+                k, v = item.split("=", 1)
+                fields[k.strip().lower()] = v.strip()
+            marks.append((i, fields))
+    return marks
 _MOTION_WORD = re.compile(r"^G0*([0-3])$", re.IGNORECASE)
 _NUM = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)"
 # A plain motion block: N G X Y Z A B C I J K R F, each optional, in this order, nothing else (the writer's fast path)
@@ -478,18 +496,7 @@ class _Poster:
 
     def _conditions_per_line(self):
         """line index -> hashable conditions (tuple of items) valid there, or None."""
-        marks = []
-        for i, line in enumerate(self.p.lines):
-            if "trueaxis" not in line.lower():
-                continue
-            for m in _CONDITIONS.finditer(line):
-                fields = {}
-                for item in m.group(1).split():
-                    if "=" not in item:
-                        raise PostError(self.p.source, i + 1, f"structured comment: expected key=value, got {item!r}")
-                    k, v = item.split("=", 1)
-                    fields[k.strip().lower()] = v.strip()
-                marks.append((i, fields))
+        marks = condition_marks(self.p.lines, self.p.source)
         tool = {"d": str(2 * self.m.tool.radius), "z": str(self.m.tool.flutes)}
         cli = {k: str(v) for k, v in self.conditions.items() if v is not None}
         starts = [i for i, _ in marks]

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..machine.turning_force import TurningCoefficients, TurningConditions, force_on_tool, turning_force_components
 from .gcode import ARC_CCW, ARC_CW, RAPID
-from .post import _CONDITIONS, PostError
+from .post import PostError, condition_marks
 
 __all__ = ["MotionTwin", "lathe_loads"]
 
@@ -87,18 +87,7 @@ def motion_signs(direction: np.ndarray) -> np.ndarray:
 def _turning_conditions(poster):
     """Per program row: the turning conditions valid there (TurningConditions or None)."""
     p = poster.p
-    marks = []
-    for i, line in enumerate(p.lines):
-        if "trueaxis" not in line.lower():
-            continue
-        for m in _CONDITIONS.finditer(line):
-            fields = {}
-            for item in m.group(1).split():
-                if "=" not in item:
-                    raise PostError(p.source, i + 1, f"structured comment: expected key=value, got {item!r}")
-                k, v = item.split("=", 1)
-                fields[k.strip().lower()] = v.strip()
-            marks.append((i, fields))
+    marks = condition_marks(p.lines, p.source)
     cli = {k: v for k, v in poster.conditions.items() if v is not None}
     milling = sorted(set(cli) - {"ap"})
     if milling:
