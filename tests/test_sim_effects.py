@@ -13,7 +13,7 @@ from conftest import DATA, MACHINES
 from trueaxis.machine import ErrorTwin, load_machine
 from trueaxis.machine.kinematics import forward_nominal
 from trueaxis.sim.effects import (Backlash, ClampingBend, EffectsFileError, RotaryErrorMotion, RotaryPeriodic,
-                                  ServoLag, ToolWear, _servo_axis, parse_effects, servo_axis_ff)
+                                  ToolWear, _servo_axis, parse_effects, servo_axis_ff)
 from trueaxis.sim.programs import boss_probe, square_boss_program
 from trueaxis.sim.shop import simulate
 
