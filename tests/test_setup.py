@@ -403,8 +403,7 @@ def test_the_machine_file_names_a_default_setup(tmp_path):
 
 
 def test_cadquery_hook_takes_the_setup_as_keywords(machine, files):
-    pytest.importorskip("cadquery")
-    from trueaxis.postproc.hosts import cadquery as hook
+    from trueaxis.postproc.hosts import cadquery as hook  # cadquery is a dependency: imported plainly, never skipped
 
     out = hook.compensate(MM_PROGRAM, machine, "geometric", var=files[0], tool_table=files[1], machine_units="inch")
     assert out == compensate(MM_PROGRAM, machine, "geometric", setup=_setup(files))
