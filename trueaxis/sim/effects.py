@@ -616,9 +616,8 @@ def _read_series(path):
 @dataclass(frozen=True)
 class Clamping:
     """Clamping deformation of the part: while clamped, the material point x sits at x + d(x), with the smooth field
-    d(x) = A e exp(-|x - c|^2 / (2 l^2)) (um, part frame). The cut made at y ends, after unclamping, at y - d(y);
-    locally (to first order in the field's gradient) that is the tool moved to tip - d(tip) and its axis turned by
-    -(grad d) u."""
+    d(x) = A e exp(-|x - c|^2 / (2 l^2)) (um, part frame). The cut made at y ends, after unclamping, at y - d(y):
+    the shop applies it on the probe side (``shop.simulate``: the envelope taken at the shifted probe points)."""
 
     amplitude_um: float
     center: np.ndarray
@@ -633,11 +632,6 @@ class Clamping:
         d = self.amplitude_um * UM * g[:, None] * e
         grad = -self.amplitude_um * UM * (g / self.length_mm**2)[:, None, None] * e[None, :, None] * r[:, None, :]
         return d, grad
-
-    def apply(self, tip, axis):
-        d, grad = self.field(tip)
-        new_axis = axis - np.einsum("nij,nj->ni", grad, axis)
-        return tip - d, new_axis / np.linalg.norm(new_axis, axis=1, keepdims=True)
 
 
 @dataclass(frozen=True)
@@ -656,9 +650,8 @@ class ClampingBend:
 
         d(x) = w(xi) e_d - eta w'(xi) e_b          (um, part frame)
 
-    The surface cut at y in the clamped state ends, after the part springs back, at y - d(y) (to first order in the
-    field's gradient: the tool moved to tip - d(tip) and its axis turned by -(grad d) u, as ``Clamping``). Outside
-    the supports the polynomial is continued (it is smooth there).
+    The surface cut at y in the clamped state ends, after the part springs back, at y - d(y), applied on the probe
+    side as for ``Clamping``. Outside the supports the polynomial is continued (it is smooth there).
     """
 
     amplitude_um: float
@@ -689,11 +682,6 @@ class ClampingBend:
                     - dw[:, None, None] * eb[None, :, None] * ed[None, None, :]
                     - (eta * ddw)[:, None, None] * eb[None, :, None] * eb[None, None, :])
         return d, grad
-
-    def apply(self, tip, axis):
-        d, grad = self.field(tip)
-        new_axis = axis - np.einsum("nij,nj->ni", grad, axis)
-        return tip - d, new_axis / np.linalg.norm(new_axis, axis=1, keepdims=True)
 
 
 @dataclass(frozen=True)
