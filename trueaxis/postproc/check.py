@@ -145,6 +145,9 @@ def _plain_blocks(text, a, b, state, source, line_map, passthrough):
         for line in text[a:b].splitlines(keepends=True):
             _check_block(line, state, passthrough, lambda reason, s=offset: _raise(text, s, source, line_map, reason))
             offset += len(line)
+            if not (state.arc_abs or state.feed_reset):
+                # (G93's first F word, say): the rest is plain blocks again, checked as such (not line by line)
+                return _plain_blocks(text, offset, b, state, source, line_map, passthrough)
         return
     if state.motion is None or (state.motion == 800 and not passthrough):
         offset = a

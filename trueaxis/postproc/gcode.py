@@ -782,6 +782,8 @@ class _Interpreter:
         if FAST_READ and lines:
             from . import fast_read
 
+            from . import fast_interp  # runs of plain straight moves read in compiled code
+
             pre = fast_read.scan_text(self.text)
             if pre is not None and len(pre[0]) != len(lines) + 1:
                 pre = None  # not split as split_lines splits (cannot happen for ASCII text): no pre-scan
@@ -789,7 +791,10 @@ class _Interpreter:
         blk_code = blk_vals = None
         n_lines = len(lines)
 
+        skip_to = 0  # lines before it were read by fast_interp
         for li, raw in enumerate(lines):
+            if li < skip_to:
+                continue
             if ended:
                 break
             # Fast path: a plain G0/G1 block ("N300G1X4.6526Z-.0007", "X1 Y2 F300") in G0/G1 mode.
@@ -802,7 +807,24 @@ class _Interpreter:
                                         np.where(b_status == fast_read.LINE_SLOW, 4, 5)).tolist()
                     # one flat list of floats (no list per line: fewer objects for the garbage collector)
                     blk_vals = b_vals.ravel().tolist()
+                    blk_run = (fast_interp.run_lengths(b_status, b_g, b_vals).tolist() if fast_interp.ENABLED
+                               else [0] * len(blk_code))
                 g = blk_code[li - blk_lo]
+                if g < 4 and blk_run[li - blk_lo] >= fast_interp.MIN_RUN:
+                    run = fast_interp.straight_run(b_status, b_g, b_vals, li - blk_lo, np.array(pos, float), motion_mode,
+                                                   feed, absolute, inverse, diameter)
+                    if run[0]:
+                        state0, changed = cur_state[0], []
+                        for c in fast_interp.feed_changes(run[5], feed):  # the states, where the feed changes
+                            feed = float(run[5][c])
+                            refresh_state()
+                            changed.append((c, cur_state[0]))
+                        pos, motion_mode = fast_interp.append_rows(run, li, state0, changed, r_start, r_end, r_line,
+                                                                   r_motion, r_kind, r_words, r_state, ROW_PROGRAMMED)
+                        if run[6]:
+                            cycle["il_flag"] = False
+                        skip_to = li + run[0]
+                        continue
                 if g < 4:
                     fast = True
                     o = (li - blk_lo) * 11

@@ -1,0 +1,159 @@
+"""The reader's compiled runs of straight moves (trueaxis.postproc.fast_interp) give the motion table the reader's own
+loop gives, number for number, and the post writes the same bytes with them as without them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from conftest import MACHINES, ROOT
+from trueaxis.machine import load_machine, parse_machine
+from trueaxis.postproc import fast_interp, gcode
+from trueaxis.postproc.gcode import GcodeError, parse_program
+from trueaxis.postproc.post import compensate
+from trueaxis.postproc.setup import Setup
+from trueaxis.sim.programs import cone_flank_program
+
+NIST = ROOT / "fixtures" / "programs" / "nist"
+CONE = {"axis": [math.sin(math.radians(10)), 0.0, math.cos(math.radians(10))], "half_angle_deg": 15.0,
+        "base_radius": 40.0, "height_range": [0.0, 20.0]}
+
+
+def _runs(monkeypatch):
+    """Count the lines the compiled runs take (a spy on straight_run)."""
+    taken = [0]
+    real = fast_interp.straight_run
+
+    def spy(*args):
+        res = real(*args)
+        taken[0] += res[0]
+        return res
+
+    monkeypatch.setattr(fast_interp, "straight_run", spy)
+    return taken
+
+
+def _tables(text, monkeypatch, **kw):
+    """(Program with the compiled runs, Program without them, lines the runs took)."""
+    kw.setdefault("setup", Setup(offsets_zero=True))
+    kw.setdefault("require_setup", True)
+    taken = _runs(monkeypatch)
+    monkeypatch.setattr(fast_interp, "ENABLED", True)
+    fast = parse_program(text, "t.ngc", **kw)
+    monkeypatch.setattr(fast_interp, "ENABLED", False)
+    slow = parse_program(text, "t.ngc", **kw)
+    return fast, slow, taken[0]
+
+
+def _assert_same_program(a, b):
+    assert vars(a).keys() == vars(b).keys()
+    for key, v in vars(a).items():
+        w = getattr(b, key)
+        if isinstance(v, np.ndarray):
+            assert v.dtype == w.dtype and v.shape == w.shape and v.tobytes() == w.tobytes(), key
+        else:
+            assert repr(v) == repr(w), key
+
+
+@pytest.mark.parametrize("name", ["mtc_cover_rev_a.nc", "mtc_plate_1.nc", "d2mi_827-9999-904_op1.nc"])
+def test_the_nist_programs_read_to_the_same_table_with_and_without_the_compiled_runs(monkeypatch, name):
+    text = (NIST / name).read_text(encoding="latin-1")
+    text = "".join(c if c.isascii() else "?" for c in text)  # the pre-scan (and so the runs) takes ASCII only
+    fast, slow, taken = _tables(text, monkeypatch, passthrough_unsupported="d2mi" in name)
+    _assert_same_program(fast, slow)
+    assert taken > 0.2 * len(slow)
+
+
+SYNTHETIC = """%
+G21 G90 G17 G94
+G0 X0 Y0 Z5
+G1 Z-1 F300
+""" + "".join(f"X{k}.{k % 7} Y{-k * 0.25:.4f}\n" for k in range(1, 40)) + """G91
+""" + "".join(f"G1 X0.1 Y-.03 Z0.001{' F250' if k == 20 else ''}\n" for k in range(40)) + """G90 G7
+""" + "".join(f"G0 X{20 + k} Z{k * 0.5}\n" for k in range(30)) + """G8 G93
+""" + "".join(f"G1 X{k} Y{k % 5} Z1 F{100 + k % 3}\n" for k in range(40)) + """G94 F400
+""" + "".join(f"N{k}G1X{k}.123456789012Y-{k}.5 A{k * 3} B{k} C-{k}.25\n" for k in range(40)) + """G20
+""" + "".join(f"X{k * 0.01:.5f} Y.{k:03d}\n" for k in range(1, 40)) + """G0 X0 Y0 Z1
+G2 X1 Y0 I.5 J0 F20
+""" + "".join(f"G1 X{k * 0.02:.4f} F{10 + k}\n" for k in range(30)) + """M30
+%
+"""
+
+
+@pytest.mark.parametrize("block", [4096, 7, 16])
+def test_modal_runs_read_to_the_same_table(monkeypatch, block):
+    """Incremental moves, G7 diameters, G93 feeds on every line, feed changes, A B C words, inch, an arc between
+    runs, and runs cut at the pre-scan's block boundaries."""
+    monkeypatch.setattr(gcode, "FAST_READ_BLOCK", block)
+    fast, slow, taken = _tables(SYNTHETIC, monkeypatch)
+    _assert_same_program(fast, slow)
+    if block >= 16:
+        assert taken > 0.5 * len(slow)
+
+
+@pytest.mark.parametrize("bad, message, line", [("F-5", "negative feed", 43), ("X40 F0", "feed", 43),
+                                                ("G93\nG1 X3", "feed", 44)])
+def test_a_run_stops_where_the_reader_refuses(monkeypatch, bad, message, line):
+    text = "G21 G90 G94\nG1 F100\n" + "".join(f"X{k}\n" for k in range(40)) + bad + "\n" + \
+           "".join(f"Y{k}\n" for k in range(40))
+    msgs = []
+    for on in (True, False):
+        monkeypatch.setattr(fast_interp, "ENABLED", on)
+        with pytest.raises(GcodeError) as info:
+            parse_program(text, "t.ngc", setup=Setup(offsets_zero=True), require_setup=True)
+        msgs.append(str(info.value))
+    assert msgs[0] == msgs[1]
+    assert message in msgs[0] and f"t.ngc:{line}:" in msgs[0]
+
+
+# ------------------------------------------------------------------------------------------- whole posts -----
+
+
+def _posts(text, machine, mode, monkeypatch, **kw):
+    monkeypatch.setattr(fast_interp, "ENABLED", True)
+    fast = compensate(text, machine, mode, **kw)
+    monkeypatch.setattr(fast_interp, "ENABLED", False)
+    slow = compensate(text, machine, mode, **kw)
+    return fast, slow
+
+
+@pytest.fixture(scope="module")
+def xh714_wide():
+    text = (MACHINES / "xh714.toml").read_text()
+    for old in ("[-200.0, 200.0]", "[-150.0, 150.0]", "[-400.0, 0.0]"):
+        text = text.replace(old, "[-2000.0, 2000.0]")
+    return parse_machine(text, source="xh714-wide")
+
+
+CONDITIONS = "(trueaxis: ap=0.6 ae=7 fz=0.2 n=1200 d=10 z=4 mode=down)\n"
+
+
+@pytest.mark.parametrize("mode", ["geometric", "comprehensive"])
+@pytest.mark.parametrize("units", ["inch", "mm"])
+def test_the_nist_plate_posts_the_same_bytes_with_and_without_the_compiled_runs(xh714_wide, monkeypatch, mode,
+                                                                                 units):
+    text = (NIST / "mtc_plate_1.nc").read_text(encoding="latin-1")
+    text = "".join(c if c.isascii() else "?" for c in text)  # the pre-scan (and so the runs) takes ASCII only
+    lines = text.splitlines(keepends=True)
+    text = "".join(lines[:1] + [CONDITIONS] + lines[1:])
+    if units == "mm":  # the same numbers read as mm
+        text = text.replace("G20", "G21")
+    taken = _runs(monkeypatch)
+    fast, slow = _posts(text, xh714_wide, mode, monkeypatch, offsets_zero=True)
+    assert fast == slow
+    assert taken[0] > 300
+
+
+@pytest.mark.parametrize("mode", ["geometric", "comprehensive"])
+def test_the_five_axis_cone_posts_the_same_bytes_with_and_without_the_compiled_runs(monkeypatch, mode):
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    rng = np.random.default_rng(0)
+    values = m.parameter_values()
+    m = m.with_parameters(np.where(values == 0.0, rng.normal(0.0, 10.0, values.size), values))
+    text = cone_flank_program(m, CONE, n_blocks=1500)
+    taken = _runs(monkeypatch)
+    fast, slow = _posts(text, m, mode, monkeypatch)
+    assert fast == slow
+    assert taken[0] > 1400
