@@ -93,6 +93,52 @@ def test_modal_runs_read_to_the_same_table(monkeypatch, block):
         assert taken > 0.5 * len(slow)
 
 
+def _arc_lines(n, plane):
+    """Quarter circles of radius 1 around the origin in the plane's axes, the centre given relative (I J K)."""
+    names = {17: "XYIJ", 18: "ZXKI", 19: "YZJK"}[plane]
+    out, angle = [], 0.0
+    for k in range(n):
+        a0, a1 = math.cos(angle), math.sin(angle)
+        angle += math.pi / 2
+        b0, b1 = math.cos(angle), math.sin(angle)
+        out.append(f"{'G3 ' if k == 0 else ''}{names[0]}{b0:.6f} {names[1]}{b1:.6f} {names[2]}{-a0:.6f} "
+                   f"{names[3]}{-a1:.6f}\n")
+    return out
+
+
+ARCS = ("G21 G90 G94 G17\nG0 X1 Y0 Z0\nG1 F200 X1\n" + "".join(_arc_lines(24, 17))
+        + "G18\nG0 X0 Y0 Z1\nG1 X0\n" + "".join(_arc_lines(24, 18))
+        + "G19\nG0 X0 Y1 Z0\nG1 Y1\n" + "".join(_arc_lines(24, 19))
+        # G90.1: absolute centres; G91 incremental ends
+        + "G17 G90.1\nG0 X1 Y0 Z0\n" + "".join(f"G2 X{1 if k % 2 else -1} Y0 I0 J0\n" for k in range(20))
+        + "G91.1 G91\n" + "".join(f"G3 X{-2 if k % 2 == 0 else 2} Y0 I{-1 if k % 2 == 0 else 1} J0\n"
+                                 for k in range(20))
+        + "G90\nG0 X10 Y0\n")
+# end points off the circle (radius 10): well within the tolerance, near its limit (0.05 mm), beyond it
+OFF = ("0.001", "0.0499999", "0.04999999999999", "0.0500001")
+
+
+@pytest.mark.parametrize("cut", [None, *OFF])
+def test_arcs_read_to_the_same_table(monkeypatch, cut):
+    """I J K arcs in the three planes, absolute (G90.1) and relative centres, incremental ends, and end points near
+    the reader's limit of the circle (it decides those itself)."""
+    offs = OFF[: OFF.index(cut) + 1] if cut else ()
+    text = ARCS + "".join(f"G2 X-1{d} Y0 I-10 J0\nG0 X10 Y0\n" for d in offs) + "M30\n"
+    if cut == "0.0500001":  # off the circle by more than the tolerance: the same refusal
+        msgs = []
+        for on in (True, False):
+            monkeypatch.setattr(fast_interp, "ENABLED", on)
+            with pytest.raises(GcodeError) as info:
+                parse_program(text, "t.ngc", setup=Setup(offsets_zero=True), require_setup=True)
+            msgs.append(str(info.value))
+        assert msgs[0] == msgs[1] and "not on the circle" in msgs[0]
+        return
+    fast, slow, taken = _tables(text, monkeypatch)
+    _assert_same_program(fast, slow)
+    assert len(slow.arc_center) == len(slow) and np.isfinite(slow.arc_center[slow.motion >= 2]).all()
+    assert taken > 0.6 * len(slow)
+
+
 @pytest.mark.parametrize("bad, message, line", [("F-5", "negative feed", 43), ("X40 F0", "feed", 43),
                                                 ("G93\nG1 X3", "feed", 44)])
 def test_a_run_stops_where_the_reader_refuses(monkeypatch, bad, message, line):

@@ -812,7 +812,7 @@ class _Interpreter:
                 g = blk_code[li - blk_lo]
                 if g < 4 and blk_run[li - blk_lo] >= fast_interp.MIN_RUN:
                     run = fast_interp.straight_run(b_status, b_g, b_vals, li - blk_lo, np.array(pos, float), motion_mode,
-                                                   feed, absolute, inverse, diameter)
+                                                   feed, absolute, inverse, diameter, plane, arc_abs, arc_tol)
                     if run[0]:
                         state0, changed = cur_state[0], []
                         for c in fast_interp.feed_changes(run[5], feed):  # the states, where the feed changes
@@ -820,7 +820,8 @@ class _Interpreter:
                             refresh_state()
                             changed.append((c, cur_state[0]))
                         pos, motion_mode = fast_interp.append_rows(run, li, state0, changed, r_start, r_end, r_line,
-                                                                   r_motion, r_kind, r_words, r_state, ROW_PROGRAMMED)
+                                                                   r_motion, r_kind, r_words, r_state, ROW_PROGRAMMED,
+                                                                   r_arc, plane)
                         if run[6]:
                             cycle["il_flag"] = False
                         skip_to = li + run[0]
