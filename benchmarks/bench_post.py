@@ -95,7 +95,7 @@ def three_axis_case(work: Path, blocks: int):
 
 
 def timed(cmd, cwd=None, stdin=subprocess.DEVNULL, env=None):
-    """(seconds, peak RSS in MB of the child, return code, stderr tail) of one run."""
+    """(seconds, peak RSS in MB of the child, return code, stderr tail, CPU seconds of the child) of one run."""
     t0 = time.perf_counter()
     with open(os.devnull, "wb") as devnull:
         proc = subprocess.Popen(cmd, cwd=cwd, stdin=stdin, stdout=devnull, stderr=subprocess.PIPE, env=env)
@@ -106,7 +106,8 @@ def timed(cmd, cwd=None, stdin=subprocess.DEVNULL, env=None):
         proc.returncode = os.waitstatus_to_exitcode(status)
         err_chunks.append(err)
     seconds = time.perf_counter() - t0
-    return seconds, usage.ru_maxrss / 1024.0, proc.returncode, b"".join(err_chunks).decode(errors="replace")[-500:]
+    return (seconds, usage.ru_maxrss / 1024.0, proc.returncode, b"".join(err_chunks).decode(errors="replace")[-500:],
+            usage.ru_utime + usage.ru_stime)
 
 
 def warm_up(prog: Path, mach: Path, work: Path):
@@ -125,12 +126,12 @@ def run_case(name, prog: Path, mach: Path, work: Path):
     warm_up(prog, mach, work)
     out = work / f"{prog.stem}.out.ngc"
     # the NIST programs select G54 / G58: their offsets are not at hand, zero is said explicitly
-    t_post, mem_post, rc, err = timed([*TRUEAXIS, "post", str(prog), "-o", str(out), "--machine", str(mach),
+    t_post, mem_post, rc, err, cpu_post = timed([*TRUEAXIS, "post", str(prog), "-o", str(out), "--machine", str(mach),
                                        "--offsets-zero"])
     if rc != 0:
         print(f"{name}: trueaxis post failed (exit {rc}): {err}", file=sys.stderr)
     rs274 = shutil.which("rs274")
-    t_rs, mem_rs, rc_rs = float("nan"), float("nan"), None
+    t_rs, mem_rs, rc_rs, cpu_rs = float("nan"), float("nan"), None, float("nan")
     if rs274:
         tbl = work / "tools.tbl"
         tbl.write_text("".join(f"T{t} P{t} D0.1 Z+0.0 ;\n" for t in range(1, 40)))
@@ -139,13 +140,13 @@ def run_case(name, prog: Path, mach: Path, work: Path):
             # of the user (another one running reads or truncates it: "Requested tool 23 not found", SIGBUS)
             home = work / "rs274_home"
             home.mkdir(exist_ok=True)
-            t_rs, mem_rs, rc_rs, err_rs = timed([rs274, "-t", str(tbl), "-g", str(prog), str(work / "canon.txt")],
+            t_rs, mem_rs, rc_rs, err_rs, cpu_rs = timed([rs274, "-t", str(tbl), "-g", str(prog), str(work / "canon.txt")],
                                                 cwd=work, stdin=devnull, env={**os.environ, "HOME": str(home)})
         if rc_rs != 0:
             print(f"{name}: rs274 exit {rc_rs}: {err_rs}", file=sys.stderr)
     n_lines = sum(1 for _ in open(prog, "rb"))
     return {"case": name, "lines": n_lines, "post_s": t_post, "post_mb": mem_post, "post_rc": rc,
-            "rs274_s": t_rs, "rs274_mb": mem_rs, "rs274_rc": rc_rs,
+            "rs274_s": t_rs, "rs274_mb": mem_rs, "rs274_rc": rc_rs, "post_cpu": cpu_post, "rs274_cpu": cpu_rs,
             "out_lines": sum(1 for _ in open(out, "rb")) if out.exists() else 0}
 
 
@@ -248,18 +249,23 @@ def main():
         cases.append(("three-axis NIST cover+plate, xh714 wide", prog, mach))
     rows = [run_case(name, prog, mach, work) for name, prog, mach in cases]
     print()
-    print(f"{'case':42s} {'lines':>9s} {'post s':>8s} {'post MB':>8s} {'rs274 s':>8s} {'rs274 MB':>8s} "
-          f"{'post/rs274':>10s}  goal (<= 0.5, < 2048 MB)")
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; wall and (CPU) seconds")
+    print(f"{'case':42s} {'lines':>9s} {'post s':>14s} {'post MB':>8s} {'rs274 s':>14s} {'rs274 MB':>8s} "
+          f"{'post/rs274':>10s} {'(CPU)':>6s}  goal (<= 0.5 wall, < 2048 MB)")
     for r in rows:
         ratio = r["post_s"] / r["rs274_s"] if r["rs274_s"] == r["rs274_s"] else float("nan")
         ok = "met" if ratio <= 0.5 and r["post_mb"] < 2048 and r["post_rc"] == 0 else "MISSED"
-        print(f"{r['case']:42s} {r['lines']:9d} {r['post_s']:8.2f} {r['post_mb']:8.0f} {r['rs274_s']:8.2f} "
-              f"{r['rs274_mb']:8.0f} {ratio:10.2f}  {ok}"
+        cpu_ratio = r["post_cpu"] / r["rs274_cpu"] if r["rs274_cpu"] == r["rs274_cpu"] else float("nan")
+        print(f"{r['case']:42s} {r['lines']:9d} {r['post_s']:6.2f} ({r['post_cpu']:5.2f}) {r['post_mb']:8.0f} "
+              f"{r['rs274_s']:6.2f} ({r['rs274_cpu']:5.2f}) {r['rs274_mb']:8.0f} {ratio:10.2f} ({cpu_ratio:4.2f})  {ok}"
               + ("" if r["post_rc"] == 0 else f" (post exit {r['post_rc']})")
               + ("" if r["rs274_rc"] in (0, None) else f" (rs274 exit {r['rs274_rc']})"))
     print()
+    from trueaxis.compiled import aot_available
+
     print(f"small program, process start to file written, warm (goal <= 0.3 s; load average "
-          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores):")
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; kernels compiled ahead of time: "
+          f"{'yes' if aot_available() else 'NO (python -m trueaxis.warm builds them): numba JIT'}):")
     for name, prog, mach in cases:
         best, med, cpu, small = small_program(prog, mach, work)
         print(f"  {name:42s} 100 blocks: best {best:.2f} s, median {med:.2f} s wall, {cpu:.2f} s CPU  "

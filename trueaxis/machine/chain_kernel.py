@@ -47,7 +47,7 @@ errors without a loaded set, the nominal chain's zeros), passed without being re
 
 from __future__ import annotations
 
-import numba
+from ..compiled import numba  # numba, or the kernels compiled ahead of time (see ..compiled)
 import numpy as np
 
 # Inside the per-pose loop, 3-vectors and 3x3 matrices are tuples (3 floats; 9 floats, row-major): the compiled code

@@ -19,7 +19,7 @@ derivative to ``dval``) for pose i, its position being ``q[i, column_g]``; slots
 
 from __future__ import annotations
 
-import numba
+from ..compiled import numba  # numba, or the kernels compiled ahead of time (see ..compiled)
 import numpy as np
 
 TWO_PI = 2.0 * np.pi

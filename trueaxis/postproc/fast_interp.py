@@ -22,7 +22,7 @@ maps the changes to its states.
 
 from __future__ import annotations
 
-import numba
+from ..compiled import numba  # numba, or the kernels compiled ahead of time (see ..compiled)
 import numpy as np
 
 __all__ = ["straight_run", "MIN_RUN"]

@@ -21,7 +21,7 @@ Only ASCII text is scanned (the reader skips the pre-scan otherwise).
 
 from __future__ import annotations
 
-import numba
+from ..compiled import numba  # numba, or the kernels compiled ahead of time (see ..compiled)
 import numpy as np
 
 __all__ = ["LINE_NO_MATCH", "LINE_NO_MOTION", "LINE_FAST", "LINE_SLOW", "WORDS", "line_starts", "scan_lines",

@@ -30,7 +30,7 @@ digits after the point, trailing zeros dropped, no ``-0``, the program's leading
 
 from __future__ import annotations
 
-import numba
+from ..compiled import numba  # numba, or the kernels compiled ahead of time (see ..compiled)
 import numpy as np
 
 MAX_DECIMALS = 22

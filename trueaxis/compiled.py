@@ -1,0 +1,291 @@
+"""The post's compiled kernels: numba's JIT, or the same kernels compiled ahead of time (start-up without numba).
+
+A post of a small program spends most of its start-up on numba, not on its work: importing numba (and the
+``scipy.linalg`` it loads for its BLAS) about 0.15 s CPU, and its first kernel call (the typing and target context,
+the cache index) about 0.3 s, for a post that takes 0.01 s. The kernel modules (:data:`KERNEL_MODULES`) therefore take
+their ``numba`` from here: a stand-in whose ``njit`` returns a :class:`Kernel`, which
+
+- calls the kernel's ahead-of-time compiled twin (``numba.pycc``, built by :func:`build_aot` into an extension module
+  next to this file, ``_aot_kernels``) when one was built from the same source and the arguments have exactly the
+  types it was compiled for (dtype, dimensions, C order, writable where it writes), so that numba is never imported;
+- else imports numba and turns every kernel into the numba dispatcher it always was (``numba.njit(**options)`` of the
+  same function: the same cache), and calls that.
+
+The ahead-of-time twins are the same functions compiled by the same compiler (numba's, through LLVM; no fast-math, no
+fused multiply-add either way), so they give the same numbers bit for bit; ``tests/test_compiled.py`` posts programs
+both ways and compares the bytes. A build whose source no longer matches the kernel modules (a source hash in its
+spec file) is not used. ``TRUEAXIS_AOT=0`` switches the ahead-of-time twins off; ``TRUEAXIS_AOT_DIR`` names another
+folder for them. ``python -m trueaxis.compiled`` (run by ``python -m trueaxis.warm``) builds them.
+
+The parallel kernels (numba ``prange``, long programs) have no ahead-of-time twin (pycc compiles serial code only):
+they import numba when first used, which a long program can afford.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import importlib.machinery
+import importlib.util
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["numba", "Kernel", "KERNEL_MODULES", "build_aot", "aot_available", "numba_imported"]
+
+KERNEL_MODULES = ("trueaxis.postproc.fast_read", "trueaxis.postproc.fast_interp", "trueaxis.postproc.fast_write",
+                  "trueaxis.machine.error_kernel", "trueaxis.machine.chain_kernel")
+AOT_NAME = "_aot_kernels"
+_HERE = Path(__file__).resolve().parent
+_UNSET = object()
+
+_kernels: list = []  # every Kernel made
+_real = None  # the numba module, once imported
+_aot = _UNSET  # {qualified kernel name: (function, argument spec)} or None
+
+
+def numba_imported() -> bool:
+    """True once a kernel needed numba (and so imported it)."""
+    return _real is not None
+
+
+class Kernel:
+    """A kernel function: its ahead-of-time twin where it fits the arguments, else its numba dispatcher."""
+
+    def __init__(self, fn, options):
+        functools.update_wrapper(self, fn)
+        self.py_func = fn
+        self.options = options
+        self.key = f"{fn.__module__}.{fn.__qualname__}"
+        self.dispatcher = None
+        _kernels.append(self)
+
+    def __call__(self, *args):
+        if self.dispatcher is None:
+            table = _aot if _aot is not _UNSET else _load_aot()
+            if table is not None:
+                for fn, spec in table.get(self.key, ()):
+                    if _fits(args, spec):
+                        return fn(*args)
+            _jit_all()
+        return self.dispatcher(*args)
+
+    def __getattr__(self, name):  # dispatcher attributes (signatures, overloads ...): numba's
+        if name.startswith("__") or name in ("py_func", "options", "key", "dispatcher"):
+            raise AttributeError(name)
+        _jit_all()
+        return getattr(self.dispatcher, name)
+
+    def __repr__(self):
+        return f"<trueaxis kernel {self.key}>"
+
+
+class _NumbaStandIn:
+    """What a kernel module calls ``numba``: ``njit`` makes :class:`Kernel` objects; anything else is numba's own
+    (imported then)."""
+
+    def njit(self, *args, **options):
+        if args and callable(args[0]):
+            return Kernel(args[0], options)
+        return lambda fn: Kernel(fn, options)
+
+    def __getattr__(self, name):
+        if name.startswith("__"):
+            raise AttributeError(name)
+        _jit_all()
+        return getattr(_real, name)
+
+
+numba = _STAND_IN = _NumbaStandIn()
+
+
+def _jit_all():
+    """Import numba and make every kernel its numba dispatcher; the kernel modules' globals (``numba`` and the
+    kernels, which compiled kernels call) become the real ones, as if they had imported numba themselves."""
+    global _real
+    if _real is None:
+        import numba as real
+
+        _real = real
+    for k in _kernels:
+        if k.dispatcher is None:
+            k.dispatcher = _real.njit(**k.options)(k.py_func)
+    for name, mod in list(sys.modules.items()):
+        if mod is None or not name.startswith("trueaxis") or name == __name__:
+            continue
+        d = vars(mod)
+        if d.get("numba") is _STAND_IN:
+            d["numba"] = _real
+        for key, v in list(d.items()):
+            if isinstance(v, Kernel):
+                d[key] = v.dispatcher
+
+
+# --------------------------------------------------------------------------------------- ahead-of-time twins -----
+
+
+def _aot_dir() -> Path:
+    return Path(os.environ.get("TRUEAXIS_AOT_DIR") or _HERE)
+
+
+def _source_files() -> list:
+    out = []
+    for name in KERNEL_MODULES:
+        parts = name.split(".")[1:]
+        out.append(_HERE.joinpath(*parts[:-1], parts[-1] + ".py"))
+    return out
+
+
+def _source_hash() -> str:
+    """SHA-256 over the kernel modules' source (a missing one counts as empty), Python's and numpy's versions."""
+    h = hashlib.sha256(f"{sys.version_info[:2]} numpy {np.__version__}\n".encode())
+    for path in _source_files():
+        h.update(path.name.encode())
+        h.update(path.read_bytes() if path.is_file() else b"")
+    return h.hexdigest()
+
+
+def _load_aot():
+    """The ahead-of-time twins, or None (switched off, not built, or built from other source)."""
+    global _aot
+    _aot = None
+    if os.environ.get("TRUEAXIS_AOT", "1") == "0":
+        return None
+    folder = _aot_dir()
+    spec_path = folder / f"{AOT_NAME}.json"
+    if not spec_path.is_file():
+        return None
+    try:
+        spec = json.loads(spec_path.read_text())
+        if spec.get("source") != _source_hash():
+            return None
+        lib = folder / spec["file"]
+        loader = importlib.machinery.ExtensionFileLoader(AOT_NAME, str(lib))
+        mod_spec = importlib.util.spec_from_file_location(AOT_NAME, str(lib), loader=loader)
+        mod = importlib.util.module_from_spec(mod_spec)
+        loader.exec_module(mod)
+        _aot = {key: [(getattr(mod, e["export"]), [tuple(a) for a in e["args"]]) for e in entries]
+                for key, entries in spec["kernels"].items()}
+    except (OSError, ValueError, KeyError, ImportError, AttributeError):
+        _aot = None
+    return _aot
+
+
+_INT_MIN, _INT_MAX = -(2**63), 2**63 - 1
+
+
+def _fits(args, spec) -> bool:
+    """Do ``args`` have exactly the types the twin was compiled for? (Anything else would not be converted by it.)"""
+    if len(args) != len(spec):
+        return False
+    for a, s in zip(args, spec):
+        kind = s[0]
+        if kind == "a" or kind == "F":  # an array in C (or Fortran) order
+            if type(a) is not np.ndarray or a.dtype.str != s[1] or a.ndim != s[2] or not a.flags.aligned \
+                    or not (a.flags.c_contiguous if kind == "a" else a.flags.f_contiguous) \
+                    or (s[3] and not a.flags.writeable):
+                return False
+        elif kind == "i":
+            if isinstance(a, (bool, np.bool_)) or not isinstance(a, (int, np.int64)) or not _INT_MIN <= a <= _INT_MAX:
+                return False
+        elif kind == "b":
+            if not isinstance(a, (bool, np.bool_)):
+                return False
+        elif kind == "f":
+            if type(a) is not float and type(a) is not np.float64:
+                return False
+        else:
+            return False
+    return True
+
+
+def _arg_spec(ty):
+    """A numba argument type as _fits reads it."""
+    from numba.core import types
+
+    if isinstance(ty, types.Array):
+        if ty.layout not in ("C", "F") or not ty.aligned:
+            raise TypeError(f"not exported: array layout {ty}")
+        return ["a" if ty.layout == "C" else "F", np.dtype(str(ty.dtype)).str, ty.ndim, bool(ty.mutable)]
+    if isinstance(ty, types.Boolean):
+        return ["b"]
+    if isinstance(ty, types.Integer) and ty.bitwidth == 64 and ty.signed:
+        return ["i"]
+    if isinstance(ty, types.Float) and ty.bitwidth == 64:
+        return ["f"]
+    raise TypeError(f"not exported: argument type {ty}")
+
+
+def build_aot(folder: Path | None = None, out=sys.stderr) -> Path:
+    """Compile the kernels the post calls, for the argument types it calls them with, ahead of time into an
+    extension module in ``folder`` (default: next to this file); returns the spec file's path.
+
+    The types are those of a warm-up post (``trueaxis.warm``'s programs on every fixture machine, in every mode):
+    every kernel a post calls from Python with numba dispatchers holding those signatures is exported."""
+    import tempfile
+
+    from numba.pycc import CC
+
+    folder = Path(folder) if folder else _aot_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in KERNEL_MODULES:
+        importlib.import_module(name)
+    _jit_all()
+    from .warm import warm
+
+    with open(os.devnull, "w") as devnull:
+        warm(out=devnull)
+    cc = CC(AOT_NAME)
+    cc.verbose = False
+    kernels = {}
+    called = _called_from_python()
+    for k in _kernels:
+        if k.key not in called:
+            continue
+        if k.options.get("parallel"):
+            continue  # pycc compiles serial code only: left to numba
+        for i, sig in enumerate(k.dispatcher.nopython_signatures):
+            try:
+                args = [_arg_spec(t) for t in sig.args]
+            except TypeError as exc:
+                print(f"trueaxis.compiled: {k.key}: {exc}", file=out)
+                continue
+            export = f"{k.key.replace('.', '__')}__{i}"
+            cc.export(export, sig)(k.py_func)
+            kernels.setdefault(k.key, []).append({"export": export, "args": args, "signature": str(sig)})
+    with tempfile.TemporaryDirectory() as tmp:
+        cc.output_dir = tmp
+        cc.compile()
+        built = next(Path(tmp).glob(f"{AOT_NAME}*"))
+        target = folder / built.name
+        os.replace(built, target) if built.stat().st_dev == folder.stat().st_dev else target.write_bytes(
+            built.read_bytes())
+    spec_path = folder / f"{AOT_NAME}.json"
+    spec_path.write_text(json.dumps({"file": target.name, "source": _source_hash(), "kernels": kernels}, indent=1))
+    print(f"trueaxis.compiled: {sum(map(len, kernels.values()))} kernel signatures compiled ahead of time into "
+          f"{target}", file=out)
+    return spec_path
+
+
+def _called_from_python() -> set:
+    """The kernels the post calls from Python (module-level names other modules or the post use), not helpers."""
+    return {"trueaxis.postproc.fast_read.line_starts", "trueaxis.postproc.fast_read.scan_lines",
+            "trueaxis.postproc.fast_interp.straight_run", "trueaxis.postproc.fast_interp.run_lengths",
+            "trueaxis.postproc.fast_write.scan", "trueaxis.postproc.fast_write.assemble",
+            "trueaxis.machine.error_kernel.evaluate_packed", "trueaxis.machine.chain_kernel.pose",
+            "trueaxis.machine.chain_kernel.pose_and_axis_jacobian"}
+
+
+def aot_available() -> bool:
+    """Is an ahead-of-time build for the current source loadable?"""
+    return (_aot if _aot is not _UNSET else _load_aot()) is not None
+
+
+if __name__ == "__main__":
+    # (the kernel modules register with trueaxis.compiled, not with this __main__ copy of it)
+    from trueaxis.compiled import build_aot as _build
+
+    _build()
