@@ -183,8 +183,14 @@ def profile_post(prog: Path, mach: Path, top: int = 25):
 
     machine = load_machine(mach)
     text = prog.read_text()
-    # warm: the compiled kernels' caches loaded (and the twin's tables built) before the profile, as in a long run
-    head = "".join(text.splitlines(keepends=True)[:200]) + "M30\n"
+    # warm: the compiled kernels' caches loaded (and the twin's tables built) before the profile, as in a long run,
+    # which uses numba's JIT (its parallel kernels; so that cProfile names each kernel, the ahead-of-time twins are
+    # left out here: the same numbers)
+    from trueaxis import compiled
+
+    compiled._aot = None
+    compiled._jit_all()
+    head = "".join(text.splitlines(keepends=True)[:6000]) + "M30\n"
     post_text(head, machine, "geometric", source="warm", setup=Setup(offsets_zero=True))
     prof = cProfile.Profile()
     t0 = time.perf_counter()
@@ -206,6 +212,7 @@ def profile_post(prog: Path, mach: Path, top: int = 25):
 # (label, file suffix, function name): the post's phases as cProfile's cumulative times of these functions
 PHASES = [
     ("read: compiled pre-scan (fast_read)", "postproc/fast_read.py", "scan_lines"),
+    ("read: compiled runs of plain moves (fast_interp)", "postproc/fast_interp.py", "straight_run"),
     ("read + interpret (parse_program, all)", "postproc/gcode.py", "parse_program"),
     ("twin: pose (+ axis Jacobian), all calls", "machine/twin.py", "_compose"),
     ("solve: Newton at the block ends (incl. twin)", "postproc/post.py", "solve"),

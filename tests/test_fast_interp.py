@@ -203,3 +203,15 @@ def test_the_five_axis_cone_posts_the_same_bytes_with_and_without_the_compiled_r
     fast, slow = _posts(text, m, mode, monkeypatch)
     assert fast == slow
     assert taken[0] > 1400
+
+
+@pytest.mark.parametrize("bad, message", [("G1 X5 R2 F100", "R word"), ("G1 X5 I2 F100", "I word"),
+                                          ("G0 X1 Y2 B5 C3 M3 M4", "two M codes")])
+def test_the_block_checks_still_refuse_after_g93s_first_feed(bad, message):
+    """G93 resets the feed (the checks then read block by block); after the first F word the plain blocks are
+    checked by the whole-text pass again (the cost of a G93 program), which still finds what rs274 refuses."""
+    moves = "".join(f"G1 X{k} Y{k % 3} Z1 F{1000 + k}\n" for k in range(60))
+    text = "G21 G90 G17 G94\nG0 X0 Y0 Z5\nG93\n" + moves + bad + "\n" + moves + "M30\n"
+    with pytest.raises(GcodeError) as info:
+        parse_program(text, "t.ngc", setup=Setup(offsets_zero=True), require_setup=True)
+    assert f"t.ngc:{4 + 60}:" in str(info.value) and message in str(info.value)
