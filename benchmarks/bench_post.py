@@ -140,8 +140,9 @@ def run_case(name, prog: Path, mach: Path, work: Path):
             # of the user (another one running reads or truncates it: "Requested tool 23 not found", SIGBUS)
             home = work / "rs274_home"
             home.mkdir(exist_ok=True)
-            t_rs, mem_rs, rc_rs, err_rs, cpu_rs = timed([rs274, "-t", str(tbl), "-g", str(prog), str(work / "canon.txt")],
-                                                cwd=work, stdin=devnull, env={**os.environ, "HOME": str(home)})
+            t_rs, mem_rs, rc_rs, err_rs, cpu_rs = timed(
+                [rs274, "-t", str(tbl), "-g", str(prog), str(work / "canon.txt")], cwd=work, stdin=devnull,
+                env={**os.environ, "HOME": str(home)})
         if rc_rs != 0:
             print(f"{name}: rs274 exit {rc_rs}: {err_rs}", file=sys.stderr)
     n_lines = sum(1 for _ in open(prog, "rb"))

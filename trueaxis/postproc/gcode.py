@@ -811,8 +811,9 @@ class _Interpreter:
                                else [0] * len(blk_code))
                 g = blk_code[li - blk_lo]
                 if g < 4 and blk_run[li - blk_lo] >= fast_interp.MIN_RUN:
-                    run = fast_interp.straight_run(b_status, b_g, b_vals, li - blk_lo, np.array(pos, float), motion_mode,
-                                                   feed, absolute, inverse, diameter, plane, arc_abs, arc_tol)
+                    run = fast_interp.straight_run(b_status, b_g, b_vals, li - blk_lo, np.array(pos, float),
+                                                   motion_mode, feed, absolute, inverse, diameter, plane, arc_abs,
+                                                   arc_tol)
                     if run[0]:
                         state0, changed = cur_state[0], []
                         for c in fast_interp.feed_changes(run[5], feed):  # the states, where the feed changes
