@@ -13,7 +13,7 @@ import pytest
 from conftest import DATA
 from trueaxis.inspect import deviation as dv
 from trueaxis.inspect.cloud import write_cloud_ply
-from trueaxis.inspect.parts import (cone_signed_distance, cone_surface_points, nas979_description,
+from trueaxis.workpiece.parts import (cone_signed_distance, cone_surface_points, nas979_description,
                                     slot_block_description)
 from trueaxis.inspect.report import inspect_cloud, write_report
 

@@ -158,7 +158,6 @@ def test_no_module_imports_a_higher_layer_or_a_later_peer():
     assert layer_violations() == []
 
 
-@pytest.mark.xfail(strict=True, reason='the tree is moved into its layers in the next commits')
 def test_no_import_cycle_between_packages():
     assert unit_cycles() == []
 

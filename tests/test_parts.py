@@ -1,4 +1,4 @@
-"""The test parts (trueaxis.inspect.parts): CAD volumes, STL fidelity, JSON surfaces, cone distance, overrides."""
+"""The test parts (trueaxis.workpiece.parts): CAD volumes, STL fidelity, JSON surfaces, cone distance, overrides."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 import trimesh
 from scipy.optimize import minimize
 
-from trueaxis.inspect import parts  # noqa: E402
-from trueaxis.inspect.parts import (  # noqa: E402
+from trueaxis.workpiece import parts  # noqa: E402
+from trueaxis.workpiece.parts import (  # noqa: E402
     Nas979Params,
     SlotBlockParams,
     cone_signed_distance,

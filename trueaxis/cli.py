@@ -222,7 +222,7 @@ def _parse_placement(text):
 
 
 def cmd_part(args) -> int:
-    from .inspect.parts import Nas979Params, SlotBlockParams, write_part
+    from .workpiece.parts import Nas979Params, SlotBlockParams, write_part
 
     cls = Nas979Params if args.part == "nas979" else SlotBlockParams
     params = cls.from_overrides(args.param or [])  # ValueError (one line, exit 2) before anything is written
@@ -237,8 +237,8 @@ def cmd_part(args) -> int:
 
 def cmd_program(args) -> int:
     from .fileio import atomic_write
-    from .inspect.parts import Nas979Params, SlotBlockParams
-    from .inspect.programs import nas979_program, slots_program
+    from .workpiece.parts import Nas979Params, SlotBlockParams
+    from .workpiece.programs import nas979_program, slots_program
     from .machine import load_machine
     from .resources import machine_file
 
@@ -321,7 +321,7 @@ def cmd_inspect(args) -> int:
                            tolerances=args.tolerances, program=args.program, machine=args.machine)
     identification = None
     if args.identify:
-        from .inspect.identify import run_identification
+        from .identify import run_identification
 
         report, identification = run_identification(result.aligned_cloud(), result.deviation_um, result.part,
                                                     machine=args.machine, program=args.program, write=args.write,
@@ -525,7 +525,7 @@ def _located_errors() -> tuple:
     only come from a module that is loaded."""
     found = []
     for module, name in (("trueaxis.machine.machine_file", "MachineFileError"),
-                         ("trueaxis.postproc.gcode", "GcodeError"), ("trueaxis.postproc.setup", "SetupError")):
+                         ("trueaxis.nc.gcode", "GcodeError"), ("trueaxis.nc.setup", "SetupError")):
         if module in sys.modules:
             found.append(getattr(sys.modules[module], name))
     return tuple(found)

@@ -47,7 +47,7 @@ def warm(out=sys.stderr) -> None:
     from .machine import ErrorTwin, load_machine
     from .machine.error_functions import _unit_coefficients
     from .postproc.post import post_text
-    from .postproc.setup import Setup
+    from .nc.setup import Setup
     from .machine.twin import PARALLEL_MIN
     from .resources import machine_files
 

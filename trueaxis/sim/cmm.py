@@ -1,6 +1,6 @@
 """The virtual CMM: probing patterns on the test parts, probe noise, the measured cloud and its truth sidecar.
 
-Probing patterns come from the part JSON (``trueaxis.inspect.parts``):
+Probing patterns come from the part JSON (``trueaxis.workpiece.parts``):
 
 - ``nas979``: rings at heights along the cone axis (``cone_surface_points``), evenly spaced between ``margin_mm``
   above the base and below the top, about as many rings as points per unit of circumference;
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..fileio import atomic_write
-from ..inspect.parts import cone_surface_points
+from ..workpiece.parts import cone_surface_points
 
 
 def _surface(part: dict, sid: str) -> dict:

@@ -25,13 +25,13 @@ from pathlib import Path
 import numpy as np
 
 from ..machine import ErrorTwin, Machine, load_machine
-from ..postproc.gcode import Program, parse_program
+from ..nc.gcode import Program, parse_program
 from . import cmm as _cmm
 from .cutting import cutting_forces, pass_index, structured_conditions
 from ..machine.kinematics import machine_to_part_rotation
 from .effects import Effects, load_effects
 from .envelope import envelope_deviation, thin_instances
-from .trajectory import Trajectory, interpolate
+from ..nc.trajectory import Trajectory, interpolate
 
 CHUNK = 20_000
 
@@ -86,7 +86,7 @@ def load_part(part: str, part_json=None, part_dir=None) -> dict:
         except FileNotFoundError:
             raise ValueError(f"part JSON {path} not found") from None
     else:
-        from ..inspect.parts import nas979_description, slot_block_description
+        from ..workpiece.parts import nas979_description, slot_block_description
 
         data = nas979_description() if part == "nas979" else slot_block_description()
     if data.get("part") != part:
@@ -330,13 +330,13 @@ def main_simulate(args) -> int:
     ``seed`` (int, default 0). Prints a one-line summary; returns 0. Errors raise ValueError with a clear message.
 
     The program's setup comment ``(trueaxis-setup: part=.. origin_mm=X,Y,Z ...)`` (written by
-    ``trueaxis.inspect.programs``) places the part: its origin replaces the machine file's ``[workpiece] origin``, and
+    ``trueaxis.workpiece.programs``) places the part: its origin replaces the machine file's ``[workpiece] origin``, and
     a program for the other part is refused. Probe points the program did not cut are counted and reported on stderr.
     """
     import dataclasses
     import sys
 
-    from ..inspect.programs import read_setup
+    from ..workpiece.programs import read_setup
 
     machine = load_machine(args.machine)
     program_path = Path(args.program)

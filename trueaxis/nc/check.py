@@ -101,7 +101,7 @@ _G_NAME = lambda g: f"G{g // 10}" if g % 10 == 0 else f"G{g / 10:g}"  # noqa: E7
 
 
 def check_blocks(text: str, source: str, passthrough: bool, line_map=None) -> None:
-    """Raise :class:`~trueaxis.postproc.gcode.GcodeError` at the first block rs274 would refuse (see the module
+    """Raise :class:`~trueaxis.nc.gcode.GcodeError` at the first block rs274 would refuse (see the module
     docstring). ``line_map``: 1-based source line of each text line (a flattened program), or None."""
     state = _State()
     pos, n = 0, len(text)

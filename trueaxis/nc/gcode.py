@@ -551,7 +551,7 @@ def parse_program(
         as they are, recorded in ``Program.unsupported``, instead of raising GcodeError
     tool_table : tool number -> tool length (Z) in **mm**, for G43 (see :func:`parse_tool_table`)
     reference_points : {"G28": (6,), "G30": (6,)} reference points in machine coordinates, mm / degrees (default zero)
-    setup : the controller's setup (:class:`trueaxis.postproc.setup.Setup`): work offsets (with their XY rotation),
+    setup : the controller's setup (:class:`trueaxis.nc.setup.Setup`): work offsets (with their XY rotation),
         G92 shift, active system, home positions and tool offsets at program start; it completes ``tool_table`` and
         ``reference_points``. What it does not give is unknown; ``Program.setup_used`` lists what the rows used.
     require_setup : refuse (GcodeError naming the offset) a move made under a work offset, G92 shift or tool length

@@ -3,7 +3,7 @@
     result = closed_loop(load_machine("fixtures/machines/nmv1500dcg.toml"))      # the true machine
     print(result.summary())
 
-1. The part program (``trueaxis.inspect.programs``) is posted (``trueaxis.postproc.post.compensate``, geometric) with
+1. The part program (``trueaxis.workpiece.programs``) is posted (``trueaxis.postproc.post.compensate``, geometric) with
    the *twin* the shop believes in (default: the true machine's layout with no errors at all).
 2. The virtual shop (``trueaxis.sim.shop.simulate``) cuts it on the *true* machine and measures it (virtual CMM,
    probe noise); the deviations come from the measured cloud alone, as ``inspect`` computes them (exact distances to
@@ -30,13 +30,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..machine import Machine
-from ..postproc.post import compensate
-from .form import roundness, section_ring
-from .deviation import analytic_surfaces, deviation
+from .machine import Machine
+from .postproc.post import compensate
+from .inspect.form import roundness, section_ring
+from .inspect.deviation import analytic_surfaces, deviation
 from .identify import Identification, identify
-from .parts import cone_signed_distance
-from .programs import nas979_program, slots_program
+from .workpiece.parts import cone_signed_distance
+from .workpiece.programs import nas979_program, slots_program
 
 
 def error_free(machine: Machine) -> Machine:
@@ -67,7 +67,7 @@ class Cut:
 
 def _measure(program: str, true: Machine, part_name: str, points: int, noise_um: float, seed: int,
              part_json=None) -> Cut:
-    from ..sim.shop import load_part, simulate
+    from .sim.shop import load_part, simulate
 
     part = load_part(part_name, part_json)
     res = simulate(program, true, part=part_name, part_json=part, points=points, noise_um=noise_um, seed=seed)
@@ -232,7 +232,7 @@ def user_loop(folder, part: str, twin_file, true_file, *, rounds: int = 3, compe
     import json
     from pathlib import Path
 
-    from ..cli import EXIT_REFUSED, main
+    from .cli import EXIT_REFUSED, main
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
