@@ -32,7 +32,7 @@ import numpy as np
 
 from trueaxis.identify import contact_weights, find_contacts, identify, nominal_tool_path
 from trueaxis.workpiece.parts import Nas979Params, cone_surface_points
-from trueaxis.workpiece.programs import nas979_program
+from trueaxis.postproc.programs import nas979_program
 from trueaxis.machine import ErrorTwin, load_machine
 from trueaxis.resources import machine_file
 

@@ -400,7 +400,7 @@ def setup_for(setup: dict, points: int):
     key = (json.dumps(setup, sort_keys=True), points)
     if key not in _SETUPS:
         from trueaxis.workpiece.parts import Nas979Params, nas979_description
-        from trueaxis.workpiece.programs import nas979_program
+        from trueaxis.postproc.programs import nas979_program
         from trueaxis.machine import load_machine
         from trueaxis.sim.shop import simulate
 

@@ -15,7 +15,7 @@ from trueaxis.identify import (find_contacts, identify, machine_for_program, nom
                                        reference_parameters, run_identification, sensitivity_matrix)
 from trueaxis.loop import closed_loop, cone_deviation_um, error_free
 from trueaxis.workpiece.parts import Nas979Params, cone_surface_points
-from trueaxis.workpiece.programs import nas979_program
+from trueaxis.postproc.programs import nas979_program
 from trueaxis.machine import ErrorTwin, load_machine
 from trueaxis.machine.machine_file import dump_machine, parse_machine
 from trueaxis.sim.shop import load_part, simulate

@@ -153,7 +153,6 @@ def test_every_trueaxis_import_names_an_existing_module():
     assert missing == []
 
 
-@pytest.mark.xfail(strict=True, reason='the tree is moved into its layers in the next commits')
 def test_no_module_imports_a_higher_layer_or_a_later_peer():
     assert layer_violations() == []
 

@@ -9,7 +9,7 @@ import pytest
 from conftest import MACHINES, random_poses
 from test_kinematics import linuxcnc_xyzac_forward
 from trueaxis.workpiece.parts import Nas979Params
-from trueaxis.workpiece.programs import nas979_program
+from trueaxis.postproc.programs import nas979_program
 from trueaxis.machine import ErrorTwin, forward_nominal, inverse_kinematics, load_machine
 from trueaxis.sim.shop import simulate
 

@@ -1,4 +1,4 @@
-"""Part programs of the test parts (trueaxis.workpiece.programs): CL data geometry, kinematics, slot sections, rs274."""
+"""Part programs of the test parts (trueaxis.postproc.programs): CL data geometry, kinematics, slot sections, rs274."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 from conftest import MACHINES
 from rs274_helpers import run_rs274
 from trueaxis.workpiece.parts import Nas979Params, SlotBlockParams, cone_signed_distance
-from trueaxis.workpiece.programs import (ClPath, cone_flank_cl, nas979_program, read_setup, slots_program,
+from trueaxis.postproc.programs import (ClPath, cone_flank_cl, nas979_program, read_setup, slots_program,
                                        twin_id)
 from trueaxis.machine import forward_nominal, load_machine
 from trueaxis.nc.gcode import parse_program

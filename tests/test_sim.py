@@ -240,7 +240,7 @@ def test_servo_with_acceleration_limits_on_the_slot_block(xh714):
     # (the mean absolute deviation from the median of the loop's exponential delay), 55 um at the slots' 45 deg
     # corners, seen on the outer corner arcs (tool radius from the vertex); everywhere else < 1 um.
     from trueaxis.workpiece.parts import SlotBlockParams, slot_block_description
-    from trueaxis.workpiece.programs import slots_program
+    from trueaxis.postproc.programs import slots_program
 
     params = SlotBlockParams(slot_depth=1.2)
     prog = slots_program(xh714, params)

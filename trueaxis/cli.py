@@ -238,7 +238,7 @@ def cmd_part(args) -> int:
 def cmd_program(args) -> int:
     from .fileio import atomic_write
     from .workpiece.parts import Nas979Params, SlotBlockParams
-    from .workpiece.programs import nas979_program, slots_program
+    from .postproc.programs import nas979_program, slots_program
     from .machine import load_machine
     from .resources import machine_file
 

@@ -1078,7 +1078,7 @@ def part_normals(points, part: dict) -> np.ndarray:
 def machine_for_program(machine: Machine, program_text: str, part: str | None = None) -> Machine:
     """The machine with the part placed where the program's setup comment says (``origin_mm``), as the virtual shop
     and the shop floor do; refuses a program written for another part."""
-    from .workpiece.programs import read_setup
+    from .postproc.programs import read_setup
 
     setup = read_setup(program_text)
     if part is not None and setup.get("part") and setup["part"] != part:
@@ -1093,10 +1093,10 @@ def machine_for_program(machine: Machine, program_text: str, part: str | None = 
 
 def program_compensation(program_text: str, twin: Machine) -> dict:
     """What the program says about its compensation (its ``trueaxis-setup`` comment: ``compensation`` and ``twin``,
-    the twin's id, ``trueaxis.workpiece.programs.twin_id``), compared with ``twin``. The identification does not
+    the twin's id, ``trueaxis.postproc.programs.twin_id``), compared with ``twin``. The identification does not
     depend on it (its model is the twin at the axes the program commands, whoever compensated them); the note says
     what was read or assumed. Returns {"mode", "twin_id", "same_twin" (bool or None), "note"}."""
-    from .workpiece.programs import read_setup, twin_id
+    from .postproc.programs import read_setup, twin_id
 
     setup = read_setup(program_text)
     mode, tid = setup.get("compensation"), setup.get("twin")

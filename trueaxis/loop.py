@@ -3,7 +3,7 @@
     result = closed_loop(load_machine("fixtures/machines/nmv1500dcg.toml"))      # the true machine
     print(result.summary())
 
-1. The part program (``trueaxis.workpiece.programs``) is posted (``trueaxis.postproc.post.compensate``, geometric) with
+1. The part program (``trueaxis.postproc.programs``) is posted (``trueaxis.postproc.post.compensate``, geometric) with
    the *twin* the shop believes in (default: the true machine's layout with no errors at all).
 2. The virtual shop (``trueaxis.sim.shop.simulate``) cuts it on the *true* machine and measures it (virtual CMM,
    probe noise); the deviations come from the measured cloud alone, as ``inspect`` computes them (exact distances to
@@ -36,7 +36,7 @@ from .inspect.form import roundness, section_ring
 from .inspect.deviation import analytic_surfaces, deviation
 from .identify import Identification, identify
 from .workpiece.parts import cone_signed_distance
-from .workpiece.programs import nas979_program, slots_program
+from .postproc.programs import nas979_program, slots_program
 
 
 def error_free(machine: Machine) -> Machine:

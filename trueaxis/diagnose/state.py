@@ -107,7 +107,7 @@ def place_from_setup(machine: Machine, program_text: str, part: str) -> Machine:
     """The twin placed as the program's setup comment says (``(trueaxis-setup: part=.. origin_mm=..)``).
 
     Raises ValueError when the program is for the other part or its origin is malformed."""
-    from ..workpiece.programs import read_setup
+    from ..postproc.programs import read_setup
 
     setup = read_setup(program_text)
     if setup.get("part") and setup["part"] != part:

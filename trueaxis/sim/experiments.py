@@ -31,7 +31,7 @@ from .shop import simulate
 def slot_experiment(points: int = 6000, params: SlotBlockParams | None = None, machine: Machine | None = None,
                     seed: int = 0) -> dict:
     """Contour error of the three slots (um), none / geometric / comprehensive. See the module docstring."""
-    from ..workpiece.programs import slots_program
+    from ..postproc.programs import slots_program
 
     m = machine or load_machine(machine_file("xh714"))
     p = params or SlotBlockParams()
@@ -54,7 +54,7 @@ def slot_experiment(points: int = 6000, params: SlotBlockParams | None = None, m
 def cone_experiment(points: int = 20000, machine: Machine | None = None, params: Nas979Params | None = None,
                     compensation: str = "none", seed: int = 0) -> dict:
     """Roundness (um) at the part's evaluation heights and cone-angle error (urad) of a simulated cone."""
-    from ..workpiece.programs import nas979_program
+    from ..postproc.programs import nas979_program
 
     m = machine or load_machine(machine_file("nmv1500dcg"))
     p = params or Nas979Params()

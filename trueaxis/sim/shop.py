@@ -330,13 +330,13 @@ def main_simulate(args) -> int:
     ``seed`` (int, default 0). Prints a one-line summary; returns 0. Errors raise ValueError with a clear message.
 
     The program's setup comment ``(trueaxis-setup: part=.. origin_mm=X,Y,Z ...)`` (written by
-    ``trueaxis.workpiece.programs``) places the part: its origin replaces the machine file's ``[workpiece] origin``, and
+    ``trueaxis.postproc.programs``) places the part: its origin replaces the machine file's ``[workpiece] origin``, and
     a program for the other part is refused. Probe points the program did not cut are counted and reported on stderr.
     """
     import dataclasses
     import sys
 
-    from ..workpiece.programs import read_setup
+    from ..postproc.programs import read_setup
 
     machine = load_machine(args.machine)
     program_path = Path(args.program)

@@ -37,7 +37,7 @@ import numpy as np
 
 from ..machine import Machine, forward_nominal, inverse_kinematics
 from ..machine.kinematics import linear_axis_map
-from .parts import COMPENSATION_MODES, Nas979Params, SlotBlockParams
+from ..workpiece.parts import COMPENSATION_MODES, Nas979Params, SlotBlockParams
 
 MODES = ("none", "geometric", "comprehensive")
 SETUP_TAG = "trueaxis-setup"
@@ -448,7 +448,7 @@ def refine_cone_steps(machine: Machine, cone: dict, tool_radius: float, offsets,
     and at the top of the cone along the tool, for every offset (mm) in ``offsets``. Starts from ``step_deg`` and
     splits each block by sqrt(error / tol) (the mid-chord error is quadratic in the step).
     Returns (theta_deg (n+1,), max error um after refinement)."""
-    from .parts import cone_signed_distance
+    from ..workpiece.parts import cone_signed_distance
 
     theta = np.linspace(0.0, 360.0 + overlap_deg, int(math.ceil((360.0 + overlap_deg) / step_deg)) + 1)
     h1 = cone["height_range"][1]
@@ -535,7 +535,7 @@ def nas979_program(machine: Machine, params: Nas979Params | None = None, *, comp
     text = raw
     report = {}
     if compensation != "none":
-        from ..postproc.post import compensate
+        from .post import compensate
 
         text = compensate(raw, placed, compensation, source="nas979.ngc", report=report, **(post_options or {}))
     return PartProgram(text, raw, cl, q, placed, safe_z,
@@ -561,7 +561,7 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, pl
 
     placement_mm (x, y): part origin off the C-axis line / machine zero (None: the machine file's origin).
     Sections are marked ``(slot k of 3: compensation MODE)`` ... ``(end of slot k)``."""
-    from ..postproc.post import compensate
+    from .post import compensate
 
     p = params or SlotBlockParams()
     placed, placement = place_machine(machine, placement_mm)
