@@ -1060,10 +1060,10 @@ def _rows(a, what):
 # --------------------------------------------------------------------------------------------- part normals ----
 def part_normals(points, part: dict) -> np.ndarray:
     """Unit outward normals of the nominal surface at ``points`` for a cloud that has none (the NAS 979 cone)."""
-    if part.get("part") != "nas979":
+    cone = next((s for s in part["surfaces"] if s["id"] == "cone"), None)
+    if cone is None:
         raise ValueError("the cloud has no normals and the part has no analytic normal field: give a cloud with "
                          "normals (nx ny nz)")
-    cone = next(s for s in part["surfaces"] if s["id"] == "cone")
     a = np.asarray(cone["axis"], float)
     a = a / np.linalg.norm(a)
     c = np.asarray(cone["base_center"], float)
