@@ -342,13 +342,10 @@ class _Jacobians:
     def __init__(self, twin: ErrorTwin, q: np.ndarray, cols: np.ndarray):
         self.twin, self.q, self.cols = twin, q, cols
         self.cache = None
-        self.errors = None
         if q.shape[0] * 6 * cols.size * 8 <= MAX_CACHE_BYTES:
             self.cache = np.empty((q.shape[0], 6, cols.size))
-            self.errors = np.empty((q.shape[0], 6))
-            for sl, ep, eu, _, jp in twin.iter_errors_and_jacobians(q):
+            for sl, _, _, _, jp in twin.iter_errors_and_jacobians(q):
                 self.cache[sl] = jp[:, :, cols]
-                self.errors[sl] = np.concatenate([ep, eu], axis=1)
 
     def chunks(self):
         if self.cache is not None:
@@ -359,12 +356,6 @@ class _Jacobians:
             return
         for sl, _, _, _, jp in self.twin.iter_errors_and_jacobians(self.q):
             yield sl, jp[:, :, self.cols]
-
-    def error6(self):
-        if self.errors is None:
-            ep, eu = self.twin.volumetric_error(self.q)
-            self.errors = np.concatenate([ep, eu], axis=1)
-        return self.errors
 
     def times(self, theta):
         """J_k theta (K, 6) for a parameter change theta (P_active,)."""

@@ -404,10 +404,7 @@ def _fail(cl: ClData, k: int, reason: str):
 
 
 def _in_travel(machine: Machine, name: str, values):
-    tr = machine.axes[name].travel
-    if tr is None:
-        return np.ones(np.shape(values), bool)
-    return (values >= tr[0] - 1e-9) & (values <= tr[1] + 1e-9)
+    return machine.axes[name].within_travel(values)
 
 
 def _margin(machine: Machine, name: str, values):

@@ -495,10 +495,6 @@ def parse_tool_table(text: str, units: str = "mm") -> dict:
 # the interpreter
 
 
-class _Refuse(Exception):
-    """Internal: a block that can move an axis and that the reader does not understand."""
-
-
 def _arc_center_r(start, end, radius, cw, tol):
     """Centre of an R-format arc in its plane, as LinuxCNC's arc_data_r computes it. start/end: (2,) first/second."""
     abs_r = abs(radius)

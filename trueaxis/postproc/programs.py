@@ -315,7 +315,7 @@ def _out_of_travel(machine: Machine, q: np.ndarray) -> str:
         if tr is None:
             continue
         lo, hi = float(q[:, c].min()), float(q[:, c].max())
-        if lo < tr[0] - 1e-9 or hi > tr[1] + 1e-9:
+        if not machine.axes[a].within_travel([lo, hi]).all():
             f = math.degrees if machine.axes[a].is_rotary else (lambda v: v)
             return (f"axis {a} needs [{f(lo):.3f}, {f(hi):.3f}], outside its travel [{f(tr[0]):g}, {f(tr[1]):g}]")
     return ""

@@ -11,8 +11,8 @@ force with the real engagement, thermal drift) -> tool wear (radius and length a
 the machined surface as the envelope of the cutting instances (``envelope``) along each probe normal, with the part's
 spring-back from its clamping deformation -> probe noise.
 
-Command line (wired by ``trueaxis.cli``): ``main_simulate(args)`` with an argparse namespace holding
-``program, machine, effects, part, part_dir, output, points, noise_um, seed`` (see its docstring).
+``simulate_program_file`` does the same for a program file whose setup comment places the part (``trueaxis
+simulate`` in ``trueaxis.cli``).
 """
 
 from __future__ import annotations
