@@ -29,9 +29,11 @@ from __future__ import annotations
 
 import re
 
+from .grammar import NUMBER
+
 __all__ = ["check_blocks"]
 
-_NUM = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)"
+_NUM = NUMBER
 # Where a block needs a word-by-word check (the rest are plain moves: N, one G0..G3, axis words, I J K R, F):
 # a character that is no part of a plain move, a G code other than G0..G3, two G codes, an N word after a number.
 _CANDIDATES = tuple(re.compile(p) for p in (

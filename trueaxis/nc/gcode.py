@@ -52,6 +52,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from .grammar import NUMBER
+
 __all__ = [
     "GcodeError",
     "Program",
@@ -95,13 +97,13 @@ _WORD_BIT = {c: 1 << i for i, c in enumerate(WORD_BITS)}
 #   5 any other non-blank character.
 _TOKEN = re.compile(
     r"(\([^)\n]*\)?)|(;[^\n]*)"
-    r"|([A-Za-z])[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)|#[0-9]+|\[[^\n(;]*?\](?:[^\n(;\[]*\])*)?"
+    r"|([A-Za-z])[ \t]*(" + NUMBER + r"|#[0-9]+|\[[^\n(;]*?\](?:[^\n(;\[]*\])*)?"
     r"|([^\s])"
 )
 _TOKEN_KINDS = (None, "comment", "comment", "word", "word", "other")
 # The tokenizer for writers that walk a block's tokens: group 3 is a word's letter (None for comments and others).
 TOKEN_PATTERN = _TOKEN
-_ASSIGN = re.compile(r"^[ \t]*(?:[Nn][0-9]+[ \t]*)?#([0-9]+)[ \t]*=[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))[ \t]*(?:\(.*\)|;.*)?[ \t]*$")
+_ASSIGN = re.compile(r"^[ \t]*(?:[Nn][0-9]+[ \t]*)?#([0-9]+)[ \t]*=[ \t]*(" + NUMBER + r")[ \t]*(?:\(.*\)|;.*)?[ \t]*$")
 _PARAM_REF = re.compile(r"^(?:#([0-9]+)|\[[ \t]*#([0-9]+)[ \t]*\])$")
 # the fast path's plain G0/G1 block, and its words (upper case, no comments, no other codes)
 _FAST = re.compile(
