@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trueaxis.inspect.loop import error_free, user_loop
+from trueaxis.loop import error_free, user_loop
 from trueaxis.machine import load_machine
 from trueaxis.machine.machine_file import dump_machine
 from trueaxis.resources import machine_file

@@ -3,7 +3,7 @@
 import time
 from pathlib import Path
 
-from trueaxis.postproc.gcode import parse_program
+from trueaxis.nc.gcode import parse_program
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCE = ROOT / "fixtures" / "programs" / "nist" / "mtc_plate_1.nc"

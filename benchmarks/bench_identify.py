@@ -30,15 +30,15 @@ import time
 
 import numpy as np
 
-from trueaxis.inspect.identify import contact_weights, find_contacts, identify, nominal_tool_path
-from trueaxis.inspect.parts import Nas979Params, cone_surface_points
-from trueaxis.inspect.programs import nas979_program
+from trueaxis.identify import contact_weights, find_contacts, identify, nominal_tool_path
+from trueaxis.workpiece.parts import Nas979Params, cone_surface_points
+from trueaxis.postproc.programs import nas979_program
 from trueaxis.machine import ErrorTwin, load_machine
 from trueaxis.resources import machine_file
 
 
 def trust(runs: int, perfect_runs: int, prior_runs: int = 0, points: int = 3000, noise_um: float = 0.5):
-    from trueaxis.inspect.loop import cone_deviation_um
+    from trueaxis.loop import cone_deviation_um
     from trueaxis.sim.shop import load_part, simulate
 
     twin = load_machine(machine_file("nmv1500dcg"))
@@ -85,7 +85,7 @@ def trust(runs: int, perfect_runs: int, prior_runs: int = 0, points: int = 3000,
     # The std's own check (the Monte Carlo of ISO/TS 15530-4 run for real): true machines drawn from the very prior
     # the std assumes, every non-gauge parameter ~ N(twin value, typical size^2); |error| / std should then look like
     # |N(0, 1)| (RMS about 1), not far below (too conservative) nor above (too small).
-    from trueaxis.inspect.identify import reference_parameters, typical_magnitude
+    from trueaxis.identify import reference_parameters, typical_magnitude
 
     gauge = set(reference_parameters(twin))
     sigma = np.array([0.0 if n in gauge else typical_magnitude(n, twin) for n in names])

@@ -34,7 +34,7 @@ from cloudcompare_helpers import cloudcompare_c2m, find_cloudcompare  # noqa: E4
 from trueaxis.inspect import deviation as dv  # noqa: E402
 from trueaxis.inspect import form  # noqa: E402
 from trueaxis.inspect.cloud import read_cloud, write_cloud_ply  # noqa: E402
-from trueaxis.inspect.parts import nas979_description  # noqa: E402
+from trueaxis.workpiece.parts import nas979_description  # noqa: E402
 
 
 def cone_cloud(cone: dict, n: int, seed: int = 0):

@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_inspect import cone_cloud  # noqa: E402
 from trueaxis.inspect.cloud import write_cloud_ply  # noqa: E402
-from trueaxis.inspect.parts import nas979_description  # noqa: E402
+from trueaxis.workpiece.parts import nas979_description  # noqa: E402
 
 GOAL_S = 60.0
 GOAL_GB = 4.0

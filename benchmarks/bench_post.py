@@ -180,7 +180,7 @@ def profile_post(prog: Path, mach: Path, top: int = 25):
     from trueaxis.machine import load_machine
     from trueaxis.postproc.post import post_text
 
-    from trueaxis.postproc.setup import Setup
+    from trueaxis.nc.setup import Setup
 
     machine = load_machine(mach)
     text = prog.read_text()
@@ -212,9 +212,9 @@ def profile_post(prog: Path, mach: Path, top: int = 25):
 
 # (label, file suffix, function name): the post's phases as cProfile's cumulative times of these functions
 PHASES = [
-    ("read: compiled pre-scan (fast_read)", "postproc/fast_read.py", "scan_lines"),
-    ("read: compiled runs of plain moves (fast_interp)", "postproc/fast_interp.py", "straight_run"),
-    ("read + interpret (parse_program, all)", "postproc/gcode.py", "parse_program"),
+    ("read: compiled pre-scan (fast_read)", "nc/fast_read.py", "scan_lines"),
+    ("read: compiled runs of plain moves (fast_interp)", "nc/fast_interp.py", "straight_run"),
+    ("read + interpret (parse_program, all)", "nc/gcode.py", "parse_program"),
     ("twin: pose (+ axis Jacobian), all calls", "machine/twin.py", "_compose"),
     ("solve: Newton at the block ends (incl. twin)", "postproc/post.py", "solve"),
     ("split: lines (incl. twin and solves)", "postproc/post.py", "_split_lines"),

@@ -22,7 +22,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from trueaxis.diagnose.report import run_diagnosis
-from trueaxis.inspect.programs import nas979_program
+from trueaxis.postproc.programs import nas979_program
 from trueaxis.machine import load_machine
 from trueaxis.sim.effects import parse_effects
 from trueaxis.sim.shop import simulate

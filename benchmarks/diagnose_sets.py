@@ -399,8 +399,8 @@ def setup_for(setup: dict, points: int):
     """(twin, program, part JSON, noise-free base deviations) of a setup, cached per worker process."""
     key = (json.dumps(setup, sort_keys=True), points)
     if key not in _SETUPS:
-        from trueaxis.inspect.parts import Nas979Params, nas979_description
-        from trueaxis.inspect.programs import nas979_program
+        from trueaxis.workpiece.parts import Nas979Params, nas979_description
+        from trueaxis.postproc.programs import nas979_program
         from trueaxis.machine import load_machine
         from trueaxis.sim.shop import simulate
 

@@ -58,8 +58,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from trueaxis.diagnose.report import run_diagnosis  # noqa: E402
-from trueaxis.inspect.parts import SlotBlockParams, slot_block_description  # noqa: E402
-from trueaxis.inspect.programs import nas979_program, slots_program  # noqa: E402
+from trueaxis.workpiece.parts import SlotBlockParams, slot_block_description  # noqa: E402
+from trueaxis.postproc.programs import nas979_program, slots_program  # noqa: E402
 from trueaxis.machine import load_machine  # noqa: E402
 from trueaxis.sim import cutting as _cutting  # noqa: E402
 from trueaxis.sim.effects import parse_effects  # noqa: E402

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from trueaxis.machine import ErrorTwin
-from trueaxis.postproc.gcode import ARC_CCW, ARC_CW, MM_PER_INCH, ROW_PROGRAMMED, parse_program
+from trueaxis.nc.gcode import ARC_CCW, ARC_CW, MM_PER_INCH, ROW_PROGRAMMED, parse_program
 
 AXES = "XYZABC"
 
@@ -77,7 +77,7 @@ def _point_segment_distance(p, a, b):
 
 def actual_points(program_text, machine, force_n=None, setup=None):
     """Where the twin puts the tool tip at every programmed end point of a (compensated) program: (N,3) mm.
-    ``setup``: the control's setup the program runs with (trueaxis.postproc.setup.Setup)."""
+    ``setup``: the control's setup the program runs with (trueaxis.nc.setup.Setup)."""
     prog = parse_program(program_text, setup=setup)
     q, rows = machine_rows(prog, machine)
     return ErrorTwin(machine).actual_pose(q, force_n)[0], prog, rows

@@ -115,7 +115,7 @@ def assert_rs274_reads_as_we_do(text: str, workdir: Path, tool_lengths_mm: dict 
                                 name: str = "out.ngc") -> CanonMoves:
     """rs274 interprets the program ``text`` without error, with as many moves as our reader and the same end points
     (within rs274's 4 printed decimals). Returns rs274's moves."""
-    from trueaxis.postproc.gcode import parse_program
+    from trueaxis.nc.gcode import parse_program
 
     path = Path(workdir) / name
     path.parent.mkdir(parents=True, exist_ok=True)

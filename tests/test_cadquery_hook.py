@@ -10,8 +10,8 @@ import pytest
 
 from conftest import ROOT
 from post_checks import actual_points, distance_to_polyline, nominal_polyline
-from trueaxis.inspect.parts import nas979_workplane, slot_block_workplane
-from trueaxis.postproc.gcode import parse_program
+from trueaxis.workpiece.parts import nas979_workplane, slot_block_workplane
+from trueaxis.nc.gcode import parse_program
 from trueaxis.postproc.hosts import cadquery as cq_host
 
 EXAMPLE = ROOT / "docs" / "cadquery_example.py"

@@ -125,7 +125,7 @@ def slot_sim(tmp_path_factory):
     assert main(["program", "slots", "--machine", str(machine), "-o", str(prog), "--param", "slot_depth=1.2"]) == 0
     part_dir = d / "part"
     part_dir.mkdir()
-    from trueaxis.inspect.parts import SlotBlockParams, slot_block_description
+    from trueaxis.workpiece.parts import SlotBlockParams, slot_block_description
 
     (part_dir / "slots.json").write_text(json.dumps(slot_block_description(SlotBlockParams(slot_depth=1.2))))
     return d, machine, prog, part_dir

@@ -9,7 +9,7 @@ import pytest
 from cloudcompare_helpers import cloudcompare_c2m, require_cloudcompare
 from trueaxis.inspect import deviation as dv
 from trueaxis.inspect.cloud import write_cloud_ply
-from trueaxis.inspect.parts import cone_surface_points, nas979_description
+from trueaxis.workpiece.parts import cone_surface_points, nas979_description
 
 pytestmark = pytest.mark.external
 

@@ -46,7 +46,7 @@ def test_only_the_exact_argument_types_fit():
 
 def test_the_kernel_modules_take_numba_from_the_stand_in():
     import trueaxis.machine.chain_kernel as ck
-    import trueaxis.postproc.fast_read as fr
+    import trueaxis.nc.fast_read as fr
 
     for mod in (ck, fr):
         assert mod.numba is compiled.numba or mod.numba.__name__ == "numba"
@@ -113,7 +113,7 @@ def _post_hashes(work, env):
 def aot_dir(tmp_path_factory):
     """A fresh ahead-of-time build of the current source (the installed one may be older)."""
     folder = tmp_path_factory.mktemp("aot")
-    res = subprocess.run([sys.executable, "-m", "trueaxis.compiled"], capture_output=True, text=True, check=False,
+    res = subprocess.run([sys.executable, "-m", "trueaxis.warm"], capture_output=True, text=True, check=False,
                          env={**os.environ, "PYTHONPATH": str(ROOT), "TRUEAXIS_AOT_DIR": str(folder)})
     assert res.returncode == 0, res.stderr[-2000:]
     return folder
@@ -122,8 +122,8 @@ def aot_dir(tmp_path_factory):
 @pytest.mark.slow
 def test_posts_with_the_ahead_of_time_kernels_are_the_jit_posts_byte_for_byte(aot_dir, programs):
     spec = json.loads((aot_dir / "_aot_kernels.json").read_text())
-    assert {"trueaxis.machine.chain_kernel.pose_and_axis_jacobian", "trueaxis.postproc.fast_read.scan_lines",
-            "trueaxis.postproc.fast_write.assemble", "trueaxis.machine.error_kernel.evaluate_packed"} <= set(
+    assert {"trueaxis.machine.chain_kernel.pose_and_axis_jacobian", "trueaxis.nc.fast_read.scan_lines",
+            "trueaxis.nc.fast_write.assemble", "trueaxis.machine.error_kernel.evaluate_packed"} <= set(
         spec["kernels"])
     aot = _post_hashes(programs, {"TRUEAXIS_AOT_DIR": str(aot_dir)})
     jit = _post_hashes(programs, {"TRUEAXIS_AOT": "0"})

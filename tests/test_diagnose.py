@@ -13,8 +13,8 @@ from trueaxis.diagnose.analysis import diagnose_state, estimate_noise_um
 from trueaxis.diagnose.candidates import LIBRARY, build, build_all
 from trueaxis.diagnose.report import run_diagnosis
 from trueaxis.diagnose.state import twin_state
-from trueaxis.inspect.parts import SlotBlockParams, slot_block_description
-from trueaxis.inspect.programs import slots_program
+from trueaxis.workpiece.parts import SlotBlockParams, slot_block_description
+from trueaxis.postproc.programs import slots_program
 from trueaxis.machine import load_machine
 from trueaxis.sim.effects import parse_effects
 from trueaxis.sim.shop import simulate, write_cmm
@@ -110,7 +110,7 @@ def _named(slots, effects, noise=1.0, seed=3, candidates=None):
 def test_backlash_x_is_named_on_the_cone():
     # On the slot block X only ever cuts moving +, so its backlash is a constant shift that a drift mimics; on the
     # cone X reverses twice per turn and the step is unmistakable.
-    from trueaxis.inspect.programs import nas979_program
+    from trueaxis.postproc.programs import nas979_program
 
     m = load_machine(MACHINES / "nmv1500dcg.toml")
     prog = nas979_program(m, compensation="none", step_deg=4.0, chord_tol_um=None)
@@ -334,7 +334,7 @@ def test_servo_lag_corner_transient_is_named(slots):
 def cone():
     """nmv1500dcg cutting the NAS 979 cone 60 mm off the C axis (coarse steps: a lean program); B reverses twice
     during the flank pass, C turns once."""
-    from trueaxis.inspect.programs import nas979_program
+    from trueaxis.postproc.programs import nas979_program
 
     m = load_machine(MACHINES / "nmv1500dcg.toml")
     prog = nas979_program(m, compensation="none", step_deg=4.0, chord_tol_um=None, placement_mm=(60.0, 0.0))

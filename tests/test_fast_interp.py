@@ -1,4 +1,4 @@
-"""The reader's compiled runs of straight moves (trueaxis.postproc.fast_interp) give the motion table the reader's own
+"""The reader's compiled runs of straight moves (trueaxis.nc.fast_interp) give the motion table the reader's own
 loop gives, number for number, and the post writes the same bytes with them as without them."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import pytest
 
 from conftest import MACHINES, ROOT
 from trueaxis.machine import load_machine, parse_machine
-from trueaxis.postproc import fast_interp, gcode
-from trueaxis.postproc.gcode import GcodeError, parse_program
+from trueaxis.nc import fast_interp, gcode
+from trueaxis.nc.gcode import GcodeError, parse_program
 from trueaxis.postproc.post import compensate
-from trueaxis.postproc.setup import Setup
+from trueaxis.nc.setup import Setup
 from trueaxis.sim.programs import cone_flank_program
 
 NIST = ROOT / "fixtures" / "programs" / "nist"

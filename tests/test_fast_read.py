@@ -1,4 +1,4 @@
-"""The reader's compiled pre-scan (trueaxis.postproc.fast_read) against what it replaces: the regular expression
+"""The reader's compiled pre-scan (trueaxis.nc.fast_read) against what it replaces: the regular expression
 ``_FAST`` and ``float()``, line by line, and ``parse_program`` with and without it on real and random programs."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 
 import test_post_fuzz as fz  # its random programs (mutated fixtures, token soup)
 from conftest import ROOT
-from trueaxis.postproc import fast_read, gcode
-from trueaxis.postproc.gcode import _FAST, GcodeError, parse_program, split_lines
+from trueaxis.nc import fast_read, gcode
+from trueaxis.nc.gcode import _FAST, GcodeError, parse_program, split_lines
 
 SETTINGS = settings(max_examples=1500, deadline=None, derandomize=True, database=None,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

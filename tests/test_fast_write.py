@@ -1,4 +1,4 @@
-"""The writer's compiled fast path (trueaxis.postproc.fast_write) writes what the Python path writes, byte for byte:
+"""The writer's compiled fast path (trueaxis.nc.fast_write) writes what the Python path writes, byte for byte:
 numbers as ``write_number``, plain blocks as ``rewrite_block``, whole posted programs as with the fast path off."""
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from hypothesis import strategies as st
 from conftest import MACHINES, ROOT
 from test_post import PROGRAM as POST_PROGRAM
 from trueaxis.machine import load_machine, parse_machine
-from trueaxis.postproc import fast_write
+from trueaxis.nc import fast_write
 from trueaxis.postproc import post as post_module
-from trueaxis.postproc.gcode import write_number
+from trueaxis.nc.gcode import write_number
 from trueaxis.postproc.post import _PLAIN, compensate, rewrite_block
 from trueaxis.sim.programs import cone_flank_program
 

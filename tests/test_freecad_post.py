@@ -184,8 +184,8 @@ def test_freecad_program_read_back_by_rs274_with_the_setup_lies_on_the_nominal_p
     from post_checks import distance_to_polyline, nominal_polyline
     from rs274_helpers import run_rs274_setup
     from trueaxis.machine import ErrorTwin, load_machine
-    from trueaxis.postproc.gcode import ROW_PROGRAMMED, parse_program
-    from trueaxis.postproc.setup import load_setup
+    from trueaxis.nc.gcode import ROW_PROGRAMMED, parse_program
+    from trueaxis.nc.setup import load_setup
 
     var, tbl = freecad_job.dir / "setup.var", freecad_job.dir / "setup.tbl"
     moves = run_rs274_setup(freecad_job.dir / "trueaxis.ngc", var, tbl, tmp_path)

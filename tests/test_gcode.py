@@ -1,4 +1,4 @@
-"""The G-code reader (trueaxis.postproc.gcode): syntax, LinuxCNC semantics, errors, fuzzing, rs274 conformance."""
+"""The G-code reader (trueaxis.nc.gcode): syntax, LinuxCNC semantics, errors, fuzzing, rs274 conformance."""
 
 from pathlib import Path
 
@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from trueaxis.postproc.gcode import (
+from trueaxis.nc.gcode import (
     ARC_CCW, ARC_CW, FEED, RAPID, ROW_CYCLE, ROW_REFERENCE, GcodeError, parse_file, parse_program,
     parse_tool_table, word_spans, write_number, write_numbers,
 )
@@ -189,7 +189,7 @@ def test_format_info_reports_input_precision():
 
 def test_format_info_is_the_same_read_in_blocks(monkeypatch):
     # The dialect is measured block by block (memory): the answer must not depend on where the blocks end.
-    from trueaxis.postproc import gcode
+    from trueaxis.nc import gcode
 
     text = "G21 G90\nG1 X.5 Y1.25 F100\n" + "G1 X1.5 Y2.\n" * 7 + "G1 X1.123456 (Y9.1234567)\nG1 Z-.5\n"
     whole = parse_program(text).format_info

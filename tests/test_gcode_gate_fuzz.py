@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 from conftest import MACHINES
 from test_interp_corpus import drop_repeats, run_rs274_verdict
 from trueaxis.cli import main as cli_main
-from trueaxis.postproc.gcode import GcodeError, parse_program
+from trueaxis.nc.gcode import GcodeError, parse_program
 
 SETTINGS = settings(deadline=None, derandomize=True, database=None,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])

@@ -11,11 +11,11 @@ import pytest
 
 from conftest import MACHINES
 from trueaxis.inspect.cloud import Cloud
-from trueaxis.inspect.identify import (find_contacts, identify, machine_for_program, nominal_tool_path,
+from trueaxis.identify import (find_contacts, identify, machine_for_program, nominal_tool_path,
                                        reference_parameters, run_identification, sensitivity_matrix)
-from trueaxis.inspect.loop import closed_loop, cone_deviation_um, error_free
-from trueaxis.inspect.parts import Nas979Params, cone_surface_points
-from trueaxis.inspect.programs import nas979_program
+from trueaxis.loop import closed_loop, cone_deviation_um, error_free
+from trueaxis.workpiece.parts import Nas979Params, cone_surface_points
+from trueaxis.postproc.programs import nas979_program
 from trueaxis.machine import ErrorTwin, load_machine
 from trueaxis.machine.machine_file import dump_machine, parse_machine
 from trueaxis.sim.shop import load_part, simulate
@@ -357,7 +357,7 @@ def test_bestfit_alignment_is_fitted_as_nuisance_through_the_cli(shop, tmp_path,
 
 
 def load_part_normals(points):
-    from trueaxis.inspect.identify import part_normals
+    from trueaxis.identify import part_normals
 
     return part_normals(points, load_part("nas979"))
 
@@ -406,7 +406,7 @@ def test_a_fit_the_held_out_points_contradict_is_refused_and_nothing_written(sho
     # lowers the residual, the held-out points get worse, and --write refuses with one line and exit 3.
     from trueaxis.cli import EXIT_REFUSED
     from trueaxis.inspect.cloud import read_cloud, write_cloud_ply
-    from trueaxis.inspect.identify import ToolPath
+    from trueaxis.identify import ToolPath
 
     text = (shop / "cone.ngc").read_text()
     placed = machine_for_program(nmv, text, "nas979")
@@ -443,7 +443,7 @@ def test_a_fit_the_held_out_points_contradict_is_refused_and_nothing_written(sho
 def test_users_closed_loop_converges_in_two_rounds(tmp_path, part, fixture, changes, compensate, program_args):
     # The lean version of benchmarks/bench_closed_loop.py: program with the twin, cut on a changed machine, inspect
     # --identify --write, program again with the written twin, cut again.
-    from trueaxis.inspect.loop import user_loop
+    from trueaxis.loop import user_loop
 
     (tmp_path / "true.toml").write_text(dump_machine(_with(load_machine(MACHINES / fixture), **changes)))
     rounds = user_loop(tmp_path, part, MACHINES / fixture, tmp_path / "true.toml", rounds=2, compensate=compensate,

@@ -13,7 +13,7 @@ import pytest
 from conftest import DATA
 from trueaxis.inspect import deviation as dv
 from trueaxis.inspect.cloud import write_cloud_ply
-from trueaxis.inspect.parts import (cone_signed_distance, cone_surface_points, nas979_description,
+from trueaxis.workpiece.parts import (cone_signed_distance, cone_surface_points, nas979_description,
                                     slot_block_description)
 from trueaxis.inspect.report import inspect_cloud, write_report
 
@@ -119,7 +119,7 @@ def test_points_far_from_the_analytic_surfaces_fall_back_to_the_mesh():
 
 
 def test_slot_walls_arcs_and_floors_are_exact_and_assigned_to_their_slot():
-    from trueaxis.sim.cmm import slot_pattern
+    from trueaxis.workpiece.slot_block import slot_pattern
 
     p, n = slot_pattern(SLOTS, 3000)
     offset = np.random.default_rng(4).uniform(-0.01, 0.01, len(p))
@@ -212,7 +212,7 @@ def test_datum_alignment_names_the_missing_datums():
 
 # --------------------------------------------------------------------------------------------------- slots ----
 def test_slot_width_position_straightness_and_parallelism_of_known_changes():
-    from trueaxis.sim.cmm import slot_pattern
+    from trueaxis.workpiece.slot_block import slot_pattern
 
     p, n = slot_pattern(SLOTS, 6000)
     d = dv.analytic_deviation(p, dv.analytic_surfaces(SLOTS))

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from rs274_helpers import parse_canon, require_rs274, tool_table_text
-from trueaxis.postproc.gcode import GcodeError, parse_program
+from trueaxis.nc.gcode import GcodeError, parse_program
 
 OK, REFUSED = "ok", "refused"
 

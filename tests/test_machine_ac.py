@@ -8,8 +8,8 @@ import pytest
 
 from conftest import MACHINES, random_poses
 from test_kinematics import linuxcnc_xyzac_forward
-from trueaxis.inspect.parts import Nas979Params
-from trueaxis.inspect.programs import nas979_program
+from trueaxis.workpiece.parts import Nas979Params
+from trueaxis.postproc.programs import nas979_program
 from trueaxis.machine import ErrorTwin, forward_nominal, inverse_kinematics, load_machine
 from trueaxis.sim.shop import simulate
 
@@ -58,7 +58,7 @@ def test_perfect_ac_machine_cuts_a_smaller_off_axis_cone_true(ac):
     m0 = ac.with_parameters(np.zeros(len(ac.parameter_names())))
     params = Nas979Params(base_diameter=64.0, height=16.0)
     prog = nas979_program(m0, params, compensation="none", step_deg=1.0, chord_tol_um=0.05, placement_mm=(35.0, -20.0))
-    from trueaxis.inspect.parts import nas979_description
+    from trueaxis.workpiece.parts import nas979_description
 
     res = simulate(prog.text, prog.machine, part="nas979", part_json=nas979_description(params), points=3000)
     d = res.deviations_um

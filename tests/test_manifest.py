@@ -55,7 +55,7 @@ def test_subcommands_are_exactly_the_parsers_commands():
 
 
 def test_python_hook_is_the_compensate_api():
-    from trueaxis.postproc.gcode import GcodeError
+    from trueaxis.nc.gcode import GcodeError
     from trueaxis.postproc.post import MODES
 
     hook = MANIFEST["hooks"]["python"]

@@ -1,4 +1,4 @@
-"""The test parts (trueaxis.inspect.parts): CAD volumes, STL fidelity, JSON surfaces, cone distance, overrides."""
+"""The test parts (trueaxis.workpiece.parts): CAD volumes, STL fidelity, JSON surfaces, cone distance, overrides."""
 
 from __future__ import annotations
 
@@ -11,8 +11,9 @@ import pytest
 import trimesh
 from scipy.optimize import minimize
 
-from trueaxis.inspect import parts  # noqa: E402
-from trueaxis.inspect.parts import (  # noqa: E402
+from trueaxis.workpiece.part import part_names, write_part
+from trueaxis.workpiece import parts  # noqa: E402
+from trueaxis.workpiece.parts import (  # noqa: E402
     Nas979Params,
     SlotBlockParams,
     cone_signed_distance,
@@ -29,8 +30,8 @@ def written(tmp_path_factory):
     """Both parts written once with default parameters: {name: (paths, json document, trimesh mesh)}."""
     out = tmp_path_factory.mktemp("parts") / "nested" / "dir"
     result = {}
-    for name in parts.PART_NAMES:
-        paths = parts.write_part(name, out)
+    for name in part_names():
+        paths = write_part(name, out)
         doc = json.loads(paths["json"].read_text())
         mesh = trimesh.load_mesh(paths["stl"], file_type="stl")
         result[name] = (paths, doc, mesh)
@@ -326,14 +327,14 @@ def test_write_part_creates_the_folder_and_leaves_no_temp_files(written, tmp_pat
     paths, doc, _ = written["slots"]
     folder = paths["json"].parent
     assert sorted(p.name for p in folder.iterdir()) == sorted(
-        f"{n}.{e}" for n in parts.PART_NAMES for e in ("json", "step", "stl"))
-    for name in parts.PART_NAMES:
+        f"{n}.{e}" for n in part_names() for e in ("json", "step", "stl"))
+    for name in part_names():
         d = written[name][1]
         assert d["part"] == name and d["version"] == 1 and d["units"] == "mm"
         assert set(d) >= {"frame", "parameters", "source_note", "surfaces", "features", "stl"}
         assert d["stl"]["chord_tolerance_mm"] > 0 and d["stl"]["angular_tolerance_rad"] > 0
     assert "not at hand" in written["nas979"][1]["source_note"]
     with pytest.raises(ValueError, match="unknown part"):
-        parts.write_part("cube", tmp_path)
+        write_part("cube", tmp_path)
     with pytest.raises(ValueError, match="takes Nas979Params"):
-        parts.write_part("nas979", tmp_path, SlotBlockParams())
+        write_part("nas979", tmp_path, SlotBlockParams())

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from conftest import require_program
-from trueaxis.inspect.parts import write_part
+from trueaxis.workpiece.part import write_part
 
 DRIVER = Path(__file__).resolve().parent / "freecad_scripts" / "read_step.py"
 

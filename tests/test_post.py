@@ -13,7 +13,7 @@ from conftest import MACHINES, ROOT
 from post_checks import actual_points, distance_to_polyline, machine_rows, nominal_polyline
 from rs274_helpers import assert_rs274_reads_as_we_do, run_rs274
 from trueaxis.machine import ErrorTwin, load_machine, parse_machine
-from trueaxis.postproc.gcode import parse_program
+from trueaxis.nc.gcode import parse_program
 from hypothesis import given, settings
 from hypothesis import strategies as st
 

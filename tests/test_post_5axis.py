@@ -24,8 +24,8 @@ from conftest import MACHINES, ROOT
 from post_checks import machine_rows
 from rs274_helpers import assert_rs274_reads_as_we_do
 from trueaxis.machine import ErrorTwin, forward_nominal, load_machine
-from trueaxis.postproc.cl import ClError, cl_to_program, read_cl
-from trueaxis.postproc.gcode import FEED, parse_program
+from trueaxis.nc.cl import ClError, cl_to_program, read_cl
+from trueaxis.nc.gcode import FEED, parse_program
 from trueaxis.postproc.post import PostError, compensate, without_header
 from trueaxis.sim.programs import cone_flank_program
 

@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from conftest import MACHINES, ROOT
 from trueaxis.cli import main as cli_main
 from trueaxis.machine import parse_machine
-from trueaxis.postproc.gcode import GcodeError, parse_program
+from trueaxis.nc.gcode import GcodeError, parse_program
 from trueaxis.postproc.post import compensate, without_header
 
 XH714 = MACHINES / "xh714.toml"

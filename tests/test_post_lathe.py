@@ -17,7 +17,7 @@ from conftest import MACHINES, ROOT
 from post_checks import actual_points, distance_to_polyline, nominal_polyline
 from rs274_helpers import assert_rs274_reads_as_we_do
 from trueaxis.machine import load_machine
-from trueaxis.postproc.gcode import parse_program
+from trueaxis.nc.gcode import parse_program
 from trueaxis.postproc.post import PostError, compensate
 from trueaxis.postproc.solver import corrected_directions
 

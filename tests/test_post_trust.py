@@ -106,7 +106,7 @@ def test_a_three_axis_program_through_the_python_hook_puts_the_tip_on_the_nomina
     import numpy as np
 
     from post_checks import actual_points, machine_rows
-    from trueaxis.postproc.gcode import parse_program
+    from trueaxis.nc.gcode import parse_program
 
     m = load_machine(MACHINES / "nmv1500dcg.toml")
     out = compensate(THREE_AXIS, m, "geometric")
@@ -231,7 +231,7 @@ def test_linuxcnc_trt_rotary_sense_reads_and_writes_rotary_words_negated(tmp_pat
     from conftest import DATA
     from trueaxis.machine import parse_machine
     from trueaxis.machine.machine_file import MachineFileError, dump_machine
-    from trueaxis.postproc.gcode import parse_program
+    from trueaxis.nc.gcode import parse_program
 
     iso_text = (DATA / "bc_table.toml").read_text()
     trt_text = iso_text.replace('bed_to_tool = ["Y", "X", "Z"]',

@@ -1,4 +1,4 @@
-"""Part programs of the test parts (trueaxis.inspect.programs): CL data geometry, kinematics, slot sections, rs274."""
+"""Part programs of the test parts (trueaxis.postproc.programs): CL data geometry, kinematics, slot sections, rs274."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import pytest
 
 from conftest import MACHINES
 from rs274_helpers import run_rs274
-from trueaxis.inspect.parts import Nas979Params, SlotBlockParams, cone_signed_distance
-from trueaxis.inspect.programs import (ClPath, cone_flank_cl, nas979_program, read_setup, slots_program,
+from trueaxis.workpiece.parts import Nas979Params, SlotBlockParams, cone_signed_distance
+from trueaxis.postproc.programs import (ClPath, cone_flank_cl, nas979_program, read_setup, slots_program,
                                        twin_id)
 from trueaxis.machine import forward_nominal, load_machine
-from trueaxis.postproc.gcode import parse_program
+from trueaxis.nc.gcode import parse_program
 
 R = 5.0
 

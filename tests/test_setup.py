@@ -25,9 +25,9 @@ from conftest import ROOT
 from post_checks import distance_to_polyline, machine_rows, nominal_polyline
 from rs274_helpers import require_rs274, run_rs274_setup, var_text
 from trueaxis.machine import ErrorTwin, parse_machine
-from trueaxis.postproc.gcode import FEED, ARC_CW, ARC_CCW, ROW_PROGRAMMED, GcodeError, MM_PER_INCH, parse_program
+from trueaxis.nc.gcode import FEED, ARC_CW, ARC_CCW, ROW_PROGRAMMED, GcodeError, MM_PER_INCH, parse_program
 from trueaxis.postproc.post import compensate
-from trueaxis.postproc.setup import SetupError, load_setup, read_setup_file, read_tool_table, read_var
+from trueaxis.nc.setup import SetupError, load_setup, read_setup_file, read_tool_table, read_var
 
 NIST = ROOT / "fixtures" / "programs" / "nist"
 INCH_PRINT_MM = 0.5e-4 * MM_PER_INCH  # rs274's rounding of an inch coordinate, mm

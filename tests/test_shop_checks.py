@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from trueaxis.inspect.parts import SlotBlockParams
+from trueaxis.workpiece.parts import SlotBlockParams
 from trueaxis.sim.experiments import cone_experiment, slot_experiment
 
 

@@ -10,13 +10,13 @@ import pytest
 
 from conftest import DATA, MACHINES, ROOT
 from trueaxis.machine import ErrorTwin, load_machine
-from trueaxis.postproc.gcode import parse_program
+from trueaxis.nc.gcode import parse_program
 from trueaxis.machine.kinematics import machine_to_part_rotation
 from trueaxis.sim.effects import Backlash, EffectsFileError, _servo_axis, load_effects, parse_effects
 from trueaxis.sim.envelope import envelope_deviation, line_tool_intersection, thin_instances
 from trueaxis.sim.programs import boss_probe, cone_flank_program, square_boss_program
 from trueaxis.sim.shop import load_part, simulate, write_cmm
-from trueaxis.sim.trajectory import interpolate
+from trueaxis.nc.trajectory import interpolate
 
 R, L = 5.0, 30.0
 
@@ -239,8 +239,8 @@ def test_servo_with_acceleration_limits_on_the_slot_block(xh714):
     # corner cut: at a corner turning by theta the lagged path passes the vertex at ln 2 sin(theta / 2) v / Kv
     # (the mean absolute deviation from the median of the loop's exponential delay), 55 um at the slots' 45 deg
     # corners, seen on the outer corner arcs (tool radius from the vertex); everywhere else < 1 um.
-    from trueaxis.inspect.parts import SlotBlockParams, slot_block_description
-    from trueaxis.inspect.programs import slots_program
+    from trueaxis.workpiece.parts import SlotBlockParams, slot_block_description
+    from trueaxis.postproc.programs import slots_program
 
     params = SlotBlockParams(slot_depth=1.2)
     prog = slots_program(xh714, params)
@@ -378,7 +378,7 @@ def test_probe_patterns_cover_the_parts():
     p, n = probe_pattern(cone_part, 5000)
     assert 4500 < len(p) <= 5000
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
-    from trueaxis.inspect.parts import cone_signed_distance
+    from trueaxis.workpiece.parts import cone_signed_distance
 
     np.testing.assert_allclose(cone_signed_distance(p, cone_part["surfaces"][0]), 0.0, atol=1e-9)
     slots = load_part("slots")

@@ -67,7 +67,7 @@ def test_the_post_imports_no_scipy_interpolate_once_the_cache_is_filled(tmp_path
         "import sys\n"
         "from trueaxis.machine import load_machine\n"
         "from trueaxis.postproc.post import post_text\n"
-        "from trueaxis.postproc.setup import Setup\n"
+        "from trueaxis.nc.setup import Setup\n"
         "from trueaxis.resources import machine_file\n"
         f"text, rep = post_text(open({str(prog)!r}).read(), load_machine(machine_file('nmv1500dcg')),"
         " setup=Setup(offsets_zero=True))\n"

@@ -222,11 +222,11 @@ def _parse_placement(text):
 
 
 def cmd_part(args) -> int:
-    from .inspect.parts import Nas979Params, SlotBlockParams, write_part
+    from .workpiece.part import get_part, write_part
 
-    cls = Nas979Params if args.part == "nas979" else SlotBlockParams
-    params = cls.from_overrides(args.param or [])  # ValueError (one line, exit 2) before anything is written
-    paths = write_part(args.part, Path(args.output), params)
+    part = get_part(args.part)
+    params = part.params_type.from_overrides(args.param or [])  # ValueError (one line, exit 2) before anything is written
+    paths = write_part(part.name, Path(args.output), params)
     doc = json.loads(paths["json"].read_text(encoding="utf-8"))
     stl = doc["stl"]
     print(f"{args.part}: wrote {paths['step']}, {paths['stl']} ({stl['triangles']} triangles, chord tolerance "
@@ -235,48 +235,69 @@ def cmd_part(args) -> int:
     return 0
 
 
-def cmd_program(args) -> int:
-    from .fileio import atomic_write
-    from .inspect.parts import Nas979Params, SlotBlockParams
-    from .inspect.programs import nas979_program, slots_program
-    from .machine import load_machine
-    from .resources import machine_file
+# `trueaxis program` options that only some parts' programs take: option -> keyword of the program function
+_PROGRAM_OPTIONS = {"--compensate": "compensation", "--tool-diameter": "tool_diameter", "--stock-um": "stock_um",
+                    "--finish-um": "finish_um", "--step-deg": "step_deg", "--chord-tol-um": "chord_tol_um"}
 
-    machine = load_machine(machine_file(args.machine or ("nmv1500dcg" if args.part == "nas979" else "xh714")))
-    placement = _parse_placement(args.placement_mm)
-    if args.part == "nas979":
-        if not (args.tool_diameter > 0 and args.stock_um > 0 and args.finish_um > 0 and args.chord_tol_um > 0):
-            raise UsageError("--tool-diameter, --stock-um, --finish-um and --chord-tol-um must be > 0")
-        prog = nas979_program(machine, Nas979Params.from_overrides(args.param or []),
-                              compensation=args.compensate or "geometric",
-                              tool_diameter=args.tool_diameter, stock_um=args.stock_um, finish_um=args.finish_um,
-                              placement_mm=placement, step_deg=args.step_deg, chord_tol_um=args.chord_tol_um)
-    else:
-        if args.compensate is not None:
-            raise UsageError("--compensate does not apply to the slot block: its slots are posted none, geometric "
-                             "and comprehensive")
-        prog = slots_program(machine, SlotBlockParams.from_overrides(args.param or []), placement_mm=placement)
+
+def cmd_program(args) -> int:
+    import inspect
+
+    from .fileio import atomic_write
+    from .machine import load_machine
+    from .postproc.programs import PROGRAMS
+    from .resources import machine_file
+    from .workpiece.part import get_part
+
+    part = get_part(args.part)
+    make = PROGRAMS[part.name]
+    takes = inspect.signature(make).parameters
+    options = {}
+    for option, keyword in _PROGRAM_OPTIONS.items():
+        value = getattr(args, option.lstrip("-").replace("-", "_"))
+        if value is None:
+            continue
+        if keyword not in takes:
+            raise UsageError(f"{option} does not apply to the {part.title}")
+        options[keyword] = value
+    machine = load_machine(machine_file(args.machine or part.default_machine))
+    prog = make(machine, part.params_type.from_overrides(args.param or []),
+                placement_mm=_parse_placement(args.placement_mm), **options)
     atomic_write(args.output, prog.text)
     if args.cl:
         prog.cl.write_csv(args.cl)
-    passes = ", ".join(p["name"] for p in prog.info["passes"]) if args.part == "nas979" else \
-        f"{len(prog.info['passes'])} passes in 3 slots (none, geometric, comprehensive)"
     print(f"{args.output}: {args.part} on {machine.name}: {len(prog.text.splitlines())} lines, {len(prog.cl.tip)} CL "
-          f"points ({passes}); placement {prog.info['placement_mm']} mm, safe Z {prog.safe_z:.3f} mm"
+          f"points ({prog.info['summary']}); placement {prog.info['placement_mm']} mm, safe Z {prog.safe_z:.3f} mm"
           + (f"; CL data in {args.cl}" if args.cl else ""))
     return 0
 
 
 def cmd_simulate(args) -> int:
-    from .resources import machine_file
-    from .sim.shop import main_simulate
+    """``trueaxis simulate PROGRAM --machine TRUE.toml [--effects E.toml] --part PART [--part-dir DIR] -o cmm.ply
+    [--points N] [--noise-um S] [--seed K]``: the virtual shop's cloud and its truth sidecar; a one-line summary."""
+    import numpy as np
 
-    args.machine = str(machine_file(args.machine))
+    from .machine import load_machine
+    from .resources import machine_file
+    from .sim.shop import simulate_program_file, write_cmm
+
     if args.points is not None and args.points < 1:
         raise UsageError("--points must be >= 1")
     if args.noise_um < 0:
         raise UsageError("--noise-um must be >= 0")
-    return main_simulate(args)
+    machine = load_machine(str(machine_file(args.machine)))
+    res = simulate_program_file(args.program, machine, args.part, effects_path=args.effects, part_dir=args.part_dir,
+                                points=args.points or 200_000, noise_um=args.noise_um or 0.0, seed=args.seed or 0)
+    truth = write_cmm(res, args.output)
+    d = res.deviations_um[np.isfinite(res.deviations_um)]
+    not_cut = int(res.info.get("not_cut", 0))
+    if not_cut:
+        print(f"warning: {not_cut} of {res.info['points']} probe points were not cut by the program (left out of "
+              f"{args.output}); is the program cutting the whole part?", file=sys.stderr)
+    print(f"{args.output}: {d.size} points ({not_cut} not cut), deviation mean {d.mean():+.2f} um, rms "
+          f"{np.sqrt(np.mean(d**2)):.2f} um, range {d.min():+.2f}..{d.max():+.2f} um; truth in {truth}; "
+          f"{res.timings['total_s']:.1f} s")
+    return 0
 
 
 def cmd_diagnose(args) -> int:
@@ -321,7 +342,7 @@ def cmd_inspect(args) -> int:
                            tolerances=args.tolerances, program=args.program, machine=args.machine)
     identification = None
     if args.identify:
-        from .inspect.identify import run_identification
+        from .identify import run_identification
 
         report, identification = run_identification(result.aligned_cloud(), result.deviation_um, result.part,
                                                     machine=args.machine, program=args.program, write=args.write,
@@ -355,6 +376,7 @@ def cmd_inspect(args) -> int:
 # ------------------------------------------------------------------------------------------------------ parser ----
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
+    from .workpiece.part import part_names
 
     p = argparse.ArgumentParser(prog="trueaxis", description="Machine-tool error compensation: post, inspect, diagnose.",
                                 epilog="Exit status: 0 done; 1 the system refused (a file that cannot be read or "
@@ -431,26 +453,26 @@ def build_parser() -> argparse.ArgumentParser:
     po.set_defaults(func=cmd_post)
 
     pa = sub.add_parser("part", help="write a test part: STEP, STL (chord tolerance stated) and JSON")
-    pa.add_argument("part", choices=["nas979", "slots"])
+    pa.add_argument("part", choices=part_names())
     pa.add_argument("-o", "--output", required=True, help="output folder")
     pa.add_argument("--param", action="append", metavar="NAME=VALUE",
                     help="override a part dimension (mm, deg); repeatable")
     pa.set_defaults(func=cmd_part)
 
     pg = sub.add_parser("program", help="NC program of a test part, through the machine's inverse kinematics")
-    pg.add_argument("part", choices=["nas979", "slots"])
+    pg.add_argument("part", choices=part_names())
     pg.add_argument("--machine", help="machine file (TOML; default nmv1500dcg for nas979, xh714 for slots)")
     pg.add_argument("-o", "--output", required=True, help="program file (written atomically)")
     pg.add_argument("--compensate", choices=["none", "geometric", "comprehensive"],
                     help="nas979: compensation of the program (default geometric); slots: each slot has its own")
-    pg.add_argument("--tool-diameter", type=POSITIVE, default=10.0, help="nas979: flat end mill diameter, mm (10)")
-    pg.add_argument("--stock-um", type=POSITIVE, default=200.0,
+    pg.add_argument("--tool-diameter", type=POSITIVE, help="nas979: flat end mill diameter, mm (10)")
+    pg.add_argument("--stock-um", type=POSITIVE,
                     help="nas979: radial stock on the cone before flank milling, um (200)")
-    pg.add_argument("--finish-um", type=POSITIVE, default=100.0,
+    pg.add_argument("--finish-um", type=POSITIVE,
                     help="nas979: stock the finishing pass removes; more stock adds a semi-finishing pass, um (100)")
-    pg.add_argument("--step-deg", type=_number(low=0.0, high=90.0, low_open=True), default=1.0,
+    pg.add_argument("--step-deg", type=_number(low=0.0, high=90.0, low_open=True),
                     help="nas979: largest angle about the cone axis per block, deg (1; refined to --chord-tol-um)")
-    pg.add_argument("--chord-tol-um", type=POSITIVE, default=0.05,
+    pg.add_argument("--chord-tol-um", type=POSITIVE,
                     help="nas979: largest mid-block departure of the interpolated tool from the offset surface, um")
     pg.add_argument("--placement-mm", help="part origin X,Y off the C axis (off the machine zero without C), mm "
                     "(default: the machine file's [workpiece] origin)")
@@ -462,7 +484,7 @@ def build_parser() -> argparse.ArgumentParser:
     sm.add_argument("program", help="machine-axis NC program")
     sm.add_argument("--machine", required=True, help="the true machine (TOML)")
     sm.add_argument("--effects", help="effects the twin may not have (TOML)")
-    sm.add_argument("--part", required=True, choices=["nas979", "slots"])
+    sm.add_argument("--part", required=True, choices=part_names())
     sm.add_argument("--part-dir", help="folder holding <part>.json (default: the default part parameters)")
     sm.add_argument("-o", "--output", required=True, help="CMM cloud (PLY, part frame); <name>.truth.json beside it")
     sm.add_argument("--points", type=_number(int, low=1), default=200_000, help="probe points (200000)")
@@ -479,7 +501,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     dg = sub.add_parser("diagnose", help="the sim-to-real gap: where it lies, which effect explains it, how far it shrinks")
     dg.add_argument("--cloud", required=True, help="measured CMM cloud (PLY/CSV/XYZ, part frame, mm)")
-    dg.add_argument("--part", required=True, choices=["nas979", "slots"])
+    dg.add_argument("--part", required=True, choices=part_names())
     dg.add_argument("--machine", required=True, help="the twin (machine file, TOML)")
     dg.add_argument("--program", required=True, help="the NC program that cut the part")
     dg.add_argument("--candidates", default="all", help="all, or a comma-separated list of candidate effects")
@@ -497,7 +519,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("cloud", help="CMM cloud in the part frame, mm: PLY (ascii/binary), CSV/TXT (',' ';' tab or "
                    "whitespace, optional header x,y,z[,i,j,k] and name column), XYZ, E57, DMIS output (.dmo); "
                    "normals optional")
-    i.add_argument("--part", required=True, choices=["nas979", "slots"])
+    i.add_argument("--part", required=True, choices=part_names())
     ref = i.add_mutually_exclusive_group()
     ref.add_argument("--part-dir", help="folder holding <part>.json (and slots.stl) from 'trueaxis part' "
                      "(default: the default part parameters)")
@@ -525,7 +547,7 @@ def _located_errors() -> tuple:
     only come from a module that is loaded."""
     found = []
     for module, name in (("trueaxis.machine.machine_file", "MachineFileError"),
-                         ("trueaxis.postproc.gcode", "GcodeError"), ("trueaxis.postproc.setup", "SetupError")):
+                         ("trueaxis.nc.gcode", "GcodeError"), ("trueaxis.nc.setup", "SetupError")):
         if module in sys.modules:
             found.append(getattr(sys.modules[module], name))
     return tuple(found)

@@ -15,7 +15,7 @@ The ahead-of-time twins are the same functions compiled by the same compiler (nu
 fused multiply-add either way), so they give the same numbers bit for bit; ``tests/test_compiled.py`` posts programs
 both ways and compares the bytes. A build whose source no longer matches the kernel modules (a source hash in its
 spec file) is not used. ``TRUEAXIS_AOT=0`` switches the ahead-of-time twins off; ``TRUEAXIS_AOT_DIR`` names another
-folder for them. ``python -m trueaxis.compiled`` (run by ``python -m trueaxis.warm``) builds them.
+folder for them. ``python -m trueaxis.warm`` builds them (:func:`build_aot`, given the warm-up posts).
 
 The parallel kernels (numba ``prange``, long programs) have no ahead-of-time twin (pycc compiles serial code only):
 they import numba when first used, which a long program can afford.
@@ -36,7 +36,7 @@ import numpy as np
 
 __all__ = ["numba", "Kernel", "KERNEL_MODULES", "build_aot", "aot_available", "numba_imported"]
 
-KERNEL_MODULES = ("trueaxis.postproc.fast_read", "trueaxis.postproc.fast_interp", "trueaxis.postproc.fast_write",
+KERNEL_MODULES = ("trueaxis.nc.fast_read", "trueaxis.nc.fast_interp", "trueaxis.nc.fast_write",
                   "trueaxis.machine.error_kernel", "trueaxis.machine.chain_kernel")
 AOT_NAME = "_aot_kernels"
 _HERE = Path(__file__).resolve().parent
@@ -223,12 +223,14 @@ def _arg_spec(ty):
     raise TypeError(f"not exported: argument type {ty}")
 
 
-def build_aot(folder: Path | None = None, out=sys.stderr) -> Path:
+def build_aot(warm_up, folder: Path | None = None, out=sys.stderr) -> Path:
     """Compile the kernels the post calls, for the argument types it calls them with, ahead of time into an
     extension module in ``folder`` (default: next to this file); returns the spec file's path.
 
     The types are those of a warm-up post (``trueaxis.warm``'s programs on every fixture machine, in every mode):
-    every kernel a post calls from Python with numba dispatchers holding those signatures is exported."""
+    every kernel a post calls from Python with numba dispatchers holding those signatures is exported.
+    ``warm_up(out=...)`` runs those posts (the application passes ``trueaxis.warm.warm``: this base module imports
+    nothing above it)."""
     import tempfile
 
     from numba.pycc import CC
@@ -241,10 +243,8 @@ def build_aot(folder: Path | None = None, out=sys.stderr) -> Path:
     for name in KERNEL_MODULES:
         importlib.import_module(name)
     _jit_all()
-    from .warm import warm
-
     with open(os.devnull, "w") as devnull:
-        warm(out=devnull)
+        warm_up(out=devnull)
     cc = CC(AOT_NAME)
     cc.verbose = False
     kernels = {}
@@ -279,9 +279,9 @@ def build_aot(folder: Path | None = None, out=sys.stderr) -> Path:
 
 def _called_from_python() -> set:
     """The kernels the post calls from Python (module-level names other modules or the post use), not helpers."""
-    return {"trueaxis.postproc.fast_read.line_starts", "trueaxis.postproc.fast_read.scan_lines",
-            "trueaxis.postproc.fast_interp.straight_run", "trueaxis.postproc.fast_interp.run_lengths",
-            "trueaxis.postproc.fast_write.scan", "trueaxis.postproc.fast_write.assemble",
+    return {"trueaxis.nc.fast_read.line_starts", "trueaxis.nc.fast_read.scan_lines",
+            "trueaxis.nc.fast_interp.straight_run", "trueaxis.nc.fast_interp.run_lengths",
+            "trueaxis.nc.fast_write.scan", "trueaxis.nc.fast_write.assemble",
             "trueaxis.machine.error_kernel.evaluate_packed", "trueaxis.machine.chain_kernel.pose",
             "trueaxis.machine.chain_kernel.pose_and_axis_jacobian"}
 
@@ -290,9 +290,3 @@ def aot_available() -> bool:
     """Is an ahead-of-time build for the current source loadable?"""
     return (_aot if _aot is not _UNSET else _load_aot()) is not None
 
-
-if __name__ == "__main__":
-    # (the kernel modules register with trueaxis.compiled, not with this __main__ copy of it)
-    from trueaxis.compiled import build_aot as _build
-
-    _build()

@@ -113,7 +113,7 @@ def machine_summary(out: Path) -> None:
 
 
 def loop_summary(out: Path, points: int = 4000) -> None:
-    from .inspect.loop import closed_loop
+    from .loop import closed_loop
 
     result = closed_loop(load_machine(machine_file(FIVE_AXIS_DEMO_MACHINE)), part="nas979", points=points)
     print(result.summary())

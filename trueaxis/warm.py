@@ -53,7 +53,7 @@ def warm(out=sys.stderr) -> None:
     from .machine import ErrorTwin, load_machine
     from .machine.error_functions import _unit_coefficients
     from .postproc.post import post_text
-    from .postproc.setup import Setup
+    from .nc.setup import Setup
     from .machine.twin import PARALLEL_MIN
     from .resources import machine_files
 
@@ -88,7 +88,7 @@ def main() -> None:
     try:
         from .compiled import build_aot
 
-        build_aot()
+        build_aot(warm)
     except Exception as exc:  # noqa: BLE001 -- best effort (no C compiler, say): the post runs on numba's JIT
         print(f"trueaxis.warm: the kernels were not compiled ahead of time ({type(exc).__name__}: {exc}); the post "
               "uses numba's JIT", file=sys.stderr)

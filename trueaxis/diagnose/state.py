@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..machine import ErrorTwin, Machine
-from ..postproc.gcode import parse_program
+from ..nc.gcode import parse_program
 
 
 @dataclass
@@ -107,7 +107,7 @@ def place_from_setup(machine: Machine, program_text: str, part: str) -> Machine:
     """The twin placed as the program's setup comment says (``(trueaxis-setup: part=.. origin_mm=..)``).
 
     Raises ValueError when the program is for the other part or its origin is malformed."""
-    from ..inspect.programs import read_setup
+    from ..postproc.programs import read_setup
 
     setup = read_setup(program_text)
     if setup.get("part") and setup["part"] != part:

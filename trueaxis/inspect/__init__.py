@@ -1,1 +1,2 @@
-"""trueaxis.inspect (see DESIGN.md §2)."""
+"""trueaxis.inspect (layer 5, docs/architecture.md): CMM clouds against the CAD: clouds, deviations, form, tolerances,
+reports."""

@@ -108,7 +108,7 @@ def _unit(v) -> np.ndarray:
 
 def _axis_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(u, w) with (u, w, axis) right-handed: u = part X projected normal to the axis (Y if X is along it)."""
-    from .parts import _axis_basis as basis  # one definition of the ring-angle origin for the whole package
+    from ..workpiece.parts import _axis_basis as basis  # one definition of the ring-angle origin for the whole package
 
     return basis(axis)
 
@@ -567,7 +567,7 @@ def _outward(mesh: CadMesh) -> CadMesh:
 
 def _measured_chord_bound(mesh: CadMesh, part: dict) -> tuple[float, str] | None:
     """The chord error of a mesh of one of our parts, measured on its curved faces (parts' own bound functions)."""
-    from . import parts
+    from ..workpiece import parts
 
     try:
         if part.get("part") == "nas979":
@@ -642,7 +642,7 @@ def part_mesh(part: dict, part_dir=None) -> CadMesh:
     if stl is not None and stl.is_file() and bound is not None and bound < 1e-4:
         mesh = load_mesh_file(stl, part)
         return mesh
-    from . import parts
+    from ..workpiece import parts
 
     params = parts.SlotBlockParams.from_kwargs(**{k: (tuple(map(tuple, v)) if k == "slot_path" else v)
                                                   for k, v in part["parameters"].items()})

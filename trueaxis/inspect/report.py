@@ -101,7 +101,7 @@ class Inspection:
 def load_part(part: str, part_dir=None, cad=None) -> dict:
     """The part JSON: ``part_dir/<part>.json``; with ``cad``, the JSON beside it (``<stem>.json``) if present; else
     the generator's default description. Raises InspectionError for a missing file or a JSON for another part."""
-    from .parts import nas979_description, slot_block_description
+    from ..workpiece.parts import nas979_description, slot_block_description
 
     if part not in ("nas979", "slots"):
         raise dv.InspectionError(f"unknown part {part!r}: expected nas979 or slots")

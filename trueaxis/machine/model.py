@@ -35,6 +35,9 @@ def unit_of(name: str) -> str:
     return "urad" if is_angle_name(name) else "um"
 
 
+TRAVEL_TOLERANCE = 1e-9  # mm or rad: a position computed at a travel limit is inside it
+
+
 @dataclass(frozen=True)
 class Axis:
     """One machine axis.
@@ -55,6 +58,14 @@ class Axis:
     @property
     def is_rotary(self) -> bool:
         return self.kind == "rotary"
+
+    def within_travel(self, values) -> np.ndarray:
+        """The one travel check: bool array, True where ``values`` (mm or rad) lie in the travel (all True when
+        unlimited), with TRAVEL_TOLERANCE of slack for the rounding of a value computed at the limit."""
+        if self.travel is None:
+            return np.ones(np.shape(values), bool)
+        values = np.asarray(values)
+        return (values >= self.travel[0] - TRAVEL_TOLERANCE) & (values <= self.travel[1] + TRAVEL_TOLERANCE)
 
 
 @dataclass(frozen=True)

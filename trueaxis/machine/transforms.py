@@ -27,16 +27,6 @@ def skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def small_angle(delta: np.ndarray, eps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The small-angle error transform of DESIGN §3, ``[[1,-ez,ey,dx],[ez,1,-ex,dy],[-ey,ex,1,dz]]``.
-
-    delta : (..., 3) translation, mm;  eps : (..., 3) rotation (ex, ey, ez), rad.  It is affine in (delta, eps) and
-    not exactly orthonormal (second order), which is what the standard fixes.
-    """
-    eps = np.asarray(eps, dtype=float)
-    return np.eye(3) + skew(eps), np.asarray(delta, dtype=float) + np.zeros(eps.shape)
-
-
 def rotation_about(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """Right-handed rotation by ``angle`` (rad, shape (...)) about the unit vector ``axis`` (3,): (..., 3, 3)."""
     a = np.asarray(axis, dtype=float)
@@ -49,16 +39,6 @@ def rotation_about(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
 def compose(Ra, ta, Rb, tb):
     """(Ra, ta) o (Rb, tb): apply b first, then a."""
     return Ra @ Rb, np.einsum("...ij,...j->...i", Ra, tb) + ta
-
-
-def apply_point(R, t, x):
-    """R x + t for points x (..., 3)."""
-    return np.einsum("...ij,...j->...i", R, x) + t
-
-
-def apply_vector(R, v):
-    """R v for directions v (..., 3)."""
-    return np.einsum("...ij,...j->...i", R, v)
 
 
 def inverse(R, t):

@@ -1,11 +1,12 @@
-"""trueaxis.postproc (see DESIGN.md §2): the G-code reader, the post (``compensate``), CL data and the CAM hosts.
+"""trueaxis.postproc (layer 5, docs/architecture.md): the post (``compensate``), its solver, the lathe, the test parts'
+NC programs, and the CAM hosts (``hosts``, application layer). The G-code reader and CL data are ``trueaxis.nc``.
 
 The Python hook for CAM scripts (CadQuery, build123d, anything that writes G-code text)::
 
     from trueaxis.postproc import compensate
     compensated = compensate(gcode_text, machine, mode="geometric")  # raises PostError: "file:line: reason"
 
-``compensate`` and ``PostError`` are loaded on first use, so that importing the G-code reader alone stays light.
+``compensate`` and ``PostError`` are loaded on first use, so that importing this package alone stays light.
 """
 
 __all__ = ["PostError", "compensate"]

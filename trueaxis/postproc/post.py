@@ -36,7 +36,7 @@ from tqdm import tqdm
 from ..machine import ErrorTwin, Machine
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
 from ..machine.kinematics import machine_to_part_rotation
-from .gcode import (
+from ..nc.gcode import (
     ARC_CCW,
     ARC_CW,
     FEED,
@@ -54,7 +54,7 @@ from .gcode import (
     write_numbers,
     write_number,
 )
-from . import fast_write
+from ..nc import fast_write
 from .solver import corrected_directions, solve_commanded
 
 MODES = ("none", "geometric", "comprehensive")
@@ -170,7 +170,7 @@ def compensate(
     ``report``: a dict to fill with the report.
 
     The control's setup (DESIGN §5): ``var`` (LinuxCNC parameter file), ``tool_table`` (LinuxCNC tool table), both in
-    ``machine_units``; ``setup`` a setup file (path) or a :class:`~trueaxis.postproc.setup.Setup`; none of them: the
+    ``machine_units``; ``setup`` a setup file (path) or a :class:`~trueaxis.nc.setup.Setup`; none of them: the
     machine file's default setup, if it names one. ``offsets_zero``: work offsets, G92 shifts and tool lengths that
     none of them gives are zero (without it a program that uses one is refused). ``header``: put the comment naming
     the machine, mode and setup at the top of the output."""
@@ -191,7 +191,7 @@ def resolve_setup(machine: Machine, *, setup=None, var=None, tool_table=None, ma
                   offsets_zero: bool = False):
     """The :class:`Setup` from the files given (a setup file path or a Setup object in ``setup``), else from the
     machine file's default setup file (``[machine] setup``); with ``offsets_zero`` as the user said."""
-    from .setup import Setup, load_setup
+    from ..nc.setup import Setup, load_setup
 
     if isinstance(setup, Setup):
         out = setup
@@ -232,7 +232,7 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     compensated within tol_um / 2, so the actual path stays within tol_um of the CL segments. Errors and the singular
     blocks of the report then name lines of the CL file.
 
-    ``setup``: the control's setup (:class:`~trueaxis.postproc.setup.Setup`; None: none given). A work offset, G92
+    ``setup``: the control's setup (:class:`~trueaxis.nc.setup.Setup`; None: none given). A work offset, G92
     shift or tool length the program uses and the setup does not give is refused (``setup.offsets_zero``: zero).
     ``header``: the output starts (after a leading ``%`` and program number) with a comment naming the machine, the
     mode and the setup, and one line per offset and tool length used with where it came from.
@@ -247,14 +247,14 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
         raise ValueError(f"the largest correction allowed must be a finite number > 0, got {max_correction_mm} mm")
     if not (math.isfinite(singular_deg) and 0 <= singular_deg <= 90):
         raise ValueError(f"the singular tilt must be within [0, 90] deg, got {singular_deg}")
-    from .cl import cl_format
+    from ..nc.cl import cl_format
 
     if cl_format(text) is not None:
         out, rep = _post_cl(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
                             singular_deg=singular_deg, conditions=conditions, source=source,
                             feed_mm_min=cl_feed_mm_min, branch=cl_branch, setup=setup)
         return (with_header(out, rep, machine) if header else out), rep
-    from .setup import Setup, SetupError
+    from ..nc.setup import Setup, SetupError
 
     setup = setup if setup is not None else Setup()
     prog = parse_program(text, source, passthrough_unsupported=passthrough_unsupported, setup=setup,
@@ -370,10 +370,13 @@ def without_header(text: str) -> str:
 
 def _post_cl(text, machine, mode, *, tol_um, max_correction_mm, singular_deg, conditions, source, feed_mm_min,
              branch, setup=None):
-    from .cl import cl_program, read_cl
+    from ..nc.cl import ClError, cl_program, read_cl
 
-    cl = read_cl(text, source)
-    gcode, line_map = cl_program(cl, machine, tol_um=tol_um / 2, feed_mm_min=feed_mm_min, branch=branch)
+    try:
+        cl = read_cl(text, source)
+        gcode, line_map = cl_program(cl, machine, tol_um=tol_um / 2, feed_mm_min=feed_mm_min, branch=branch)
+    except ClError as exc:  # the post refuses bad CL data like any refused input
+        raise PostError(exc.source, exc.line_no, exc.reason) from exc
     try:
         out, rep = post_text(gcode, machine, mode, tol_um=tol_um / 2, max_correction_mm=max_correction_mm,
                              singular_deg=singular_deg, conditions=conditions, source=source, header=False,

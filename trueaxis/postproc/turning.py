@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..machine.turning_force import TurningCoefficients, TurningConditions, force_on_tool, turning_force_components
-from .gcode import ARC_CCW, ARC_CW, RAPID
+from ..nc.gcode import ARC_CCW, ARC_CW, RAPID
 from .post import PostError, condition_marks
 
 __all__ = ["MotionTwin", "lathe_loads"]
@@ -172,7 +172,7 @@ def diameter_words(prog, rows, delta_prog, pieces):
     increment across a G7/G8 switch mixes radius and diameter)."""
     from dataclasses import replace
 
-    from .gcode import ROW_CYCLE
+    from ..nc.gcode import ROW_CYCLE
 
     diameter = prog.diameter
     bad = diameter & ((prog.motion == ARC_CW) | (prog.motion == ARC_CCW) | (prog.kind == ROW_CYCLE))

@@ -1,6 +1,6 @@
 """The virtual CMM: probing patterns on the test parts, probe noise, the measured cloud and its truth sidecar.
 
-Probing patterns come from the part JSON (``trueaxis.inspect.parts``):
+Probing patterns are the parts' own (``probe_pattern`` of ``trueaxis.workpiece.nas979`` / ``slot_block``):
 
 - ``nas979``: rings at heights along the cone axis (``cone_surface_points``), evenly spaced between ``margin_mm``
   above the base and below the top, about as many rings as points per unit of circumference;
@@ -16,104 +16,20 @@ machine file, effects, seed, noise, per-point cut time and block) for tests only
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 
 from ..fileio import atomic_write
-from ..inspect.parts import cone_surface_points
-
-
-def _surface(part: dict, sid: str) -> dict:
-    for s in part["surfaces"]:
-        if s["id"] == sid:
-            return s
-    raise ValueError(f"part JSON has no surface {sid!r}")
-
-
-def cone_pattern(part: dict, n_points: int, margin_mm: float = 1.0):
-    """Rings on the NAS 979 cone: points (N, 3) mm and unit outward normals (N, 3), part frame."""
-    cone = _surface(part, "cone")
-    h0, h1 = cone["height_range"]
-    if not 0 <= 2 * margin_mm < h1 - h0:
-        raise ValueError(f"margin_mm {margin_mm} leaves no height to probe on the cone ({h0}-{h1} mm)")
-    r_mid = 0.5 * (cone["base_radius"] + cone["top_radius"])
-    span = h1 - h0 - 2 * margin_mm
-    n_rings = max(1, int(round(math.sqrt(n_points * span / (2 * math.pi * r_mid)))))
-    per_ring = max(1, n_points // n_rings)
-    heights = np.linspace(h0 + margin_mm, h1 - margin_mm, n_rings) if n_rings > 1 else np.array([0.5 * (h0 + h1)])
-    return cone_surface_points(cone, heights, per_ring)
-
-
-def slot_pattern(part: dict, n_points: int, margin_mm: float = 0.5, floor_offsets=(-0.5, 0.0, 0.5)):
-    """Lines on the slot walls, arcs and floors: points (N, 3) mm, unit outward normals (N, 3), part frame."""
-    pieces = []  # (length, sampler)
-    for feat in part["features"]:
-        if feat.get("type") != "slot":
-            continue
-        depth = feat["nominal_depth"]
-        zs = [-depth * f for f in (0.25, 0.5, 0.75)]
-        for wid in feat["walls"]:
-            s = _surface(part, wid)
-            a = np.array(s["segment"]["start"], float)
-            b = np.array(s["segment"]["end"], float)
-            nrm = np.array(s["normal"], float)
-            length = float(np.linalg.norm(b - a)) - 2 * margin_mm
-            if length <= 0:
-                continue
-            t_dir = (b - a) / np.linalg.norm(b - a)
-            for z in zs:
-                pieces.append((length, ("line", a + margin_mm * t_dir, t_dir, length, z, nrm)))
-        for aid in feat["arcs"]:
-            s = _surface(part, aid)
-            lo, hi = np.radians(s["angle_range_deg"])
-            r = s["radius"]
-            length = r * (hi - lo) - 2 * margin_mm
-            if length <= 0:
-                continue
-            for z in zs:
-                pieces.append((length, ("arc", np.array(s["center"], float), r, lo + margin_mm / r, hi - margin_mm / r, z)))
-        path = np.asarray(feat["tool_centre_path"], float)
-        rho = feat["tool_diameter"] / 2
-        for k in range(len(path) - 1):
-            a, b = path[k, :2], path[k + 1, :2]
-            t_dir = (b - a) / np.linalg.norm(b - a)
-            left = np.array([-t_dir[1], t_dir[0]])
-            length = float(np.linalg.norm(b - a))
-            for off in floor_offsets:
-                pieces.append((length, ("line", a + off * rho * left, t_dir, length, -depth, np.array([0.0, 0.0, 1.0]))))
-    if not pieces:
-        raise ValueError("the part JSON has no slot features to probe")
-    lengths = np.array([p[0] for p in pieces])
-    counts = np.maximum(1, np.round(n_points * lengths / lengths.sum()).astype(int))
-    pts, nrms = [], []
-    for (_, spec), c in zip(pieces, counts):
-        u = (np.arange(c) + 0.5) / c
-        if spec[0] == "line":
-            _, a, t_dir, length, z, nrm = spec
-            xy = a + (u * length)[:, None] * t_dir
-            pts.append(np.column_stack([xy, np.full(c, z)]))
-            nrms.append(np.broadcast_to(nrm, (c, 3)))
-        else:
-            _, center, r, lo, hi, z = spec
-            ang = lo + u * (hi - lo)
-            radial = np.column_stack([np.cos(ang), np.sin(ang), np.zeros(c)])
-            pts.append(np.column_stack([center[:2] + r * radial[:, :2], np.full(c, z)]))
-            nrms.append(-radial)  # concave wall: out of the material = towards the axis
-    return np.concatenate(pts), np.ascontiguousarray(np.concatenate(nrms))
+from ..workpiece.part import part_of
 
 
 def probe_pattern(part: dict, n_points: int):
-    """Probing pattern of a part JSON (``part["part"]`` is "nas979" or "slots")."""
+    """Probing pattern of a part JSON: the part's own (``trueaxis.workpiece``), about n_points points (N, 3) mm and
+    unit outward normals (N, 3), part frame."""
     if n_points < 1:
         raise ValueError(f"points must be >= 1, got {n_points}")
-    kind = part.get("part")
-    if kind == "nas979":
-        return cone_pattern(part, n_points)
-    if kind == "slots":
-        return slot_pattern(part, n_points)
-    raise ValueError(f"unknown part {kind!r}: expected 'nas979' or 'slots'")
+    return part_of(part).probe_pattern(part, n_points)
 
 
 def measure(points, normals, deviation_um, noise_um: float = 0.0, seed: int = 0):

@@ -30,7 +30,6 @@ of a pass and linearly interpolated in between.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,23 +37,24 @@ import numpy as np
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
 from .envelope import envelope_deviation
 
-_CONDITIONS = re.compile(r"\(\s*trueaxis:([^)]*)\)", re.IGNORECASE)
-
-
 def structured_conditions(program, machine) -> list[dict]:
     """Cutting conditions valid at each source line: list (one per line of ``program.lines``) of dicts with keys of
     DESIGN §5 (ap ae fz n d z mode), as floats (mode as str); the machine's tool fills d and z.
-    A comment applies from its own line on. Raises ValueError (file:line) for a malformed comment."""
+    A comment applies from its own line on. The comments are read by the post's reader (``condition_marks``); the
+    milling keys are checked here. Raises ValueError (file:line) for a malformed comment."""
+    from ..postproc.post import PostError, condition_marks
+
+    try:
+        marks = condition_marks(program.lines, program.source)
+    except PostError as exc:
+        raise ValueError(str(exc)) from None
     current = {"d": 2.0 * machine.tool.radius, "z": float(machine.tool.flutes)}
     out = []
-    for i, line in enumerate(program.lines):
-        for m in _CONDITIONS.finditer(line):
+    k_mark = 0
+    for i in range(len(program.lines)):
+        while k_mark < len(marks) and marks[k_mark][0] == i:
             fields = dict(current)
-            for item in m.group(1).split():
-                if "=" not in item:
-                    raise ValueError(f"{program.source}:{i + 1}: structured comment: expected key=value, got {item!r}")
-                k, v = item.split("=", 1)
-                k = k.strip().lower()
+            for k, v in marks[k_mark][1].items():
                 if k not in ("ap", "ae", "fz", "n", "d", "z", "mode", "helix"):
                     raise ValueError(f"{program.source}:{i + 1}: structured comment: unknown field {k!r}")
                 if k == "mode":
@@ -67,6 +67,7 @@ def structured_conditions(program, machine) -> list[dict]:
                     except ValueError:
                         raise ValueError(f"{program.source}:{i + 1}: {k}={v!r} is not a number") from None
             current = fields
+            k_mark += 1
         out.append(current)
     return out
 

@@ -21,7 +21,7 @@ import numpy as np
 from ..inspect import form
 from ..inspect.deviation import analytic_surfaces, deviation
 from ..inspect.report import evaluate_slots
-from ..inspect.parts import Nas979Params, SlotBlockParams, nas979_description, slot_block_description
+from ..workpiece.parts import Nas979Params, SlotBlockParams, nas979_description, slot_block_description
 from ..machine import Machine, load_machine
 from ..resources import machine_file
 from .effects import parse_effects
@@ -31,7 +31,7 @@ from .shop import simulate
 def slot_experiment(points: int = 6000, params: SlotBlockParams | None = None, machine: Machine | None = None,
                     seed: int = 0) -> dict:
     """Contour error of the three slots (um), none / geometric / comprehensive. See the module docstring."""
-    from ..inspect.programs import slots_program
+    from ..postproc.programs import slots_program
 
     m = machine or load_machine(machine_file("xh714"))
     p = params or SlotBlockParams()
@@ -54,7 +54,7 @@ def slot_experiment(points: int = 6000, params: SlotBlockParams | None = None, m
 def cone_experiment(points: int = 20000, machine: Machine | None = None, params: Nas979Params | None = None,
                     compensation: str = "none", seed: int = 0) -> dict:
     """Roundness (um) at the part's evaluation heights and cone-angle error (urad) of a simulated cone."""
-    from ..inspect.programs import nas979_program
+    from ..postproc.programs import nas979_program
 
     m = machine or load_machine(machine_file("nmv1500dcg"))
     p = params or Nas979Params()

@@ -5,7 +5,7 @@
   machine-axis G-code through the machine's inverse kinematics, G93 inverse-time feed; optional semi-finishing pass.
 
 The part programs proper (CL data, lead-in/out, safe retracts, compensation, the slot block) are in
-``trueaxis.inspect.programs``; ``cone_flank_poses`` is re-exported from there.
+``trueaxis.postproc.programs``; ``cone_flank_poses`` is re-exported from there.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from ..inspect.programs import cone_flank_poses  # noqa: F401  (re-export)
+from ..postproc.programs import cone_flank_poses  # noqa: F401  (re-export)
 from ..machine import inverse_kinematics
 
 

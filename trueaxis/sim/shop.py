@@ -11,27 +11,27 @@ force with the real engagement, thermal drift) -> tool wear (radius and length a
 the machined surface as the envelope of the cutting instances (``envelope``) along each probe normal, with the part's
 spring-back from its clamping deformation -> probe noise.
 
-Command line (wired by ``trueaxis.cli``): ``main_simulate(args)`` with an argparse namespace holding
-``program, machine, effects, part, part_dir, output, points, noise_um, seed`` (see its docstring).
+``simulate_program_file`` does the same for a program file whose setup comment places the part (``trueaxis
+simulate`` in ``trueaxis.cli``).
 """
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..machine import ErrorTwin, Machine, load_machine
-from ..postproc.gcode import Program, parse_program
+from ..machine import ErrorTwin, Machine
+from ..nc.gcode import Program, parse_program
 from . import cmm as _cmm
 from .cutting import cutting_forces, pass_index, structured_conditions
 from ..machine.kinematics import machine_to_part_rotation
 from .effects import Effects, load_effects
 from .envelope import envelope_deviation, thin_instances
-from .trajectory import Trajectory, interpolate
+from ..nc.trajectory import Trajectory, interpolate
+from ..workpiece.part import load_part, part_of  # noqa: F401  (load_part: the shop's callers read it here)
 
 CHUNK = 20_000
 
@@ -73,36 +73,9 @@ class SimResult:
     info: dict = field(default_factory=dict)
 
 
-def load_part(part: str, part_json=None, part_dir=None) -> dict:
-    """The part JSON: from ``part_json`` (path or dict), ``part_dir/<part>.json``, or the default parameters."""
-    if part not in ("nas979", "slots"):
-        raise ValueError(f"part must be 'nas979' or 'slots', got {part!r}")
-    if isinstance(part_json, dict):
-        data = part_json
-    elif part_json is not None or part_dir is not None:
-        path = Path(part_json) if part_json is not None else Path(part_dir) / f"{part}.json"
-        try:
-            data = json.loads(Path(path).read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise ValueError(f"part JSON {path} not found") from None
-    else:
-        from ..inspect.parts import nas979_description, slot_block_description
-
-        data = nas979_description() if part == "nas979" else slot_block_description()
-    if data.get("part") != part:
-        raise ValueError(f"part JSON is for {data.get('part')!r}, not {part!r}")
-    return data
-
-
 def material_mask(part: dict):
     """Callable points (P, 3) -> bool: where the raw part has material, for the engagement of the first cut."""
-    if part["part"] == "nas979":
-        cone = next(s for s in part["surfaces"] if s["id"] == "cone")
-        a = np.asarray(cone["axis"], float)
-        c = np.asarray(cone["base_center"], float)
-        h0, h1 = cone["height_range"]
-        return lambda p: ((p - c) @ a >= h0) & ((p - c) @ a <= h1)
-    return lambda p: p[:, 2] <= 0.0
+    return part_of(part).material_mask(part)
 
 
 def _pose_chunked(twin, q, force=None):
@@ -321,30 +294,27 @@ def write_cmm(result: SimResult, out_ply, binary: bool = True) -> Path:
     return path
 
 
-def main_simulate(args) -> int:
-    """``trueaxis simulate PROGRAM --machine TRUE.toml [--effects E.toml] --part nas979|slots [--part-dir DIR]
-    -o cmm.ply [--points N] [--noise-um S] [--seed K]``.
-
-    args : namespace with ``program`` (path), ``machine`` (path), ``effects`` (path or None), ``part``,
-    ``part_dir`` (or None), ``output`` (path), ``points`` (int, default 200000), ``noise_um`` (float, default 0),
-    ``seed`` (int, default 0). Prints a one-line summary; returns 0. Errors raise ValueError with a clear message.
+def simulate_program_file(program_path, machine: Machine, part: str, *, effects_path=None, part_dir=None,
+                          points: int = 200_000, noise_um: float = 0.0, seed: int = 0, progress: bool = True,
+                          ) -> SimResult:
+    """Machine the program file ``program_path`` on the true ``machine`` (with the effects file ``effects_path``, or
+    none) and measure ``part`` with the virtual CMM (``points`` probe points, ``noise_um`` probe noise, ``seed``).
 
     The program's setup comment ``(trueaxis-setup: part=.. origin_mm=X,Y,Z ...)`` (written by
-    ``trueaxis.inspect.programs``) places the part: its origin replaces the machine file's ``[workpiece] origin``, and
-    a program for the other part is refused. Probe points the program did not cut are counted and reported on stderr.
+    ``trueaxis.postproc.programs``) places the part: its origin replaces the machine file's ``[workpiece] origin`` (said
+    on stderr), and a program for the other part is refused. Errors raise ValueError with a clear message.
     """
     import dataclasses
     import sys
 
-    from ..inspect.programs import read_setup
+    from ..postproc.programs import read_setup
 
-    machine = load_machine(args.machine)
-    program_path = Path(args.program)
+    program_path = Path(program_path)
     if not program_path.is_file():
         raise ValueError(f"{program_path}: no such program file")
     setup = read_setup(program_path.read_text(encoding="utf-8", errors="replace"))
-    if setup.get("part") and setup["part"] != args.part:
-        raise ValueError(f"{program_path} is a program for part {setup['part']!r}, not {args.part!r}")
+    if setup.get("part") and setup["part"] != part:
+        raise ValueError(f"{program_path} is a program for part {setup['part']!r}, not {part!r}")
     if "origin_mm" in setup:
         origin = setup["origin_mm"]
         if origin.shape != (3,) or not np.all(np.isfinite(origin)):
@@ -353,17 +323,6 @@ def main_simulate(args) -> int:
             print(f"part placed as the program says: origin {origin.tolist()} mm in M (machine file: "
                   f"{machine.workpiece_origin.tolist()})", file=sys.stderr)
             machine = dataclasses.replace(machine, workpiece_origin=origin.astype(float))
-    effects = load_effects(args.effects, machine) if getattr(args, "effects", None) else None
-    res = simulate(program_path, machine, effects, part=args.part, part_dir=getattr(args, "part_dir", None),
-                   points=int(getattr(args, "points", 200_000) or 200_000),
-                   noise_um=float(getattr(args, "noise_um", 0.0) or 0.0), seed=int(getattr(args, "seed", 0) or 0),
-                   progress=True)
-    truth = write_cmm(res, args.output)
-    d = res.deviations_um[np.isfinite(res.deviations_um)]
-    not_cut = int(res.info.get("not_cut", 0))
-    if not_cut:
-        print(f"warning: {not_cut} of {res.info['points']} probe points were not cut by the program (left out of "
-              f"{args.output}); is the program cutting the whole part?", file=sys.stderr)
-    print(f"{args.output}: {d.size} points ({not_cut} not cut), deviation mean {d.mean():+.2f} um, rms {np.sqrt(np.mean(d**2)):.2f} um, "
-          f"range {d.min():+.2f}..{d.max():+.2f} um; truth in {truth}; {res.timings['total_s']:.1f} s")
-    return 0
+    effects = load_effects(effects_path, machine) if effects_path else None
+    return simulate(program_path, machine, effects, part=part, part_dir=part_dir, points=int(points),
+                    noise_um=float(noise_um), seed=int(seed), progress=progress)

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import cadquery as cq
 
-from ...inspect.parts import nas979_workplane, slot_block_workplane
+from ...workpiece.parts import nas979_workplane, slot_block_workplane
 from ..post import compensate
 
 # Workplane method name -> plugin function (CadQuery's names are camelCase: ``slotBlock`` like ``cboreHole``).

@@ -9,7 +9,7 @@ Parts
     geometric compensation only, and comprehensive (geometric + force) compensation.
 
 Each generator reads like a drawing: ``build_nas979(Nas979Params())`` and ``build_slot_block(SlotBlockParams())``
-return a ``cadquery.Workplane`` holding one solid, in the part frame, in mm. ``write_part(name, out_dir)`` writes
+return a ``cadquery.Workplane`` holding one solid, in the part frame, in mm. ``trueaxis.workpiece.part.write_part(name, out_dir)`` writes
 ``<name>.step``, ``<name>.stl`` and ``<name>.json`` into ``out_dir`` (atomically: temp file in the same folder, then
 ``os.replace``).
 
@@ -89,27 +89,14 @@ Helpers for inspection (pure numpy): ``cone_signed_distance`` and ``cone_surface
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from dataclasses import dataclass, fields
-from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from ..fileio import atomic_path, atomic_write
-
-PART_NAMES = ("nas979", "slots")
 COMPENSATION_MODES = ("none", "geometric", "comprehensive")
 JSON_VERSION = 1
-
-# Mesher settings for the STL (absolute linear deflection, mm; angular deflection, rad). On the 40 mm base circle a 1 um
-# chord error needs n = pi / sqrt(2 * 0.001 / 40) = 444 chords (0.014 rad each). OCCT's mesher steps about 0.01 rad
-# along the circles at this angular setting, but its interior cone triangles span up to 0.014 rad, so the bound comes
-# out at about 1 um. write_part measures the widest triangle on the mesh it writes and reports the bound in the JSON.
-STL_CHORD_TOLERANCE_MM = 1e-3
-STL_ANGULAR_TOLERANCE_RAD = 0.02
 
 _SOURCE_NOTE_NAS979 = (
     "The exact NAS 979 tables were not at hand. Dimensions follow DESIGN.md section 6 (half apex angle 15 deg, cone "
@@ -723,84 +710,6 @@ def _slots_chord_bound(vertices: np.ndarray, faces: np.ndarray, p: SlotBlockPara
             b, s = _chord_error_bound(tris[on_arc], centre, z, rho)
             bound, widest = max(bound, b), max(widest, s)
     return bound, widest
-
-
-def write_part(
-    name: str,
-    out_dir: str | os.PathLike,
-    params: Nas979Params | SlotBlockParams | None = None,
-    *,
-    chord_tolerance_mm: float = STL_CHORD_TOLERANCE_MM,
-    angular_tolerance_rad: float = STL_ANGULAR_TOLERANCE_RAD,
-) -> dict[str, Path]:
-    """Write ``out_dir/<name>.step``, ``.stl`` (binary) and ``.json``; create ``out_dir``. Returns {"step", "stl", "json"}.
-
-    name : "nas979" or "slots". params : the part's parameter dataclass (None: defaults).
-    The STL is meshed with an absolute linear deflection ``chord_tolerance_mm`` and an angular deflection
-    ``angular_tolerance_rad``; the JSON's ``stl`` entry states both and the chord error bound of the mesh written.
-    """
-    import trimesh
-
-    if name == "nas979":
-        params = params if params is not None else Nas979Params()
-        if not isinstance(params, Nas979Params):
-            raise ValueError(f"part 'nas979' takes Nas979Params, got {type(params).__name__}")
-        solid = build_nas979(params).val()
-        doc = nas979_description(params)
-    elif name == "slots":
-        params = params if params is not None else SlotBlockParams()
-        if not isinstance(params, SlotBlockParams):
-            raise ValueError(f"part 'slots' takes SlotBlockParams, got {type(params).__name__}")
-        solid = build_slot_block(params).val()
-        doc = slot_block_description(params)
-    else:
-        raise ValueError(f"unknown part {name!r}; known: {', '.join(PART_NAMES)}")
-    if not (chord_tolerance_mm > 0 and angular_tolerance_rad > 0):
-        raise ValueError("chord_tolerance_mm and angular_tolerance_rad must be > 0")
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {"step": out / f"{name}.step", "stl": out / f"{name}.stl", "json": out / f"{name}.json"}
-
-    import cadquery as cq
-
-    with atomic_path(paths["step"]) as tmp:
-        cq.exporters.export(solid, str(tmp), exportType="STEP")
-
-    with atomic_path(paths["stl"]) as stl_tmp:
-        # Absolute (not relative) deflection: cadquery's exporter scales the tolerance by edge size by default.
-        ok = solid.exportStl(str(stl_tmp), tolerance=chord_tolerance_mm, angularTolerance=angular_tolerance_rad,
-                             ascii=False, relative=False)
-        if not ok:
-            raise OSError(f"could not write STL for part {name!r}")
-        mesh = trimesh.load_mesh(str(stl_tmp), file_type="stl")
-        vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-        if name == "nas979":
-            bound, dphi = _nas979_chord_bound(vertices, faces, doc["surfaces"][0])
-            note = ("base_radius (1 - cos(dphi / 2)), dphi the widest angular span about the cone axis of any STL "
-                    "triangle on the cone; planes are exact up to float32 rounding (1e-5 mm)")
-        else:
-            bound, dphi = _slots_chord_bound(vertices, faces, params)
-            note = ("rho (1 - cos(dphi / 2)) on the slots' arcs (rho = tool_diameter / 2), dphi the widest angular "
-                    "span of any STL triangle on an arc; planes are exact up to float32 rounding (1e-5 mm)")
-        doc["stl"] = {
-            "chord_tolerance_mm": chord_tolerance_mm,
-            "angular_tolerance_rad": angular_tolerance_rad,
-            "chord_error_bound_mm": bound,
-            "widest_triangle_span_rad": dphi,
-            "chord_error_bound_note": note,
-            "triangles": int(len(mesh.faces)),
-            "format": "binary STL, part frame, mm",
-        }
-
-    text = json.dumps(doc, indent=2, allow_nan=False) + "\n"
-    atomic_write(paths["json"], text)
-    return paths
-
-
-# ----------------------------------------------------------------------------------------------------------------------
-# Cone geometry for inspection (pure numpy)
-# ----------------------------------------------------------------------------------------------------------------------
 
 
 def _axis_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

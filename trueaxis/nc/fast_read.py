@@ -1,4 +1,4 @@
-"""A compiled pre-scan for the G-code reader's fast path (:mod:`trueaxis.postproc.gcode`).
+"""A compiled pre-scan for the G-code reader's fast path (:mod:`trueaxis.nc.gcode`).
 
 The reader's fast path takes plain blocks ("N300G1X4.6526Z-.0007", "X1 Y2 F300") that its regular expression
 ``_FAST`` matches: optional leading blanks, an optional ``N`` number, an optional ``G0``..``G3`` (also

@@ -37,7 +37,7 @@ import numpy as np
 
 from ..machine import Machine, forward_nominal, inverse_kinematics
 from ..machine.kinematics import linear_axis_map
-from .parts import COMPENSATION_MODES, Nas979Params, SlotBlockParams
+from ..workpiece.parts import COMPENSATION_MODES, Nas979Params, SlotBlockParams
 
 MODES = ("none", "geometric", "comprehensive")
 SETUP_TAG = "trueaxis-setup"
@@ -315,7 +315,7 @@ def _out_of_travel(machine: Machine, q: np.ndarray) -> str:
         if tr is None:
             continue
         lo, hi = float(q[:, c].min()), float(q[:, c].max())
-        if lo < tr[0] - 1e-9 or hi > tr[1] + 1e-9:
+        if not machine.axes[a].within_travel([lo, hi]).all():
             f = math.degrees if machine.axes[a].is_rotary else (lambda v: v)
             return (f"axis {a} needs [{f(lo):.3f}, {f(hi):.3f}], outside its travel [{f(tr[0]):g}, {f(tr[1]):g}]")
     return ""
@@ -448,7 +448,7 @@ def refine_cone_steps(machine: Machine, cone: dict, tool_radius: float, offsets,
     and at the top of the cone along the tool, for every offset (mm) in ``offsets``. Starts from ``step_deg`` and
     splits each block by sqrt(error / tol) (the mid-chord error is quadratic in the step).
     Returns (theta_deg (n+1,), max error um after refinement)."""
-    from .parts import cone_signed_distance
+    from ..workpiece.parts import cone_signed_distance
 
     theta = np.linspace(0.0, 360.0 + overlap_deg, int(math.ceil((360.0 + overlap_deg) / step_deg)) + 1)
     h1 = cone["height_range"][1]
@@ -480,7 +480,7 @@ def refine_cone_steps(machine: Machine, cone: dict, tool_radius: float, offsets,
 def nas979_program(machine: Machine, params: Nas979Params | None = None, *, compensation: str = "geometric",
                    tool_diameter: float = 10.0, stock_um: float = 200.0, finish_um: float = 100.0,
                    placement_mm=None, step_deg: float = 1.0, chord_tol_um: float | None = 0.05, fz: float = 0.05,
-                   n_rpm: float = 5000.0, post_options: dict | None = None) -> PartProgram:
+                   n_rpm: float = 5000.0, post: bool = True, post_options: dict | None = None) -> PartProgram:
     """NC program of the NAS 979 cone flank milling (see the module docstring) on a five-axis ``machine``.
 
     tool_diameter (mm), stock_um / finish_um (radial stock before the flank milling / allowance of the finishing pass,
@@ -488,10 +488,13 @@ def nas979_program(machine: Machine, params: Nas979Params | None = None, *, comp
     axis between blocks, refined where the machine's rotary axes turn fast until the interpolated tool leaves the
     offset surface by at most chord_tol_um (um; None: uniform step_deg), fz (mm) and n_rpm: cutting conditions
     (feed = fz z n). compensation: none | geometric |
-    comprehensive, applied with ``trueaxis.postproc.post.compensate``.
+    comprehensive, applied with ``trueaxis.postproc.post.compensate``. post : False: the raw program, as with
+    compensation "none" (the keyword every part's program takes).
     """
     if compensation not in MODES:
         raise ValueError(f"compensation must be one of {', '.join(MODES)}, got {compensation!r}")
+    if not post:
+        compensation = "none"
     if not machine.is_five_axis:
         raise ValueError(f"the NAS 979 cone needs a five-axis machine; {machine.name} has axes "
                          f"{' '.join(machine.axis_names)}")
@@ -535,13 +538,13 @@ def nas979_program(machine: Machine, params: Nas979Params | None = None, *, comp
     text = raw
     report = {}
     if compensation != "none":
-        from ..postproc.post import compensate
+        from .post import compensate
 
         text = compensate(raw, placed, compensation, source="nas979.ngc", report=report, **(post_options or {}))
     return PartProgram(text, raw, cl, q, placed, safe_z,
                        {"placement_mm": placement.tolist(), "feed_mm_min": feed, "passes": cl.passes,
                         "chord_error_um": chord_um, "cut_blocks_per_pass": int((cl.kind == "cut").sum()) // len(cl.passes),
-                        "post_report": report})
+                        "post_report": report, "summary": ", ".join(ps["name"] for ps in cl.passes)})
 
 
 def _nas979_hull(p: Nas979Params) -> np.ndarray:
@@ -555,13 +558,15 @@ def _nas979_hull(p: Nas979Params) -> np.ndarray:
     return np.vstack([corners, ring])
 
 
-def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, placement_mm=None, fz: float = 0.05,
-                  n_rpm: float = 5000.0, clearance: float = 2.0, post_options: dict | None = None) -> PartProgram:
+def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, post: bool = True, placement_mm=None,
+                  fz: float = 0.05, n_rpm: float = 5000.0, clearance: float = 2.0,
+                  post_options: dict | None = None) -> PartProgram:
     """NC program of the slot block (see the module docstring): slot k posted with mode COMPENSATION_MODES[k].
 
-    placement_mm (x, y): part origin off the C-axis line / machine zero (None: the machine file's origin).
+    post : False: no slot posted (``text`` is ``raw``). placement_mm (x, y): part origin off the C-axis line / machine zero (None: the machine file's origin).
     Sections are marked ``(slot k of 3: compensation MODE)`` ... ``(end of slot k)``."""
-    from ..postproc.post import compensate
+    from .post import compensate
+
 
     p = params or SlotBlockParams()
     placed, placement = place_machine(machine, placement_mm)
@@ -595,6 +600,9 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, pl
         sec.append(f"(end of slot {s + 1})")
         sec_text = "\n".join(sec) + "\n"
         raw_sections.append(sec_text)
+        if not post:
+            posted.append(sec_text)
+            continue
         rep = {}
         out = compensate(head_text + sec_text, placed, mode, source=f"slots.ngc[slot {s + 1}]", report=rep,
                          header=False, **(post_options or {}))
@@ -607,4 +615,17 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, pl
     text = head_text + "".join(posted) + tail
     return PartProgram(text, raw, cl, q, placed, safe_z,
                        {"placement_mm": placement.tolist(), "feed_mm_min": feed, "passes": cl.passes,
-                        "sections_raw": raw_sections, "sections": posted, "post_reports": reports})
+                        "sections_raw": raw_sections, "sections": posted, "post_reports": reports,
+                        "summary": f"{len(cl.passes)} passes in 3 slots (none, geometric, comprehensive)"})
+
+
+# A part's name -> the function making its NC program for a machine: f(machine, params, *, post, placement_mm, ...)
+# -> PartProgram; post=False gives the raw program (a new part adds its entry here beside its module in trueaxis.workpiece).
+PROGRAMS = {"nas979": nas979_program, "slots": slots_program}
+
+
+def part_program(part: str, machine: Machine, params=None, **options) -> PartProgram:
+    """The NC program of the part called ``part`` on ``machine`` (``PROGRAMS``); options: the function's keywords."""
+    if part not in PROGRAMS:
+        raise ValueError(f"no NC program for part {part!r}; programs exist for {', '.join(PROGRAMS)}")
+    return PROGRAMS[part](machine, params, **options)

@@ -31,6 +31,8 @@ import math
 import re
 from dataclasses import dataclass
 
+from .grammar import NUMBER
+
 __all__ = ["FlatProgram", "flatten_program", "needs_flattening", "MAX_FLAT_BLOCKS"]
 
 # A program that executes more blocks than this is refused (an endless loop, or one no machine runs).
@@ -73,7 +75,7 @@ _KEYWORDS = ("endsub", "endwhile", "endrepeat", "endif", "elseif", "else", "sub"
              "repeat", "return", "break", "continue")
 _OLINE = re.compile(r"^(/)?(?:n[0-9.]+)?o(<[^>]*>|[0-9]+)(" + "|".join(_KEYWORDS) + r")?(.*)$")
 _END = re.compile(r"m0*(?:2|30)(?![0-9.])")
-_NUMBER = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)")
+_NUMBER = re.compile(NUMBER)
 _FUNCS = ("abs", "acos", "asin", "atan", "cos", "exists", "exp", "fix", "fup", "ln", "round", "sin", "sqrt", "tan")
 # binary operators, longest spelling first, with LinuxCNC's precedence
 _BINOPS = (("**", 6), ("*", 5), ("/", 5), ("mod", 5), ("+", 4), ("-", 4), ("eq", 3), ("ne", 3), ("gt", 3),

@@ -3,7 +3,7 @@
     result = closed_loop(load_machine("fixtures/machines/nmv1500dcg.toml"))      # the true machine
     print(result.summary())
 
-1. The part program (``trueaxis.inspect.programs``) is posted (``trueaxis.postproc.post.compensate``, geometric) with
+1. The part program (``trueaxis.postproc.programs``) is posted (``trueaxis.postproc.post.compensate``, geometric) with
    the *twin* the shop believes in (default: the true machine's layout with no errors at all).
 2. The virtual shop (``trueaxis.sim.shop.simulate``) cuts it on the *true* machine and measures it (virtual CMM,
    probe noise); the deviations come from the measured cloud alone, as ``inspect`` computes them (exact distances to
@@ -30,13 +30,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..machine import Machine
-from ..postproc.post import compensate
-from .form import roundness, section_ring
-from .deviation import analytic_surfaces, deviation
+from .machine import Machine
+from .postproc.post import compensate
+from .inspect.form import roundness, section_ring
+from .inspect.deviation import analytic_surfaces, deviation
 from .identify import Identification, identify
-from .parts import cone_signed_distance
-from .programs import nas979_program, slots_program
+from .workpiece.parts import cone_signed_distance
+from .postproc.programs import part_program
+from .workpiece.part import get_part
 
 
 def error_free(machine: Machine) -> Machine:
@@ -67,7 +68,7 @@ class Cut:
 
 def _measure(program: str, true: Machine, part_name: str, points: int, noise_um: float, seed: int,
              part_json=None) -> Cut:
-    from ..sim.shop import load_part, simulate
+    from .sim.shop import load_part, simulate
 
     part = load_part(part_name, part_json)
     res = simulate(program, true, part=part_name, part_json=part, points=points, noise_um=noise_um, seed=seed)
@@ -84,15 +85,15 @@ def _measure(program: str, true: Machine, part_name: str, points: int, noise_um:
 def _metrics(points, normals, dev, part: dict) -> dict:
     m = {"points": int(dev.size), "rms_um": float(np.sqrt(np.mean(dev**2))), "mean_um": float(np.mean(dev)),
          "max_abs_um": float(np.max(np.abs(dev))), "range_um": float(np.ptp(dev))}
-    if part["part"] == "nas979":
-        cone = next(s for s in part["surfaces"] if s["id"] == "cone")
+    # What the part's features ask for: roundness rings on a cone, the walls and floors of slots.
+    ring_features = [f for f in part["features"] if f["type"] == "roundness"]
+    if ring_features:
+        cone = next(s for s in part["surfaces"] if s["id"] == ring_features[0]["surface"])
         alpha = math.radians(cone["half_angle_deg"])
         a = np.asarray(cone["axis"], float)
         h = (points - np.asarray(cone["base_center"], float)) @ (a / np.linalg.norm(a))
         rings = {}
-        for feat in part["features"]:
-            if feat["type"] != "roundness":
-                continue
+        for feat in ring_features:
             # The probed ring nearest the feature's height (the probe pattern's rings need not hit it exactly).
             level = h[np.argmin(np.abs(h - feat["height"]))]
             if abs(level - feat["height"]) > 1.0:
@@ -102,7 +103,7 @@ def _metrics(points, normals, dev, part: dict) -> dict:
                 rings[feat["id"]] = float(roundness(ring) * 1e3)
         m["roundness_um"] = rings
         m["roundness_max_um"] = max(rings.values()) if rings else float("nan")
-    else:
+    if any(f["type"] == "slot" for f in part["features"]):
         walls = np.abs(normals[:, 2]) < 0.5
         m["walls_rms_um"] = float(np.sqrt(np.mean(dev[walls] ** 2))) if walls.any() else float("nan")
         m["floors_rms_um"] = float(np.sqrt(np.mean(dev[~walls] ** 2))) if (~walls).any() else float("nan")
@@ -158,20 +159,16 @@ def closed_loop(true_machine: Machine, twin: Machine | None = None, part: str = 
     twin : the twin the shop starts with (default ``error_free(true_machine)``; same layout, its parameter values
         are the starting point of the identification).
     part : "nas979" (five-axis machine) | "slots".  points : probe points per measurement.  noise_um : probe noise.
-    program_options : keywords for ``nas979_program`` / ``slots_program`` (e.g. step_deg, chord_tol_um).
+    program_options : keywords for the part's program (``trueaxis.postproc.programs.PROGRAMS``; e.g. step_deg).
     identify_options : keywords for ``identify``.  post_options : keywords for ``compensate``.
     """
-    if part not in ("nas979", "slots"):
-        raise ValueError(f"part must be 'nas979' or 'slots', got {part!r}")
+    get_part(part)  # ValueError naming the known parts
     twin = error_free(true_machine) if twin is None else twin
     if twin.parameter_names() != true_machine.parameter_names():
         raise ValueError("the twin and the true machine must share their parameter structure (same layout and tables)")
     timings = {}
     t = time.perf_counter()
-    if part == "nas979":
-        pp = nas979_program(twin, compensation="none", **(program_options or {}))
-    else:
-        pp = slots_program(twin, **(program_options or {}))
+    pp = part_program(part, twin, post=False, **(program_options or {}))
     raw = pp.raw
     placed_twin = pp.machine
     true = dataclasses.replace(true_machine, workpiece_origin=placed_twin.workpiece_origin.copy())
@@ -232,7 +229,7 @@ def user_loop(folder, part: str, twin_file, true_file, *, rounds: int = 3, compe
     import json
     from pathlib import Path
 
-    from ..cli import EXIT_REFUSED, main
+    from .cli import EXIT_REFUSED, main
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

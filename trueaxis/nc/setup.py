@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .grammar import NUMBER
+
 MM_PER_INCH = 25.4
 AXES = "XYZABC"
 # work systems, index 1..9 as LinuxCNC numbers them (parameter 5220, G10 L2 P)
@@ -227,7 +229,7 @@ def read_var(path, units: str = "mm") -> Setup:
 
 
 # -------------------------------------------------------------------------------------- LinuxCNC tool table ----
-_TOOL_WORD = re.compile(r"^([A-Za-z])([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))$")
+_TOOL_WORD = re.compile(r"^([A-Za-z])(" + NUMBER + r")$")
 _TOOL_LETTERS = "TPXYZABCUVWDIJQ"
 
 

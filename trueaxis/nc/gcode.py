@@ -52,6 +52,12 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from .grammar import NUMBER, PLANE_AXES
+from .interp_arc import ArcConversion
+from .interp_cycles import CycleConversion
+from .interp_read import read_block
+from .rows import ARC_CCW, ARC_CW, FEED, RAPID, ROW_CYCLE, ROW_MACHINE, ROW_PROGRAMMED, ROW_REFERENCE
+
 __all__ = [
     "GcodeError",
     "Program",
@@ -77,13 +83,6 @@ __all__ = [
 AXES = "XYZABC"
 MM_PER_INCH = 25.4
 
-# motion codes (Program.motion)
-RAPID, FEED, ARC_CW, ARC_CCW = 0, 1, 2, 3
-# why a row exists (Program.kind)
-ROW_PROGRAMMED = 0  # the block's own move
-ROW_CYCLE = 1  # a move of an expanded canned cycle (G73, G81-G89)
-ROW_REFERENCE = 2  # a move of G28/G30 (intermediate point or reference point)
-ROW_MACHINE = 3  # a G53 move in machine coordinates
 
 # Program.words bit mask: which words the source block had (bit i for letter WORD_BITS[i])
 WORD_BITS = "XYZABCIJKRPF"
@@ -95,13 +94,13 @@ _WORD_BIT = {c: 1 << i for i, c in enumerate(WORD_BITS)}
 #   5 any other non-blank character.
 _TOKEN = re.compile(
     r"(\([^)\n]*\)?)|(;[^\n]*)"
-    r"|([A-Za-z])[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)|#[0-9]+|\[[^\n(;]*?\](?:[^\n(;\[]*\])*)?"
+    r"|([A-Za-z])[ \t]*(" + NUMBER + r"|#[0-9]+|\[[^\n(;]*?\](?:[^\n(;\[]*\])*)?"
     r"|([^\s])"
 )
 _TOKEN_KINDS = (None, "comment", "comment", "word", "word", "other")
 # The tokenizer for writers that walk a block's tokens: group 3 is a word's letter (None for comments and others).
 TOKEN_PATTERN = _TOKEN
-_ASSIGN = re.compile(r"^[ \t]*(?:[Nn][0-9]+[ \t]*)?#([0-9]+)[ \t]*=[ \t]*([-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+))[ \t]*(?:\(.*\)|;.*)?[ \t]*$")
+_ASSIGN = re.compile(r"^[ \t]*(?:[Nn][0-9]+[ \t]*)?#([0-9]+)[ \t]*=[ \t]*(" + NUMBER + r")[ \t]*(?:\(.*\)|;.*)?[ \t]*$")
 _PARAM_REF = re.compile(r"^(?:#([0-9]+)|\[[ \t]*#([0-9]+)[ \t]*\])$")
 # the fast path's plain G0/G1 block, and its words (upper case, no comments, no other codes)
 _FAST = re.compile(
@@ -118,9 +117,6 @@ _COMMENT_TO_EOL = re.compile(r"[(;][^\r\n]*")
 # \x85, \u2028 and \u2029, which would shift the line numbers of the messages).
 _LINE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n)|[^\r\n]+\Z")
 _OTHER_BREAKS = re.compile("[\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
-# A canned cycle block that would expand into more moves than this is refused (a tiny Q or a huge L: the table
-# would not fit in memory, and no real program drills that way).
-MAX_CYCLE_MOVES = 100_000
 # The reader's compiled pre-scan of plain blocks (fast_read); False: the regular expression and float() on every line
 # (the same results, slower). FAST_READ_BLOCK lines are scanned at a time (their values as Python floats).
 FAST_READ = True
@@ -129,8 +125,6 @@ FAST_READ_BLOCK = 4096
 # machine's travel, and bounded values keep every sum, square and unit conversion downstream finite. The fast path's
 # regular expression takes at most 9 digits before the point, so larger values go through the checked general path.
 MAX_WORD_VALUE = 1e9
-# Arc turns (P) are stored as int16.
-MAX_ARC_TURNS = 32767
 
 _SYSTEM_NAMES = ("G54", "G55", "G56", "G57", "G58", "G59", "G59.1", "G59.2", "G59.3")
 _AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2, "A": 3, "B": 4, "C": 5}
@@ -149,9 +143,7 @@ def _add(pos: list, delta) -> None:
     """pos += delta, in place, for the 6-element position list."""
     for i in range(6):
         pos[i] += float(delta[i])
-# plane: (first, second, normal) axis indices as LinuxCNC orders them in ARC_FEED
-_PLANE_AXES = {17: (0, 1, 2), 18: (2, 0, 1), 19: (1, 2, 0)}
-_CENTER_WORD = {0: "I", 1: "J", 2: "K"}
+_PLANE_AXES = PLANE_AXES
 _KNOWN_M = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 19, 30, 48, 49, 50, 51, 52, 53, 60, 61, 62, 63, 64, 65, 66, 67, 68, 70, 71, 72, 73}
 _MOVING_M = {98: "subprogram call M98", 99: "subprogram return M99"}
 # G codes (x10) whose moves the reader cannot reproduce: refused (or passed through on request)
@@ -495,29 +487,6 @@ def parse_tool_table(text: str, units: str = "mm") -> dict:
 # the interpreter
 
 
-class _Refuse(Exception):
-    """Internal: a block that can move an axis and that the reader does not understand."""
-
-
-def _arc_center_r(start, end, radius, cw, tol):
-    """Centre of an R-format arc in its plane, as LinuxCNC's arc_data_r computes it. start/end: (2,) first/second."""
-    abs_r = abs(radius)
-    mid0, mid1 = (start[0] + end[0]) / 2.0, (start[1] + end[1]) / 2.0
-    half = math.hypot(mid0 - end[0], mid1 - end[1])
-    if half == 0.0:
-        raise ValueError("an R-format arc cannot be a full circle (start equals end): use I J K")
-    if half - abs_r > tol:
-        raise ValueError(f"arc radius R{radius:g} too small to reach the end point")
-    if half / abs_r > 1.0 - 1e-12:
-        half = abs_r
-    if (cw and radius > 0) or ((not cw) and radius < 0):
-        theta = math.atan2(end[1] - start[1], end[0] - start[0]) - math.pi / 2
-    else:
-        theta = math.atan2(end[1] - start[1], end[0] - start[0]) + math.pi / 2
-    offset = abs_r * math.cos(math.asin(half / abs_r))
-    return mid0 + offset * math.cos(theta), mid1 + offset * math.sin(theta)
-
-
 def parse_file(path, *, encoding: str | None = None, **kwargs) -> Program:
     """Read ``path`` and parse it with :func:`parse_program` (UTF-8, falling back to ISO-8859-1 for old Fanuc files)."""
     data = open(path, "rb").read()
@@ -551,7 +520,7 @@ def parse_program(
         as they are, recorded in ``Program.unsupported``, instead of raising GcodeError
     tool_table : tool number -> tool length (Z) in **mm**, for G43 (see :func:`parse_tool_table`)
     reference_points : {"G28": (6,), "G30": (6,)} reference points in machine coordinates, mm / degrees (default zero)
-    setup : the controller's setup (:class:`trueaxis.postproc.setup.Setup`): work offsets (with their XY rotation),
+    setup : the controller's setup (:class:`trueaxis.nc.setup.Setup`): work offsets (with their XY rotation),
         G92 shift, active system, home positions and tool offsets at program start; it completes ``tool_table`` and
         ``reference_points``. What it does not give is unknown; ``Program.setup_used`` lists what the rows used.
     require_setup : refuse (GcodeError naming the offset) a move made under a work offset, G92 shift or tool length
@@ -574,8 +543,9 @@ def parse_program(
         t, source, passthrough_unsupported, tool_table, reference_points, setup, require_setup).run())
 
 
-class _Interpreter:
-    """One lean pass over the lines; state in current program units like LinuxCNC's interpreter."""
+class _Interpreter(ArcConversion, CycleConversion):
+    """One lean pass over the lines; state in current program units like LinuxCNC's interpreter. Arcs
+    (``interp_arc``) and canned cycles (``interp_cycles``) are its parts in their own modules."""
 
     def __init__(self, text, source, passthrough, tool_table, reference_points, setup=None, require_setup=False):
         self.text = text
@@ -982,66 +952,7 @@ class _Interpreter:
                 if m:
                     self.params[int(m.group(1))] = float(m.group(2))
                     continue
-            toks = token_findall(raw)
-            # -- gather words -----------------------------------------------------------------------------------
-            gcodes = []
-            mcodes = []
-            vals = {}  # letter -> value text (non-G/M)
-            refuse = None
-            macro_nonmoving = None
-            block_delete = False
-            for com1, com2, letter, num, other in toks:
-                if letter:
-                    if not num:
-                        raise self.err(line_no, f"word '{letter}' with no number")
-                    L = letter.upper()
-                    if num[0] in "#[":
-                        value = self.resolve(num)
-                        if value is None:
-                            if L in "XYZABCUVWIJKR":
-                                refuse = f"macro expression {L}{num} in a coordinate"
-                            elif L in "GM":
-                                refuse = f"macro expression {L}{num} as a G/M code"
-                            else:
-                                macro_nonmoving = f"macro expression {L}{num}"
-                            continue
-                        num = repr(value)
-                    if L == "G":
-                        gcodes.append(num)
-                    elif L == "M":
-                        mcodes.append(num)
-                    elif L == "O":
-                        # Fanuc program number "O0001" alone is a label; LinuxCNC o-word control flow is not text
-                        rest = raw.upper().split("(", 1)[0]
-                        if re.search(r"O\s*[0-9]+\s*[A-Z]", rest) or "<" in raw:
-                            refuse = "o-word subroutine / control flow"
-                        vals["O"] = num
-                    else:
-                        if L in vals and L != "N":
-                            raise self.err(line_no, f"more than one {L} word in the block")
-                        vals[L] = num
-                elif com1:
-                    if not com1.endswith(")"):
-                        raise self.err(line_no, "comment opened with '(' is not closed on its line")
-                elif com2:
-                    pass
-                else:
-                    if other == "/" and not gcodes and not mcodes and not vals:
-                        block_delete = True
-                    elif other == "<" or other == ">":
-                        refuse = "o-word subroutine / control flow"
-                    elif other in "#[]=+-*":
-                        macro_nonmoving = macro_nonmoving or f"macro syntax '{other}'"
-                    else:
-                        raise self.err(line_no, f"unexpected character {other!r}")
-            if block_delete:
-                pass  # executed: the block delete switch is off, as in rs274
-            if "E" in vals and not any(m.strip().lstrip("0")[:2] in ("66", "67", "68") for m in mcodes):
-                # LinuxCNC refuses an E word without G76/M66-M68 too; reading past it could misread "X1e2" as X1
-                raise self.err(line_no, f"E word 'E{vals['E']}': exponent notation (X1e2) is not RS-274, and E "
-                               "words (thread lead, extruder) are not understood here")
-            if refuse is None and macro_nonmoving and any(k in vals for k in "XYZABC"):
-                refuse = macro_nonmoving + " in a block with axis words"
+            gcodes, mcodes, vals, refuse, macro_nonmoving = read_block(self, raw, line_no, token_findall)
             if not gcodes and not mcodes and not vals:
                 if macro_nonmoving:
                     self.unsupported_block(line_no, macro_nonmoving)
@@ -1573,176 +1484,3 @@ class _Interpreter:
         if h in self.tool_src:
             return self.tool_src[h]
         return "H0: no offset" if h == 0 else ("--offsets-zero" if zero_ok else "not given")
-
-    def arc(self, line_no, li, mm, fvals, ax, pos, plane, absolute, arc_abs, inch, feed, inverse, emit, words_mask):
-        if inverse and "F" not in fvals:
-            raise self.err(line_no, "G93 inverse-time feed needs an F word on every feed block")
-        if feed == 0.0:
-            raise self.err(line_no, "arc with zero feed rate (no F word yet)")
-        target = list(pos)
-        for i, v in ax:
-            target[i] = v if absolute else pos[i] + v
-        self.arc_to(line_no, li, mm, fvals, target, pos, plane, arc_abs, inch, emit, words_mask)
-
-    def arc_to(self, line_no, li, mm, fvals, target, pos, plane, arc_abs, inch, emit, words_mask):
-        """Emit the arc from ``pos`` to ``target`` (program coordinates); centre from I J K (or R) in ``fvals``."""
-        a0, a1, an = _PLANE_AXES[plane]
-        cw = mm == 20
-        tol = 0.002 if inch else 0.05
-        if "R" in fvals:
-            c0, c1 = _arc_center_r((pos[a0], pos[a1]), (target[a0], target[a1]), fvals["R"], cw, tol)
-        else:
-            w0, w1 = _CENTER_WORD[a0], _CENTER_WORD[a1]
-            if w0 not in fvals and w1 not in fvals:
-                raise ValueError(f"G{mm // 10} arc in the G{plane} plane needs R or {w0}/{w1}")
-            o0, o1 = fvals.get(w0, 0.0), fvals.get(w1, 0.0)
-            if arc_abs:
-                c0, c1 = o0, o1
-            else:
-                c0, c1 = pos[a0] + o0, pos[a1] + o1
-            r1 = math.hypot(pos[a0] - c0, pos[a1] - c1)
-            r2 = math.hypot(target[a0] - c0, target[a1] - c1)
-            if abs(r1 - r2) > tol and abs(r1 - r2) > 0.001 * max(r1, r2):
-                raise ValueError(f"arc end point is not on the circle: radius {r1:.5g} at the start, "
-                                 f"{r2:.5g} at the end")
-            if r1 == 0.0:
-                raise ValueError("arc of zero radius")
-        turns = 1
-        if "P" in fvals:
-            turns = int(fvals["P"])
-            if turns < 1 or turns != fvals["P"] or turns > MAX_ARC_TURNS:
-                raise ValueError(f"arc P (turns) must be a whole number from 1 to {MAX_ARC_TURNS}, got {fvals['P']:g}")
-        center = [0.0, 0.0, 0.0]
-        center[a0], center[a1], center[an] = c0, c1, pos[an]
-        emit(ARC_CW if cw else ARC_CCW, ROW_PROGRAMMED, target, li, words_mask, tuple(center), plane, turns)
-
-    def cycle(self, line_no, li, mm, motion_here, fvals, ax, pos, plane, absolute, retract_r, inch, st, emit,
-              words_mask, prior_mode):
-        """Canned cycles G73, G81-G89 expanded into the moves LinuxCNC's interp_cycles.cc makes."""
-        a0, a1, an = _PLANE_AXES[plane]
-        letter = {0: "X", 1: "Y", 2: "Z"}
-        same_mode = prior_mode == mm
-        given = dict(ax)
-        if not same_mode and an not in given:
-            raise ValueError(f"{letter[an]} missing in the first canned cycle block (G{mm / 10:g})")
-        if "R" in fvals:
-            r_word = fvals["R"]
-        elif same_mode:
-            r_word = st["r"]
-        else:
-            raise ValueError(f"R clearance plane missing in the first G{mm / 10:g} block")
-        l_rep = int(fvals.get("L", 1))
-        if l_rep < 1:
-            raise ValueError("canned cycle repeat count L must be >= 1")
-        cc_word = given.get(an, st["cc"])
-        current_cc = pos[an]
-        if st["il_flag"]:
-            old_cc = st["il"]
-        else:
-            old_cc = st["il"] = current_cc
-            st["il_flag"] = True
-        if absolute:
-            inc0 = inc1 = 0.0
-            r = r_word
-            cc = cc_word
-            aa = given.get(a0, pos[a0])
-            bb = given.get(a1, pos[a1])
-        else:
-            inc0, inc1 = given.get(a0, 0.0), given.get(a1, 0.0)
-            r = r_word + old_cc
-            cc = r + cc_word
-            aa, bb = pos[a0], pos[a1]
-        if r < cc:
-            raise ValueError(f"R plane below the bottom of the cycle ({letter[an]})")
-        rapid_delta = 0.010 if inch else 0.254
-
-        def at(p0, p1, pn):
-            t = list(pos)
-            t[a0], t[a1], t[an] = p0, p1, pn
-            return t
-
-        def trav(p0, p1, pn, w=0):
-            emit(RAPID, ROW_CYCLE, at(p0, p1, pn), li, w)
-
-        def fd(p0, p1, pn):
-            emit(FEED, ROW_CYCLE, at(p0, p1, pn), li, 0)
-
-        if old_cc < r:
-            trav(pos[a0], pos[a1], r)
-            old_cc = r
-            current_cc = old_cc
-        clear_cc = r if retract_r else old_cc
-        if current_cc <= r:
-            # as LinuxCNC's CYCLE_MACRO: starting at or below the R plane, the first positioning move is made at the
-            # clear level (the initial level in G98, the R plane in G99), not at the current height
-            current_cc = clear_cc
-
-        # sticky cycle words
-        if mm in (820, 860, 880, 890, 740, 840):
-            if "P" not in fvals and not same_mode and mm not in (740, 840):
-                raise ValueError(f"dwell P missing with G{mm // 10}")
-            st["p"] = fvals.get("P", st["p"])
-        if mm in (730, 830):
-            if "Q" not in fvals and not same_mode:
-                raise ValueError(f"Q missing with G{mm // 10}")
-            q = fvals.get("Q", st["q"])
-            if q <= 0:
-                raise ValueError("negative or zero Q in a peck cycle")
-            st["q"] = q
-        if mm == 870:
-            if not same_mode and not all(k in fvals for k in "IJK"):
-                raise ValueError("G87 needs I, J and K")
-            for k in "ijk":
-                st[k] = fvals.get(k.upper(), st[k])
-        # Moves the expansion makes (at most 8 per hole, 3 per peck): refused before it fills the memory.
-        pecks = max(0.0, (r - cc) / st["q"]) if mm in (730, 830) else 0.0
-        if l_rep * (8 + 3 * pecks) > MAX_CYCLE_MOVES:
-            raise ValueError(f"canned cycle would expand into more than {MAX_CYCLE_MOVES} moves (L{l_rep}"
-                             + (f", {pecks:.0f} pecks of Q{st['q']:g}" if pecks else "") + ")")
-        first = True
-        for _ in range(l_rep):
-            aa += inc0
-            bb += inc1
-            trav(aa, bb, current_cc, words_mask if first else 0)
-            if old_cc != r:
-                trav(aa, bb, r)
-            first = False
-            if mm == 810 or mm == 820 or mm == 860:
-                fd(aa, bb, cc)
-                trav(aa, bb, clear_cc)
-            elif mm in (730, 830):
-                depth = r - st["q"]
-                while depth > cc:
-                    fd(aa, bb, depth)
-                    if mm == 830:
-                        trav(aa, bb, r)
-                    trav(aa, bb, depth + rapid_delta)
-                    depth = depth - st["q"]
-                fd(aa, bb, cc)
-                trav(aa, bb, clear_cc)
-            elif mm == 850:
-                fd(aa, bb, cc)
-                fd(aa, bb, r)
-                trav(aa, bb, clear_cc)  # rs274 makes this move even when clear_cc == r
-            elif mm in (740, 840, 890):
-                fd(aa, bb, cc)
-                fd(aa, bb, clear_cc)
-            elif mm == 880:
-                fd(aa, bb, cc)
-            elif mm == 870:
-                i_off, j_off, k = st["i"], st["j"], st["k"]
-                middle = (cc + k) if not absolute else k
-                ox, oy = aa + i_off, bb + j_off
-                trav(ox, oy, r)
-                trav(ox, oy, cc)
-                trav(aa, bb, cc)
-                fd(aa, bb, middle)
-                fd(aa, bb, cc)
-                trav(ox, oy, cc)
-                trav(ox, oy, clear_cc)
-                trav(aa, bb, clear_cc)
-            old_cc = current_cc = clear_cc
-        # LinuxCNC leaves the interpreter at (aa, bb, clear_cc) even after G88
-        pos[a0], pos[a1], pos[an] = aa, bb, clear_cc
-        st["r"] = r_word
-        st["cc"] = cc_word

@@ -1,6 +1,6 @@
 """Interpolation of an NC program's motion at a fixed period: the commanded axes q(t) of the virtual machine.
 
-The program (``trueaxis.postproc.gcode.Program``) gives one row per move in program units. Here every row becomes a
+The program (``trueaxis.nc.gcode.Program``) gives one row per move in program units. Here every row becomes a
 segment of machine-axis motion (mm, rad) with a duration from its feed, and the whole run is sampled on one clock
 ``t_k = k dt`` (default dt = 1 ms, a typical CNC interpolation period).
 
@@ -130,7 +130,7 @@ def interpolate(
 ) -> Trajectory:
     """Sample a program's commanded machine axes at a fixed period.
 
-    program : ``Program`` from ``trueaxis.postproc.gcode.parse_program``.
+    program : ``Program`` from ``trueaxis.nc.gcode.parse_program``.
     machine : the machine (its axes name the columns of q; the program may not use an axis it does not have).
     dt : interpolation period, s (> 0).
     rapid_mm_min, rapid_deg_min : rapid rates of linear (mm/min) and rotary (deg/min) axes.

@@ -52,8 +52,7 @@ import numpy as np
 
 from ..machine import Machine, forward_nominal, inverse_kinematics
 from ..machine.kinematics import _rotary_pair
-from .gcode import MM_PER_INCH
-from .post import PostError
+from .gcode import MM_PER_INCH, GcodeError
 
 __all__ = ["ClData", "ClError", "cl_format", "read_cl", "cl_to_program", "cl_program"]
 
@@ -70,8 +69,9 @@ _MOVING_APT = {"GODLTA": "GODLTA (relative move)", "CIRCLE": "CIRCLE (arc)", "MO
 _DIGITS = 6
 
 
-class ClError(PostError):
-    """Bad CL data: ``file:line: reason`` (a PostError, so callers and the CLI report it like any refused input)."""
+class ClError(GcodeError):
+    """Bad CL data: ``file:line: reason`` (a GcodeError, so the CLI reports it like any refused program; the post
+    re-raises it as its PostError)."""
 
 
 @dataclass(frozen=True)
@@ -404,10 +404,7 @@ def _fail(cl: ClData, k: int, reason: str):
 
 
 def _in_travel(machine: Machine, name: str, values):
-    tr = machine.axes[name].travel
-    if tr is None:
-        return np.ones(np.shape(values), bool)
-    return (values >= tr[0] - 1e-9) & (values <= tr[1] + 1e-9)
+    return machine.axes[name].within_travel(values)
 
 
 def _margin(machine: Machine, name: str, values):

@@ -89,10 +89,10 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial import cKDTree
 
-from ..machine import ErrorTwin, Machine, forward_nominal, load_machine
-from ..machine.model import ROTATION_LETTER, SQUARENESS, unit_of
-from ..postproc.gcode import Program, parse_program
-from ..sim.trajectory import AXES, MM_PER_INCH, interpolate
+from .machine import ErrorTwin, Machine, forward_nominal, load_machine
+from .machine.model import ROTATION_LETTER, SQUARENESS, unit_of
+from .nc.gcode import Program, parse_program
+from .nc.trajectory import AXES, MM_PER_INCH, interpolate
 
 UM_PER_MM = 1e3
 LEVER = 1e-3  # um of contact displacement per (urad of tool-axis error x mm of lever)
@@ -123,7 +123,7 @@ class ToolPath:
 
 def nominal_tool_path(program, machine: Machine, *, dt: float = 1e-3, spacing_mm: float = 0.1,
                       spacing_deg: float = 0.05) -> ToolPath:
-    """The program's feed moves (G1/G2/G3) interpolated (``trueaxis.sim.trajectory.interpolate``) and decimated to
+    """The program's feed moves (G1/G2/G3) interpolated (``trueaxis.nc.trajectory.interpolate``) and decimated to
     one instance every ``spacing_mm`` of tip travel (part frame) or ``spacing_deg`` of rotary motion, whichever
     comes first, plus the exact end of every feed move (at a corner of the path the tool cuts the corner's arc from
     that one pose); poses through the machine's nominal kinematics.
@@ -342,13 +342,10 @@ class _Jacobians:
     def __init__(self, twin: ErrorTwin, q: np.ndarray, cols: np.ndarray):
         self.twin, self.q, self.cols = twin, q, cols
         self.cache = None
-        self.errors = None
         if q.shape[0] * 6 * cols.size * 8 <= MAX_CACHE_BYTES:
             self.cache = np.empty((q.shape[0], 6, cols.size))
-            self.errors = np.empty((q.shape[0], 6))
-            for sl, ep, eu, _, jp in twin.iter_errors_and_jacobians(q):
+            for sl, _, _, _, jp in twin.iter_errors_and_jacobians(q):
                 self.cache[sl] = jp[:, :, cols]
-                self.errors[sl] = np.concatenate([ep, eu], axis=1)
 
     def chunks(self):
         if self.cache is not None:
@@ -359,12 +356,6 @@ class _Jacobians:
             return
         for sl, _, _, _, jp in self.twin.iter_errors_and_jacobians(self.q):
             yield sl, jp[:, :, self.cols]
-
-    def error6(self):
-        if self.errors is None:
-            ep, eu = self.twin.volumetric_error(self.q)
-            self.errors = np.concatenate([ep, eu], axis=1)
-        return self.errors
 
     def times(self, theta):
         """J_k theta (K, 6) for a parameter change theta (P_active,)."""
@@ -1060,10 +1051,10 @@ def _rows(a, what):
 # --------------------------------------------------------------------------------------------- part normals ----
 def part_normals(points, part: dict) -> np.ndarray:
     """Unit outward normals of the nominal surface at ``points`` for a cloud that has none (the NAS 979 cone)."""
-    if part.get("part") != "nas979":
+    cone = next((s for s in part["surfaces"] if s["id"] == "cone"), None)
+    if cone is None:
         raise ValueError("the cloud has no normals and the part has no analytic normal field: give a cloud with "
                          "normals (nx ny nz)")
-    cone = next(s for s in part["surfaces"] if s["id"] == "cone")
     a = np.asarray(cone["axis"], float)
     a = a / np.linalg.norm(a)
     c = np.asarray(cone["base_center"], float)
@@ -1078,7 +1069,7 @@ def part_normals(points, part: dict) -> np.ndarray:
 def machine_for_program(machine: Machine, program_text: str, part: str | None = None) -> Machine:
     """The machine with the part placed where the program's setup comment says (``origin_mm``), as the virtual shop
     and the shop floor do; refuses a program written for another part."""
-    from .programs import read_setup
+    from .postproc.programs import read_setup
 
     setup = read_setup(program_text)
     if part is not None and setup.get("part") and setup["part"] != part:
@@ -1093,10 +1084,10 @@ def machine_for_program(machine: Machine, program_text: str, part: str | None = 
 
 def program_compensation(program_text: str, twin: Machine) -> dict:
     """What the program says about its compensation (its ``trueaxis-setup`` comment: ``compensation`` and ``twin``,
-    the twin's id, ``trueaxis.inspect.programs.twin_id``), compared with ``twin``. The identification does not
+    the twin's id, ``trueaxis.postproc.programs.twin_id``), compared with ``twin``. The identification does not
     depend on it (its model is the twin at the axes the program commands, whoever compensated them); the note says
     what was read or assumed. Returns {"mode", "twin_id", "same_twin" (bool or None), "note"}."""
-    from .programs import read_setup, twin_id
+    from .postproc.programs import read_setup, twin_id
 
     setup = read_setup(program_text)
     mode, tid = setup.get("compensation"), setup.get("twin")
@@ -1130,8 +1121,8 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     alignment ("none" | "bestfit" | "datum").  robust, parameters, max_relative_std : see ``identify``.
     Returns (the report's "identification" dict, the Identification).
     """
-    from ..fileio import atomic_write
-    from ..machine.machine_file import update_machine_text
+    from .fileio import atomic_write
+    from .machine.machine_file import update_machine_text
 
     original = load_machine(machine)
     program_path = Path(program)

@@ -29,9 +29,11 @@ from __future__ import annotations
 
 import re
 
+from .grammar import NUMBER
+
 __all__ = ["check_blocks"]
 
-_NUM = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)"
+_NUM = NUMBER
 # Where a block needs a word-by-word check (the rest are plain moves: N, one G0..G3, axis words, I J K R, F):
 # a character that is no part of a plain move, a G code other than G0..G3, two G codes, an N word after a number.
 _CANDIDATES = tuple(re.compile(p) for p in (
@@ -101,7 +103,7 @@ _G_NAME = lambda g: f"G{g // 10}" if g % 10 == 0 else f"G{g / 10:g}"  # noqa: E7
 
 
 def check_blocks(text: str, source: str, passthrough: bool, line_map=None) -> None:
-    """Raise :class:`~trueaxis.postproc.gcode.GcodeError` at the first block rs274 would refuse (see the module
+    """Raise :class:`~trueaxis.nc.gcode.GcodeError` at the first block rs274 would refuse (see the module
     docstring). ``line_map``: 1-based source line of each text line (a flattened program), or None."""
     state = _State()
     pos, n = 0, len(text)

@@ -1,0 +1,75 @@
+"""Arcs (G2 / G3) of the interpreter, as LinuxCNC's ``interp_arc.cc`` computes them: the centre from I J K (or R),
+the end point checked on the circle, the turns of P. A part of ``gcode._Interpreter`` (the methods of
+``ArcConversion``)."""
+
+from __future__ import annotations
+
+import math
+
+from .grammar import CENTER_WORD, PLANE_AXES
+from .rows import ARC_CCW, ARC_CW, MAX_ARC_TURNS, ROW_PROGRAMMED
+
+
+def arc_center_r(start, end, radius, cw, tol):
+    """Centre of an R-format arc in its plane, as LinuxCNC's arc_data_r computes it. start/end: (2,) first/second."""
+    abs_r = abs(radius)
+    mid0, mid1 = (start[0] + end[0]) / 2.0, (start[1] + end[1]) / 2.0
+    half = math.hypot(mid0 - end[0], mid1 - end[1])
+    if half == 0.0:
+        raise ValueError("an R-format arc cannot be a full circle (start equals end): use I J K")
+    if half - abs_r > tol:
+        raise ValueError(f"arc radius R{radius:g} too small to reach the end point")
+    if half / abs_r > 1.0 - 1e-12:
+        half = abs_r
+    if (cw and radius > 0) or ((not cw) and radius < 0):
+        theta = math.atan2(end[1] - start[1], end[0] - start[0]) - math.pi / 2
+    else:
+        theta = math.atan2(end[1] - start[1], end[0] - start[0]) + math.pi / 2
+    offset = abs_r * math.cos(math.asin(half / abs_r))
+    return mid0 + offset * math.cos(theta), mid1 + offset * math.sin(theta)
+
+
+class ArcConversion:
+    """The interpreter's arc moves (mixed into ``gcode._Interpreter``: ``self.err`` names the block)."""
+
+    def arc(self, line_no, li, mm, fvals, ax, pos, plane, absolute, arc_abs, inch, feed, inverse, emit, words_mask):
+        if inverse and "F" not in fvals:
+            raise self.err(line_no, "G93 inverse-time feed needs an F word on every feed block")
+        if feed == 0.0:
+            raise self.err(line_no, "arc with zero feed rate (no F word yet)")
+        target = list(pos)
+        for i, v in ax:
+            target[i] = v if absolute else pos[i] + v
+        self.arc_to(line_no, li, mm, fvals, target, pos, plane, arc_abs, inch, emit, words_mask)
+
+    def arc_to(self, line_no, li, mm, fvals, target, pos, plane, arc_abs, inch, emit, words_mask):
+        """Emit the arc from ``pos`` to ``target`` (program coordinates); centre from I J K (or R) in ``fvals``."""
+        a0, a1, an = PLANE_AXES[plane]
+        cw = mm == 20
+        tol = 0.002 if inch else 0.05
+        if "R" in fvals:
+            c0, c1 = arc_center_r((pos[a0], pos[a1]), (target[a0], target[a1]), fvals["R"], cw, tol)
+        else:
+            w0, w1 = CENTER_WORD[a0], CENTER_WORD[a1]
+            if w0 not in fvals and w1 not in fvals:
+                raise ValueError(f"G{mm // 10} arc in the G{plane} plane needs R or {w0}/{w1}")
+            o0, o1 = fvals.get(w0, 0.0), fvals.get(w1, 0.0)
+            if arc_abs:
+                c0, c1 = o0, o1
+            else:
+                c0, c1 = pos[a0] + o0, pos[a1] + o1
+            r1 = math.hypot(pos[a0] - c0, pos[a1] - c1)
+            r2 = math.hypot(target[a0] - c0, target[a1] - c1)
+            if abs(r1 - r2) > tol and abs(r1 - r2) > 0.001 * max(r1, r2):
+                raise ValueError(f"arc end point is not on the circle: radius {r1:.5g} at the start, "
+                                 f"{r2:.5g} at the end")
+            if r1 == 0.0:
+                raise ValueError("arc of zero radius")
+        turns = 1
+        if "P" in fvals:
+            turns = int(fvals["P"])
+            if turns < 1 or turns != fvals["P"] or turns > MAX_ARC_TURNS:
+                raise ValueError(f"arc P (turns) must be a whole number from 1 to {MAX_ARC_TURNS}, got {fvals['P']:g}")
+        center = [0.0, 0.0, 0.0]
+        center[a0], center[a1], center[an] = c0, c1, pos[an]
+        emit(ARC_CW if cw else ARC_CCW, ROW_PROGRAMMED, target, li, words_mask, tuple(center), plane, turns)

@@ -1,0 +1,67 @@
+"""The NAS 979 cone frustum on its wedge block (DESIGN.md section 6) as a ``Part``: CAD, JSON, probing pattern.
+
+The geometry (``Nas979Params``, ``build_nas979``, ``nas979_description``) is in ``parts.py`` beside the slot block's,
+with the part frame and the JSON schema; this module is what makes it a ``Part``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .part import surface
+from .parts import Nas979Params, _nas979_chord_bound, build_nas979, cone_surface_points, nas979_description
+
+
+def cone_pattern(part: dict, n_points: int, margin_mm: float = 1.0):
+    """Rings on the NAS 979 cone: points (N, 3) mm and unit outward normals (N, 3), part frame."""
+    cone = surface(part, "cone")
+    h0, h1 = cone["height_range"]
+    if not 0 <= 2 * margin_mm < h1 - h0:
+        raise ValueError(f"margin_mm {margin_mm} leaves no height to probe on the cone ({h0}-{h1} mm)")
+    r_mid = 0.5 * (cone["base_radius"] + cone["top_radius"])
+    span = h1 - h0 - 2 * margin_mm
+    n_rings = max(1, int(round(math.sqrt(n_points * span / (2 * math.pi * r_mid)))))
+    per_ring = max(1, n_points // n_rings)
+    heights = np.linspace(h0 + margin_mm, h1 - margin_mm, n_rings) if n_rings > 1 else np.array([0.5 * (h0 + h1)])
+    return cone_surface_points(cone, heights, per_ring)
+
+
+
+
+@dataclass(frozen=True)
+class Nas979:
+    """The NAS 979 cone frustum, flank milled 5-axis (default machine: the B-C table of nmv1500dcg)."""
+
+    name: str = "nas979"
+    title: str = "NAS 979 cone frustum"
+    default_machine: str = "nmv1500dcg"
+    params_type: type = Nas979Params
+
+    def build(self, params=None):
+        return build_nas979(params)
+
+    def description(self, params=None) -> dict:
+        return nas979_description(params)
+
+    def stl_chord_bound(self, vertices, faces, params, description):
+        """Chord error bound on the cone: its lateral triangles (all vertices on the cone, normal not along a)."""
+        bound, dphi = _nas979_chord_bound(vertices, faces, surface(description, "cone"))
+        return bound, dphi, ("base_radius (1 - cos(dphi / 2)), dphi the widest angular span about the cone axis of any "
+                             "STL triangle on the cone; planes are exact up to float32 rounding (1e-5 mm)")
+
+    def probe_pattern(self, description, n_points):
+        return cone_pattern(description, n_points)
+
+    def material_mask(self, description):
+        """Material between the cone's base and top planes (the first cut's engagement)."""
+        cone = surface(description, "cone")
+        a = np.asarray(cone["axis"], float)
+        c = np.asarray(cone["base_center"], float)
+        h0, h1 = cone["height_range"]
+        return lambda p: ((p - c) @ a >= h0) & ((p - c) @ a <= h1)
+
+
+PART = Nas979()
