@@ -547,3 +547,66 @@ def test_dense_roundness_profiles_are_drawn_as_bins_that_keep_every_peak():
     bin_of = np.minimum(((angle + np.pi) / (2 * np.pi) * 1440).astype(int), 1439)
     k = bin_of[np.argmax(residual)]
     assert abs(centre[np.argmax(high)] - ((k + 0.5) * 2 * np.pi / 1440 - np.pi)) < 1e-12
+
+
+# ------------------------------------------------------------------------------------------ the figure worker ----
+def _report_files(folder):
+    """Every file of a report folder as bytes, report.json and report.html without their date line."""
+    out = {}
+    for path in sorted(folder.iterdir()):
+        data = path.read_bytes()
+        if path.suffix in (".json", ".html"):
+            data = b"".join(line for line in data.splitlines(keepends=True) if b"date_utc" not in line
+                            and b"date (UTC)" not in line)
+        out[path.name] = data
+    return out
+
+
+def test_the_figure_worker_writes_the_same_report_byte_for_byte(tmp_path):
+    from trueaxis.inspect.workers import FigureWorker, single_blas_thread
+
+    p, n = deformed_cone((0.002, -0.001), 0.003, 1e-5, per_ring=240)
+    p = np.vstack([p, block_faces(150)])
+    here = write_report(inspect_cloud(_cloud(p), "nas979"), tmp_path / "here")
+    with FigureWorker() as worker, single_blas_thread():
+        assert worker.running
+        result = inspect_cloud(_cloud(p), "nas979", figure_worker=worker)
+        there = write_report(result, tmp_path / "worker", figure_worker=worker)
+        assert worker.failures == []
+    files_here, files_there = _report_files(here), _report_files(there)
+    assert set(files_here) == {"report.json", "report.html", "deviations.ply", "deviations.csv",
+                               "deviation_map.png", "histogram.png", "roundness.png"}
+    assert files_here == files_there
+
+
+def test_the_figure_worker_falls_back_to_drawing_here_when_its_process_dies(tmp_path):
+    import os
+    import signal
+
+    from trueaxis.inspect.report import _figure_inputs, draw_figure
+    from trueaxis.inspect.workers import FigureWorker
+
+    p, _ = deformed_cone(per_ring=60)
+    inputs = _figure_inputs(inspect_cloud(_cloud(p), "nas979"))
+    with FigureWorker() as worker:
+        os.kill(worker._pid, signal.SIGKILL)
+        for item in inputs:
+            worker.submit(item)
+        drawn = worker.results()
+        assert worker.failures and not worker.running
+    assert [d[1] for d in drawn] == [draw_figure(item)[1] for item in inputs]
+
+
+def test_single_blas_thread_sets_one_thread_and_restores_the_count():
+    import os
+
+    from trueaxis.inspect.workers import _loaded_openblas, single_blas_thread
+
+    libraries = _loaded_openblas()
+    assert libraries, "numpy's OpenBLAS is loaded and found"
+    before = [getter() for _, getter in libraries]
+    env = os.environ.get("OPENBLAS_NUM_THREADS")
+    with single_blas_thread():
+        assert [getter() for _, getter in libraries] == [1] * len(libraries)
+        assert os.environ["OPENBLAS_NUM_THREADS"] == "1"
+    assert [getter() for _, getter in libraries] == before and os.environ.get("OPENBLAS_NUM_THREADS") == env
