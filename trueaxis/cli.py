@@ -320,8 +320,7 @@ def cmd_inspect(args) -> int:
     out_dir = Path(args.output) if args.output else Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
     # the pictures are drawn by a second process started now (matplotlib imports while the cloud is read), and the
     # inspection's BLAS runs on one thread (trueaxis.inspect.workers: same numbers, faster on a busy machine)
-    scratch = Path(os.path.realpath(out_dir)).parent  # the point files are written there first, then renamed
-    with FigureWorker(scratch=scratch) as figures:
+    with FigureWorker() as figures:
         with single_blas_thread():
             result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align,
                                    tolerances=args.tolerances, program=args.program, machine=args.machine,

@@ -388,9 +388,6 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
             f"{part} part (median {np.median(np.abs(dev.deviation_mm)):.3f} mm): this cloud cannot be the {part} "
             "part in its frame, in mm")
     if figure_worker is not None:
-        # the point files need nothing more: written by a child process meanwhile (forked before the worker's
-        # sender thread starts), the deviation pictures drawn by the worker
-        figure_worker.write_points(_write_points, aligned, dev, normals, part, cloud.source)
         for item in _deviation_figure_inputs(part, part_doc, aligned, dev.deviation_um):
             figure_worker.submit(item)
 
@@ -933,25 +930,17 @@ def _clean(value):
     return value
 
 
-POINT_FILES = ("deviations.ply", "deviations.csv")
-
-
 def _write_point_files(inspection: Inspection, folder: Path) -> None:
     """``deviations.ply`` (binary; the deviation as the scalar field ``deviation_um``, CloudCompare's convention
     ``scalar_deviation_um``) and ``deviations.csv`` (x_mm, y_mm, z_mm, deviation_um, surface) of the aligned points."""
-    _write_points(folder, inspection.aligned, inspection.deviation, inspection.normals, inspection.report["part"],
-                  inspection.cloud.source)
-
-
-def _write_points(folder: Path, aligned, dev: dv.Deviation, normals, part: str, source) -> None:
-    """:func:`_write_point_files` from its parts (what ``inspect_cloud`` knows once the deviations exist)."""
+    dev = inspection.deviation
     names = list(dev.surface_ids) + ["cad_mesh"]
     codes = np.where(dev.from_mesh | (dev.surface < 0), len(names) - 1, dev.surface)
-    comments = [f"trueaxis inspect: {part} part frame, mm; deviation um, + = material outside",
-                f"cloud {Path(str(source)).name}"]
-    write_deviation_ply(folder / POINT_FILES[0], aligned, dev.deviation_um, normals,
+    comments = [f"trueaxis inspect: {inspection.report['part']} part frame, mm; deviation um, + = material outside",
+                f"cloud {Path(str(inspection.cloud.source)).name}"]
+    write_deviation_ply(folder / "deviations.ply", inspection.aligned, inspection.deviation_um, inspection.normals,
                         comments=[c.replace("\n", " ") for c in comments])
-    write_deviation_csv(folder / POINT_FILES[1], aligned, dev.deviation_um, (names, codes))
+    write_deviation_csv(folder / "deviations.csv", inspection.aligned, inspection.deviation_um, (names, codes))
 
 
 def write_report(inspection: Inspection, out_dir, figure_worker=None) -> Path:
@@ -975,12 +964,7 @@ def write_report(inspection: Inspection, out_dir, figure_worker=None) -> Path:
         if figure_worker is not None:
             for item in _figure_inputs(inspection, figure_worker):
                 figure_worker.submit(item)
-            written = figure_worker.points_written() if inspection.figures.get("sent") is figure_worker else None
-            if written is None:
-                _write_point_files(inspection, temp)  # while the worker draws
-            else:
-                for name in POINT_FILES:
-                    shutil.move(written / name, temp / name)  # a rename: the scratch folder is beside the report
+            _write_point_files(inspection, temp)  # while the worker draws
             images, figure_data = _save_figures(figure_worker.results(), temp)
         else:
             # the point files (numpy formatting, which releases the GIL) are written while matplotlib draws

@@ -27,13 +27,9 @@ import contextlib
 import ctypes
 import os
 import pickle
-import shutil
-import signal
 import struct
 import sys
-import tempfile
 import traceback
-from pathlib import Path
 
 __all__ = ["single_blas_thread", "FigureWorker"]
 
@@ -145,16 +141,9 @@ class FigureWorker:
 
     ``draw`` is the in-process fallback (``trueaxis.inspect.report.draw_figure``), used for every picture when the
     child could not be started and for a picture the child failed to draw.
-
-    With a ``scratch`` folder (the report folder's parent), :meth:`write_points` also forks a child that writes the
-    point files (``deviations.ply``, ``deviations.csv``: a third of a second of formatting for a million points) while
-    the parent evaluates the features; :meth:`points_written` waits for it.
     """
 
-    def __init__(self, start: bool = True, scratch=None):
-        self._scratch = None if scratch is None else Path(scratch)
-        self._writer = None  # (pid, error pipe, folder) of the point-file writer
-        self._writer_ok = False
+    def __init__(self, start: bool = True):
         self._pid = None
         self._requests = self._replies = None
         self._sender = None  # one thread writes the requests: the parent never waits for the child to read
@@ -216,71 +205,6 @@ class FigureWorker:
         self._pending = []
         return out
 
-    def write_points(self, write, *args) -> None:
-        """Fork a child that runs ``write(folder, *args)`` into a new scratch folder (in ``scratch``, beside the
-        report, so that moving the files is a rename); :meth:`points_written` gives the folder. Nothing happens
-        without a scratch folder, or where ``os.fork`` does not exist."""
-        if self._scratch is None or self._writer is not None or not hasattr(os, "fork") \
-                or not self._scratch.is_dir():
-            return
-        folder = Path(tempfile.mkdtemp(prefix=".trueaxis-points.", suffix=".tmp", dir=self._scratch))
-        error_read, error_write = os.pipe()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        pid = os.fork()
-        if pid == 0:  # the child: never returns
-            os.close(error_read)
-            status = 0
-            try:
-                write(folder, *args)
-            except BaseException:  # noqa: BLE001 - reported to the parent, which writes the files itself
-                status = 1
-                with contextlib.suppress(BaseException):
-                    os.write(error_write, traceback.format_exc()[-4000:].encode("utf-8", "replace"))
-            finally:
-                os._exit(status)
-        os.close(error_write)
-        self._writer = (pid, error_read, folder)
-
-    def points_written(self) -> Path | None:
-        """Wait for the point-file writer: its folder when it succeeded, else None (its error is kept in
-        ``failures``; the caller writes the files itself)."""
-        if self._writer is None:
-            return None
-        pid, error_read, folder = self._writer
-        if pid is None:  # waited for already
-            return folder if self._writer_ok else None
-        chunks = []
-        with contextlib.suppress(OSError):
-            while chunk := os.read(error_read, 65536):
-                chunks.append(chunk)
-        with contextlib.suppress(OSError):
-            os.close(error_read)
-        try:
-            _, status = os.waitpid(pid, 0)
-        except ChildProcessError:
-            status = -1
-        self._writer = (None, None, folder)
-        self._writer_ok = status == 0
-        if status == 0:
-            return folder
-        self.failures.append(b"".join(chunks).decode("utf-8", "replace") or f"the point writer ended ({status})")
-        return None
-
-    def _stop_writer(self) -> None:
-        if self._writer is None:
-            return
-        pid, error_read, folder = self._writer
-        if pid is not None:
-            with contextlib.suppress(OSError):
-                os.kill(pid, signal.SIGKILL)  # only our own child, by its id
-            with contextlib.suppress(ChildProcessError):
-                os.waitpid(pid, 0)
-            with contextlib.suppress(OSError):
-                os.close(error_read)
-        shutil.rmtree(folder, ignore_errors=True)
-        self._writer = None
-
     def _stop(self) -> None:
         if self._pid is None:
             return
@@ -298,11 +222,9 @@ class FigureWorker:
         self._pid = self._requests = self._replies = None
 
     def close(self) -> None:
-        """End the children (the figure worker exits when its request pipe closes; a point writer still running is
-        killed), reap them and remove the scratch folder."""
+        """End the child (it exits when its request pipe closes) and reap it."""
         self._pending = []
         self._stop()
-        self._stop_writer()
 
     def __enter__(self):
         return self
