@@ -310,8 +310,7 @@ def cmd_freecad_install(args) -> int:
 
 def cmd_inspect(args) -> int:
     """Compare a cloud with its part and write the report folder (trueaxis.inspect.report does the work)."""
-    from .inspect.report import inspect_cloud, write_report
-    from .inspect.workers import FigureWorker, single_blas_thread
+    from .inspect.workers import FigureWorker, keep_freed_memory, single_blas_thread
 
     if args.identify and not (args.machine and args.program):
         raise UsageError("--identify needs --machine TWIN.toml and --program PROG.ngc")
@@ -320,7 +319,10 @@ def cmd_inspect(args) -> int:
     out_dir = Path(args.output) if args.output else Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
     # the pictures are drawn by a second process started now (matplotlib imports while the cloud is read), and the
     # inspection's BLAS runs on one thread (trueaxis.inspect.workers: same numbers, faster on a busy machine)
+    keep_freed_memory()  # fewer page faults for the large temporary arrays (same values)
     with FigureWorker() as figures:
+        from .inspect.report import inspect_cloud, write_report  # scipy's import while the worker imports matplotlib
+
         with single_blas_thread():
             result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align,
                                    tolerances=args.tolerances, program=args.program, machine=args.machine,

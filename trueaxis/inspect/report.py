@@ -56,7 +56,6 @@ import numpy as np
 
 from ..fileio import OutputPathError, publish_folder, resolve_output
 from . import deviation as dv
-from . import form
 from .cloud import Cloud, CloudError, check_extent, read_cloud, write_deviation_csv, write_deviation_ply
 from .tolerances import CHARACTERISTICS, feature_table, load_tolerances, summary
 
@@ -142,6 +141,8 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
     points : (n, 3) mm, part frame. dev : their deviations. part : the part JSON.
     Returns (report entries dict, figure data dict).
     """
+    from . import form  # here: the figure worker imports this module to draw, and needs no scipy
+
     cone = next(s for s in part["surfaces"] if s["type"] == "cone")
     ids = dev.surface_ids
     on_cone = (dev.surface == ids.index(cone["id"])) & (np.abs(dev.deviation_mm) <= gate_mm) \
@@ -218,6 +219,8 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
 
 def _trace_line(xy):
     """Least-squares 2D line of a wall's XY trace, or None with fewer than 2 distinct points."""
+    from . import form
+
     if len(xy) < 2 or np.ptp(xy, axis=0).max() == 0:
         return None
     return form.fit_line(xy)
@@ -229,6 +232,8 @@ def evaluate_slots(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5) 
     points : (n, 3) mm, part frame. dev : their deviations. part : the slot block's JSON.
     Returns (report entries dict, figure data dict).
     """
+    from . import form
+
     by_id = {s["id"]: s for s in part["surfaces"]}
     index = {sid: k for k, sid in enumerate(dev.surface_ids)}
     near = np.abs(dev.deviation_mm) <= gate_mm
