@@ -632,3 +632,21 @@ print(before, after)
     # 20 arrays of 8 MB: hundreds of page faults each when every array is mapped afresh (fewer with numpy's huge
     # pages); next to none once the heap keeps the freed memory
     assert before > 2_000 and after < before / 10
+
+
+def test_the_cad_mesh_is_built_only_when_a_point_is_far_from_every_analytic_surface(tmp_path):
+    (tmp_path / "nas979.json").write_text(json.dumps(NAS))
+    dv.nas979_mesh(NAS).write_ply(tmp_path / "nas979.ply")
+    p, n = deformed_cone(per_ring=90)
+    near = inspect_cloud(_cloud(p), "nas979", cad=tmp_path / "nas979.ply")
+    cad = near.report["reference"]["cad_mesh"]
+    assert cad["triangles"] is None and cad["note"].startswith("not tessellated")
+    assert cad["source"] == str(tmp_path / "nas979.ply") and near.report["reference"]["analytic_points"] == len(p)
+    # a tenth of the points 0.8 mm outside the cone (beyond the 0.5 mm gate): the mesh is loaded and consulted; the
+    # cone stays their nearest surface, so their deviations are the exact 0.8 mm
+    moved = p.copy()
+    moved[::10] += 0.8 * n[::10]
+    far = inspect_cloud(_cloud(moved), "nas979", cad=tmp_path / "nas979.ply")
+    assert far.report["reference"]["cad_mesh"]["triangles"] > 1000
+    assert np.allclose(far.deviation_um[::10], 800.0, atol=1e-6)
+    assert np.array_equal(far.deviation_um[1::10], near.deviation_um[1::10])

@@ -364,8 +364,11 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
             distance = dv.MeshDistance(cad_mesh)
         return distance
 
-    if cad is not None or not surfaces:
+    if not surfaces:
         mesh()
+    # with the part JSON the CAD mesh is built only when a point needs it (farther than gate_mm from every analytic
+    # surface, or a best-fit alignment): tessellating a STEP and loading open3d take tens of seconds, and a point
+    # near an analytic surface gets its exact deviation from it either way
     bbox = (cad_mesh.vertices.min(axis=0), cad_mesh.vertices.max(axis=0)) if cad_mesh is not None \
         else dv.part_bbox(part_doc)
     try:
@@ -436,10 +439,14 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         "reference": {
             "analytic_points": int((~dev.from_mesh).sum()), "cad_mesh_points": int(dev.from_mesh.sum()),
             "analytic_surfaces": len(surfaces),
-            "cad_mesh": None if cad_mesh is None else {
-                "source": cad_mesh.source, "triangles": int(len(cad_mesh.triangles)),
-                "chord_error_bound_um": None if cad_mesh.chord_error_mm is None else cad_mesh.chord_error_mm * 1e3,
-                "note": cad_mesh.note},
+            "cad_mesh": {
+                "source": str(cad), "triangles": None, "chord_error_bound_um": None,
+                "note": f"not tessellated: every point lies within {gate_mm:g} mm of an analytic surface of the part "
+                        "JSON, which gives its exact deviation"} if cad is not None and cad_mesh is None else (
+                None if cad_mesh is None else {
+                    "source": cad_mesh.source, "triangles": int(len(cad_mesh.triangles)),
+                    "chord_error_bound_um": None if cad_mesh.chord_error_mm is None else cad_mesh.chord_error_mm * 1e3,
+                    "note": cad_mesh.note}),
         },
         **features,
     }
