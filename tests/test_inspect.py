@@ -650,3 +650,17 @@ def test_the_cad_mesh_is_built_only_when_a_point_is_far_from_every_analytic_surf
     assert far.report["reference"]["cad_mesh"]["triangles"] > 1000
     assert np.allclose(far.deviation_um[::10], 800.0, atol=1e-6)
     assert np.array_equal(far.deviation_um[1::10], near.deviation_um[1::10])
+
+
+def test_tessellating_a_step_is_announced_before_it_starts(tmp_path):
+    (tmp_path / "nas979.json").write_text(json.dumps(NAS))
+    (tmp_path / "nas979.step").write_text("ISO-10303-21;\nEND-ISO-10303-21;\n")  # unreadable: refused after the line
+    p, n = deformed_cone(per_ring=60)
+    p[::10] += 0.8 * n[::10]  # beyond the gate: these points need the CAD
+    lines = []
+    with pytest.raises(dv.InspectionError, match="cannot read the STEP"):
+        inspect_cloud(_cloud(p), "nas979", cad=tmp_path / "nas979.step", progress=lines.append)
+    assert len(lines) == 1 and lines[0].startswith(f"{tmp_path / 'nas979.step'}: tessellating the STEP")
+    lines.clear()
+    inspect_cloud(_cloud(p[1::10]), "nas979", cad=tmp_path / "nas979.step", progress=lines.append)
+    assert lines == []  # every point near the cone: the STEP is not even read

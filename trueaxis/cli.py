@@ -326,7 +326,7 @@ def cmd_inspect(args) -> int:
         with single_blas_thread():
             result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align,
                                    tolerances=args.tolerances, program=args.program, machine=args.machine,
-                                   figure_worker=figures)
+                                   figure_worker=figures, progress=lambda line: print(line, file=sys.stderr))
         identification = None
         if args.identify:
             from .inspect.identify import run_identification

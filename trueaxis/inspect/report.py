@@ -319,7 +319,7 @@ def evaluate_slots(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5) 
 # -------------------------------------------------------------------------------------------------- the pipeline
 
 def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none", gate_mm: float = 0.5,
-                  tolerances=None, program=None, machine=None, figure_worker=None) -> Inspection:
+                  tolerances=None, program=None, machine=None, figure_worker=None, progress=None) -> Inspection:
     """Read (or take) a cloud, check it can be the part, align it, measure its deviations, evaluate the features.
 
     cloud : path of a cloud file (``read_cloud``), or a Cloud. part : "nas979" | "slots". part_dir : folder with
@@ -333,6 +333,7 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     figure_worker : a ``trueaxis.inspect.workers.FigureWorker``, or None: the deviation map and the histogram are sent
     to it as soon as the deviations are known (drawn while the features are evaluated); pass the same worker to
     :func:`write_report`.
+    progress : a callable taking one line of text, told when a slow step starts (tessellating the CAD), or None.
 
     Raises CloudError / InspectionError (ValueError) with a one-line message; nothing is written here.
     """
@@ -360,6 +361,9 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     def mesh():
         nonlocal cad_mesh, distance
         if distance is None:
+            if progress is not None and cad is not None and Path(cad).suffix.lower() in (".step", ".stp"):
+                progress(f"{cad}: tessellating the STEP (OCCT, chord below 0.1 um: tens of seconds) for the points "
+                         "no analytic surface of the JSON covers")
             cad_mesh = dv.load_mesh_file(cad, part_doc) if cad is not None else dv.part_mesh(part_doc, part_dir)
             distance = dv.MeshDistance(cad_mesh)
         return distance
