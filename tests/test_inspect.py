@@ -547,3 +547,120 @@ def test_dense_roundness_profiles_are_drawn_as_bins_that_keep_every_peak():
     bin_of = np.minimum(((angle + np.pi) / (2 * np.pi) * 1440).astype(int), 1439)
     k = bin_of[np.argmax(residual)]
     assert abs(centre[np.argmax(high)] - ((k + 0.5) * 2 * np.pi / 1440 - np.pi)) < 1e-12
+
+
+# ------------------------------------------------------------------------------------------ the figure worker ----
+def _report_files(folder):
+    """Every file of a report folder as bytes, report.json and report.html without their date line."""
+    out = {}
+    for path in sorted(folder.iterdir()):
+        data = path.read_bytes()
+        if path.suffix in (".json", ".html"):
+            data = b"".join(line for line in data.splitlines(keepends=True) if b"date_utc" not in line
+                            and b"date (UTC)" not in line)
+        out[path.name] = data
+    return out
+
+
+def test_the_figure_worker_writes_the_same_report_byte_for_byte(tmp_path):
+    from trueaxis.inspect.workers import FigureWorker, single_blas_thread
+
+    p, n = deformed_cone((0.002, -0.001), 0.003, 1e-5, per_ring=240)
+    p = np.vstack([p, block_faces(150)])
+    here = write_report(inspect_cloud(_cloud(p), "nas979"), tmp_path / "here")
+    with FigureWorker() as worker, single_blas_thread():
+        assert worker.running
+        result = inspect_cloud(_cloud(p), "nas979", figure_worker=worker)
+        there = write_report(result, tmp_path / "worker", figure_worker=worker)
+        assert worker.failures == []
+    files_here, files_there = _report_files(here), _report_files(there)
+    assert set(files_here) == {"report.json", "report.html", "deviations.ply", "deviations.csv",
+                               "deviation_map.png", "histogram.png", "roundness.png"}
+    assert files_here == files_there
+
+
+def test_the_figure_worker_falls_back_to_drawing_here_when_its_process_dies(tmp_path):
+    import os
+    import signal
+
+    from trueaxis.inspect.report import _figure_inputs, draw_figure
+    from trueaxis.inspect.workers import FigureWorker
+
+    p, _ = deformed_cone(per_ring=60)
+    inputs = _figure_inputs(inspect_cloud(_cloud(p), "nas979"))
+    with FigureWorker() as worker:
+        os.kill(worker._pid, signal.SIGKILL)
+        for item in inputs:
+            worker.submit(item)
+        drawn = worker.results()
+        assert worker.failures and not worker.running
+    assert [d[1] for d in drawn] == [draw_figure(item)[1] for item in inputs]
+
+
+def test_single_blas_thread_sets_one_thread_and_restores_the_count():
+    import os
+
+    from trueaxis.inspect.workers import _loaded_openblas, single_blas_thread
+
+    libraries = _loaded_openblas()
+    assert libraries, "numpy's OpenBLAS is loaded and found"
+    before = [getter() for _, getter in libraries]
+    env = os.environ.get("OPENBLAS_NUM_THREADS")
+    with single_blas_thread():
+        assert [getter() for _, getter in libraries] == [1] * len(libraries)
+        assert os.environ["OPENBLAS_NUM_THREADS"] == "1"
+    assert [getter() for _, getter in libraries] == before and os.environ.get("OPENBLAS_NUM_THREADS") == env
+
+
+def test_keep_freed_memory_reuses_the_heap_for_large_temporary_arrays():
+    # in a child process: the malloc setting lasts for the rest of the process
+    code = """
+import resource, numpy as np
+from trueaxis.inspect.workers import keep_freed_memory
+def faults():
+    start = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(10):
+        a = np.ones(1_000_000); b = a * 2; del a, b
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - start
+faults(); before = faults()
+assert keep_freed_memory()
+faults(); after = faults()
+print(before, after)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    before, after = int(out[0]), int(out[1])
+    # 20 arrays of 8 MB: hundreds of page faults each when every array is mapped afresh (fewer with numpy's huge
+    # pages); next to none once the heap keeps the freed memory
+    assert before > 2_000 and after < before / 10
+
+
+def test_the_cad_mesh_is_built_only_when_a_point_is_far_from_every_analytic_surface(tmp_path):
+    (tmp_path / "nas979.json").write_text(json.dumps(NAS))
+    dv.nas979_mesh(NAS).write_ply(tmp_path / "nas979.ply")
+    p, n = deformed_cone(per_ring=90)
+    near = inspect_cloud(_cloud(p), "nas979", cad=tmp_path / "nas979.ply")
+    cad = near.report["reference"]["cad_mesh"]
+    assert cad["triangles"] is None and cad["note"].startswith("not tessellated")
+    assert cad["source"] == str(tmp_path / "nas979.ply") and near.report["reference"]["analytic_points"] == len(p)
+    # a tenth of the points 0.8 mm outside the cone (beyond the 0.5 mm gate): the mesh is loaded and consulted; the
+    # cone stays their nearest surface, so their deviations are the exact 0.8 mm
+    moved = p.copy()
+    moved[::10] += 0.8 * n[::10]
+    far = inspect_cloud(_cloud(moved), "nas979", cad=tmp_path / "nas979.ply")
+    assert far.report["reference"]["cad_mesh"]["triangles"] > 1000
+    assert np.allclose(far.deviation_um[::10], 800.0, atol=1e-6)
+    assert np.array_equal(far.deviation_um[1::10], near.deviation_um[1::10])
+
+
+def test_tessellating_a_step_is_announced_before_it_starts(tmp_path):
+    (tmp_path / "nas979.json").write_text(json.dumps(NAS))
+    (tmp_path / "nas979.step").write_text("ISO-10303-21;\nEND-ISO-10303-21;\n")  # unreadable: refused after the line
+    p, n = deformed_cone(per_ring=60)
+    p[::10] += 0.8 * n[::10]  # beyond the gate: these points need the CAD
+    lines = []
+    with pytest.raises(dv.InspectionError, match="cannot read the STEP"):
+        inspect_cloud(_cloud(p), "nas979", cad=tmp_path / "nas979.step", progress=lines.append)
+    assert len(lines) == 1 and lines[0].startswith(f"{tmp_path / 'nas979.step'}: tessellating the STEP")
+    lines.clear()
+    inspect_cloud(_cloud(p[1::10]), "nas979", cad=tmp_path / "nas979.step", progress=lines.append)
+    assert lines == []  # every point near the cone: the STEP is not even read

@@ -623,17 +623,19 @@ def _fixed_point_bytes(values: np.ndarray, decimals: int) -> np.ndarray:
     out = np.zeros((len(values), 1 + digits + 1 + decimals), dtype=np.uint8)
     out[:, 0] = np.where(negative, ord("-"), 0)
     out[:, 1 + digits] = ord(".")
-    # digits from the right, one divmod each: the fraction's, then the whole part's (no leading zeros, but always
-    # the units digit)
-    rest = fraction
+    # digits from the right, one division each: the fraction's, then the whole part's (no leading zeros, but always
+    # the units digit); in 32-bit integers where they fit (twice the SIMD lanes of 64-bit), the digit bytes in uint8
+    rest = fraction.astype(np.int32) if decimals <= 9 else fraction
     for k in range(decimals - 1, -1, -1):
-        rest, digit = np.divmod(rest, 10)
-        out[:, 2 + digits + k] = ord("0") + digit
-    rest = whole
+        quotient = rest // 10
+        out[:, 2 + digits + k] = (rest - quotient * 10).astype(np.uint8) + ord("0")
+        rest = quotient
+    rest = whole.astype(np.int32) if digits <= 9 else whole
     for k in range(digits - 1, -1, -1):
-        shown = (whole >= 10 ** (digits - 1 - k)) | (k == digits - 1)
-        rest, digit = np.divmod(rest, 10)
-        out[:, 1 + k] = np.where(shown, ord("0") + digit, 0)
+        quotient = rest // 10
+        digit = (rest - quotient * 10).astype(np.uint8) + ord("0")
+        out[:, 1 + k] = digit if k == digits - 1 else np.where(whole >= 10 ** (digits - 1 - k), digit, 0)
+        rest = quotient
     return out
 
 

@@ -6,7 +6,7 @@ inside the code; reports convert to um.
 
 Two references, one rule:
 
-- **Analytic surfaces** of the part JSON (``trueaxis.inspect.parts``): cone, planes (annulus, box or wall-segment
+- **Analytic surfaces** of the part JSON (``trueaxis.workpiece.parts``): cone, planes (annulus, box or wall-segment
   extents) and cylinders (slot arcs). Each point is assigned to its nearest *bounded* surface patch and its
   deviation is the exact signed distance to that patch. For the slot block the JSON lists only the block's top and
   bottom; its four side faces are derived here from the block's parameters (``derived: true``) so that the datum
@@ -82,7 +82,7 @@ def analytic_surfaces(part: dict) -> list[dict]:
     """The analytic surface patches of a part JSON, plus the slot block's derived side faces.
 
     part : the part JSON dict (``nas979_description``, ``slot_block_description`` or a file written by ``write_part``).
-    Returns a list of surface dicts (see ``trueaxis.inspect.parts``); the input is not modified.
+    Returns a list of surface dicts (see ``trueaxis.workpiece.parts``); the input is not modified.
     """
     surfaces = [dict(s) for s in part.get("surfaces", [])]
     known = {s["id"] for s in surfaces}

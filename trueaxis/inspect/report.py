@@ -56,7 +56,6 @@ import numpy as np
 
 from ..fileio import OutputPathError, publish_folder, resolve_output
 from . import deviation as dv
-from . import form
 from .cloud import Cloud, CloudError, check_extent, read_cloud, write_deviation_csv, write_deviation_ply
 from .tolerances import CHARACTERISTICS, feature_table, load_tolerances, summary
 
@@ -142,6 +141,8 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
     points : (n, 3) mm, part frame. dev : their deviations. part : the part JSON.
     Returns (report entries dict, figure data dict).
     """
+    from . import form  # here: the figure worker imports this module to draw, and needs no scipy
+
     cone = next(s for s in part["surfaces"] if s["type"] == "cone")
     ids = dev.surface_ids
     on_cone = (dev.surface == ids.index(cone["id"])) & (np.abs(dev.deviation_mm) <= gate_mm) \
@@ -218,6 +219,8 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
 
 def _trace_line(xy):
     """Least-squares 2D line of a wall's XY trace, or None with fewer than 2 distinct points."""
+    from . import form
+
     if len(xy) < 2 or np.ptp(xy, axis=0).max() == 0:
         return None
     return form.fit_line(xy)
@@ -229,6 +232,8 @@ def evaluate_slots(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5) 
     points : (n, 3) mm, part frame. dev : their deviations. part : the slot block's JSON.
     Returns (report entries dict, figure data dict).
     """
+    from . import form
+
     by_id = {s["id"]: s for s in part["surfaces"]}
     index = {sid: k for k, sid in enumerate(dev.surface_ids)}
     near = np.abs(dev.deviation_mm) <= gate_mm
@@ -314,7 +319,7 @@ def evaluate_slots(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5) 
 # -------------------------------------------------------------------------------------------------- the pipeline
 
 def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none", gate_mm: float = 0.5,
-                  tolerances=None, program=None, machine=None) -> Inspection:
+                  tolerances=None, program=None, machine=None, figure_worker=None, progress=None) -> Inspection:
     """Read (or take) a cloud, check it can be the part, align it, measure its deviations, evaluate the features.
 
     cloud : path of a cloud file (``read_cloud``), or a Cloud. part : "nas979" | "slots". part_dir : folder with
@@ -325,6 +330,10 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     the JSON's alone.
     program, machine : the NC program that cut the part and the machine file, named in the report's header (when
     known).
+    figure_worker : a ``trueaxis.inspect.workers.FigureWorker``, or None: the deviation map and the histogram are sent
+    to it as soon as the deviations are known (drawn while the features are evaluated); pass the same worker to
+    :func:`write_report`.
+    progress : a callable taking one line of text, told when a slow step starts (tessellating the CAD), or None.
 
     Raises CloudError / InspectionError (ValueError) with a one-line message; nothing is written here.
     """
@@ -352,12 +361,18 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     def mesh():
         nonlocal cad_mesh, distance
         if distance is None:
+            if progress is not None and cad is not None and Path(cad).suffix.lower() in (".step", ".stp"):
+                progress(f"{cad}: tessellating the STEP (OCCT, chord below 0.1 um: tens of seconds) for the points "
+                         "no analytic surface of the JSON covers")
             cad_mesh = dv.load_mesh_file(cad, part_doc) if cad is not None else dv.part_mesh(part_doc, part_dir)
             distance = dv.MeshDistance(cad_mesh)
         return distance
 
-    if cad is not None or not surfaces:
+    if not surfaces:
         mesh()
+    # with the part JSON the CAD mesh is built only when a point needs it (farther than gate_mm from every analytic
+    # surface, or a best-fit alignment): tessellating a STEP and loading open3d take tens of seconds, and a point
+    # near an analytic surface gets its exact deviation from it either way
     bbox = (cad_mesh.vertices.min(axis=0), cad_mesh.vertices.max(axis=0)) if cad_mesh is not None \
         else dv.part_bbox(part_doc)
     try:
@@ -384,6 +399,9 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
             f"{cloud.source}: {far.sum()} of {len(far)} points lie more than {FAR_MM:g} mm from every surface of the "
             f"{part} part (median {np.median(np.abs(dev.deviation_mm)):.3f} mm): this cloud cannot be the {part} "
             "part in its frame, in mm")
+    if figure_worker is not None:
+        for item in _deviation_figure_inputs(part, part_doc, aligned, dev.deviation_um):
+            figure_worker.submit(item)
 
     if part == "nas979":
         features, figures = evaluate_nas979(aligned, dev, part_doc, gate_mm)
@@ -425,16 +443,22 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         "reference": {
             "analytic_points": int((~dev.from_mesh).sum()), "cad_mesh_points": int(dev.from_mesh.sum()),
             "analytic_surfaces": len(surfaces),
-            "cad_mesh": None if cad_mesh is None else {
-                "source": cad_mesh.source, "triangles": int(len(cad_mesh.triangles)),
-                "chord_error_bound_um": None if cad_mesh.chord_error_mm is None else cad_mesh.chord_error_mm * 1e3,
-                "note": cad_mesh.note},
+            "cad_mesh": {
+                "source": str(cad), "triangles": None, "chord_error_bound_um": None,
+                "note": f"not tessellated: every point lies within {gate_mm:g} mm of an analytic surface of the part "
+                        "JSON, which gives its exact deviation"} if cad is not None and cad_mesh is None else (
+                None if cad_mesh is None else {
+                    "source": cad_mesh.source, "triangles": int(len(cad_mesh.triangles)),
+                    "chord_error_bound_um": None if cad_mesh.chord_error_mm is None else cad_mesh.chord_error_mm * 1e3,
+                    "note": cad_mesh.note}),
         },
         **features,
     }
     report["feature_table"] = feature_table(report, part_doc, limits)
     report["feature_summary"] = summary(report["feature_table"])
     figures.update(points=aligned, deviation_um=d_um)
+    if figure_worker is not None:
+        figures["sent"] = figure_worker
     return Inspection(cloud, aligned, normals, dev, part_doc, report, figures)
 
 
@@ -475,72 +499,120 @@ def _profile_for_plot(angle, residual, limit: int = 2000, bins: int = 1440):
     return centre, np.maximum.reduceat(residual, starts), np.minimum.reduceat(residual, starts)
 
 
-def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]], dict]:
-    """Write the PNGs into ``folder``; returns ([(file name, caption)], the plotted data for report.json)."""
+MAP_POINTS = 15_000  # points drawn in the deviation map (all of them are in deviations.ply and .csv)
+
+
+def _deviation_figure_inputs(part: str, part_doc: dict, points: np.ndarray, d: np.ndarray) -> list[dict]:
+    """The inputs of the deviation map and the histogram (``draw_figure``): they need the deviations only, so they
+    can be drawn while the features are evaluated. points : (n, 3) mm, part frame; d : (n,) um."""
+    rng = np.random.default_rng(0)
+    show = np.sort(rng.choice(len(points), size=MAP_POINTS, replace=False)) if len(points) > MAP_POINTS \
+        else slice(None)
+    limit = _nice(float(np.percentile(np.abs(d), 99)) or 1.0, up=True)
+    slots = [(f["id"], np.asarray(f["tool_centre_path"], float)[:, :2], f.get("compensation", ""))
+             for f in part_doc.get("features", []) if f.get("type") == "slot"]
+    counts, edges = np.histogram(d, bins=80)
+    return [{"kind": "deviation_map", "part": part, "points": points[show], "deviation_um": d[show], "limit": limit,
+             "total": len(points), "extent": np.ptp(points, axis=0), "slots": slots},
+            {"kind": "histogram", "counts": counts, "edges": edges}]
+
+
+def _feature_figure_inputs(inspection: Inspection) -> list[dict]:
+    """The inputs of the pictures of the evaluated features: roundness, identified parameters, component tables."""
+    report = inspection.report
+    out = []
+    rings = inspection.figures.get("rings") or []
+    if rings:
+        out.append({"kind": "roundness", "rings": rings})
+    parameters = (report.get("identification") or {}).get("parameters") if isinstance(
+        report.get("identification"), dict) else None
+    if parameters:
+        names = [p["name"] for p in parameters]
+        values = [next((v for k, v in p.items() if k.startswith("value_")), None) for p in parameters]
+        stds = [next((v for k, v in p.items() if k.startswith("std_")), None) for p in parameters]
+        units = [next((k[6:] for k in p if k.startswith("value_")), "") for p in parameters]
+        out.append({"kind": "identified", "names": names, "values": values, "stds": stds, "units": units})
+        components = _component_tables(names, values, stds, units)
+        if components:
+            out.append({"kind": "components", "components": components})
+    return out
+
+
+def warm_up_drawing() -> None:
+    """Import matplotlib's object API, the Agg canvas and the 3D axes, and load the fonts: what the first picture
+    would otherwise pay for (the figure worker does this while the parent computes)."""
+    import io
+
+    from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d import Axes3D  # noqa: F401 - registers the "3d" projection
+
+    fig = Figure(figsize=(1, 1))
+    fig.text(0.5, 0.5, "0")
+    fig.savefig(io.BytesIO(), format="png", dpi=10)
+
+
+def draw_figure(inputs: dict) -> tuple[str, bytes, str, dict]:
+    """One picture from its inputs (``_deviation_figure_inputs``, ``_feature_figure_inputs``): (file name, PNG
+    bytes, caption, {key: the plotted data for report.json}). Pure function of its inputs: the same bytes in the
+    figure worker and in-process."""
+    import io
+
     # matplotlib's object API, not pyplot: no global figure state, and 0.2 s less to import
     from matplotlib.figure import Figure
 
-    fig_data = inspection.figures
-    report = inspection.report
-    pts, d = fig_data["points"], fig_data["deviation_um"]
-    rng = np.random.default_rng(0)
-    show = np.sort(rng.choice(len(pts), size=15_000, replace=False)) if len(pts) > 15_000 else slice(None)
-    limit = _nice(float(np.percentile(np.abs(d), 99)) or 1.0, up=True)
-    written, data = [], {}
+    kind = inputs["kind"]
+    data: dict = {}
     colour_label = "deviation (um), + = material outside"
-
-    if report["part"] == "nas979":
-        fig = Figure(figsize=(8.5, 6.0))
-        ax = fig.add_axes([0.0, 0.02, 0.8, 0.92], projection="3d")
-        sc = ax.scatter(*pts[show].T, c=d[show], cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
-        ax.set_xlabel("x (mm)", labelpad=8)
-        ax.set_ylabel("y (mm)", labelpad=8)
-        ax.set_zlabel("z (mm)", labelpad=4)
-        ax.set_box_aspect(np.ptp(pts, axis=0) + 1e-9)
-        # the colour bar stands clear of the 3D axes' z label: its own column, with a gap
-        cax = fig.add_axes([0.86, 0.2, 0.025, 0.6])
-        fig.colorbar(sc, cax=cax).set_label(colour_label)
-    else:
-        fig = Figure(figsize=(10, 4.8))
+    if kind == "deviation_map":
+        pts, d, limit = inputs["points"], inputs["deviation_um"], inputs["limit"]
+        if inputs["part"] == "nas979":
+            fig = Figure(figsize=(8.5, 6.0))
+            ax = fig.add_axes([0.0, 0.02, 0.8, 0.92], projection="3d")
+            sc = ax.scatter(*pts.T, c=d, cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
+            ax.set_xlabel("x (mm)", labelpad=8)
+            ax.set_ylabel("y (mm)", labelpad=8)
+            ax.set_zlabel("z (mm)", labelpad=4)
+            ax.set_box_aspect(inputs["extent"] + 1e-9)  # the extent of all points, not of those shown
+            # the colour bar stands clear of the 3D axes' z label: its own column, with a gap
+            cax = fig.add_axes([0.86, 0.2, 0.025, 0.6])
+            fig.colorbar(sc, cax=cax).set_label(colour_label)
+        else:
+            fig = Figure(figsize=(10, 4.8))
+            ax = fig.subplots()
+            fig.subplots_adjust(left=0.07, right=0.98, bottom=0.1, top=0.92)
+            sc = ax.scatter(pts[:, 0], pts[:, 1], c=d, cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
+            ax.set_aspect("equal")
+            ax.set_xlabel("x (mm)")
+            ax.set_ylabel("y (mm)")
+            for slot_id, path, compensation in inputs["slots"]:
+                ax.plot(*path.T, color="0.3", lw=0.8, ls="--")
+                ax.annotate(f"{slot_id}\ncompensation: {compensation}",
+                            (path[0] + path[1]) / 2, xytext=(0, -24), textcoords="offset points", ha="center",
+                            va="top", fontsize=9, annotation_clip=False,
+                            bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.6", alpha=0.9))
+            ax.set_ylim(bottom=ax.get_ylim()[0] - 16)  # room for the slots' labels below their first segments
+            fig.colorbar(sc, ax=ax, shrink=0.7, pad=0.03).set_label(colour_label)
+        ax.set_title("Deviation from the nominal part (part frame)")
+        name = "deviation_map.png"
+        shown, total = len(pts), inputs["total"]
+        caption = (f"Deviation colour map on the part ({shown:,} of {total:,} points shown; colour scale "
+                   f"+-{limit:g} um, the round number at or above the 99th percentile of |deviation|; all points "
+                   "with their deviations are in deviations.ply and deviations.csv).")
+        data["deviation_map"] = {"file": name, "colour_limit_um": limit, "points_shown": int(shown),
+                                 "data": "deviations.ply"}
+    elif kind == "histogram":
+        counts, edges = inputs["counts"], inputs["edges"]
+        fig = Figure(figsize=(7.5, 4))
         ax = fig.subplots()
-        fig.subplots_adjust(left=0.07, right=0.98, bottom=0.1, top=0.92)
-        sc = ax.scatter(pts[show, 0], pts[show, 1], c=d[show], cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
-        ax.set_aspect("equal")
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-        for feature in (f for f in inspection.part.get("features", []) if f.get("type") == "slot"):
-            path = np.asarray(feature["tool_centre_path"], float)[:, :2]
-            ax.plot(*path.T, color="0.3", lw=0.8, ls="--")
-            ax.annotate(f"{feature['id']}\ncompensation: {feature.get('compensation', '')}",
-                        (path[0] + path[1]) / 2, xytext=(0, -24), textcoords="offset points", ha="center", va="top",
-                        fontsize=9, annotation_clip=False,
-                        bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.6", alpha=0.9))
-        ax.set_ylim(bottom=ax.get_ylim()[0] - 16)  # room for the slots' labels below their first segments
-        fig.colorbar(sc, ax=ax, shrink=0.7, pad=0.03).set_label(colour_label)
-    ax.set_title("Deviation from the nominal part (part frame)")
-    # fixed layouts, no tight bounding box: each figure is drawn once (a tight layout draws it twice)
-    fig.savefig(folder / "deviation_map.png", dpi=100)
-    written.append(("deviation_map.png", f"Deviation colour map on the part ({min(len(pts), 15_000):,} of "
-                    f"{len(pts):,} points shown; colour scale +-{limit:g} um, the round number at or above the "
-                    "99th percentile of |deviation|; all points with their deviations are in deviations.ply and "
-                    "deviations.csv)."))
-    data["deviation_map"] = {"file": "deviation_map.png", "colour_limit_um": limit, "points_shown":
-                             int(min(len(pts), 15_000)), "data": "deviations.ply"}
-
-    counts, edges = np.histogram(d, bins=80)
-    fig = Figure(figsize=(7.5, 4))
-    ax = fig.subplots()
-    ax.stairs(counts, edges, fill=True, color="steelblue")
-    ax.set_xlabel("deviation (um), + = material outside")
-    ax.set_ylabel("points")
-    ax.set_title("Histogram of deviations")
-    fig.subplots_adjust(left=0.11, right=0.97, bottom=0.14, top=0.9)
-    fig.savefig(folder / "histogram.png", dpi=100)
-    written.append(("histogram.png", "Histogram of the signed deviations (80 bins)."))
-    data["histogram"] = {"file": "histogram.png", "bin_edges_um": edges, "counts": counts}
-
-    rings = fig_data.get("rings") or []
-    if rings:
+        ax.stairs(counts, edges, fill=True, color="steelblue")
+        ax.set_xlabel("deviation (um), + = material outside")
+        ax.set_ylabel("points")
+        ax.set_title("Histogram of deviations")
+        fig.subplots_adjust(left=0.11, right=0.97, bottom=0.14, top=0.9)
+        name, caption = "histogram.png", "Histogram of the signed deviations (80 bins)."
+        data["histogram"] = {"file": name, "bin_edges_um": edges, "counts": counts}
+    elif kind == "roundness":
+        rings = inputs["rings"]
         fig = Figure(figsize=(4.8 * len(rings), 5.4))
         axes = fig.subplots(1, len(rings), subplot_kw={"projection": "polar"})
         axes = np.atleast_1d(axes)
@@ -576,18 +648,12 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
         fig.suptitle(f"Roundness profiles: radial deviation from the least-squares circle (dashed), radial scale in um "
                      f"(grid every {step:g} um)", fontsize=10)
         fig.subplots_adjust(left=0.04, right=0.96, bottom=0.06, top=0.76, wspace=0.45)
-        fig.savefig(folder / "roundness.png", dpi=100)
-        written.append(("roundness.png", "Roundness profiles of the sections about their least-squares circles "
-                        "(dashed); the radial axis is the deviation in um, the same scale for every section."))
-        data["roundness_file"] = "roundness.png"
-
-    parameters = (report.get("identification") or {}).get("parameters") if isinstance(
-        report.get("identification"), dict) else None
-    if parameters:
-        names = [p["name"] for p in parameters]
-        values = [next((v for k, v in p.items() if k.startswith("value_")), None) for p in parameters]
-        stds = [next((v for k, v in p.items() if k.startswith("std_")), None) for p in parameters]
-        units = [next((k[6:] for k in p if k.startswith("value_")), "") for p in parameters]
+        name = "roundness.png"
+        caption = ("Roundness profiles of the sections about their least-squares circles (dashed); the radial axis is "
+                   "the deviation in um, the same scale for every section.")
+        data["roundness_file"] = name
+    elif kind == "identified":
+        names, values, stds, units = inputs["names"], inputs["values"], inputs["stds"], inputs["units"]
         fig = Figure(figsize=(max(5.0, 0.6 * len(names) + 2), 4))
         ax = fig.subplots()
         x = np.arange(len(names))
@@ -597,30 +663,60 @@ def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]
         ax.set_ylabel("identified value (um or urad)")
         ax.set_title("Identified parameters, error bars +-2 std")
         fig.subplots_adjust(left=0.12, right=0.97, bottom=0.2, top=0.9)
-        fig.savefig(folder / "identified.png", dpi=100)
-        written.append(("identified.png", "Identified twin parameters with +-2 standard deviations."))
-        data["identified"] = {"file": "identified.png", "names": names, "values": values, "std": stds,
-                              "units": units}
-        components = _component_tables(names, values, stds, units)
-        if components:
-            fig = Figure(figsize=(5.0 * min(len(components), 3), 3.6 * math.ceil(len(components) / 3)))
-            axes = np.atleast_1d(fig.subplots(math.ceil(len(components) / 3), min(len(components), 3))).ravel()
-            for ax, (component, table) in zip(axes, components.items()):
-                ax.errorbar(table["position"], table["value"], yerr=2 * np.asarray(table["std"]), marker="o",
-                            capsize=3, color="C3")
-                ax.axhline(0, color="k", lw=0.6)
-                ax.set_title(component, fontsize=10)
-                ax.set_xlabel(f"{component[-1]} position ({'deg' if component[-1] in 'ABC' else 'mm'})")
-                ax.set_ylabel(f"error ({table['unit']})")
-            for ax in axes[len(components):]:
-                ax.set_visible(False)
-            fig.subplots_adjust(left=0.08, right=0.97, bottom=0.15, top=0.8, wspace=0.35, hspace=0.6)
-            fig.suptitle("Identified component errors against the axis position, error bars +-2 std", fontsize=10)
-            fig.savefig(folder / "components.png", dpi=100)
-            written.append(("components.png", "Identified component errors (tables of values at axis positions) "
-                            "against the position of their axis, with +-2 standard deviations."))
-            data["components"] = {"file": "components.png", **components}
+        name, caption = "identified.png", "Identified twin parameters with +-2 standard deviations."
+        data["identified"] = {"file": name, "names": names, "values": values, "std": stds, "units": units}
+    elif kind == "components":
+        components = inputs["components"]
+        fig = Figure(figsize=(5.0 * min(len(components), 3), 3.6 * math.ceil(len(components) / 3)))
+        axes = np.atleast_1d(fig.subplots(math.ceil(len(components) / 3), min(len(components), 3))).ravel()
+        for ax, (component, table) in zip(axes, components.items()):
+            ax.errorbar(table["position"], table["value"], yerr=2 * np.asarray(table["std"]), marker="o",
+                        capsize=3, color="C3")
+            ax.axhline(0, color="k", lw=0.6)
+            ax.set_title(component, fontsize=10)
+            ax.set_xlabel(f"{component[-1]} position ({'deg' if component[-1] in 'ABC' else 'mm'})")
+            ax.set_ylabel(f"error ({table['unit']})")
+        for ax in axes[len(components):]:
+            ax.set_visible(False)
+        fig.subplots_adjust(left=0.08, right=0.97, bottom=0.15, top=0.8, wspace=0.35, hspace=0.6)
+        fig.suptitle("Identified component errors against the axis position, error bars +-2 std", fontsize=10)
+        name = "components.png"
+        caption = ("Identified component errors (tables of values at axis positions) against the position of their "
+                   "axis, with +-2 standard deviations.")
+        data["components"] = {"file": name, **components}
+    else:
+        raise ValueError(f"unknown figure kind {kind!r}")
+    # fixed layouts, no tight bounding box: each figure is drawn once (a tight layout draws it twice)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100)
+    return name, buffer.getvalue(), caption, data
+
+
+def _figure_inputs(inspection: Inspection, worker=None) -> list[dict]:
+    """The inputs of every picture of the report, less those ``inspect_cloud`` sent to ``worker`` already."""
+    fig_data = inspection.figures
+    if worker is not None and fig_data.get("sent") is worker:
+        inputs = []
+    else:
+        inputs = _deviation_figure_inputs(inspection.report["part"], inspection.part, fig_data["points"],
+                                          fig_data["deviation_um"])
+    return inputs + _feature_figure_inputs(inspection)
+
+
+def _save_figures(drawn: list, folder: Path) -> tuple[list[tuple[str, str]], dict]:
+    """Write the drawn pictures (``draw_figure``'s results) into ``folder``; returns ([(file name, caption)], the
+    plotted data for report.json)."""
+    written, data = [], {}
+    for name, png, caption, entries in drawn:
+        (folder / name).write_bytes(png)
+        written.append((name, caption))
+        data.update(entries)
     return written, data
+
+
+def _figures(inspection: Inspection, folder: Path) -> tuple[list[tuple[str, str]], dict]:
+    """Draw the pictures here and write the PNGs into ``folder`` (see ``_save_figures``)."""
+    return _save_figures([draw_figure(item) for item in _figure_inputs(inspection)], folder)
 
 
 def _component_tables(names, values, stds, units) -> dict:
@@ -863,12 +959,14 @@ def _write_point_files(inspection: Inspection, folder: Path) -> None:
     write_deviation_csv(folder / "deviations.csv", inspection.aligned, inspection.deviation_um, (names, codes))
 
 
-def write_report(inspection: Inspection, out_dir) -> Path:
+def write_report(inspection: Inspection, out_dir, figure_worker=None) -> Path:
     """Write ``out_dir/report.json``, ``report.html``, the PNGs and the per-point deviations (``deviations.ply``,
     ``deviations.csv``), all or nothing.
 
     The folder is built as a temporary sibling and renamed into place; an existing ``out_dir`` (a previous report)
-    is moved aside first and removed once the new one is in place. Returns the folder.
+    is moved aside first and removed once the new one is in place. Returns the folder. figure_worker : a
+    ``FigureWorker`` (the one given to :func:`inspect_cloud`, if any): the pictures are drawn there while this
+    process writes the point files; None: drawn here, the point files written by a thread meanwhile.
     """
     try:
         out = resolve_output(out_dir, folder=True)  # a link to a folder: the folder it names
@@ -879,11 +977,17 @@ def write_report(inspection: Inspection, out_dir) -> Path:
     temp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
     try:
         report = _clean(inspection.report)
-        # the point files (numpy formatting, which releases the GIL) are written while matplotlib draws
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            points_written = pool.submit(_write_point_files, inspection, temp)
-            images, figure_data = _figures(inspection, temp)
-            points_written.result()  # re-raises its error, if any
+        if figure_worker is not None:
+            for item in _figure_inputs(inspection, figure_worker):
+                figure_worker.submit(item)
+            _write_point_files(inspection, temp)  # while the worker draws
+            images, figure_data = _save_figures(figure_worker.results(), temp)
+        else:
+            # the point files (numpy formatting, which releases the GIL) are written while matplotlib draws
+            with ThreadPoolExecutor(max_workers=1) as pool:
+                points_written = pool.submit(_write_point_files, inspection, temp)
+                images, figure_data = _figures(inspection, temp)
+                points_written.result()  # re-raises its error, if any
         report["figures"] = _clean(figure_data)
         report["files"] = ["report.json", "report.html", "deviations.ply", "deviations.csv"] + \
             [name for name, _ in images]
