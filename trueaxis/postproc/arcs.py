@@ -82,6 +82,7 @@ class ArcFitter:
         # themselves are modelled as written)
         self.tol_mm = max(poster.tol_mm - 1e-3 * WRITE_ROUNDING_UM, poster.tol_mm / 2)
         self.max_deviation_um = 0.0
+        self.sub_arcs_linearised = 0  # sub-arcs that did not hold at the deepest bisection: straight pieces
 
     # --- rounding as written ------------------------------------------------------------------------------------
     def _round(self, xyz, inch):
@@ -123,7 +124,7 @@ class ArcFitter:
         pb[last] = end_cmd[owner[last]]
         pb[~last] = pa[np.nonzero(~last)[0] + 1]
         done_t, done_end, done_centre, done_owner = [], [], [], []
-        failed = np.zeros(arc_idx.size, bool)
+        failed = np.zeros(arc_idx.size, bool)  # (kept for arcs that cannot be fitted at all)
         for depth in range(MAX_DEPTH + 1):
             if owner.size == 0:
                 break
@@ -135,7 +136,13 @@ class ArcFitter:
             done_owner.append(owner[ok])
             bad = ~ok & ~failed[owner]
             if depth == MAX_DEPTH:
-                failed[owner[bad]] = True
+                if np.any(bad):  # the sub-arcs that still do not hold: straight pieces
+                    o, t0, ends = self._lines(rows, arc_idx, owner[bad], ta[bad], tb[bad], pb[bad], force)
+                    done_t.append(t0)
+                    done_end.append(ends)
+                    done_centre.append(np.full((len(t0), 3), np.nan))  # no centre: a straight piece
+                    done_owner.append(o)
+                    self.sub_arcs_linearised += int(bad.sum())
                 break
             # bisect: the mid-point's corrected position is solved
             o, a, b, A, B = owner[bad], ta[bad], tb[bad], pa[bad], pb[bad]
@@ -158,6 +165,30 @@ class ArcFitter:
             if hi > lo:
                 out[int(arc_idx[owner[lo]])] = (ends[lo:hi], centres[lo:hi])
         return out, arc_idx[failed]
+
+    def _lines(self, rows, arc_idx, owner, ta, tb, pb, force):
+        """Straight pieces in place of the sub-arcs [ta, tb] of ``arc_idx[owner]`` that do not hold as arcs, as the
+        post linearises a whole arc: enough that the chord's sagitta stays within half the tolerance, the correction
+        followed point by point. Returns (owner, start fraction, end point (6,)) per piece, the sub-arc's own end
+        ``pb`` last."""
+        from .post import _arcs_geometry
+
+        p = self.p
+        r = rows[arc_idx][owner]
+        _, _, _, _, sweep, rad0, rad1 = _arcs_geometry(p, r)
+        radius = np.maximum(rad0, rad1) * np.where(p.inch[r], MM_PER_INCH, 1.0)
+        step = 2 * np.arccos(np.maximum(0.0, 1 - (self.ps.tol_mm / 2) / np.maximum(radius, 1e-9)))
+        n = np.maximum(2, np.ceil(sweep * (tb - ta) / step)).astype(int)
+        po = np.repeat(np.arange(owner.size), n)
+        j = np.arange(po.size) - np.repeat(np.cumsum(n) - n, n)
+        t0 = ta[po] + (tb - ta)[po] * j / n[po]
+        t1 = ta[po] + (tb - ta)[po] * (j + 1) / n[po]
+        last = j == n[po] - 1
+        ends = np.empty((po.size, 6))
+        ends[last] = pb[po[last]]
+        if np.any(~last):
+            ends[~last] = self._corrected(rows, arc_idx, owner[po[~last]], t1[~last], force)
+        return owner[po], t0, ends
 
     def _corrected(self, rows, arc_idx, owner, t, force):
         """(K, 6) corrected (commanded) program-coordinate points of the arcs ``arc_idx[owner]`` at fractions t."""

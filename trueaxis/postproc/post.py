@@ -122,6 +122,7 @@ class PostReport:
     arcs_fitted: int = 0  # arcs written as G2/G3 blocks fitted to the corrected path (.arcs)
     arc_blocks_fitted: int = 0  # the blocks they became
     max_arc_deviation_um: float = 0.0  # the fitted arcs' largest distance from the nominal arc, through the twin
+    sub_arcs_linearised: int = 0  # sub-arcs of fitted arcs that did not hold as arcs: straight pieces
     singular_blocks: list = field(default_factory=list)
     singular_block_count: int = 0
     singular_points: int = 0
@@ -1018,6 +1019,7 @@ class _Poster:
         self.rep.arcs_fitted += len(fitted)
         self.rep.arc_blocks_fitted += sum(len(v[0]) for v in fitted.values())
         self.rep.max_arc_deviation_um = max(self.rep.max_arc_deviation_um, fitter.max_deviation_um)
+        self.rep.sub_arcs_linearised += fitter.sub_arcs_linearised
         return fitted, np.sort(np.r_[arc_idx[~ok], failed]).astype(int)
 
     def _solve_arc_points(self, rows, arc_idx, owner, pts6, force):
@@ -1123,6 +1125,8 @@ class _Poster:
                     motion = FEED
                 centres = self.arc_centres.get(r) if arc_mode.get(k) == "fit" else None
                 arc_start = last_written
+                if centres is not None and np.isnan(centres[0, 0]):  # a fitted arc's first piece is straight
+                    motion = FEED
                 # G93: each piece takes its share of the block's time (the control interpolates the axes linearly
                 # in time, so a piece over the fraction df of the move takes df of it): inverse time F / df.
                 piece_f = p.feed[r] / np.diff(self.fractions.get(r, np.linspace(0.0, 1.0, n + 1)))
@@ -1140,7 +1144,7 @@ class _Poster:
                 words = [axis_words[a][j - window[0]] for a in axes_out]
             if arc_kept and not r_form_l[r]:
                 words += self._centre_words(r, delta_prog[k], last_written, fmt)
-            if split and centres is not None:  # a fitted arc: its first sub-arc, centre words as I J / I K / J K
+            if split and centres is not None and not np.isnan(centres[0, 0]):  # a fitted arc: its first sub-arc
                 words += self._fit_centre_words(r, centres[0], arc_start, fmt)
             texts = [self._rewrite_motion(body, motion, words, arc_kept, r, sep), ending]
             word = "G0" if motion == RAPID else "G1"
@@ -1148,8 +1152,10 @@ class _Poster:
                 if inc:
                     piece = [word] + [fmt(a, _out_value(pts[i_piece], last_written, a, inc)) for a in axes_out]
                     last_written = pts[i_piece]
+                elif centres is not None and np.isnan(centres[i_piece, 0]):  # a sub-arc that did not hold
+                    piece = ["G1"] + [piece_words[a][o + i_piece] for a in axes_out]
                 elif centres is not None:
-                    piece = [_motion_text("G1", motion)] + [piece_words[a][o + i_piece] for a in axes_out]
+                    piece = [_motion_text("G1", p.motion[r])] + [piece_words[a][o + i_piece] for a in axes_out]
                     piece += self._fit_centre_words(r, centres[i_piece], pts[i_piece - 1], fmt)
                 else:
                     piece = [word] + [piece_words[a][o + i_piece] for a in axes_out]
