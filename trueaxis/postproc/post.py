@@ -1280,7 +1280,9 @@ class _Poster:
         p = self.p
         inch = bool(p.inch[r])
         if p.arc_incremental[r]:
-            dec = np.array([_Numbers(p.format_info).decimals(a, inch) for a in "XYZ"])
+            if not hasattr(self, "_fit_numbers"):
+                self._fit_numbers = _Numbers(p.format_info)
+            dec = np.array([self._fit_numbers.decimals(a, inch) for a in "XYZ"])
             written = np.round(np.asarray(start[:3], float) * 10.0**dec) / 10.0**dec
             centre = centre - written
         plane = int(p.arc_plane[r])
