@@ -14,8 +14,9 @@ lies on the nominal arc. Where the machine's errors vary along the arc, that pat
 3. The sub-arc as the controller will interpolate it, from the written (rounded) numbers, is sampled densely (every
    0.5 mm, 8 to 64 intervals), put through the twin (actual tool tip at each commanded point), and its distance to the
    nominal arc (a helix, in the part frame) is measured. Within the tolerance: kept. Otherwise the sub-arc is bisected
-   (its mid-point's corrected position solved) and both halves fitted again, down to ``MAX_DEPTH`` levels; an arc a
-   sub-arc of which still does not hold becomes straight pieces, as before.
+   (its mid-point's corrected position solved) and both halves fitted again, down to ``MAX_DEPTH`` levels; a sub-arc
+   that still does not hold becomes straight pieces (as the post linearises an arc: chords within half the tolerance
+   of the corrected path), the rest of its arc stays G2/G3.
 
 The controller's interpolation (LinuxCNC: ``pmCircleInit`` / ``pmCirclePoint``): the centre from the start and the
 centre words (incremental, G91.1, or absolute, G90.1), the radius from the centre to the start, changing linearly with
@@ -26,7 +27,9 @@ a radius below 0.00127 mm (0.00005 in) is a zero-radius arc. A fitted sub-arc's 
 tolerance a configuration may set (``MIN_CENTER_ARC_RADIUS_TOLERANCE``: 0.001 mm, 0.00004 in), so any setting takes it.
 
 Only three-axis motion is fitted (no rotary word in the program), in the absolute mode (G90), without inverse time
-(G93) and from a start written by the block before (not a canned cycle's); other arcs take the straight pieces."""
+(G93) and from a start written by the block before (not a canned cycle's); other arcs take the straight pieces.
+In comprehensive mode the block before ends on its own load, the arc starts on its own: the step between them stays
+(as it does for straight pieces), so the first sub-arc of such an arc may end as straight pieces."""
 
 from __future__ import annotations
 
