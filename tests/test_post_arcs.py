@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from rs274_helpers import parse_canon, run_rs274
+from rs274_helpers import run_rs274
 from trueaxis.machine import ErrorTwin, load_machine
 from trueaxis.postproc.gcode import parse_program
 from trueaxis.postproc.post import post_text
@@ -42,7 +42,6 @@ def _path_points(moves, start, step):
     points in a list (arcs as LinuxCNC's motion interpolates them: pmCirclePoint)."""
     out = []
     p0 = np.asarray(start, float)
-    plane_of = {}
     for kind, end, centre, turn in zip(moves.kind, moves.end, moves.center, moves.rotation):
         e = end[:3]
         if kind == "arc":
@@ -68,7 +67,6 @@ def _path_points(moves, start, step):
             pts[:, a] = c[a] + rad * np.cos(th0 + sweep * u)
             pts[:, b] = c[b] + rad * np.sin(th0 + sweep * u)
             pts[:, n] = p0[n] + u * (e[n] - p0[n])
-            plane_of[len(out)] = (a, b, n)
         else:
             u = np.linspace(0.0, 1.0, int(np.ceil(np.linalg.norm(e - p0) / step)) + 2)
             pts = p0 + u[:, None] * (e - p0)

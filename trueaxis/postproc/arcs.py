@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .gcode import ARC_CCW, MM_PER_INCH
+from .gcode import ARC_CCW, MM_PER_INCH, ROW_CYCLE
 
 MAX_DEPTH = 6  # bisections of a sub-arc that does not hold before its arc becomes straight pieces
 FIT_POINTS = 8  # interior corrected points a sub-arc's centre is fitted to
@@ -349,3 +349,64 @@ class ArcFitter:
         z_nom = (e_n - s_n) * frac  # from the start's (the frame's origin) height
         scale = np.linalg.norm(axes[0], axis=1)  # mm per program unit
         return np.hypot(rho - r_nom, z - z_nom) * scale
+
+
+# ------------------------------------------------------------------------------------- the post's hooks -----
+
+
+def written_start(poster, rows, arc_idx, delta_prog):
+    """(A, 6) the end the block before each arc ``rows[arc_idx]`` writes (program coordinates), and (A,) bool:
+    known (the row before is a compensated move, not a canned cycle, in this chunk or the one before)."""
+    p = poster.p
+    r = rows[arc_idx]
+    row_before, end_before = poster._end_before_chunk  # a chunk's first move starts where the chunk before ends
+    known = np.where(arc_idx > 0, rows[np.maximum(arc_idx - 1, 0)] == r - 1, r - 1 == row_before)
+    known &= p.kind[np.maximum(r - 1, 0)] != ROW_CYCLE
+    start = p.end[rows[np.maximum(arc_idx - 1, 0)]] + delta_prog[np.maximum(arc_idx - 1, 0)]
+    if arc_idx.size and arc_idx[0] == 0 and end_before is not None:
+        start[0] = end_before
+    return start, known
+
+
+def full_turns_close(poster, rows, arc_idx, delta_prog):
+    """(A,) bool: the arc is no full turn, or its written start and end coincide in its plane (a control reads an
+    end a digit off the start as a short arc, not a circle: LinuxCNC's pmCircleInit)."""
+    from .post import _Numbers
+
+    p = poster.p
+    r = rows[arc_idx]
+    ii, jj = (np.select([p.arc_plane[r] == 17, p.arc_plane[r] == 18], [a, b], c) for a, b, c in ((0, 2, 1),
+                                                                                                 (1, 0, 2)))
+    k = np.arange(r.size)
+    full = (p.start[r, ii] == p.end[r, ii]) & (p.start[r, jj] == p.end[r, jj])
+    if not np.any(full):
+        return np.ones(r.size, bool)
+    start, known = written_start(poster, rows, arc_idx, delta_prog)
+    end = p.end[r] + delta_prog[arc_idx]
+    numbers = _Numbers(p.format_info)
+    same = known.copy()
+    for col in (ii, jj):
+        dec = np.array([numbers.decimals("XYZ"[c], bool(i)) for c, i in zip(col, p.inch[r])])
+        same &= np.round(start[k, col] * 10.0**dec) == np.round(end[k, col] * 10.0**dec)
+    return ~full | same
+
+
+def fit_arcs(poster, rows, arc_idx, force, delta_prog):
+    """Arcs fitted to their corrected path (``.arcs``): ({k: (ends (n, 6), centres (n, 3))}, the indices k
+    left to straight pieces). Fitted are three-axis arcs in G90 without G93 whose start the row before writes."""
+    p = poster.p
+    r = rows[arc_idx]
+    start, known = written_start(poster, rows, arc_idx, delta_prog)
+    ok = known & ~p.incremental[r] & ~p.inverse_time[r] & ~p.diameter[r] & (not poster.orientation)
+    if not np.any(ok):
+        return {}, arc_idx
+    idx = arc_idx[ok]
+    start_cmd = start[ok]
+    end_cmd = p.end[rows[idx]] + delta_prog[idx]
+    fitter = ArcFitter(poster)
+    fitted, failed = fitter.fit(rows, idx, start_cmd, end_cmd, force)
+    poster.rep.arcs_fitted += len(fitted)
+    poster.rep.arc_blocks_fitted += sum(len(v[0]) for v in fitted.values())
+    poster.rep.max_arc_deviation_um = max(poster.rep.max_arc_deviation_um, fitter.max_deviation_um)
+    poster.rep.sub_arcs_linearised += fitter.sub_arcs_linearised
+    return fitted, np.sort(np.r_[arc_idx[~ok], failed]).astype(int)

@@ -55,6 +55,7 @@ from .gcode import (
     write_number,
 )
 from . import fast_write
+from .arcs import fit_arcs, full_turns_close
 from .solver import corrected_directions, solve_commanded
 
 MODES = ("none", "geometric", "comprehensive")
@@ -913,7 +914,8 @@ class _Poster:
         return out
 
     def _arcs(self, rows, arc_idx, q_start, q_end, force, inch, delta_prog):
-        """Arcs whose correction is constant within tolerance stay arcs; others become straight pieces.
+        """Arcs whose correction is constant within tolerance stay arcs; others are fitted (``.arcs``, where
+        ``fit_arcs``) or become straight pieces.
 
         All arcs are sampled and solved together (one Newton solve per stage, not per arc)."""
         p = self.p
@@ -936,14 +938,14 @@ class _Poster:
         kept = spread <= self.tol_mm / 2
         # A full turn is kept only where its written start and end coincide: a control reads an end a digit off the
         # start as a short arc (or a turn less one), not a full circle (LinuxCNC's pmCircleInit).
-        kept &= self._full_turns_close(rows, arc_idx, delta_prog)
+        kept &= full_turns_close(self, rows, arc_idx, delta_prog)
         kept &= self.tcp is None  # TCP: the control turns an arc's plane with the table; straight pieces only
         for i in arc_idx[kept]:
             modes[int(i)] = "arc"
         self.rep.arcs_kept += int(kept.sum())
         lin = arc_idx[~kept]
         if self.fit_arcs and lin.size:
-            fitted, lin = self._fit_arcs(rows, lin, force, delta_prog)
+            fitted, lin = fit_arcs(self, rows, lin, force, delta_prog)
             for k, (ends, centres) in fitted.items():
                 out[k], modes[k] = ends, "fit"
                 self.arc_centres[int(rows[k])] = centres
@@ -967,60 +969,6 @@ class _Poster:
             modes[int(i)] = "lines"
         self.rep.arcs_linearised += int(lin.size)
         return out, modes
-
-    def _written_start(self, rows, arc_idx, delta_prog):
-        """(A, 6) the end the block before each arc ``rows[arc_idx]`` writes (program coordinates), and (A,) bool:
-        known (the row before is a compensated move, not a canned cycle, in this chunk or the one before)."""
-        p = self.p
-        r = rows[arc_idx]
-        row_before, end_before = self._end_before_chunk  # a chunk's first move starts where the chunk before ends
-        known = np.where(arc_idx > 0, rows[np.maximum(arc_idx - 1, 0)] == r - 1, r - 1 == row_before)
-        known &= p.kind[np.maximum(r - 1, 0)] != ROW_CYCLE
-        start = p.end[rows[np.maximum(arc_idx - 1, 0)]] + delta_prog[np.maximum(arc_idx - 1, 0)]
-        if arc_idx.size and arc_idx[0] == 0 and end_before is not None:
-            start[0] = end_before
-        return start, known
-
-    def _full_turns_close(self, rows, arc_idx, delta_prog):
-        """(A,) bool: the arc is no full turn, or its written start and end coincide in its plane."""
-        p = self.p
-        r = rows[arc_idx]
-        ii, jj = (np.select([p.arc_plane[r] == 17, p.arc_plane[r] == 18], [a, b], c) for a, b, c in ((0, 2, 1),
-                                                                                                     (1, 0, 2)))
-        k = np.arange(r.size)
-        full = (p.start[r, ii] == p.end[r, ii]) & (p.start[r, jj] == p.end[r, jj])
-        if not np.any(full):
-            return np.ones(r.size, bool)
-        start, known = self._written_start(rows, arc_idx, delta_prog)
-        end = p.end[r] + delta_prog[arc_idx]
-        numbers = _Numbers(p.format_info)
-        same = known.copy()
-        for col in (ii, jj):
-            dec = np.array([numbers.decimals("XYZ"[c], bool(i)) for c, i in zip(col, p.inch[r])])
-            same &= np.round(start[k, col] * 10.0**dec) == np.round(end[k, col] * 10.0**dec)
-        return ~full | same
-
-    def _fit_arcs(self, rows, arc_idx, force, delta_prog):
-        """Arcs fitted to their corrected path (``.arcs``): ({k: (ends (n, 6), centres (n, 3))}, the indices k
-        left to straight pieces). Fitted are three-axis arcs in G90 without G93 whose start the row before writes."""
-        from .arcs import ArcFitter
-
-        p = self.p
-        r = rows[arc_idx]
-        start, known = self._written_start(rows, arc_idx, delta_prog)
-        ok = known & ~p.incremental[r] & ~p.inverse_time[r] & ~p.diameter[r] & (not self.orientation)
-        if not np.any(ok):
-            return {}, arc_idx
-        idx = arc_idx[ok]
-        start_cmd = start[ok]
-        end_cmd = p.end[rows[idx]] + delta_prog[idx]
-        fitter = ArcFitter(self)
-        fitted, failed = fitter.fit(rows, idx, start_cmd, end_cmd, force)
-        self.rep.arcs_fitted += len(fitted)
-        self.rep.arc_blocks_fitted += sum(len(v[0]) for v in fitted.values())
-        self.rep.max_arc_deviation_um = max(self.rep.max_arc_deviation_um, fitter.max_deviation_um)
-        self.rep.sub_arcs_linearised += fitter.sub_arcs_linearised
-        return fitted, np.sort(np.r_[arc_idx[~ok], failed]).astype(int)
 
     def _solve_arc_points(self, rows, arc_idx, owner, pts6, force):
         """Commanded and nominal machine poses (K, n_axes) for points ``pts6`` (K, 6) on the arcs ``arc_idx[owner]``."""
