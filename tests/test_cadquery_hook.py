@@ -89,3 +89,16 @@ def test_example_script_writes_its_files(tmp_path):
     assert module["main"](["-o", str(tmp_path)]) == 0
     for name in ("nas979.step", "nas979_contour.ngc", "nas979_contour_compensated.ngc"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_the_hook_takes_the_arcs_and_output_mode_keywords():
+    from trueaxis.machine import load_machine
+
+    machine = load_machine(ROOT / "fixtures" / "machines" / "xh714.toml")
+    program = (ROOT / "tests" / "data" / "post_arcs" / "inch_half_circle.ngc").read_text()
+    fitted = cq_host.compensate(program, machine, arcs=True, offsets_zero=True)
+    lines = cq_host.compensate(program, machine, arcs=False, offsets_zero=True)
+    assert cq_host.compensate(program, machine, offsets_zero=True) == fitted  # on by default on a three-axis mill
+    assert len(fitted.splitlines()) + 100 < len(lines.splitlines())
+    with pytest.raises(ValueError, match="five-axis"):
+        cq_host.compensate(program, machine, output_mode="tcp", offsets_zero=True)

@@ -290,6 +290,21 @@ def test_compensate_runs_the_command_and_returns_its_output(tmp_path, monkeypatc
     assert out == f"G0 X1\n(--machine {os.path.abspath('m.toml')} --mode none --tol-um 0.5 --max-correction-mm 0.2)\n"
 
 
+def test_arcs_and_output_mode_arguments_reach_the_command(tmp_path, monkeypatch):
+    post = load_post_module()
+    exe = stand_in(tmp_path, """
+        shutil.copyfile(args[1], args[3])
+        open(args[3], "a").write("(" + " ".join(args[4:]).replace("(", "") + ")\\n")
+    """)
+    monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+    for given, passed in (("", ""), (" --arcs", " --arcs"), (" --no-arcs", " --no-arcs"),
+                          (" --no-arcs --output-mode tcp", " --no-arcs --output-mode tcp")):
+        opts, rest = post.split_arguments("--machine m.toml" + given + " --precision 4")
+        assert rest == "--precision 4 --no-show-editor"
+        out = post.compensate("G0 X1\n", opts)
+        assert out.endswith(f"--mode geometric --tol-um 1{passed})\n"), out
+
+
 def test_a_refusal_names_the_block_and_the_reason(tmp_path, monkeypatch):
     post = load_post_module()
     exe = stand_in(tmp_path, """

@@ -233,10 +233,11 @@ M2
 
 
 def test_mm_program_read_back_by_rs274_lies_on_the_nominal_path_within_0_15_um(tmp_path, machine, files):
-    # rs274 prints 4 decimals of a mm: its own machine positions of the output are checked, not ours
+    # rs274 prints 4 decimals of a mm: its own machine positions of the output are checked, not ours. Arcs as
+    # straight pieces (--no-arcs): their ends are this test's sample of the path (fitted arcs: the test below)
     setup = _setup(files)
     report = {}
-    out = compensate(MM_PROGRAM, machine, "geometric", setup=setup, report=report)
+    out = compensate(MM_PROGRAM, machine, "geometric", setup=setup, report=report, arcs=False)
     path = tmp_path / "out.ngc"
     path.write_text(out)
     theirs = run_rs274_setup(path, *files, tmp_path / "rs274")
@@ -260,6 +261,33 @@ def test_mm_program_read_back_by_rs274_lies_on_the_nominal_path_within_0_15_um(t
     assert header[2] == f"(trueaxis setup: tool 1 offset Z63.5 mm by G43 H1, from {files[1]}:1)"
     assert header[3] == f"(trueaxis setup: G55 X38.1 Y-31.75 Z-165.1 R25 mm, deg, from {files[0]}:5241-5246,5250)"
     assert header[4] == f"(trueaxis setup: tool 2 offset X0.254 Z79.375 mm by G43 H2, from {files[1]}:2)"
+
+
+def test_fitted_arcs_under_work_offsets_and_a_rotated_system_lie_on_the_nominal_path(tmp_path, machine, files):
+    # The same program with its arcs fitted (the default on a three-axis mill): G54, tool lengths, and the G55 system
+    # turned by R25 with a full circle. rs274 reads it and ends where we do; the written arcs, sampled along their
+    # length and put through the twin in machine coordinates, stay within the tolerance (1 um) of the nominal path.
+    from post_checks import points_on_arc
+
+    setup = _setup(files)
+    report = {}
+    out = compensate(MM_PROGRAM, machine, "geometric", setup=setup, report=report)
+    assert report["arcs_fitted"] >= 1
+    path = tmp_path / "out.ngc"
+    path.write_text(out)
+    theirs = run_rs274_setup(path, *files, tmp_path / "rs274")
+    assert theirs.returncode == 0, theirs.stderr
+    out_prog = parse_program(out, setup=setup)
+    assert len(theirs.kind) == len(out_prog)
+    mach = out_prog.to_machine(out_prog.end)
+    np.testing.assert_allclose(theirs.end[:, :3], mach[:, :3], atol=2e-4)
+    twin = ErrorTwin(machine)
+    nominal = nominal_polyline(parse_program(MM_PROGRAM, setup=setup), machine, arc_points=4000)
+    arcs = np.nonzero(np.isin(out_prog.motion, (2, 3)))[0]
+    assert arcs.size > 4  # fitted sub-arcs
+    pts = np.vstack([out_prog.to_machine(points_on_arc(out_prog, int(r), 200), np.full(201, r)) for r in arcs])
+    d_um = distance_to_polyline(twin.actual_pose(pts[:, :3])[0], nominal) * 1e3
+    assert d_um.max() <= 1.0 + 0.03, d_um.max()
 
 
 # --- refusals ------------------------------------------------------------------------------------------------------

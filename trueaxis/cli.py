@@ -173,7 +173,8 @@ def cmd_post(args) -> int:
     out, report = post_text(text, machine, args.mode, tol_um=args.tol_um, max_correction_mm=args.max_correction_mm,
                             singular_deg=args.singular_deg, conditions=conditions,
                             passthrough_unsupported=args.passthrough_unsupported, source=source,
-                            cl_feed_mm_min=args.cl_feed, cl_branch=branch, setup=setup, force=args.force)
+                            cl_feed_mm_min=args.cl_feed, cl_branch=branch, setup=setup, force=args.force,
+                            arcs=args.arcs, output_mode=args.output_mode)
     for warning in report.warnings:  # each 'file:line: message'
         print(warning, file=sys.stderr)
     if args.strict and report.warnings:
@@ -434,6 +435,14 @@ def build_parser() -> argparse.ArgumentParser:
                          "each one a warning on stderr)")
     po.add_argument("--strict", action="store_true",
                     help="every warning is an error: exit 3, nothing written")
+    po.add_argument("--output-mode", choices=["joint", "tcp"], default=None,
+                    help="joint: the commanded joints (a control in joint mode); tcp: tool-centre-point positions for "
+                         "a control running its nominal table-table kinematics (LinuxCNC xyzbc/xyzac-trt-kins, G43.4; "
+                         "docs/linuxcnc.md); default: the machine file's [kinematics] output_mode, else joint")
+    po.add_argument("--arcs", action=argparse.BooleanOptionalAction, default=None,
+                    help="arcs whose correction varies along them: written as G2/G3 blocks fitted to the corrected "
+                         "path (checked through the twin within --tol-um, bisected where needed), or (--no-arcs) as "
+                         "straight pieces; default: on for a three-axis mill, off for five-axis machines and lathes")
     for key, what in (("ap", "axial depth, mm"), ("ae", "radial engagement, mm"), ("fz", "feed per tooth, mm"),
                       ("n", "spindle speed, rpm"), ("d", "tool diameter, mm"), ("z", "flutes")):
         po.add_argument(f"--{key}", type=POSITIVE if key != "z" else _number(int, low=1), help=f"cutting conditions: {what} "

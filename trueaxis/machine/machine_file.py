@@ -163,6 +163,16 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
         ck.fail("kinematics.rotary_sense", f"expected one of {', '.join(map(repr, ROTARY_SENSES))}, got "
                 f"{rotary_sense!r}")
         rotary_sense = "iso"
+    kin = data.get("kinematics", {}) if isinstance(data.get("kinematics"), dict) else {}
+    output_mode = kin.get("output_mode", "joint")
+    if output_mode not in OUTPUT_MODES:
+        ck.fail("kinematics.output_mode", f"expected one of {', '.join(map(repr, OUTPUT_MODES))}, got "
+                f"{output_mode!r}")
+        output_mode = "joint"
+    tcp_code = kin.get("tcp_code", "G43.4")
+    if tcp_code not in TCP_CODES:
+        ck.fail("kinematics.tcp_code", f"expected one of {', '.join(map(repr, TCP_CODES))}, got {tcp_code!r}")
+        tcp_code = "G43.4"
     axes = {a: Axis(**{**ax.__dict__, "branch": "workpiece" if a in wp else "tool"}) for a, ax in axes.items()}
 
     t = ck.table(
@@ -240,6 +250,8 @@ def _read(data, ck: _Checker, source: str) -> Machine | None:
         source=source,
         setup=setup,
         rotary_sense=rotary_sense,
+        output_mode=output_mode,
+        tcp_code=tcp_code,
     )
 
 
@@ -285,10 +297,12 @@ def _read_axes(data, ck: _Checker) -> dict[str, Axis]:
 
 
 ROTARY_SENSES = ("iso", "linuxcnc-trt")
+OUTPUT_MODES = ("joint", "tcp")  # what the post writes: joints, or tool-centre-point positions (postproc.tcp)
+TCP_CODES = ("G43.4", "G43")  # the code written in place of the program's G43 in TCP output
 
 
 def _read_kinematics(data, axes, ck: _Checker):
-    k = ck.table(data, "kinematics", {"bed_to_workpiece", "bed_to_tool", "rotary_sense"},
+    k = ck.table(data, "kinematics", {"bed_to_workpiece", "bed_to_tool", "rotary_sense", "output_mode", "tcp_code"},
                  ("bed_to_workpiece", "bed_to_tool"))
     branches = []
     for key in ("bed_to_workpiece", "bed_to_tool"):
@@ -497,6 +511,10 @@ def dump_machine(machine: Machine) -> str:
             f"bed_to_tool = {_toml_list(machine.bed_to_tool)}"]
     if machine.rotary_sense != "iso":
         out.append(f"rotary_sense = {_toml_str(machine.rotary_sense)}")
+    if machine.output_mode != "joint":
+        out.append(f"output_mode = {_toml_str(machine.output_mode)}")
+    if machine.tcp_code != "G43.4":
+        out.append(f"tcp_code = {_toml_str(machine.tcp_code)}")
     out += ["", "[axes]"]
     for name in machine.axis_names:
         ax = machine.axes[name]

@@ -133,6 +133,12 @@ class Machine:
     # relative to the workpiece, right-handed) or "linuxcnc-trt" (LinuxCNC's xyzbc/xyzac-trt-kins: the table turns
     # right-handed, so a word is the negative of the model's angle). Only programs' words change, nothing else.
     rotary_sense: str = "iso"
+    # What the post writes ([kinematics] output_mode): "joint" (the commanded joints, for a control in joint mode) or
+    # "tcp" (tool-centre-point positions for a control that runs its nominal table-table kinematics; see
+    # postproc.tcp), and the code that switches the control's TCP on in place of the program's G43 ([kinematics]
+    # tcp_code: "G43.4" Fanuc-style; "G43" for LinuxCNC's xyzbc/xyzac-trt-kins, whose kinematics are the TCP).
+    output_mode: str = "joint"
+    tcp_code: str = "G43.4"
 
     def word_signs6(self) -> np.ndarray:
         """(6,) the signs of :meth:`word_signs` over the columns X Y Z A B C (1 for axes the machine lacks)."""

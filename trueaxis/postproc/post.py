@@ -55,6 +55,7 @@ from ..nc.gcode import (
     write_number,
 )
 from ..nc import fast_write
+from .arcs import fit_arcs, full_turns_close
 from .solver import corrected_directions, solve_commanded
 
 MODES = ("none", "geometric", "comprehensive")
@@ -112,12 +113,17 @@ class PostReport:
     machine: str
     mode: str
     tol_um: float
+    output_mode: str = "joint"  # joint positions, or tool-centre-point positions (.tcp)
     blocks_in: int = 0
     blocks_out: int = 0
     moves: int = 0
     moves_split: int = 0
     arcs_kept: int = 0
     arcs_linearised: int = 0
+    arcs_fitted: int = 0  # arcs written as G2/G3 blocks fitted to the corrected path (.arcs)
+    arc_blocks_fitted: int = 0  # the blocks they became
+    max_arc_deviation_um: float = 0.0  # the fitted arcs' largest distance from the nominal arc, through the twin
+    sub_arcs_linearised: int = 0  # sub-arcs of fitted arcs that did not hold as arcs: straight pieces
     singular_blocks: list = field(default_factory=list)
     singular_block_count: int = 0
     singular_points: int = 0
@@ -165,6 +171,8 @@ def compensate(
     offsets_zero: bool = False,
     header: bool = True,
     force: bool = False,
+    arcs: bool | None = None,
+    output_mode: str | None = None,
 ) -> str:
     """Compensated program text. ``program``: G-code text, CL data (CSV or APT, see ``cl``) or a path.
     ``report``: a dict to fill with the report.
@@ -173,7 +181,11 @@ def compensate(
     ``machine_units``; ``setup`` a setup file (path) or a :class:`~trueaxis.nc.setup.Setup`; none of them: the
     machine file's default setup, if it names one. ``offsets_zero``: work offsets, G92 shifts and tool lengths that
     none of them gives are zero (without it a program that uses one is refused). ``header``: put the comment naming
-    the machine, mode and setup at the top of the output."""
+    the machine, mode and setup at the top of the output. ``arcs``: arcs the post cannot keep as they are become
+    G2/G3 blocks fitted to the corrected path where they hold the tolerance (``.arcs``), else straight pieces;
+    None: on for a three-axis mill, off for five-axis machines and lathes (``arcs_default``). ``output_mode``: "joint"
+    (the commanded joints) or "tcp" (their nominal forward kinematics in the control's tool-centre-point frame,
+    ``.tcp``); None: the machine file's ``[kinematics] output_mode`` (default joint)."""
     text, source = _read_input(program, source)
     the_setup = resolve_setup(machine, setup=setup, var=var, tool_table=tool_table, machine_units=machine_units,
                               offsets_zero=offsets_zero)
@@ -181,7 +193,7 @@ def compensate(
                          singular_deg=singular_deg, conditions=conditions,
                          passthrough_unsupported=passthrough_unsupported, source=source,
                          cl_feed_mm_min=cl_feed_mm_min, cl_branch=cl_branch, setup=the_setup, header=header,
-                         force=force)
+                         force=force, arcs=arcs, output_mode=output_mode)
     if report is not None:
         report.update(rep.as_dict())
     return out
@@ -224,7 +236,8 @@ def _read_input(program, source):
 def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: float = 1.0,
               max_correction_mm: float = 0.5, singular_deg: float = 1.0, conditions: dict | None = None,
               passthrough_unsupported: bool = False, source: str = "<string>", cl_feed_mm_min: float | None = None,
-              cl_branch="nearest", setup=None, header: bool = True, force: bool = False) -> tuple[str, PostReport]:
+              cl_branch="nearest", setup=None, header: bool = True, force: bool = False,
+              arcs: bool | None = None, output_mode: str | None = None) -> tuple[str, PostReport]:
     """Compensate program text (G-code or CL data, told apart by content); returns (text, report).
 
     CL data (``GOTO/`` lines, or a CSV header naming x,y,z,i,j,k) first become machine-axis G-code through the
@@ -247,12 +260,19 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
         raise ValueError(f"the largest correction allowed must be a finite number > 0, got {max_correction_mm} mm")
     if not (math.isfinite(singular_deg) and 0 <= singular_deg <= 90):
         raise ValueError(f"the singular tilt must be within [0, 90] deg, got {singular_deg}")
+    output_mode = output_mode or getattr(machine, "output_mode", "joint")
+    if output_mode != "joint":
+        from .tcp import OUTPUT_MODES, check_tcp_machine
+
+        if output_mode not in OUTPUT_MODES:
+            raise ValueError(f"output mode must be one of {', '.join(OUTPUT_MODES)}; got {output_mode!r}")
+        check_tcp_machine(machine)
     from ..nc.cl import cl_format
 
     if cl_format(text) is not None:
         out, rep = _post_cl(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
                             singular_deg=singular_deg, conditions=conditions, source=source,
-                            feed_mm_min=cl_feed_mm_min, branch=cl_branch, setup=setup)
+                            feed_mm_min=cl_feed_mm_min, branch=cl_branch, setup=setup, output_mode=output_mode)
         return (with_header(out, rep, machine) if header else out), rep
     from ..nc.setup import Setup, SetupError
 
@@ -262,7 +282,7 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     if setup.program_units is not None and prog.units != setup.program_units and len(prog):
         raise SetupError(f"{source}: the program is in {prog.units} ({'G20' if prog.units == 'inch' else 'G21'}), "
                          f"the setup ({setup.describe()}) is for programs in {setup.program_units}")
-    rep = PostReport(source=source, machine=machine.name, mode=mode, tol_um=tol_um)
+    rep = PostReport(source=source, machine=machine.name, mode=mode, tol_um=tol_um, output_mode=output_mode)
     rep.setup = setup.describe()
     rep.setup_used = prog.setup_used
     rep.blocks_in = len(prog.lines)
@@ -277,10 +297,24 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
         rep.blocks_out = rep.blocks_in
         out = text
     else:
-        out, rep = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep).run()
+        poster = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep)
+        poster.fit_arcs = arcs_default(machine) if arcs is None else bool(arcs)
+        if output_mode == "tcp":
+            from .tcp import TcpFrame, tcp_lines
+
+            poster.tcp, poster.fit_arcs = TcpFrame(poster.twin, machine), False
+            prog.lines = tcp_lines(prog, machine, source)  # the program's G43 H.. made the control's TCP code
+        out, rep = poster.run()
     if header:
         out = with_header(out, rep, machine)
     return out, rep
+
+
+def arcs_default(machine: Machine) -> bool:
+    """Whether arcs are fitted (``compensate(arcs=None)``): on a three-axis mill; not on a machine with rotary axes
+    (its programs' arcs may turn a rotary axis, which the fit does not model) nor on a lathe (its loads follow the
+    direction of motion along the arc: fitted arcs there are an option, ``arcs=True``)."""
+    return machine.kind == "mill" and not machine.rotary_axes
 
 
 def _refuse_posted(text: str, source: str):
@@ -321,7 +355,8 @@ def header_lines(rep: PostReport, machine: Machine) -> list:
 
     from .. import __version__
 
-    lines = [f"{HEADER_TAG}trueaxis {__version__}, mode {rep.mode}, machine {clean(machine.name)})",
+    tcp = ", output tcp [tool centre point]" if rep.output_mode == "tcp" else ""
+    lines = [f"{HEADER_TAG}trueaxis {__version__}, mode {rep.mode}{tcp}, machine {clean(machine.name)})",
              f"{HEADER_TAG}machine file {clean(machine_fingerprint(machine))})"]
     lines += [f"{HEADER_TAG}setup {clean(part)})" for part in rep.setup.split(", ")]
     for u in rep.setup_used:
@@ -369,8 +404,8 @@ def without_header(text: str) -> str:
 
 
 def _post_cl(text, machine, mode, *, tol_um, max_correction_mm, singular_deg, conditions, source, feed_mm_min,
-             branch, setup=None):
-    from ..nc.cl import ClError, cl_program, read_cl
+             branch, setup=None, output_mode="joint"):
+    from ..nc.cl import cl_program, read_cl
 
     try:
         cl = read_cl(text, source)
@@ -380,7 +415,7 @@ def _post_cl(text, machine, mode, *, tol_um, max_correction_mm, singular_deg, co
     try:
         out, rep = post_text(gcode, machine, mode, tol_um=tol_um / 2, max_correction_mm=max_correction_mm,
                              singular_deg=singular_deg, conditions=conditions, source=source, header=False,
-                             setup=setup)  # the CL file's LOADTL selects a tool: its length comes from the setup
+                             setup=setup, output_mode=output_mode)  # LOADTL's tool: its length from the setup
     except GcodeError as exc:
         line = line_map[min(max(exc.line_no, 1), len(line_map)) - 1]
         raise PostError(source, line, f"{exc.reason} (CL point; line {exc.line_no} of the machine-axis program "
@@ -433,6 +468,10 @@ class _Poster:
         self.inch_rows = prog.inch
         self.stats = {"um": 0.0, "urad": 0.0, "urad_singular": 0.0, "singular_points": 0, "singular_lines": set()}
         self.fractions = {}  # program row -> piece boundaries (fractions of the move) of split moves
+        self.fit_arcs = False  # arcs fitted to the corrected path (.arcs); set by post_text
+        self.arc_centres = {}  # program row -> (n, 3) centres (program coordinates) of a fitted arc's sub-arcs
+        self._end_before_chunk = (-2, None)  # (row, written end) of the last move of the chunk before
+        self.tcp = None  # TCP output (.tcp.TcpFrame): positions for the control's own nominal kinematics
 
     # --- coordinates ------------------------------------------------------------------------------------------------
     def to_machine(self, prog6, inch):
@@ -455,6 +494,11 @@ class _Poster:
             else:
                 out[:, self.cols[j]] = np.where(inch, dq[:, j] / MM_PER_INCH, dq[:, j])
         return self.p.to_program_delta(out, prog_rows)
+
+    def command_delta(self, q_cmd, q_nom):
+        """(K, n_axes) mm / rad written in place of the nominal joints: the correction q_cmd - q_nom, or in TCP output
+        the commanded joints' TCP position less the nominal joints (``tcp.TcpFrame.command_delta``)."""
+        return q_cmd - q_nom if self.tcp is None else self.tcp.command_delta(q_cmd, q_nom)
 
     # --- forces --------------------------------------------------------------------------------------------------
     def forces(self, rows, direction, q):
@@ -629,6 +673,11 @@ class _Poster:
         end_known, start_known, missing = self.known_positions()
         self.start_known = start_known
         unknown = ~end_known[rows] | (np.isin(p.motion[rows], (ARC_CW, ARC_CCW)) & ~start_known[rows])
+        if np.any(unknown) and self.tcp is not None:
+            li = int(p.line_index[rows[np.argmax(unknown)]])
+            raise PostError(p.source, li + 1, "TCP output: the position of an axis is not known here (no absolute "
+                                              "move of it before), so the block cannot be written as a tool-tip "
+                                              "position: give every axis' position first, or --output-mode joint")
         if np.any(unknown):
             bad_lines = np.unique(p.line_index[rows[unknown]])
             keep = ~np.isin(p.line_index[rows], bad_lines)
@@ -661,6 +710,7 @@ class _Poster:
             delta_prog[sl] = d_prog
             pieces.update((sl.start + k, v) for k, v in pcs.items())
             arc_mode.update((sl.start + k, v) for k, v in modes.items())
+            self._end_before_chunk = (int(rows[sl.stop - 1]), p.end[rows[sl.stop - 1]] + d_prog[-1])
             sq += np.sum(dq**2, axis=0)
             mx = np.maximum(mx, np.abs(dq).max(axis=0, initial=0.0))
             bar.update(sl.stop - sl.start)
@@ -691,7 +741,7 @@ class _Poster:
         q_cmd, singular = self.solve(q_end, force, rows)
         self.check(q_end, q_cmd, rows)
         dq = q_cmd - q_end
-        delta_prog = self.to_program_delta(dq, inch, rows)
+        delta_prog = self.to_program_delta(dq if self.tcp is None else self.command_delta(q_cmd, q_end), inch, rows)
 
         pieces, arc_mode = {}, {}
         # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
@@ -813,7 +863,8 @@ class _Poster:
             # to the straight blend of the ends' residuals. Elsewhere the whole deviation.
             held = (S[ia] | S[ia + 1])[:, None]
             for sfrac in (0.25, 0.5, 0.75):
-                e = residual(owner, a + sfrac * (b - a), ca + sfrac * (cb - ca))
+                c_at = ca + sfrac * (cb - ca) if self.tcp is None else self.tcp.interpolate(ca, cb, sfrac)
+                e = residual(owner, a + sfrac * (b - a), c_at)
                 e = e - np.where(held, (1 - sfrac) * ra + sfrac * rb, 0.0)
                 ep = np.linalg.norm(e[:, :3], axis=1)
                 eu = np.linalg.norm(e[:, 3:], axis=1) if self.orientation else np.zeros(owner.size)
@@ -857,7 +908,7 @@ class _Poster:
         start6 = p.start[rows[mv]]
         end6 = p.end[rows[mv]]
         nom6 = start6 + fr[:, None] * (end6 - start6)
-        cmd6 = nom6 + self.to_program_delta(qc - q_nom, inch[mv], rows[mv])
+        cmd6 = nom6 + self.to_program_delta(self.command_delta(qc, q_nom), inch[mv], rows[mv])
         bounds = np.split(np.arange(mv.size), np.nonzero(np.diff(mv))[0] + 1)
         for sel in bounds:
             i = int(mv[sel[0]])
@@ -866,7 +917,8 @@ class _Poster:
         return out
 
     def _arcs(self, rows, arc_idx, q_start, q_end, force, inch, delta_prog):
-        """Arcs whose correction is constant within tolerance stay arcs; others become straight pieces.
+        """Arcs whose correction is constant within tolerance stay arcs; others are fitted (``.arcs``, where
+        ``fit_arcs``) or become straight pieces.
 
         All arcs are sampled and solved together (one Newton solve per stage, not per arc)."""
         p = self.p
@@ -887,10 +939,19 @@ class _Poster:
         spread = np.zeros(arc_idx.size)
         np.maximum.at(spread, owner, np.abs(d - d[last[owner]]).max(axis=1))
         kept = spread <= self.tol_mm / 2
+        # A full turn is kept only where its written start and end coincide: a control reads an end a digit off the
+        # start as a short arc (or a turn less one), not a full circle (LinuxCNC's pmCircleInit).
+        kept &= full_turns_close(self, rows, arc_idx, delta_prog)
+        kept &= self.tcp is None  # TCP: the control turns an arc's plane with the table; straight pieces only
         for i in arc_idx[kept]:
             modes[int(i)] = "arc"
         self.rep.arcs_kept += int(kept.sum())
         lin = arc_idx[~kept]
+        if self.fit_arcs and lin.size:
+            fitted, lin = fit_arcs(self, rows, lin, force, delta_prog)
+            for k, (ends, centres) in fitted.items():
+                out[k], modes[k] = ends, "fit"
+                self.arc_centres[int(rows[k])] = centres
         if lin.size == 0:
             return out, modes
         # Stage 2: straight pieces, enough that the chord sagitta stays within half the tolerance; the correction's
@@ -904,7 +965,7 @@ class _Poster:
         owner = np.repeat(np.arange(lin.size), np.asarray(counts) + 1)
         q_c, q_pts = self._solve_arc_points(rows, lin, owner, pts6, force)
         self.check(q_pts, q_c, rows[lin][owner])
-        cmd6 = pts6 + self.to_program_delta(q_c - q_pts, p.inch[rows[lin]][owner], rows[lin][owner])
+        cmd6 = pts6 + self.to_program_delta(self.command_delta(q_c, q_pts), p.inch[rows[lin]][owner], rows[lin][owner])
         first = np.r_[0, np.cumsum(np.asarray(counts) + 1)[:-1]]
         for k, i in enumerate(lin):
             out[int(i)] = cmd6[first[k] + 1 : first[k] + counts[k] + 1]
@@ -949,7 +1010,8 @@ class _Poster:
         target = p.end[rows] + delta_prog
         inch_rows = p.inch[rows]
         piece_keys = [k for k in pieces if arc_mode.get(k) != "arc"]
-        piece_pts = [pieces[k] if arc_mode.get(k) == "lines" else np.vstack([pieces[k], target[k]]) for k in piece_keys]
+        piece_pts = [pieces[k] if arc_mode.get(k) in ("lines", "fit") else np.vstack([pieces[k], target[k]])
+                     for k in piece_keys]
         piece_first = dict(zip(piece_keys, np.cumsum([0] + [len(x) for x in piece_pts]).tolist()))
         piece_pts_of = dict(zip(piece_keys, piece_pts))
         if piece_pts:
@@ -1012,6 +1074,10 @@ class _Poster:
                 n = len(pts)
                 if arc_mode.get(k) == "lines":
                     motion = FEED
+                centres = self.arc_centres.get(r) if arc_mode.get(k) == "fit" else None
+                arc_start = last_written
+                if centres is not None and np.isnan(centres[0, 0]):  # a fitted arc's first piece is straight
+                    motion = FEED
                 # G93: each piece takes its share of the block's time (the control interpolates the axes linearly
                 # in time, so a piece over the fraction df of the move takes df of it): inverse time F / df.
                 piece_f = p.feed[r] / np.diff(self.fractions.get(r, np.linspace(0.0, 1.0, n + 1)))
@@ -1029,12 +1095,19 @@ class _Poster:
                 words = [axis_words[a][j - window[0]] for a in axes_out]
             if arc_kept and not r_form_l[r]:
                 words += self._centre_words(r, delta_prog[k], last_written, fmt)
+            if split and centres is not None and not np.isnan(centres[0, 0]):  # a fitted arc: its first sub-arc
+                words += self._fit_centre_words(r, centres[0], arc_start, fmt)
             texts = [self._rewrite_motion(body, motion, words, arc_kept, r, sep), ending]
             word = "G0" if motion == RAPID else "G1"
             for i_piece in rest:
                 if inc:
                     piece = [word] + [fmt(a, _out_value(pts[i_piece], last_written, a, inc)) for a in axes_out]
                     last_written = pts[i_piece]
+                elif centres is not None and np.isnan(centres[i_piece, 0]):  # a sub-arc that did not hold
+                    piece = ["G1"] + [piece_words[a][o + i_piece] for a in axes_out]
+                elif centres is not None:
+                    piece = [_motion_text("G1", p.motion[r])] + [piece_words[a][o + i_piece] for a in axes_out]
+                    piece += self._fit_centre_words(r, centres[i_piece], pts[i_piece - 1], fmt)
                 else:
                     piece = [word] + [piece_words[a][o + i_piece] for a in axes_out]
                 if inverse_l[r]:
@@ -1151,6 +1224,21 @@ class _Poster:
         k = np.arange(r.size)
         letters = np.array(list("IJK"))[np.stack([first, second], axis=1)]
         return letters, np.stack([value[k, first], value[k, second]], axis=1)
+
+    def _fit_centre_words(self, r, centre, start, fmt):
+        """The centre words of one sub-arc of a fitted arc: ``centre`` (3,) as ``.arcs`` fitted it (program
+        coordinates), incremental from the written start (``start`` (6,), rounded as written: G91.1) or absolute."""
+        p = self.p
+        inch = bool(p.inch[r])
+        if p.arc_incremental[r]:
+            if not hasattr(self, "_fit_numbers"):
+                self._fit_numbers = _Numbers(p.format_info)
+            dec = np.array([self._fit_numbers.decimals(a, inch) for a in "XYZ"])
+            written = np.round(np.asarray(start[:3], float) * 10.0**dec) / 10.0**dec
+            centre = centre - written
+        plane = int(p.arc_plane[r])
+        cols = {17: (0, 1), 18: (0, 2), 19: (1, 2)}[plane]
+        return [fmt("IJK"[c], centre[c]) for c in cols]
 
     def _rewrite_motion(self, body, motion, words, arc, row, sep):
         """A motion block with new axis words ``words`` (formatted): see ``rewrite_block``."""

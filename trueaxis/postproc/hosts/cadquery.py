@@ -14,7 +14,9 @@ The hook for programs made from CadQuery models (by a CAM library, or by hand fr
 ``trueaxis.postproc.compensate(text, machine, mode="geometric")``: machine-axis G-code text in, compensated text out,
 ``PostError`` (``file:line: reason``) when the post refuses. The control's setup goes in as keywords, as on the
 command line: ``var=``, ``tool_table=``, ``machine_units=``, ``setup=`` (a setup file), ``offsets_zero=``
-(docs/setup_file.md). See ``docs/cadquery_example.py``::
+(docs/setup_file.md); ``arcs=`` (arcs fitted to the corrected path as G2/G3: True / False, default on for a
+three-axis mill) and ``output_mode=`` ("joint" or "tcp", default the machine file's), as ``--arcs`` / ``--no-arcs``
+and ``--output-mode``. See ``docs/cadquery_example.py``::
 
     import cadquery as cq
     import trueaxis.postproc.hosts.cadquery  # registers Workplane.nas979 / Workplane.slotBlock

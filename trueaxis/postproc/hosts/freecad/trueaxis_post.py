@@ -83,6 +83,12 @@ def _build_parser():
     p.add_argument("--setup", default=None, help="the control's setup file (TOML) for other controls")
     p.add_argument("--offsets-zero", action="store_true",
                    help="work offsets and tool lengths that the setup does not give are zero")
+    p.add_argument("--arcs", dest="arcs", action="store_const", const=True, default=None,
+                   help="arcs fitted to the corrected path as G2/G3 (trueaxis' default: on for a three-axis mill)")
+    p.add_argument("--no-arcs", dest="arcs", action="store_const", const=False,
+                   help="arcs whose correction varies along them become straight pieces")
+    p.add_argument("--output-mode", default=None, choices=("joint", "tcp"),
+                   help="joint positions, or tool-centre-point positions (trueaxis' default: the machine file's)")
     p.add_argument("--trueaxis-bin", default=None,
                    help="the trueaxis executable (default: $TRUEAXIS_BIN, else trueaxis on PATH)")
     p.add_argument("--no-show-editor", action="store_true", help="don't pop up the editor before writing output")
@@ -332,6 +338,10 @@ def compensate(gcode, opts, label="program.ngc"):
             cmd += ["--machine-units", opts.machine_units]
         if opts.offsets_zero:
             cmd.append("--offsets-zero")
+        if opts.arcs is not None:
+            cmd.append("--arcs" if opts.arcs else "--no-arcs")
+        if opts.output_mode:
+            cmd += ["--output-mode", opts.output_mode]
         try:
             proc = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, text=True)
         except OSError as exc:
