@@ -325,11 +325,12 @@ def truth_of(kind: str, draws: dict, s: float, param: str, unit: str, machine):
         return None
     if kind == "servo":
         t = effect_table("servo", draws, s, machine)["servo"]
-        m = re.fullmatch(r"(kv|kff|lag_ms|lag_time|tau|lag)_?([XYZABC])(?:_.*)?", param, re.I)
+        # The axis' lag itself (lag_X, the candidate's derived sum), not a filter's share of it (lag_X_12ms).
+        m = re.fullmatch(r"(kv|kff|lag_ms|lag_time|tau|lag)_?([XYZABC])", param, re.I)
         if m:
             ax = m.group(2)
             kv, kff = t["kv_per_s"][ax], t["kff"][ax]
-            lag = 1e3 * (1 - kff) / kv  # ms
+            lag = 1e3 * ((1 - kff) / kv + draws.get("smoothing_delay_s", 0.0))  # ms
             return {"kv": kv, "kff": kff, "lag_ms": lag, "lag_time": lag, "tau": lag, "lag": lag}[m.group(1).lower()]
         return None
     if kind.startswith("rotary_"):
@@ -502,6 +503,15 @@ def _run_case(case: dict, points: int, noise_um: float) -> dict:
                     s *= (target / max(rms, 1e-9)) ** (1.0 / min(max(p, 0.5), 3.0))
             scales[k] = s
         r = run(scales, noise=noise_um, seed=1000 + case["n"] + case["seed"] % 1000)
+        if "servo" in kinds:
+            # The interpolator's smoothing (a causal moving average of M samples) delays a ramp by (M - 1) dt / 2 on
+            # every axis, on top of the loop's (1 - kff) / kv: the tool's lag behind the program, which the
+            # candidate's per-axis lag measures.
+            sv = parse_effects(effect_table("servo", draws["servo"], scales["servo"], m), machine=placed).servo
+            tr = r.trajectory
+            q = sv.plan_rapids(np.asarray(tr.q, float), placed, float(tr.dt), tr)
+            steps = int(round(sv.smoothing_s(q, placed, float(tr.dt), tr) / float(tr.dt)))
+            draws["servo"]["smoothing_delay_s"] = max(steps - 1, 0) * float(tr.dt) / 2.0
     except ValueError as exc:
         out.update(skipped=f"the shop refuses the scaled effect: {exc}", t_case=time.perf_counter() - t0)
         return out
@@ -522,8 +532,11 @@ def _run_case(case: dict, points: int, noise_um: float) -> dict:
         return out
     t2 = time.perf_counter()
     answer = "+".join(sorted(normalise(c) for c in diag.chosen)) or "none"
+    basis = {k: (v if isinstance(v, (str, type(None))) else float(v)) for k, v in diag.confidence_basis.items()
+             if isinstance(v, (str, int, float, type(None)))}
     out.update(answer=answer, raw_answer=list(diag.chosen), conf=float(diag.confidence),
-               alternatives=list(diag.alternatives), verdict=diag.verdict,
+               alternatives=list(diag.alternatives), verdict=diag.verdict, confidence_basis=basis,
+               closest=[{k: c[k] for k in ("effect", "explained_share_above_noise", "why_not")} for c in diag.closest],
                shrink=float(diag.shrink_above_noise), shrink_raw=float(diag.shrink_raw),
                before=dict(diag.gap_before), after=dict(diag.gap_after), sigma=float(diag.noise_um),
                t_sim=t1 - t0, t_diag=t2 - t1, t_case=time.perf_counter() - t0)
@@ -587,6 +600,11 @@ def score(rows: list[dict], title: str) -> dict:
         "median_time_per_case_s": float(np.median([r["t_case"] for r in done])) if done else float("nan"),
         "median_diagnose_s": float(np.median([r["t_diag"] for r in done])) if done else float("nan"),
     }
+    # Calibration of the confidence: the share of right answers among the answers in each band of confidence.
+    bands = [(0.0, 0.3), (0.3, 0.5), (0.5, 0.7), (0.7, 0.9), (0.9, 1.01)]
+    fig["calibration"] = [{"band": f"{lo:.1f}-{min(hi, 1.0):.1f}", "answers": len(b),
+                           "right": sum(1 for r in b if right(r))}
+                          for lo, hi in bands for b in [[r for r in done if lo <= r["conf"] < hi]]]
     pct = lambda v: "  n/a" if v[1] == 0 or not math.isfinite(v[0]) else f"{100 * v[0]:4.0f} % of {v[1]}"  # noqa
     print(f"\n==== {title}: {fig['run']} cases run, {fig['skipped']} skipped (effect not visible / refused"
           f"{'; ' + str(len(errors)) + ' HARNESS ERRORS' if errors else ''}) ====")
@@ -603,6 +621,8 @@ def score(rows: list[dict], title: str) -> dict:
     print(f"held-out max gap not worse, right answers  {pct(fig['max_gap_not_worse_right'])}   (goal >= 90 %)")
     print(f"std covers the truth (2 std), right answers {pct(fig['std_covers_truth_right'])}   (goal >= 90 %; "
           f"{fig['right_without_known_truth']} right answers had no parameter with a known truth)")
+    print("confidence calibration (answers in each band of confidence: right / all): " + "; ".join(
+        f"{c['band']}: {c['right']}/{c['answers']}" for c in fig["calibration"]))
     print(f"time per case (median): {fig['median_time_per_case_s']:.1f} s, of which diagnose "
           f"{fig['median_diagnose_s']:.1f} s")
     # Rows: the effects the true machine had (with the expected answer where it differs); columns: the answers,
@@ -672,7 +692,8 @@ def demo_timing(points: int = 8000) -> float:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--set", choices=("tuning", "heldout", "both"), default="tuning")
+    ap.add_argument("--set", default="tuning", help="tuning | heldout | heldout2 | both (tuning and heldout) | all "
+                    "(every set), or a comma list")
     ap.add_argument("--cases", type=int, default=0, help="run this many cases per set, spread over the list (0 = all)")
     ap.add_argument("--kinds", default="", help="only cases holding one of these effect kinds (comma list; 'none' "
                     "for the controls)")
@@ -689,7 +710,10 @@ def main(argv=None) -> int:
         for s in dict.fromkeys(r["set"] for r in rows):
             score([r for r in rows if r["set"] == s], s)
         return 0
-    sets = ("tuning", "heldout") if args.set == "both" else (args.set,)
+    sets = {"both": ("tuning", "heldout"), "all": tuple(SETS)}.get(args.set) or tuple(args.set.split(","))
+    unknown = [x for x in sets if x not in SETS]
+    if unknown:
+        ap.error(f"--set: unknown {', '.join(unknown)} (known: {', '.join(SETS)}, both, all)")
     cases = [c for s in sets for c in select(build_cases(s), args.cases, args.kinds)]
     if args.list:
         for c in cases:
@@ -724,8 +748,8 @@ def main(argv=None) -> int:
         print_row(r)
     rows.sort(key=lambda r: (r["set"], r["n"]))
     figures = {s: score([r for r in rows if r["set"] == s], s) for s in sets}
-    if len(sets) == 2:
-        figures["both"] = score(rows, "both sets")
+    if len(sets) > 1:
+        figures["all"] = score(rows, "all sets run together")
     print(f"\ntotal {time.perf_counter() - t_all:.0f} s on {len(client.scheduler_info()['workers'])} workers")
     client.close()
     if cluster is not None:
