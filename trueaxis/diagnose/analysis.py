@@ -619,6 +619,7 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
     sig = [f for f in fits if f.significant]
     pool = [f for f in sig if _eligible(f)]
     chosen_fit, alternatives, confidence, sep, tied, notes, conf_info = None, [], 0.0, None, {}, [], {}
+    tie_fits = []
     vertical = tool_along_machine_z(state)
     pairs = []
     if pool:
@@ -677,7 +678,10 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         from .candidates import uniform_wear
 
         shadow = fit_candidate([uniform_wear(state)], g, folds)
-        shadow_z = paired_z(g, chosen_fit.held_out_pred_um, shadow.held_out_pred_um)
+        # Against the best of the explanations tied with the verdict (the verdict is the simplest of them, not
+        # necessarily the one that fits best): the shadow must beat what the library can do on this part.
+        best_tied = max([chosen_fit, *tie_fits], key=lambda f: f.gain_um2)
+        shadow_z = paired_z(g, best_tied.held_out_pred_um, shadow.held_out_pred_um)
         if shadow_z < -Z_SHADOW:
             notes.append(f"a uniform offset along the normal growing with the cut (a wearing tool, which no "
                          f"candidate describes) explains the gap better than {chosen_fit.name} (held-out z "
