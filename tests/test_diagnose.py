@@ -514,3 +514,18 @@ def test_a_cloud_of_another_part_or_far_from_the_cut_is_refused_before_a_verdict
     # 0.8 mm into the material: inside the block, but no machine effect is that large
     with pytest.raises(ValueError, match=r"lies (79\d|80\d) um \(RMS\) from the part this program cuts"):
         run_diagnosis(base.points - 0.8 * base.normals, base.normals, "slots", m, prog.text)
+
+
+def test_the_parts_own_description_gives_the_normals_of_a_cone_of_another_size():
+    from trueaxis.diagnose.report import cloud_normals, part_description
+    from trueaxis.inspect.parts import Nas979Params
+    from trueaxis.sim.cmm import probe_pattern
+
+    params = Nas979Params(base_diameter=64.0, height=16.0, half_angle_deg=18.0)
+    pts, nrm = probe_pattern(part_description("nas979", params), 300)
+    own = cloud_normals(pts, None, part_description("nas979", params))
+    default = cloud_normals(pts, None, part_description("nas979"))
+    assert np.max(np.linalg.norm(own - nrm, axis=1)) < 0.01  # the nearest point of the part's own dense pattern
+    assert np.median(np.linalg.norm(default - nrm, axis=1)) > 0.04  # the default cone (15 deg) is 3 deg off
+    with pytest.raises(ValueError, match="not 'nas979'"):
+        part_description("nas979", slot_block_description())

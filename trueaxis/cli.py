@@ -302,13 +302,17 @@ def cmd_simulate(args) -> int:
 
 
 def cmd_diagnose(args) -> int:
-    from .diagnose.report import main_diagnose
+    from .diagnose.report import diagnose_files, summary_lines
     from .resources import machine_file
 
-    args.machine = str(machine_file(args.machine))
     if args.noise_um is not None and not args.noise_um > 0:
         raise UsageError("--noise-um must be > 0")
-    return main_diagnose(args)
+    diag, _ = diagnose_files(args.cloud, args.part, str(machine_file(args.machine)), args.program, args.output,
+                             candidates=args.candidates, split=args.split, noise_um=args.noise_um,
+                             part_json=args.part_json)
+    for line in summary_lines(diag, args.output):
+        print(line)
+    return 0
 
 
 def cmd_demo(args) -> int:
@@ -522,6 +526,8 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--part", required=True, choices=part_names())
     dg.add_argument("--machine", required=True, help="the twin (machine file, TOML)")
     dg.add_argument("--program", required=True, help="the NC program that cut the part")
+    dg.add_argument("--part-json", default=None, help="the part's description (JSON written by `trueaxis part`; "
+                    "default: the part at its default size)")
     dg.add_argument("--candidates", default="all", help="all, or a comma-separated list of candidate effects")
     dg.add_argument("--split", default="region", choices=["region", "time", "random"],
                     help="how held-out points are kept apart from the fitted ones (default region)")
@@ -604,8 +610,8 @@ def _paths(args) -> tuple[list, list]:
         return [("program", g("program")), ("--machine", g("machine")), ("--effects", g("effects"))], \
             [("-o", out, False), ("the truth file", None if out is None else truth_path(out), False)]
     if cmd == "diagnose":
-        return [("--cloud", g("cloud")), ("--machine", g("machine")), ("--program", g("program"))], \
-            [("-o", g("output"), True)]
+        return [("--cloud", g("cloud")), ("--machine", g("machine")), ("--program", g("program")),
+                ("--part-json", g("part_json"))], [("-o", g("output"), True)]
     if cmd == "inspect":
         out = g("output") or Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
         return [("cloud", g("cloud")), ("--cad", g("cad")), ("--machine", g("machine")), ("--program", g("program"))], \

@@ -36,13 +36,15 @@ deliberately poorer, so that a fit is a test and not an identity):
   through zero at the start, knots at T/3, 2T/3 and T. The shop interpolates a measured thermal series.
 - ``rotary_<motion>_<axis>``: the ISO 230-7 error motions, radial (two directions normal to the axis), axial, tilt
   (about the two directions normal to it) and angular positioning, each component E<dir><axis> as harmonics 1-4 of
-  the commanded angle, zero at angle 0, plus a term linear in the angle on an axis of limited travel, through the
+  the commanded angle, zero at angle 0, plus a term linear in the angle on an axis of limited travel (only that term
+  on a short arc of a tilting axis, where harmonics cannot be told from a slope), through the
   twin's exact parameter Jacobian of a constant component error. The shop applies its error motions (any
   harmonics, a linear term per turn) as a transform at the axis, at the axis' actual angle.
 - ``twin_parameters``: re-identification of the twin's own location errors (``machine.location_names()``) through
   the exact parameter Jacobian (``ErrorTwin.parameter_jacobian``) projected on the normals, so that a wrong value in
-  the machine file is not mistaken for a missing effect. Component tables are left out (too many columns for one
-  part; the identification command handles them).
+  the machine file is not mistaken for a missing effect; only the location errors this part resolves (a pivoted QR
+  of the columns: two offsets that move the surface alike are one parameter here). Component tables are left out
+  (too many columns for one part; the identification command handles them).
 
 Parameter units are given per parameter in ``Candidate.units``; values stay in those units throughout the reports.
 """
@@ -279,6 +281,10 @@ def thermal_spline(state: TwinState, k: int, knots: int = 3) -> Candidate:
 #: angular positioning (about the axis itself).
 ERROR_MOTIONS = ("radial", "axial", "tilt", "angular")
 HARMONICS = (1, 2, 3, 4)
+#: An axis turning less than SHORT_ARC_DEG while cutting has its error motions as a slope in the angle only (an axis
+#: of limited travel), none below MIN_ARC_DEG (a constant there: a location error).
+SHORT_ARC_DEG = 30.0
+MIN_ARC_DEG = 2.0
 
 
 def _motion_components(state: TwinState, axis: str, motion: str) -> list[str]:
@@ -314,29 +320,35 @@ def _component_response(state: TwinState, axis: str) -> np.ndarray:
 
 def rotary_error_motion(state: TwinState, axis: str, motion: str) -> Candidate | None:
     """ISO 230-7 error motion ``motion`` of rotary ``axis``: each of its components as harmonics 1..4 per turn of
-    the commanded angle, plus a term linear in the angle (um or urad per rad) on an axis of limited travel. Each
+    the commanded angle, plus a term linear in the angle (um or urad per rad) on an axis of limited travel (only that
+    term where the axis turns less than ``SHORT_ARC_DEG`` while cutting: a tilting axis on a short arc). Each
     term is zero at the axis' zero angle (a_k (cos k theta - 1) + b_k sin k theta): a constant part of a component
     error is a location error, which ``twin_parameters`` holds."""
     if axis not in state.rotary:
         return None
     j = state.axis_names.index(axis)
     theta = state.q[:, j]
-    if np.ptp(theta) < np.radians(30.0):
-        return None  # the axis hardly turns while cutting: no harmonic can be told from an offset
-    from ..machine.model import ERROR_DIRECTIONS
-
-    R = _component_response(state, axis)
     # The term linear in the angle only for an axis of limited travel (a tilting axis): a continuous rotary axis'
     # error motion repeats every turn, and over the one turn of a pass a linear term is a drift in time, which the
     # thermal candidates describe.
     limited = state.machine.axes[axis].travel is not None
+    short = np.ptp(theta) < np.radians(SHORT_ARC_DEG)
+    if short and not limited:
+        return None  # the axis hardly turns while cutting: no harmonic can be told from an offset
+    if short and np.ptp(theta) < np.radians(MIN_ARC_DEG):
+        return None  # not even a slope: the error motion is a constant here, a location error (twin_parameters)
+    from ..machine.model import ERROR_DIRECTIONS
+
+    R = _component_response(state, axis)
     cols, names, units, bounds = [], [], [], []
     for comp in _motion_components(state, axis, motion):
         r = R[:, ERROR_DIRECTIONS.index(comp[1])]
         angular = comp[1] in "ABC"
         u = "urad" if angular else "um"
         b = 300.0 if angular else 30.0
-        for k in HARMONICS:
+        # On a short arc (a tilting axis that moves a few degrees while cutting) harmonics cannot be told from a
+        # polynomial of the angle: the error motion is its slope there (zero at angle 0, so not a location error).
+        for k in () if short else HARMONICS:
             cols += [r * (np.cos(k * theta) - 1.0), r * np.sin(k * theta)]
             names += [f"{comp}_{k}cos", f"{comp}_{k}sin"]
             units += [u, u]
@@ -353,6 +365,10 @@ def rotary_error_motion(state: TwinState, axis: str, motion: str) -> Candidate |
                      f"harmonics 1-4 per turn plus a term linear in the angle")
 
 
+#: Share of the strongest column's independent part (pivoted QR) a twin location error needs to be re-identified.
+TWIN_RESOLVED = 0.1
+
+
 def twin_parameters(state: TwinState, min_norm_um: float = 1e-3) -> Candidate | None:
     machine = state.machine
     names = machine.location_names()
@@ -364,11 +380,24 @@ def twin_parameters(state: TwinState, min_norm_um: float = 1e-3) -> Candidate | 
     seen = np.sqrt(np.mean(cols**2, axis=0)) > min_norm_um
     if not np.any(seen):
         return None
+    # Only the location errors this part resolves: a column-pivoted QR of the scaled columns keeps those whose
+    # independent part is at least ``TWIN_RESOLVED`` of the strongest (two offsets that move the surface alike on
+    # this part, say an offset of C's line and one of B's, are one parameter here; the kept one takes up both).
+    from scipy.linalg import qr
+
+    idx = np.nonzero(seen)[0]
+    a = cols[:, idx] / np.sqrt(np.mean(cols[:, idx] ** 2, axis=0))
+    _, r, piv = qr(a, mode="economic", pivoting=True)
+    d = np.abs(np.diag(r))
+    keep = np.sort(idx[piv[d > TWIN_RESOLVED * d[0]]])
+    seen = np.zeros_like(seen)
+    seen[keep] = True
     kept = [n for n, s in zip(names, seen) if s]
     from ..machine.model import unit_of
 
     units = [unit_of(n) for n in kept]
-    return Candidate("twin_parameters", cols[:, seen], [f"d{n}" for n in kept], units, [(-100.0, 100.0)] * len(kept),
+    # A re-mounted table or a collision moves location errors by a few hundred um / urad, not by millimetres.
+    return Candidate("twin_parameters", cols[:, seen], [f"d{n}" for n in kept], units, [(-300.0, 300.0)] * len(kept),
                      "changes of the twin's own location errors (re-identification), not a new effect")
 
 

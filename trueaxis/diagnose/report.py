@@ -3,7 +3,7 @@
     diag, state = run_diagnosis(cloud, part, machine, program_text, candidates="all", split="region", noise_um=None)
     write_report(diag, state, "report_dir")
 
-``main_diagnose(args)`` is the command ``trueaxis diagnose`` (wired in ``trueaxis.cli``).
+``diagnose_files(...)`` is the command ``trueaxis diagnose`` on files (its arguments are read in ``trueaxis.cli``).
 """
 
 from __future__ import annotations
@@ -38,29 +38,47 @@ def parse_candidates(text: str | None) -> list[str]:
     return names
 
 
-def cloud_normals(points: np.ndarray, normals: np.ndarray | None, part: str) -> np.ndarray:
+def part_description(part: str, part_json=None) -> dict:
+    """The part's description (the JSON of ``trueaxis.inspect.parts``): ``part_json`` as a dict, a path to a JSON
+    file, or typed parameters (``Nas979Params`` / ``SlotBlockParams``); None: the part at its default size.
+    ValueError when it describes another part."""
+    from ..inspect.parts import Nas979Params, SlotBlockParams, nas979_description, slot_block_description
+    from ..sim.shop import load_part
+
+    if isinstance(part_json, Nas979Params):
+        part_json = nas979_description(part_json)
+    elif isinstance(part_json, SlotBlockParams):
+        part_json = slot_block_description(part_json)
+    return load_part(part, part_json)
+
+
+def cloud_normals(points: np.ndarray, normals: np.ndarray | None, part_json: dict) -> np.ndarray:
     """The cloud's normals, or, without them, the normal of the nearest point of the part's probe pattern (the
-    part's analytic surfaces from its JSON)."""
+    part's analytic surfaces from its JSON description)."""
     if normals is not None:
         return normals / np.linalg.norm(normals, axis=1, keepdims=True)
     from scipy.spatial import cKDTree
 
     from ..sim.cmm import probe_pattern
-    from ..sim.shop import load_part
 
-    pts, nrm = probe_pattern(load_part(part), 200_000)
+    pts, nrm = probe_pattern(part_json, 200_000)
     _, idx = cKDTree(pts).query(points)
     return nrm[idx]
 
 
 def run_diagnosis(points, normals, part: str, machine, program_text: str, *, candidates="all", split="region",
-                  noise_um=None, force_stride: int = 200) -> tuple[Diagnosis, TwinState]:
-    """Twin simulation, candidates, judgement. points (N,3) mm part frame; normals (N,3) or None."""
+                  noise_um=None, force_stride: int = 200, part_json=None) -> tuple[Diagnosis, TwinState]:
+    """Twin simulation, candidates, judgement. points (N,3) mm part frame; normals (N,3) or None.
+
+    part_json : the part's description (dict, JSON path, or ``Nas979Params`` / ``SlotBlockParams``; default: the
+    part at its default size): its bounding box gates the cloud, its surfaces give missing normals, and its stock
+    is what the twin's force model engages (a cone of another size must be described, else the force is wrong)."""
     names = parse_candidates(candidates) if isinstance(candidates, str) or candidates is None else list(candidates)
-    check_cloud_for_part(points, part)
-    normals = cloud_normals(np.asarray(points, float), normals, part)
+    pj = part_description(part, part_json)
+    check_cloud_for_part(points, part, pj)
+    normals = cloud_normals(np.asarray(points, float), normals, pj)
     state = twin_state(points, normals, machine, program_text, part,
-                       want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride)
+                       want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride, part_json=pj)
     if len(state) < 20:
         raise ValueError(f"only {len(state)} measured points were cut by the program: too few to diagnose")
     gap_rms = float(np.sqrt(np.mean(state.gap_um ** 2)))
@@ -78,7 +96,7 @@ def run_diagnosis(points, normals, part: str, machine, program_text: str, *, can
 MAX_GAP_RMS_UM = 500.0  # the post's default correction bound: a larger gap is not a machine effect but a wrong input
 
 
-def check_cloud_for_part(points, part: str) -> None:
+def check_cloud_for_part(points, part: str, part_json: dict | None = None) -> None:
     """The input gate of a measured cloud (as ``inspect`` has it): finite points inside the part's bounding box, 1 mm
     allowance; a cloud of another part, or in another frame or unit, is refused before any simulation."""
     from ..inspect.cloud import check_extent
@@ -89,7 +107,7 @@ def check_cloud_for_part(points, part: str) -> None:
     pts = np.asarray(points, float)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 20:
         raise ValueError(f"a cloud of at least 20 points (n, 3) is needed, got shape {pts.shape}")
-    check_extent(pts, *part_bbox(load_part(part)), EXTENT_TOLERANCE_MM, part=part)
+    check_extent(pts, *part_bbox(load_part(part, part_json)), EXTENT_TOLERANCE_MM, part=part)
 
 
 # ---------------------------------------------------------------------------------------------------- JSON ----
@@ -272,30 +290,42 @@ def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None
     return data
 
 
-def main_diagnose(args) -> int:
-    """``trueaxis diagnose --cloud C --part P --machine M --program G [--candidates ..] [--split ..]
-    [--noise-um S] [-o DIR]``. Errors raise ValueError (exit 2 in the CLI); nothing is written then."""
+def diagnose_files(cloud, part: str, machine, program, output, *, candidates="all", split: str = "region",
+                   noise_um: float | None = None, part_json=None) -> tuple[Diagnosis, dict]:
+    """``trueaxis diagnose`` on files: read the cloud (PLY/CSV/XYZ), the twin (machine file) and the program, diagnose,
+    and write the report into ``output``. Returns (the diagnosis, the report's JSON dict). Errors raise ValueError;
+    nothing is written then.
+
+    cloud, machine, program, output : paths.  part : "nas979" | "slots".  candidates : "all", "NAME,NAME" or a list.
+    split : "region" | "time" | "random".  noise_um : probe noise sigma (um, > 0) or None (estimated).
+    part_json : the part's description (see ``run_diagnosis``)."""
     from ..inspect.cloud import read_cloud
     from ..machine import load_machine
 
-    if args.noise_um is not None and not (np.isfinite(args.noise_um) and args.noise_um > 0):
+    if noise_um is not None and not (np.isfinite(noise_um) and noise_um > 0):
         raise ValueError("--noise-um must be a finite number > 0")
-    names = parse_candidates(args.candidates)
-    program = Path(args.program)
+    names = parse_candidates(candidates) if isinstance(candidates, str) or candidates is None else list(candidates)
+    program = Path(program)
     if not program.is_file():
         raise ValueError(f"{program}: no such program file")
-    machine = load_machine(args.machine)
-    cloud = read_cloud(args.cloud)
+    m = load_machine(machine)
+    pts = read_cloud(cloud)
     text = program.read_text(encoding="utf-8", errors="replace")
-    diag, state = run_diagnosis(cloud.points, cloud.normals, args.part, machine, text, candidates=names,
-                                split=args.split, noise_um=args.noise_um)
-    inputs = {"cloud": str(args.cloud), "part": args.part, "machine": str(args.machine), "program": str(program),
-              "candidates": names, "split": args.split, "noise_um": args.noise_um}
-    data = write_report(diag, state, args.output, inputs)
-    b, a = data["gap_um"]["before"], data["gap_um"]["after"]
-    print(f"{args.output}: {diag.verdict} (confidence {diag.confidence:.2f}); held-out gap rms {b['rms']:.2f} -> "
-          f"{a['rms']:.2f} um, max {b['max']:.2f} -> {a['max']:.2f} um; shrink {diag.shrink_raw * 100:.0f} % raw, "
-          f"{diag.shrink_above_noise * 100:.0f} % above the noise (sigma {diag.noise_um:.2f} um)")
+    diag, state = run_diagnosis(pts.points, pts.normals, part, m, text, candidates=names, split=split,
+                                noise_um=noise_um, part_json=part_json)
+    inputs = {"cloud": str(cloud), "part": part, "machine": str(machine), "program": str(program),
+              "candidates": names, "split": split, "noise_um": noise_um,
+              "part_json": str(part_json) if isinstance(part_json, (str, Path)) else None}
+    data = write_report(diag, state, output, inputs)
+    return diag, data
+
+
+def summary_lines(diag: Diagnosis, output) -> list[str]:
+    """The command's summary on the terminal."""
+    b, a = diag.gap_before, diag.gap_after
+    out = [f"{output}: {diag.verdict} (confidence {diag.confidence:.2f}); held-out gap rms {b['rms']:.2f} -> "
+           f"{a['rms']:.2f} um, max {b['max']:.2f} -> {a['max']:.2f} um; shrink {diag.shrink_raw * 100:.0f} % raw, "
+           f"{diag.shrink_above_noise * 100:.0f} % above the noise (sigma {diag.noise_um:.2f} um)"]
     if diag.alternatives:
-        print(f"  almost as good: {', '.join(diag.alternatives)}; to separate: {diag.separating_measurement}")
-    return 0
+        out.append(f"  almost as good: {', '.join(diag.alternatives)}; to separate: {diag.separating_measurement}")
+    return out

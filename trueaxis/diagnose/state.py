@@ -281,11 +281,13 @@ def reversal_travel(q: np.ndarray) -> np.ndarray:
 
 
 def twin_state(points, normals, machine: Machine, program_text: str, part: str, *, want_force: bool = True,
-               force_stride: int = 10) -> TwinState:
+               force_stride: int = 10, part_json: dict | None = None) -> TwinState:
     """Simulate the twin ``machine`` cutting ``program_text`` and read the gap and the state at ``points``.
 
     points, normals : (N, 3) measured points (mm) and unit outward normals, part frame.
     machine : the twin (as loaded; the program's setup comment places the part).  part : "nas979" | "slots".
+    part_json : the part's description (``trueaxis.inspect.parts`` JSON dict; default: the part's default size),
+        for the stock's shape the force model engages.
     want_force : estimate the cutting force at each cut (needs the machine's [cutting] coefficients; adds the
         force model's time to the simulation).
     Raises ValueError when no measured point was cut by the program.
@@ -306,7 +308,7 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
     has_force = bool(want_force and machine.cutting is not None)
     # A zero extra compliance: the shop then estimates the force (real engagement) without moving the tool.
     effects = Effects(force=ForceDeflection(np.zeros((3, 3)))) if has_force else Effects()
-    res = simulate(prog, machine, effects, part=part, part_json=load_part(part), probe=(points, normals),
+    res = simulate(prog, machine, effects, part=part, part_json=load_part(part, part_json), probe=(points, normals),
                    force_stride=force_stride)
     cut = np.isfinite(res.deviations_um)
     if not np.any(cut):
