@@ -518,7 +518,7 @@ def test_a_cloud_of_another_part_or_far_from_the_cut_is_refused_before_a_verdict
 
 def test_the_parts_own_description_gives_the_normals_of_a_cone_of_another_size():
     from trueaxis.diagnose.report import cloud_normals, part_description
-    from trueaxis.inspect.parts import Nas979Params
+    from trueaxis.workpiece.parts import Nas979Params
     from trueaxis.sim.cmm import probe_pattern
 
     params = Nas979Params(base_diameter=64.0, height=16.0, half_angle_deg=18.0)

@@ -39,16 +39,13 @@ def parse_candidates(text: str | None) -> list[str]:
 
 
 def part_description(part: str, part_json=None) -> dict:
-    """The part's description (the JSON of ``trueaxis.inspect.parts``): ``part_json`` as a dict, a path to a JSON
-    file, or typed parameters (``Nas979Params`` / ``SlotBlockParams``); None: the part at its default size.
-    ValueError when it describes another part."""
-    from ..inspect.parts import Nas979Params, SlotBlockParams, nas979_description, slot_block_description
-    from ..sim.shop import load_part
+    """The part's description (the JSON of its ``trueaxis.workpiece`` module): ``part_json`` as a dict, a path to a
+    JSON file, or the part's typed parameters (``Nas979Params`` / ``SlotBlockParams``); None: the part at its default
+    size. ValueError when it describes another part."""
+    from ..workpiece.part import get_part, load_part
 
-    if isinstance(part_json, Nas979Params):
-        part_json = nas979_description(part_json)
-    elif isinstance(part_json, SlotBlockParams):
-        part_json = slot_block_description(part_json)
+    if part_json is not None and not isinstance(part_json, (dict, str, os.PathLike)):
+        part_json = get_part(part).description(part_json)
     return load_part(part, part_json)
 
 

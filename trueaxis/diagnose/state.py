@@ -286,7 +286,7 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
 
     points, normals : (N, 3) measured points (mm) and unit outward normals, part frame.
     machine : the twin (as loaded; the program's setup comment places the part).  part : "nas979" | "slots".
-    part_json : the part's description (``trueaxis.inspect.parts`` JSON dict; default: the part's default size),
+    part_json : the part's description (``trueaxis.workpiece`` JSON dict; default: the part's default size),
         for the stock's shape the force model engages.
     want_force : estimate the cutting force at each cut (needs the machine's [cutting] coefficients; adds the
         force model's time to the simulation).
