@@ -11,7 +11,8 @@ import pytest
 from conftest import MACHINES
 from rs274_helpers import run_rs274
 from trueaxis.workpiece.parts import Nas979Params, SlotBlockParams, cone_signed_distance
-from trueaxis.postproc.programs import (ClPath, cone_flank_cl, nas979_program, read_setup, slots_program,
+from trueaxis.nc.cl import ClData, cl_axes, read_cl
+from trueaxis.postproc.programs import (cone_flank_cl, nas979_program, read_setup, slots_program,
                                        twin_id)
 from trueaxis.machine import forward_nominal, load_machine
 from trueaxis.nc.gcode import parse_program
@@ -144,6 +145,28 @@ def test_program_poses_through_forward_kinematics_reproduce_the_cl(cone_prog):
     np.testing.assert_allclose(m.workpiece_origin, [10.0, -5.0, 50.0])
 
 
+def test_a_cl_file_of_a_program_pass_lands_on_the_program_s_axes(cone_prog):
+    """One CL type, one path to the axes: the finishing pass written as a CAM CL file (CSV, 6 decimals), read back
+    and solved the CAM way (``cl_axes``, branch "nearest", one pass, from the pass's approach) gives the part
+    program's axes ("first-fit", pass by pass) to the file's rounding, and its own axes put the tool on the file's
+    poses exactly."""
+    m = cone_prog.machine
+    cl = cone_prog.cl
+    sel = np.nonzero(cl.pass_no == len(cl.passes) - 1)[0][1:-1]  # plunge .. lead-out: feeds > 0, no rapid inside
+    cam = read_cl(cl.rows(sel).csv_text(), source="pass.csv")
+    assert isinstance(cam, ClData) and cam.pass_no is None and len(cam) == sel.size
+    q_cam, b = cl_axes(cam, m, previous=cone_prog.q[sel[0] - 1])  # from the pass's approach: C wound alike
+    assert np.all(b == -1)  # the B -120..+30 table tilts negative on both paths
+    tip, u = forward_nominal(m, q_cam)
+    np.testing.assert_allclose(tip, cam.tip, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(u, cam.axis / np.linalg.norm(cam.axis, axis=1, keepdims=True), rtol=0, atol=1e-12)
+    # 6-decimal rounding of tip (5e-7 mm) and axis (5e-7: C moves by up to 5e-7 / sin(B) = 6e-6 rad at B = -5 deg;
+    # times the ~100 mm lever of the pivots for the linear axes)
+    rot = np.array([m.axes[a].is_rotary for a in m.axis_names])
+    np.testing.assert_allclose(q_cam[:, rot], cone_prog.q[sel][:, rot], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(q_cam[:, ~rot], cone_prog.q[sel][:, ~rot], rtol=0, atol=5e-4)
+
+
 def test_program_structure_and_safe_height(cone_prog, nmv):
     text = cone_prog.raw
     assert text.startswith("%\n") and text.rstrip().endswith("M30\n%")
@@ -213,7 +236,7 @@ def test_slot_sections_differ_only_where_compensation_applies(slots_prog, xh714)
 def test_slot_cl_follows_the_tool_centre_paths(slots_prog):
     p = SlotBlockParams()
     cl = slots_prog.cl
-    assert isinstance(cl, ClPath) and len(cl.passes) == 3 * len(p.pass_depths())
+    assert isinstance(cl, ClData) and len(cl.passes) == 3 * len(p.pass_depths())
     cut = cl.kind == "cut"
     np.testing.assert_allclose(cl.axis, np.tile([0, 0, 1.0], (len(cl.tip), 1)))
     assert set(np.round(cl.tip[cut, 2], 9)) == set(np.round(p.pass_depths(), 9))

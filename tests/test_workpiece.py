@@ -15,9 +15,8 @@ from trueaxis.workpiece.parts import cone_signed_distance
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# Files that may still branch on a part's name: the inspection's evaluation, changed in parallel by its own issue
-# (#19); take a file off the list once it no longer branches. Any other file that starts fails the test.
-STILL_BRANCHING = {"trueaxis/inspect/deviation.py", "trueaxis/inspect/report.py"}
+# Files that may still branch on a part's name: none (the inspection asks the Part); any file that starts fails.
+STILL_BRANCHING: set[str] = set()
 _BRANCH = re.compile(r"""(==|!=)\s*["'](nas979|slots)["']|["'](nas979|slots)["']\s*(==|!=)""")
 
 
@@ -63,3 +62,28 @@ def test_no_module_outside_the_part_modules_branches_on_a_part_name():
         if _BRANCH.search(path.read_text(encoding="utf-8")):
             branching.add(rel)
     assert branching <= STILL_BRANCHING, sorted(branching - STILL_BRANCHING)
+
+
+@pytest.mark.parametrize("name", ["nas979", "slots"])
+def test_each_part_s_bounding_box_holds_its_probe_pattern_and_its_mesh(name):
+    part = get_part(name)
+    doc = load_part(name)
+    lo, hi = part.bbox(doc)
+    pts, _ = part.probe_pattern(doc, 400)
+    assert np.all(pts >= lo - 1e-9) and np.all(pts <= hi + 1e-9)
+    mesh = part.mesh(doc)
+    if mesh is not None:  # the box is tight: the mesh touches every face of it (to its chord error, 0.05 um)
+        assert np.all(mesh.vertices >= lo - 1e-9) and np.all(mesh.vertices <= hi + 1e-9)
+        np.testing.assert_allclose(mesh.vertices.min(axis=0), lo, rtol=0, atol=mesh.chord_error_mm)
+        np.testing.assert_allclose(mesh.vertices.max(axis=0), hi, rtol=0, atol=mesh.chord_error_mm)
+
+
+@pytest.mark.parametrize("name", ["nas979", "slots"])
+def test_each_part_s_datums_name_surfaces_of_its_json_or_derived_from_it(name):
+    part = get_part(name)
+    doc = load_part(name)
+    ids = {s["id"] for s in doc["surfaces"]} | {s["id"] for s in part.derived_surfaces(doc)}
+    assert [label for label, _, _ in part.datums] == ["A", "B", "C"]
+    for _, candidates, _ in part.datums:
+        assert set(candidates) <= ids
+    assert part.params_from(doc) == part.params_type()  # the JSON's parameters give back the defaults

@@ -8,20 +8,22 @@ Two references, one rule:
 
 - **Analytic surfaces** of the part JSON (``trueaxis.workpiece.parts``): cone, planes (annulus, box or wall-segment
   extents) and cylinders (slot arcs). Each point is assigned to its nearest *bounded* surface patch and its
-  deviation is the exact signed distance to that patch. For the slot block the JSON lists only the block's top and
-  bottom; its four side faces are derived here from the block's parameters (``derived: true``) so that the datum
-  alignment and points probed on the sides have an analytic reference too.
+  deviation is the exact signed distance to that patch. Surfaces a part's JSON does not list but its parameters
+  define are added from ``Part.derived_surfaces`` (the slot block's four side faces, ``derived: true``) so that the
+  datum alignment and points probed on the sides have an analytic reference too.
 - **The CAD mesh**, through open3d's ``RaycastingScene.compute_closest_points``, where the JSON has no analytic
   surface: a point farther than ``gate_mm`` from every analytic patch is measured against the mesh as well, and the
   mesh wins when it is nearer by more than its chord error (a CAD face the JSON does not describe: a fillet, a
   chamfer, a user's own feature). With no analytic surfaces at all (``--cad`` without a JSON) every point is measured
   against the mesh. The mesh is fine enough that its chord error is below 0.1 um; the bound is stated with the mesh.
 
-Meshes: the NAS 979 part is meshed here directly from its analytic description (numpy; the chord error is the
-sagitta ``R (1 - cos(dtheta / 2))`` of the widest angular step on the base circle, every other face is planar). The
-slot block is tessellated with OCCT (through cadquery) from the generator at an angular deflection that keeps the
-chord error on its 5 mm arcs below 0.1 um; OCCT needs tens of seconds to mesh the cone to that tolerance, so it is not
-used for NAS 979 unless a STEP file is given with ``--cad``.
+Meshes: a part that has its own mesh (``Part.mesh``) gives it: the NAS 979 part is meshed directly from its analytic
+description (``trueaxis.workpiece.mesh``, numpy; the chord error is the sagitta ``R (1 - cos(dtheta / 2))`` of the
+widest angular step on the base circle, every other face is planar). Any other part (the slot block) is tessellated
+with OCCT (through cadquery) from its generator at an angular deflection that keeps the chord error on its 5 mm arcs
+below 0.1 um; OCCT needs tens of seconds to mesh the cone to that tolerance, so it is not used for NAS 979 unless a
+STEP file is given with ``--cad``. Nothing here branches on a part's name: what differs per part is the ``Part``'s
+(``trueaxis.workpiece.part``: derived surfaces, mesh, chord bound, bounding box, datums).
 
 Alignments (cloud -> part frame, a rigid motion ``x -> R x + t``):
 
@@ -31,10 +33,10 @@ Alignments (cloud -> part frame, a rigid motion ``x -> R x + t``):
   (analytic or mesh closest points, i.e. point-to-plane with exact feet) until the step is below 1e-12 mm. The
   motion it removed is reported (translations um, rotations urad): it hides whatever machine errors caused it.
   Directions the cloud cannot fix (rotation about the axis of a cone probed alone) are left at zero and named.
-- ``datum``: a 3-2-1 frame from the part's datum features measured in the cloud (least-squares planes): NAS 979,
-  A = block bottom (3 points at least), B = a block side normal to X (xneg or xpos, 2 points), C = a block side normal
-  to Y (yneg or ypos, 1 point); slot block, A = block top, B = front side (y = 0, or back y = W), C = left end (x = 0,
-  or right end x = L). A missing datum is refused, naming it.
+- ``datum``: a 3-2-1 frame from the part's datum features (``Part.datums``) measured in the cloud (least-squares
+  planes): NAS 979, A = block bottom (3 points at least), B = a block side normal to X (xneg or xpos, 2 points), C = a
+  block side normal to Y (yneg or ypos, 1 point); slot block, A = block top, B = front side (y = 0, or back y = W),
+  C = left end (x = 0, or right end x = L). A missing datum is refused, naming it.
 """
 
 from __future__ import annotations
@@ -45,10 +47,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..workpiece.mesh import (MAX_ASPECT, CadMesh, _axis_basis, _unit, cone_frustum_mesh,  # noqa: F401
+                               nas979_mesh)
+from ..workpiece.part import part_of
+
 __all__ = [
     "InspectionError", "analytic_surfaces", "patch_distance", "SurfaceDeviation", "analytic_deviation",
     "CadMesh", "MAX_ASPECT", "cone_frustum_mesh", "nas979_mesh", "occ_mesh", "load_mesh_file", "part_mesh", "MeshDistance",
-    "Deviation", "deviation", "part_bbox", "RigidMotion", "align_bestfit", "align_datum", "DATUMS",
+    "Deviation", "deviation", "part_bbox", "RigidMotion", "align_bestfit", "align_datum",
 ]
 
 CHUNK = 250_000  # points per block in the patch-distance tables (memory: CHUNK x surfaces doubles)
@@ -60,22 +66,12 @@ class InspectionError(ValueError):
 
 # ----------------------------------------------------------------------------------------------- analytic surfaces
 
-def _slot_block_sides(part: dict) -> list[dict]:
-    """The slot block's four side faces (the JSON lists only its top and bottom), from its parameters."""
-    p = part["parameters"]
-    length, width, height = p["block_length_x"], p["block_width_y"], p["block_height_z"]
-    z = [-height, 0.0]
-    note = "derived by trueaxis.inspect.deviation from the block's parameters"
-    return [
-        {"id": "block_side_xneg", "type": "plane", "point": [0.0, 0.0, 0.0], "normal": [-1.0, 0.0, 0.0],
-         "y_range": [0.0, width], "z_range": z, "derived": True, "note": note},
-        {"id": "block_side_xpos", "type": "plane", "point": [length, 0.0, 0.0], "normal": [1.0, 0.0, 0.0],
-         "y_range": [0.0, width], "z_range": z, "derived": True, "note": note},
-        {"id": "block_side_yneg", "type": "plane", "point": [0.0, 0.0, 0.0], "normal": [0.0, -1.0, 0.0],
-         "x_range": [0.0, length], "z_range": z, "derived": True, "note": note},
-        {"id": "block_side_ypos", "type": "plane", "point": [0.0, width, 0.0], "normal": [0.0, 1.0, 0.0],
-         "x_range": [0.0, length], "z_range": z, "derived": True, "note": note},
-    ]
+def _known_part(part: dict):
+    """The ``Part`` a part JSON describes, or None for a JSON of no known part."""
+    try:
+        return part_of(part)
+    except ValueError:
+        return None
 
 
 def analytic_surfaces(part: dict) -> list[dict]:
@@ -86,8 +82,9 @@ def analytic_surfaces(part: dict) -> list[dict]:
     """
     surfaces = [dict(s) for s in part.get("surfaces", [])]
     known = {s["id"] for s in surfaces}
-    if part.get("part") == "slots" and "parameters" in part:
-        surfaces += [s for s in _slot_block_sides(part) if s["id"] not in known]
+    the_part = _known_part(part)
+    if the_part is not None:
+        surfaces += [s for s in the_part.derived_surfaces(part) if s["id"] not in known]
     # a slot floor's region is the tool-centre path swept by a disk: attach the path so the patch can be bounded
     floors = {f["floor"]: f for f in part.get("features", []) if f.get("type") == "slot" and "floor" in f}
     for s in surfaces:
@@ -99,18 +96,6 @@ def analytic_surfaces(part: dict) -> list[dict]:
         if s.get("type") not in ("cone", "plane", "cylinder"):
             raise InspectionError(f"part JSON surface {s.get('id')!r} has unknown type {s.get('type')!r}")
     return surfaces
-
-
-def _unit(v) -> np.ndarray:
-    v = np.asarray(v, dtype=np.float64).reshape(3)
-    return v / np.linalg.norm(v)
-
-
-def _axis_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(u, w) with (u, w, axis) right-handed: u = part X projected normal to the axis (Y if X is along it)."""
-    from ..workpiece.parts import _axis_basis as basis  # one definition of the ring-angle origin for the whole package
-
-    return basis(axis)
 
 
 def _finish(points, foot, signed_offset, fallback_normal):
@@ -334,218 +319,6 @@ def analytic_deviation(points, surfaces: list[dict]) -> SurfaceDeviation:
 
 # ------------------------------------------------------------------------------------------------------------ meshes
 
-@dataclass(frozen=True)
-class CadMesh:
-    """A closed triangle mesh of the part, outward-facing triangles (counter-clockwise seen from outside).
-
-    vertices : (V, 3) float64, mm, part frame
-    triangles : (T, 3) int64 vertex indices
-    chord_error_mm : float or None, largest distance between the mesh and the CAD surface (None: not known)
-    source : str, where the mesh came from
-    note : str, how the chord error was bounded
-    """
-
-    vertices: np.ndarray
-    triangles: np.ndarray
-    chord_error_mm: float | None
-    source: str
-    note: str = ""
-
-    def write_ply(self, path) -> None:
-        """Binary little-endian PLY (double vertices, int faces), for CloudCompare and viewers."""
-        header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(self.vertices)}\n"
-                  "property double x\nproperty double y\nproperty double z\n"
-                  f"element face {len(self.triangles)}\nproperty list uchar int vertex_indices\nend_header\n")
-        faces = np.zeros(len(self.triangles), dtype=[("n", "u1"), ("v", "<i4", (3,))])
-        faces["n"] = 3
-        faces["v"] = self.triangles
-        with open(path, "wb") as out:
-            out.write(header.encode("ascii"))
-            out.write(np.ascontiguousarray(self.vertices, dtype="<f8").tobytes())
-            out.write(faces.tobytes())
-
-
-def _segments_for_chord(radius: float, chord_error_mm: float) -> int:
-    """Equal angular steps around a circle so that the sagitta R (1 - cos(dtheta / 2)) <= chord_error_mm."""
-    if not chord_error_mm > 0:
-        raise ValueError(f"chord_error_mm must be > 0, got {chord_error_mm}")
-    half = math.acos(max(1.0 - chord_error_mm / radius, -1.0))
-    return max(8, math.ceil(math.pi / half))
-
-
-def _orient(vertices, triangles, outward):
-    """Flip triangles whose normal points against the wanted outward direction (T, 3)."""
-    tri = vertices[triangles]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    flip = np.einsum("ij,ij->i", normal, outward) < 0
-    triangles = triangles.copy()
-    triangles[flip] = triangles[flip][:, [0, 2, 1]]
-    return triangles
-
-
-def _sagitta(radius, angles):
-    gaps = np.diff(np.r_[angles, angles[0] + 2 * np.pi])
-    return radius * (1 - math.cos(gaps.max() / 2)), gaps.max()
-
-
-# Embree's closest-point query runs in float32: on a sliver triangle (40 mm x 0.1 mm) its closest point was off by
-# up to 15 um in our checks. Every triangle here is kept within this aspect ratio (long side / short side).
-MAX_ASPECT = 8.0
-
-
-def _grid(rings: list[np.ndarray]):
-    """Triangles (2 per quad) joining consecutive rings (K, m, 3) of equal count m, closed around; vertex indices
-    into the stacked rings. Returns (vertices (K m, 3), triangles)."""
-    rings = np.asarray(rings)
-    k_count, m = rings.shape[:2]
-    j = np.arange(m)
-    nxt = (j + 1) % m
-    tris = []
-    for i in range(k_count - 1):
-        a, b = i * m, (i + 1) * m
-        tris += [np.column_stack([a + j, a + nxt, b + nxt]), np.column_stack([a + j, b + nxt, b + j])]
-    return rings.reshape(-1, 3), np.vstack(tris)
-
-
-def _annulus_rings(centre, radial, r_inner, r_outer, step):
-    """Rings at radii from r_inner to r_outer (arrays (m,) per ray, or floats) in geometric steps whose ratio keeps
-    the quads' aspect <= MAX_ASPECT: radius ratio 1 + MAX_ASPECT * step per row (step = angular step, rad)."""
-    r_inner = np.broadcast_to(np.asarray(r_inner, float), (len(radial),))
-    r_outer = np.broadcast_to(np.asarray(r_outer, float), (len(radial),))
-    ratio = float(np.max(r_outer / r_inner))
-    rows = max(1, math.ceil(math.log(ratio) / math.log(1.0 + MAX_ASPECT * step)))
-    f = np.arange(rows + 1) / rows
-    radii = r_inner[None, :] * (r_outer / r_inner)[None, :] ** f[:, None]  # (rows + 1, m)
-    return [centre + radii[i][:, None] * radial for i in range(rows + 1)]
-
-
-def _disk(centre, normal, radial, radius, step):
-    """A planar disk: rings from the rim in to half the radius (aspect-limited quads, the rim's own vertices), and an
-    inner 64-gon fan circumscribing the innermost ring (overlapping it, coplanar: no gap for distance queries).
-    Returns (vertices, triangles, outward normals)."""
-    rings = _annulus_rings(centre, radial, radius / 2, radius, step)
-    v_ring, t_ring = _grid(rings)
-    k = 64
-    phi = 2 * np.pi * np.arange(k) / k
-    u, w = _axis_basis(normal)
-    inner_r = (radius / 2) / math.cos(math.pi / k) * 1.0001
-    poly = centre + inner_r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w)
-    v_fan = np.vstack([poly, centre])
-    t_fan = np.column_stack([np.full(k, k), np.arange(k), (np.arange(k) + 1) % k]) + len(v_ring)
-    vertices = np.vstack([v_ring, v_fan])
-    triangles = np.vstack([t_ring, t_fan])
-    return vertices, triangles, np.broadcast_to(normal, (len(triangles), 3))
-
-
-def _cone_lateral(c, a, alpha, radial, h0, h1, r_lo, step):
-    """Rings along the generators from height h0 to h1, rows short enough for MAX_ASPECT."""
-    r_hi = r_lo - (h1 - h0) * math.tan(alpha)
-    generator = (h1 - h0) / math.cos(alpha)
-    rows = max(1, math.ceil(generator / (MAX_ASPECT * r_hi * step)))
-    rings = []
-    for f in np.arange(rows + 1) / rows:
-        h = h0 + f * (h1 - h0)
-        rings.append(c + h * a + (r_lo - (h - h0) * math.tan(alpha)) * radial)
-    vertices, triangles = _grid(rings)
-    # outward normal at each triangle: the cone normal at its centroid's angle
-    centroid = vertices[triangles].mean(axis=1) - c
-    radial_c = centroid - (centroid @ a)[:, None] * a
-    radial_c /= np.linalg.norm(radial_c, axis=1, keepdims=True)
-    return vertices, triangles, math.cos(alpha) * radial_c + math.sin(alpha) * a
-
-
-def _assemble(pieces, note, source, chord):
-    vertices, triangles, outward, offset = [], [], [], 0
-    for v, t, o in pieces:
-        vertices.append(v)
-        triangles.append(t + offset)
-        outward.append(o)
-        offset += len(v)
-    vertices = np.vstack(vertices)
-    triangles = _orient(vertices, np.vstack(triangles).astype(np.int64), np.vstack(outward))
-    return CadMesh(vertices, triangles, chord, source, note)
-
-
-def cone_frustum_mesh(cone: dict, chord_error_mm: float = 5e-5) -> CadMesh:
-    """Closed mesh of a cone frustum (lateral surface, base and top caps) of a part JSON cone surface.
-
-    cone : ``"type": "cone"`` surface dict (base_center, axis, half_angle_deg, base_radius, height_range).
-    chord_error_mm : largest mesh-to-cone distance wanted; the angular step is chosen on the base circle (the largest).
-
-    Why the bound holds: each lateral quad joins two generators, which meet at the apex, so it is planar; it lies
-    between its secant plane and the cone, no farther from the cone than the sagitta R (1 - cos(dtheta / 2)) of its
-    base chord. The caps are planar and exact. Triangles keep an aspect ratio <= MAX_ASPECT (see there); the caps'
-    inner fans overlap their rings instead of sharing vertices, so the mesh is closed but not edge-conforming there.
-    """
-    c = np.asarray(cone["base_center"], float)
-    a = _unit(cone["axis"])
-    alpha = math.radians(float(cone["half_angle_deg"]))
-    radius = float(cone["base_radius"])
-    h0, h1 = (float(v) for v in cone["height_range"])
-    r_lo, r_hi = radius - h0 * math.tan(alpha), radius - h1 * math.tan(alpha)
-    n = _segments_for_chord(r_lo, chord_error_mm)
-    angles = 2 * np.pi * np.arange(n) / n
-    step = 2 * np.pi / n
-    u, w = _axis_basis(a)
-    radial = np.cos(angles)[:, None] * u + np.sin(angles)[:, None] * w
-    pieces = [_cone_lateral(c, a, alpha, radial, h0, h1, r_lo, step),
-              _disk(c + h0 * a, -a, radial, r_lo, step), _disk(c + h1 * a, a, radial, r_hi, step)]
-    chord, gap = _sagitta(r_lo, angles)
-    return _assemble(pieces, f"R (1 - cos(dtheta / 2)) with R = {r_lo:g} mm, widest step dtheta = {gap:.3e} rad; "
-                     "caps exact", "cone frustum meshed from the part JSON (numpy)", chord)
-
-
-def nas979_mesh(part: dict, chord_error_mm: float = 5e-5) -> CadMesh:
-    """Closed mesh of the NAS 979 part (frustum on its wedge block) from its JSON, chord error <= chord_error_mm.
-
-    The cone's lateral surface, the block-top face between the base circle and the block outline (rays at the same
-    angles, plus the block-top corners' angles so that the outline is met at its corners) and the top cap share the
-    ring angles; the block's bottom and sides are two triangles each. Only the cone's lateral surface is curved.
-    """
-    cone = next(s for s in part["surfaces"] if s["type"] == "cone")
-    p = part["parameters"]
-    z_bottom = float(part["derived"]["z_bottom"])
-    c = np.asarray(cone["base_center"], float)
-    a = _unit(cone["axis"])
-    u, w = _axis_basis(a)
-    alpha = math.radians(float(cone["half_angle_deg"]))
-    radius, height = float(cone["base_radius"]), float(cone["height_range"][1])
-    r_top = radius - height * math.tan(alpha)
-    half_l, half_w = p["block_length_x"] / 2, p["block_width_y"] / 2
-    # block-top face: the plane a . x = 0; a point (x, y, -x tan t) there is x / cos t along u plus y along w
-    cos_t = float(a[2])
-    uh, wh = half_l / cos_t, half_w
-    n = _segments_for_chord(radius, chord_error_mm)
-    step = 2 * np.pi / n
-    corners = np.arctan2([wh, wh, -wh, -wh], [uh, -uh, -uh, uh])
-    angles = np.unique(np.mod(np.r_[2 * np.pi * np.arange(n) / n, corners], 2 * np.pi))
-    radial = np.cos(angles)[:, None] * u + np.sin(angles)[:, None] * w
-    with np.errstate(divide="ignore"):
-        s_out = np.minimum(uh / np.abs(np.cos(angles)), wh / np.abs(np.sin(angles)))
-    v_top, t_top = _grid(_annulus_rings(c, radial, radius, s_out, step))
-    bottom = np.array([[half_l, half_w], [-half_l, half_w], [-half_l, -half_w], [half_l, -half_w]])
-
-    def top_z(xy):
-        return -xy[0] * math.tan(math.atan2(a[0], a[2]))
-
-    block = []
-    block.append((np.column_stack([bottom, np.full(4, z_bottom)]), np.array([[0, 1, 2], [0, 2, 3]]),
-                  np.broadcast_to([0.0, 0.0, -1.0], (2, 3))))
-    for k in range(4):  # side k joins bottom corners k and k + 1 (counter-clockwise seen from above)
-        p0, p1 = bottom[k], bottom[(k + 1) % 4]
-        quad = np.array([[*p0, z_bottom], [*p1, z_bottom], [*p1, top_z(p1)], [*p0, top_z(p0)]])
-        mid = (p0 + p1) / 2
-        out = np.array([np.sign(mid[0]) if abs(mid[0]) > 1e-9 else 0.0, np.sign(mid[1]) if abs(mid[1]) > 1e-9
-                        else 0.0, 0.0])
-        block.append((quad, np.array([[0, 1, 2], [0, 2, 3]]), np.broadcast_to(out, (2, 3))))
-    pieces = [_cone_lateral(c, a, alpha, radial, 0.0, height, radius, step),
-              _disk(c + height * a, a, radial, r_top, step),
-              (v_top, t_top, np.broadcast_to(a, (len(t_top), 3))), *block]
-    chord, gap = _sagitta(radius, angles)
-    return _assemble(pieces, f"cone: R (1 - cos(dtheta / 2)) with R = {radius:g} mm, widest step {gap:.3e} rad; "
-                     "planes exact", "NAS 979 part meshed from its JSON (numpy)", chord)
-
-
 def occ_mesh(shape, linear_mm: float, angular_rad: float, source: str) -> CadMesh:
     """Tessellate a cadquery Shape with OCCT (absolute linear deflection, angular deflection). The chord error is
     OCCT's linear deflection unless the caller measures a tighter bound."""
@@ -566,19 +339,12 @@ def _outward(mesh: CadMesh) -> CadMesh:
 
 
 def _measured_chord_bound(mesh: CadMesh, part: dict) -> tuple[float, str] | None:
-    """The chord error of a mesh of one of our parts, measured on its curved faces (parts' own bound functions)."""
-    from ..workpiece import parts
-
+    """The chord error of a mesh of one of our parts, measured on its curved faces (``Part.stl_chord_bound``)."""
+    the_part = _known_part(part)
+    if the_part is None:
+        return None
     try:
-        if part.get("part") == "nas979":
-            cone = next(s for s in part["surfaces"] if s["type"] == "cone")
-            bound, span = parts._nas979_chord_bound(mesh.vertices, mesh.triangles, cone)
-        elif part.get("part") == "slots":
-            params = parts.SlotBlockParams.from_kwargs(**{k: (tuple(map(tuple, v)) if k == "slot_path" else v)
-                                                          for k, v in part["parameters"].items()})
-            bound, span = parts._slots_chord_bound(mesh.vertices, mesh.triangles, params)
-        else:
-            return None
+        bound, span, _ = the_part.stl_chord_bound(mesh.vertices, mesh.triangles, the_part.params_from(part), part)
     except (KeyError, StopIteration, ValueError):
         return None
     if span == 0.0:
@@ -629,24 +395,24 @@ def load_mesh_file(path, part: dict | None = None, linear_mm: float = 1e-3, angu
 def part_mesh(part: dict, part_dir=None) -> CadMesh:
     """The CAD mesh of a part JSON, chord error below 0.1 um.
 
-    nas979: meshed from the JSON (``nas979_mesh``). slots: ``part_dir/slots.stl`` when it exists and its stated
-    chord error bound is below 0.1 um, else the generator's solid tessellated with OCCT (linear 1e-3 mm, angular
-    0.01 rad: the sagitta on the 5 mm arcs is 0.06 um), chord error measured on the arcs.
+    The part's own mesh (``Part.mesh``: NAS 979 is meshed from its JSON) when it has one; else ``part_dir/<part>.stl``
+    when it exists and its stated chord error bound is below 0.1 um, else the generator's solid tessellated with OCCT
+    (linear 1e-3 mm, angular 0.01 rad: the sagitta on the slot block's 5 mm arcs is 0.06 um), chord error measured
+    on the curved faces.
     """
-    if part.get("part") == "nas979":
-        return nas979_mesh(part)
-    if part.get("part") != "slots":
+    the_part = _known_part(part)
+    if the_part is None:
         raise InspectionError(f"no CAD mesh for part {part.get('part')!r}")
-    stl = Path(part_dir) / "slots.stl" if part_dir is not None else None
+    own = the_part.mesh(part)
+    if own is not None:
+        return own
+    stl = Path(part_dir) / f"{the_part.name}.stl" if part_dir is not None else None
     bound = part.get("stl", {}).get("chord_error_bound_mm")
     if stl is not None and stl.is_file() and bound is not None and bound < 1e-4:
         mesh = load_mesh_file(stl, part)
         return mesh
-    from ..workpiece import parts
-
-    params = parts.SlotBlockParams.from_kwargs(**{k: (tuple(map(tuple, v)) if k == "slot_path" else v)
-                                                  for k, v in part["parameters"].items()})
-    mesh = occ_mesh(parts.build_slot_block(params).val(), 1e-3, 0.01, "slot block generator (OCCT tessellation)")
+    mesh = occ_mesh(the_part.build(the_part.params_from(part)).val(), 1e-3, 0.01,
+                    f"{the_part.title} generator (OCCT tessellation)")
     measured = _measured_chord_bound(mesh, part)
     if measured is not None:
         mesh = CadMesh(mesh.vertices, mesh.triangles, measured[0], mesh.source, measured[1])
@@ -764,21 +530,11 @@ def deviation(points, surfaces: list[dict], mesh: MeshDistance | None = None, ga
 
 
 def part_bbox(part: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned bounding box (min (3,), max (3,)) of a part in its frame, mm, from its JSON parameters."""
-    p = part["parameters"]
-    if part.get("part") == "nas979":
-        cone = next(s for s in part["surfaces"] if s["type"] == "cone")
-        a = _unit(cone["axis"])
-        t = math.atan2(a[0], a[2])
-        half_l, half_w = p["block_length_x"] / 2, p["block_width_y"] / 2
-        h = float(cone["height_range"][1])
-        r_top = float(cone["top_radius"])
-        z_top = max(half_l * math.tan(t), h * a[2] + r_top * abs(math.sin(t)) + 0.0,
-                    float(cone["base_radius"]) * abs(math.sin(t)))
-        return np.array([-half_l, -half_w, float(part["derived"]["z_bottom"])]), np.array([half_l, half_w, z_top])
-    if part.get("part") == "slots":
-        return np.array([0.0, 0.0, -p["block_height_z"]]), np.array([p["block_length_x"], p["block_width_y"], 0.0])
-    raise InspectionError(f"unknown part {part.get('part')!r}")
+    """Axis-aligned bounding box (min (3,), max (3,)) of a part in its frame, mm, from its JSON (``Part.bbox``)."""
+    the_part = _known_part(part)
+    if the_part is None:
+        raise InspectionError(f"unknown part {part.get('part')!r}")
+    return the_part.bbox(part)
 
 
 # -------------------------------------------------------------------------------------------------------- alignment
@@ -943,17 +699,8 @@ def align_bestfit(points, surfaces: list[dict], mesh: MeshDistance | None, cad: 
     return RigidMotion(rotation, translation, "bestfit", null_text, info)
 
 
-# Datum reference frames: (label, candidate surface ids, minimum points); primary A, secondary B, tertiary C
-DATUMS = {
-    "nas979": [("A", ("block_bottom",), 3), ("B", ("block_side_xneg", "block_side_xpos"), 2),
-               ("C", ("block_side_yneg", "block_side_ypos"), 1)],
-    "slots": [("A", ("block_top",), 3), ("B", ("block_side_yneg", "block_side_ypos"), 2),
-              ("C", ("block_side_xneg", "block_side_xpos"), 1)],
-}
-
-
 def align_datum(points, part: dict, surfaces: list[dict], gate_mm: float = 1.0) -> RigidMotion:
-    """3-2-1 alignment on the part's datum planes measured in the cloud (see ``DATUMS``).
+    """3-2-1 alignment on the part's datum planes measured in the cloud (``Part.datums``).
 
     Points within ``gate_mm`` of a datum patch (the cloud roughly in the part frame) are that datum's. Datum A is
     the least-squares plane of its points; B the least-squares plane of its points constrained normal to A; C the
@@ -963,8 +710,9 @@ def align_datum(points, part: dict, surfaces: list[dict], gate_mm: float = 1.0) 
     from .form import fit_plane
 
     points = np.asarray(points, dtype=np.float64)
-    plan = DATUMS.get(part.get("part"))
-    if plan is None:
+    the_part = _known_part(part)
+    plan = the_part.datums if the_part is not None else None
+    if not plan:
         raise InspectionError(f"no datum scheme for part {part.get('part')!r}")
     by_id = {s["id"]: s for s in surfaces}
     ana = analytic_deviation(points, surfaces)

@@ -58,6 +58,8 @@ from ..fileio import OutputPathError, publish_folder, resolve_output
 from . import deviation as dv
 from .cloud import Cloud, CloudError, check_extent, read_cloud, write_deviation_csv, write_deviation_ply
 from .tolerances import CHARACTERISTICS, feature_table, load_tolerances, summary
+from ..workpiece.part import get_part
+from ..workpiece.part import load_part as read_part
 
 SIZE_KEYS = {k for k, v in CHARACTERISTICS.items() if v[0] == "size"}
 
@@ -99,11 +101,12 @@ class Inspection:
 
 def load_part(part: str, part_dir=None, cad=None) -> dict:
     """The part JSON: ``part_dir/<part>.json``; with ``cad``, the JSON beside it (``<stem>.json``) if present; else
-    the generator's default description. Raises InspectionError for a missing file or a JSON for another part."""
-    from ..workpiece.parts import nas979_description, slot_block_description
-
-    if part not in ("nas979", "slots"):
-        raise dv.InspectionError(f"unknown part {part!r}: expected nas979 or slots")
+    the part's default description. Read by the one part loader (``trueaxis.workpiece.part.load_part``); raises
+    InspectionError for an unknown part, a missing or unreadable file or a JSON for another part."""
+    try:
+        get_part(part)
+    except ValueError as exc:
+        raise dv.InspectionError(str(exc)) from None
     path = None
     if part_dir is not None:
         path = Path(part_dir) / f"{part}.json"
@@ -111,15 +114,10 @@ def load_part(part: str, part_dir=None, cad=None) -> dict:
             raise dv.InspectionError(f"{path}: no such part JSON (write it with 'trueaxis part {part} -o {part_dir}')")
     elif cad is not None and Path(cad).with_suffix(".json").is_file():
         path = Path(cad).with_suffix(".json")
-    if path is None:
-        return nas979_description() if part == "nas979" else slot_block_description()
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        return read_part(part, part_json=path)
     except (OSError, ValueError) as exc:
-        raise dv.InspectionError(f"{path}: cannot read the part JSON ({exc})") from None
-    if data.get("part") != part:
-        raise dv.InspectionError(f"{path} describes part {data.get('part')!r}, not {part!r}")
-    return data
+        raise dv.InspectionError(f"{path}: {exc}") from None
 
 
 def deviation_stats(deviation_um) -> dict:
@@ -316,6 +314,11 @@ def evaluate_slots(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5) 
     return {"slots": slots}, {}
 
 
+# The feature evaluations by ``Part.evaluation``: (points, deviations, part JSON, gate_mm) -> (report entries, figure
+# data). A part whose features are of a kind already here names it; a new kind of feature adds its evaluation here.
+EVALUATIONS = {"cone": evaluate_nas979, "slots": evaluate_slots}
+
+
 # -------------------------------------------------------------------------------------------------- the pipeline
 
 def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none", gate_mm: float = 0.5,
@@ -403,10 +406,7 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         for item in _deviation_figure_inputs(part, part_doc, aligned, dev.deviation_um):
             figure_worker.submit(item)
 
-    if part == "nas979":
-        features, figures = evaluate_nas979(aligned, dev, part_doc, gate_mm)
-    else:
-        features, figures = evaluate_slots(aligned, dev, part_doc, gate_mm)
+    features, figures = EVALUATIONS[get_part(part).evaluation](aligned, dev, part_doc, gate_mm)
     d_um = dev.deviation_um
     per_surface = {}
     for k, sid in enumerate(dev.surface_ids):
@@ -425,7 +425,7 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         description = "the default parameters of 'trueaxis part'"
     header = {
         "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
-        "part": PART_NAMES.get(part, part), "part_description": description, "cloud": str(cloud.source),
+        "part": get_part(part).title, "part_description": description, "cloud": str(cloud.source),
         "points": int(len(aligned)), "program": None if program is None else str(program),
         "machine_file": None if machine is None else str(machine), "alignment": _alignment_words(motion),
         "tolerances": str(tolerances) if tolerances is not None else (
@@ -512,7 +512,7 @@ def _deviation_figure_inputs(part: str, part_doc: dict, points: np.ndarray, d: n
     slots = [(f["id"], np.asarray(f["tool_centre_path"], float)[:, :2], f.get("compensation", ""))
              for f in part_doc.get("features", []) if f.get("type") == "slot"]
     counts, edges = np.histogram(d, bins=80)
-    return [{"kind": "deviation_map", "part": part, "points": points[show], "deviation_um": d[show], "limit": limit,
+    return [{"kind": "deviation_map", "view": get_part(part).map_view, "points": points[show], "deviation_um": d[show], "limit": limit,
              "total": len(points), "extent": np.ptp(points, axis=0), "slots": slots},
             {"kind": "histogram", "counts": counts, "edges": edges}]
 
@@ -565,7 +565,7 @@ def draw_figure(inputs: dict) -> tuple[str, bytes, str, dict]:
     colour_label = "deviation (um), + = material outside"
     if kind == "deviation_map":
         pts, d, limit = inputs["points"], inputs["deviation_um"], inputs["limit"]
-        if inputs["part"] == "nas979":
+        if inputs["view"] == "3d":
             fig = Figure(figsize=(8.5, 6.0))
             ax = fig.add_axes([0.0, 0.02, 0.8, 0.92], projection="3d")
             sc = ax.scatter(*pts.T, c=d, cmap="coolwarm", vmin=-limit, vmax=limit, s=2)
@@ -811,7 +811,7 @@ def _header_html(header: dict) -> str:
 
 def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
     header = report["header"]
-    title = f"Inspection report: {PART_NAMES.get(report['part'], report['part'])}"
+    title = f"Inspection report: {_title(report['part'])}"
     style = ("body{font-family:'DejaVu Sans',Arial,sans-serif;max-width:1150px;margin:auto;padding:0 16px;"
              "color:#222}h1{margin-bottom:4px}h2{border-bottom:1px solid #999;margin-top:28px}"
              "table{border-collapse:collapse;margin:6px 0}td,th{border:1px solid #bbb;padding:3px 9px;"
@@ -904,7 +904,12 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
     return "\n".join(parts)
 
 
-PART_NAMES = {"nas979": "NAS 979 cone frustum", "slots": "slot block"}
+def _title(name: str) -> str:
+    """What the report calls a part (``Part.title``; the name itself for a report of a part no longer known)."""
+    try:
+        return get_part(name).title
+    except ValueError:
+        return name
 
 
 def _feature_table_html(rows: list[dict]) -> str:

@@ -21,11 +21,15 @@ Two formats, told apart by content (:func:`cl_format`):
 Lengths in mm in the part frame (APT ``UNITS/INCHES`` is converted), tool axis from tip towards the spindle (it is
 normalised).
 
-:func:`cl_to_program` turns the poses into machine axes through the machine's inverse kinematics:
+One CL type, :class:`ClData`, for these files and for the test parts' programs (``trueaxis.postproc.programs``,
+made with :meth:`ClData.of_passes`: a kind and a pass per point), and one path from CL to machine axes,
+:func:`cl_axes` (pass by pass, each from where the one before ended), which :func:`cl_program` / :func:`cl_to_program`
+and the part programs use. The poses become machine axes through the machine's inverse kinematics:
 
 - **branch** (sign of the tilt axis): kept along the path and changed only where the other branch is the only one
   inside the travel; a change inside a cut is refused. The first branch is the one nearest ``previous`` or, without
-  it, the one whose tilt stays farthest inside its travel (a B -120..+30 table tilts negative).
+  it, the one whose tilt stays farthest inside its travel (a B -120..+30 table tilts negative). The part programs
+  ask for "first-fit" instead: per pass -1, or +1 where -1 leaves any axis' travel.
 - **winding**: the outer (rotary-table) axis takes the shortest way from each pose to the next (``np.unwrap``); the
   whole path is shifted by whole turns to fit a limited travel, else refused. At a singular pose (tool axis along the
   outer axis) the outer axis stays where it was.
@@ -45,16 +49,17 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from ..machine import Machine, forward_nominal, inverse_kinematics
-from ..machine.kinematics import _rotary_pair
+from ..machine.kinematics import _rotary_pair, linear_axis_map
 from .gcode import MM_PER_INCH, GcodeError
 
-__all__ = ["ClData", "ClError", "cl_format", "read_cl", "cl_to_program", "cl_program"]
+__all__ = ["ClData", "ClError", "RAPID_KINDS", "cl_format", "read_cl", "cl_axes", "travel_problem",
+           "machine_linear_positions", "cl_to_program", "cl_program"]
 
 _REQUIRED = ("x", "y", "z", "i", "j", "k")
 _FEED_NAMES = ("f", "feed")
@@ -86,10 +91,24 @@ class SetupBlock:
     retract: bool = False
 
 
+# The kinds of point of a part program's CL data (``ClData.kind``); approach and retract are rapids, lift goes up the
+# tool axis at feed out of the cut.
+RAPID_KINDS = ("approach", "retract")
+
+
 @dataclass
 class ClData:
-    """CL poses, part frame.  tip (N,3) mm; axis (N,3) unit vectors; feed (N,) mm/min (NaN: none given yet);
-    rapid (N,) bool, the move *to* this point is a rapid; line (N,) 1-based source line of each point."""
+    """CL poses, part frame: the one CL type, read from CAM files (``read_cl``) or made by the test parts' programs
+    (``ClData.of_passes``, ``trueaxis.postproc.programs``).
+
+    tip (N,3) mm; axis (N,3) unit vectors (tip towards the spindle); feed (N,) mm/min of the move *to* the point
+    (NaN: none given yet, the last one holds; a part program's rapids carry 0); rapid (N,) bool, the move to this
+    point is a rapid; line (N,) 1-based source line of each point (a part program's: the point's number); source,
+    format ("csv", "apt", "passes"); setup: SetupBlock, in program order.
+    kind (N,) str or None: what each point of a part program is (approach | plunge | lead_in | cut | lead_out | lift |
+    retract). pass_no (N,) int or None: the pass of each point (None: one pass). passes: one dict per pass (name,
+    offset_mm, conditions).
+    """
 
     tip: np.ndarray
     axis: np.ndarray
@@ -99,9 +118,44 @@ class ClData:
     source: str
     format: str
     setup: tuple = ()  # SetupBlock, in program order
+    kind: np.ndarray | None = None
+    pass_no: np.ndarray | None = None
+    passes: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return int(self.tip.shape[0])
+
+    @classmethod
+    def of_passes(cls, tip, axis, feed, kind, pass_no, passes=None, source: str = "part program CL") -> "ClData":
+        """A part program's CL data: points with their kinds and passes; rapids are the approach and retract points."""
+        kind = np.asarray(kind)
+        return cls(np.asarray(tip, float), np.asarray(axis, float), np.asarray(feed, float), np.isin(kind, RAPID_KINDS),
+                   np.arange(1, len(kind) + 1), source, "passes", (), kind, np.asarray(pass_no, int),
+                   list(passes or []))
+
+    @classmethod
+    def concatenate(cls, parts: list["ClData"], passes: list[dict]) -> "ClData":
+        """Part programs' CL data one after the other (their kinds and passes), with the passes given."""
+        return cls.of_passes(*(np.concatenate([getattr(c, f) for c in parts])
+                               for f in ("tip", "axis", "feed", "kind", "pass_no")), passes=passes,
+                             source=parts[0].source)
+
+    def rows(self, sel) -> "ClData":
+        """The points ``sel`` (indices or a mask), with their lines, kinds and passes; no setup blocks."""
+        pick = (lambda a: None if a is None else a[sel])
+        return replace(self, tip=self.tip[sel], axis=self.axis[sel], feed=self.feed[sel], rapid=self.rapid[sel],
+                       line=self.line[sel], setup=(), kind=pick(self.kind), pass_no=pick(self.pass_no))
+
+    def csv_text(self) -> str:
+        """CSV ``x,y,z,i,j,k,f`` (mm, unit vector, mm/min), one row per CL point."""
+        rows = np.column_stack([self.tip, self.axis, self.feed])
+        body = "\n".join(",".join(f"{v:.6f}" for v in r[:6]) + f",{r[6]:.1f}" for r in rows)
+        return "x,y,z,i,j,k,f\n" + body + "\n"
+
+    def write_csv(self, path) -> None:
+        from ..fileio import atomic_write
+
+        atomic_write(path, self.csv_text())
 
 
 # ----------------------------------------------------------------------------------------------------- reading -----
@@ -492,6 +546,87 @@ def _solve_path(cl: ClData, machine: Machine, branch, previous):
     prev[:, outer.column] = o
     prev[:, inner.column] = np.where(b > 0, i1, i2)
     q, _ = _ik_pick(machine, cl.tip, cl.axis, prev, b)
+    # The linear axes of a pose off the singular cone from its angles within a turn of zero (the solution without
+    # ``previous``): the sine of a wound angle loses its last bits (sin(-2 pi) is 2.4e-16, not 0).
+    raw = np.where((b > 0)[:, None], r1.q, r2.q)
+    linear = [c for c, a in enumerate(names) if not machine.axes[a].is_rotary]
+    q[np.ix_(~sing, linear)] = raw[np.ix_(~sing, linear)]
+    return q, b
+
+
+def machine_linear_positions(machine: Machine, q_rot: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Linear axes (P, K, n_linear) in mm that put the tool tip on ``points`` (K, 3, part frame) with the rotary axes
+    of poses ``q_rot`` (P, n_axes; linear columns ignored). With the rotary axes fixed the tip is affine in the linear
+    axes, so three unit probes give the map."""
+    _, p0, M = linear_axis_map(machine, q_rot)
+    rhs = np.asarray(points, float)[None, :, :] - p0[:, None, :]  # (P, K, 3)
+    return np.einsum("pij,pkj->pki", np.linalg.pinv(M), rhs)
+
+
+def travel_problem(machine: Machine, q: np.ndarray) -> str:
+    """The first axis whose values in ``q`` (N, n_axes) mm/rad leave its travel (``Axis.within_travel``), said in
+    words with its range (deg for rotary axes); "" when every axis stays inside."""
+    for c, a in enumerate(machine.axis_names):
+        tr = machine.axes[a].travel
+        if tr is None:
+            continue
+        lo, hi = float(q[:, c].min()), float(q[:, c].max())
+        if not machine.axes[a].within_travel([lo, hi]).all():
+            f = math.degrees if machine.axes[a].is_rotary else (lambda v: v)
+            return (f"axis {a} needs [{f(lo):.3f}, {f(hi):.3f}], outside its travel [{f(tr[0]):g}, {f(tr[1]):g}]")
+    return ""
+
+
+def _three_axis(cl: ClData, machine: Machine) -> np.ndarray:
+    """Machine axes of CL points on a machine without a rotary pair: the tool axis must stay +Z."""
+    names = machine.axis_names
+    if np.any(np.abs(cl.axis - [0, 0, 1.0]) > 1e-12):
+        raise ValueError(f"{machine.name} has no rotary axes: the tool axis must stay +Z")
+    q = np.zeros((len(cl), len(names)))
+    lin = [c for c, a in enumerate(names) if not machine.axes[a].is_rotary]
+    q[:, lin] = machine_linear_positions(machine, q[:1], cl.tip)[0]
+    return q
+
+
+def cl_axes(cl: ClData, machine: Machine, *, branch="nearest", previous=None) -> tuple[np.ndarray, np.ndarray]:
+    """The one way from CL poses to machine axes: (N, n_axes) mm/rad and the tilt branch (N,) (+-1; 0 without rotary
+    axes), pass by pass (``cl.pass_no``; CAM data is one pass), each pass starting from where the one before ended.
+
+    On a five-axis machine each pass is solved by the inverse kinematics with the branch kept along the pass and the
+    outer rotary axis wound the shortest way from pose to pose and fitted into its travel (module docstring).
+    branch : "nearest" (the first pass's branch nearest ``previous``, or the one farthest inside the travel), +1, -1,
+    or "first-fit" (the part programs: per pass -1, else +1 where -1 leaves a travel, linear axes included).
+    previous : (n_axes,) the pose before the first point. On a machine without a rotary pair the tool axis must stay
+    +Z. Raises ClError (``source:line: reason``) or, for "first-fit" when neither branch fits, ValueError naming the
+    pass and the axis.
+    """
+    q = np.zeros((len(cl), len(machine.axis_names)))
+    b = np.zeros(len(cl), int)
+    passes = [np.arange(len(cl))] if cl.pass_no is None else [np.nonzero(cl.pass_no == k)[0]
+                                                               for k in np.unique(cl.pass_no)]
+    for k, sel in enumerate(passes):
+        part = cl.rows(sel) if cl.pass_no is not None else cl
+        if not machine.is_five_axis:
+            qk, bk = _three_axis(part, machine), np.zeros(len(sel), int)
+        elif branch == "first-fit":
+            qk = None
+            for b0 in (-1, 1):
+                try:
+                    qk, bk = _solve_path(part, machine, b0, previous)
+                except ClError:
+                    continue
+                if not travel_problem(machine, qk):
+                    break
+                qk = None
+            if qk is None:
+                raw = inverse_kinematics(machine, part.tip, part.axis, branch=-1).q
+                name = cl.passes[int(cl.pass_no[sel[0]])]["name"] if cl.passes and cl.pass_no is not None else ""
+                raise ValueError(f"pass {k + 1} ({name}): {travel_problem(machine, raw) or 'no tilt branch fits'}; "
+                                 "move the part (placement) or check the machine file")
+        else:
+            qk, bk = _solve_path(part, machine, branch, previous)
+        q[sel], b[sel] = qk, bk
+        previous = qk[-1]
     return q, b
 
 
@@ -622,7 +757,7 @@ def cl_program(cl: ClData, machine: Machine, *, tol_um: float = 1.0, linearise: 
         raise ClError(cl.source, int(cl.line[0]), f"CL data needs a five-axis machine; {machine.name} has axes "
                                                   f"{' '.join(machine.axis_names)}")
     try:
-        q, b = _solve_path(cl, machine, branch, previous)
+        q, b = cl_axes(cl, machine, branch=branch, previous=previous)
     except NotImplementedError as exc:
         raise ClError(cl.source, int(cl.line[0]), str(exc)) from None
     n = len(cl)

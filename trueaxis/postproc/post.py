@@ -56,6 +56,7 @@ from ..nc.gcode import (
 )
 from ..nc import fast_write
 from .arcs import fit_arcs, full_turns_close
+from ..nc.grammar import NUMBER
 from .solver import corrected_directions, solve_commanded
 
 MODES = ("none", "geometric", "comprehensive")
@@ -80,7 +81,7 @@ def condition_marks(lines, source: str) -> list[tuple[int, dict]]:
             marks.append((i, fields))
     return marks
 _MOTION_WORD = re.compile(r"^G0*([0-3])$", re.IGNORECASE)
-_NUM = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)"
+_NUM = NUMBER  # the one number of nc/grammar.py
 # A plain motion block: N G X Y Z A B C I J K R F, each optional, in this order, nothing else (the writer's fast path)
 _PLAIN = re.compile(
     r"[ \t]*(?P<n>[Nn][0-9]+)?[ \t]*(?P<g>[Gg]0*[0-3](?![0-9.]))?[ \t]*"
@@ -636,8 +637,7 @@ class _Poster:
                                 f"correction of {a} is {val:+.4f} {unit}, above the bound of {self.max_corr} mm: "
                                 f"check the machine file {self.m.source}")
             if ax.travel is not None:
-                lo, hi = ax.travel
-                out = (q_cmd[:, j] < lo - 1e-9) | (q_cmd[:, j] > hi + 1e-9)
+                out = ~ax.within_travel(q_cmd[:, j])  # the one travel check
                 if np.any(out):
                     k = int(np.argmax(out))
                     v = np.degrees(q_cmd[k, j]) if ax.is_rotary else q_cmd[k, j]

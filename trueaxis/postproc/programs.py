@@ -13,8 +13,10 @@ NAS 979 cone (``nas979_program``)
     tool-centre path; slot 1 posted with no compensation, slot 2 geometric, slot 3 comprehensive, each section posted
     on its own with ``trueaxis.postproc.post.compensate`` and the three concatenated into one program.
 
-CL data (``ClPath``): tool tip (mm) and unit tool axis in the part frame, feed (mm/min; 0 = rapid) and a kind per point
-(approach, plunge, lead_in, cut, lead_out, retract); ``write_csv`` writes ``x,y,z,i,j,k,f``.
+CL data: the one CL type ``trueaxis.nc.cl.ClData`` (``ClData.of_passes``): tool tip (mm) and unit tool axis in the
+part frame, feed (mm/min; 0 = rapid), a kind per point (approach, plunge, lead_in, cut, lead_out, lift, retract) and
+its pass; ``write_csv`` writes ``x,y,z,i,j,k,f``. The machine axes come from the one CL pipeline
+``trueaxis.nc.cl.cl_axes`` (the CAM files' reader uses it too).
 
 Programs are machine-axis G-code (X Y Z = tool tip with tool length compensation active; rotary words in degrees),
 made with the machine's inverse kinematics. 5-axis moves use G93 (inverse time, F = feed / tip path length of the
@@ -35,49 +37,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..machine import Machine, forward_nominal, inverse_kinematics
-from ..machine.kinematics import linear_axis_map
+from ..machine import Machine, forward_nominal
+from ..nc.cl import ClData, cl_axes, machine_linear_positions  # noqa: F401  (re-exported)
 from ..workpiece.parts import COMPENSATION_MODES, Nas979Params, SlotBlockParams
 
 MODES = ("none", "geometric", "comprehensive")
 SETUP_TAG = "trueaxis-setup"
 _SETUP = re.compile(r"\(\s*trueaxis-setup:([^)]*)\)", re.IGNORECASE)
-
-
-# --------------------------------------------------------------------------------------------------- CL data ----
-@dataclass
-class ClPath:
-    """CL data of a part program, in the part frame.
-
-    tip : (N, 3) tool tip, mm.  axis : (N, 3) unit tool axis (tip towards spindle).
-    feed : (N,) feed of the move *to* the point, mm/min (0 = rapid).
-    kind : (N,) str: approach | plunge | lead_in | cut | lead_out | lift | retract (lift: up the tool axis at feed,
-        out of the cut; retract and approach: rapids).
-    pass_no : (N,) int, pass index (0, 1, ...).  passes : one dict per pass (name, offset_mm, conditions).
-    """
-
-    tip: np.ndarray
-    axis: np.ndarray
-    feed: np.ndarray
-    kind: np.ndarray
-    pass_no: np.ndarray
-    passes: list = field(default_factory=list)
-
-    def csv_text(self) -> str:
-        """CSV ``x,y,z,i,j,k,f`` (mm, unit vector, mm/min), one row per CL point."""
-        rows = np.column_stack([self.tip, self.axis, self.feed])
-        body = "\n".join(",".join(f"{v:.6f}" for v in r[:6]) + f",{r[6]:.1f}" for r in rows)
-        return "x,y,z,i,j,k,f\n" + body + "\n"
-
-    def write_csv(self, path) -> None:
-        from ..fileio import atomic_write
-
-        atomic_write(path, self.csv_text())
-
-
-def _concat(parts: list[ClPath], passes: list[dict]) -> ClPath:
-    return ClPath(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("tip", "axis", "feed", "kind", "pass_no")),
-                  passes=passes)
 
 
 def _cone_frame(cone: dict):
@@ -123,7 +89,7 @@ def _lead_arc(p0, t, n, radius, n_points, out: bool):
 def cone_flank_cl(cone: dict, tool_radius: float, *, stock_mm: float = 0.2, finish_mm: float = 0.1,
                   step_deg: float = 0.2, overlap_deg: float = 5.0, lead_radius: float | None = None,
                   lead_points: int = 10, clearance: float = 5.0, feed: float = 1000.0, plunge_feed: float = 300.0,
-                  conditions: dict | None = None, theta_deg=None) -> ClPath:
+                  conditions: dict | None = None, theta_deg=None) -> ClData:
     """CL data of the cone flank milling: a semi-finishing pass leaving ``finish_mm`` when ``stock_mm`` exceeds it,
     then the finishing pass. Lengths in mm, angles in degrees, feeds in mm/min.
 
@@ -178,14 +144,14 @@ def cone_flank_cl(cone: dict, tool_radius: float, *, stock_mm: float = 0.2, fini
         feeds[1] = plunge_feed  # the lead-in start is reached by the plunge
         kinds[1] = "plunge"
         feeds[-1] = 0.0
-        parts.append(ClPath(pts, axes, feeds, np.array(kinds), np.full(len(pts), k)))
+        parts.append(ClData.of_passes(pts, axes, feeds, np.array(kinds), np.full(len(pts), k)))
         c = {"ap": round(ap, 3), "ae": round(ae, 4), **cond, "d": 2 * tool_radius}
         passes.append({"name": name, "offset_mm": offset, "ae_mm": ae, "conditions": c})
-    return _concat(parts, passes)
+    return ClData.concatenate(parts, passes)
 
 
 def slots_cl(params: SlotBlockParams | None = None, *, clearance: float = 2.0, feed: float = 1000.0,
-             plunge_feed: float = 200.0, conditions: dict | None = None) -> tuple[ClPath, list[int]]:
+             plunge_feed: float = 200.0, conditions: dict | None = None) -> tuple[ClData, list[int]]:
     """CL data of the three slots (tool axis +Z): per slot and pass, approach above the start, plunge to the pass
     depth, cut along the tool-centre path, lift out of the slot at the plunge feed (so the end of the slot is cut
     before any rapid). Returns (cl, slot index of each pass)."""
@@ -203,12 +169,12 @@ def slots_cl(params: SlotBlockParams | None = None, *, clearance: float = 2.0, f
                              np.column_stack([path[1:], np.full(len(path) - 1, z)]), [*path[-1], clearance]])
             kinds = ["approach", "plunge"] + ["cut"] * (len(path) - 1) + ["lift"]
             feeds = np.r_[0.0, plunge_feed, np.full(len(path) - 1, feed), plunge_feed]
-            parts.append(ClPath(pts, np.tile(z_axis, (len(pts), 1)), feeds, np.array(kinds), np.full(len(pts), k)))
+            parts.append(ClData.of_passes(pts, np.tile(z_axis, (len(pts), 1)), feeds, np.array(kinds), np.full(len(pts), k)))
             c = {"ap": round(prev - z, 4), "ae": p.tool_diameter, **cond, "d": p.tool_diameter}
             passes.append({"name": f"slot {s + 1} pass at z {z:g}", "offset_mm": 0.0, "conditions": c})
             slot_of.append(s)
             prev = z
-    return _concat(parts, passes), slot_of
+    return ClData.concatenate(parts, passes), slot_of
 
 
 # ----------------------------------------------------------------------------------------------- kinematics ----
@@ -227,15 +193,6 @@ def place_machine(machine: Machine, placement_mm=None) -> tuple[Machine, np.ndar
         raise ValueError(f"placement must be two finite numbers X,Y in mm, got {placement_mm!r}")
     origin[:2] = base + pl
     return dataclasses.replace(machine, workpiece_origin=origin), pl
-
-
-def machine_linear_positions(machine: Machine, q_rot: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Linear axes (P, K, n_linear) in mm that put the tool tip on ``points`` (K, 3, part frame) with the rotary axes
-    of poses ``q_rot`` (P, n_axes; linear columns ignored). With the rotary axes fixed the tip is affine in the linear
-    axes, so three unit probes give the map."""
-    _, p0, M = linear_axis_map(machine, q_rot)
-    rhs = np.asarray(points, float)[None, :, :] - p0[:, None, :]  # (P, K, 3)
-    return np.einsum("pij,pkj->pki", np.linalg.pinv(M), rhs)
 
 
 def safe_height(machine: Machine, hull_points: np.ndarray, q_rot: np.ndarray, clearance: float = 10.0) -> float:
@@ -267,58 +224,6 @@ def safe_height(machine: Machine, hull_points: np.ndarray, q_rot: np.ndarray, cl
     if tr is not None:
         z = min(z + 10.0, tr[1] - 1.0) if z + 10.0 <= tr[1] - 1.0 else z
     return z
-
-
-def cl_to_axes(machine: Machine, cl: ClPath) -> np.ndarray:
-    """Machine axes (N, n_axes) mm/rad for the CL points, pass by pass: branch -1 of the tilt (or +1 when -1 leaves
-    the travel), the outer rotary axis unwrapped and continuous across passes. Raises ValueError when no branch
-    keeps every axis inside its travel."""
-    names = machine.axis_names
-    q = np.zeros((len(cl.tip), len(names)))
-    previous = None
-    for k in np.unique(cl.pass_no):
-        sel = np.nonzero(cl.pass_no == k)[0]
-        if machine.is_five_axis:
-            res = None
-            for branch in (-1, 1):
-                r = inverse_kinematics(machine, cl.tip[sel], cl.axis[sel], branch=branch)
-                if not np.any(r.out_of_travel):
-                    res = r
-                    break
-            if res is None:
-                res = inverse_kinematics(machine, cl.tip[sel], cl.axis[sel], branch=-1)
-            qk = res.q
-            for c, a in enumerate(names):
-                ax = machine.axes[a]
-                if ax.is_rotary and ax.travel is None:
-                    qk[:, c] = np.unwrap(qk[:, c])
-                    if previous is not None:
-                        qk[:, c] += 2 * np.pi * np.round((previous[c] - qk[0, c]) / (2 * np.pi))
-        else:
-            if np.any(np.abs(cl.axis[sel] - [0, 0, 1.0]) > 1e-12):
-                raise ValueError(f"{machine.name} has no rotary axes: the tool axis must stay +Z")
-            qk = np.zeros((sel.size, len(names)))
-            lin = [c for c, a in enumerate(names) if not machine.axes[a].is_rotary]
-            qk[:, lin] = machine_linear_positions(machine, qk[:1], cl.tip[sel])[0]
-        bad = _out_of_travel(machine, qk)
-        if bad:
-            raise ValueError(f"pass {k + 1} ({cl.passes[k]['name'] if cl.passes else ''}): {bad}; move the part "
-                             "(placement) or check the machine file")
-        q[sel] = qk
-        previous = qk[-1]
-    return q
-
-
-def _out_of_travel(machine: Machine, q: np.ndarray) -> str:
-    for c, a in enumerate(machine.axis_names):
-        tr = machine.axes[a].travel
-        if tr is None:
-            continue
-        lo, hi = float(q[:, c].min()), float(q[:, c].max())
-        if not machine.axes[a].within_travel([lo, hi]).all():
-            f = math.degrees if machine.axes[a].is_rotary else (lambda v: v)
-            return (f"axis {a} needs [{f(lo):.3f}, {f(hi):.3f}], outside its travel [{f(tr[0]):g}, {f(tr[1]):g}]")
-    return ""
 
 
 # ----------------------------------------------------------------------------------------------- G-code out ----
@@ -377,7 +282,7 @@ def read_setup(text: str) -> dict:
     return out
 
 
-def _pass_blocks(machine: Machine, cl: ClPath, q: np.ndarray, sel: np.ndarray, safe_z: float) -> list[str]:
+def _pass_blocks(machine: Machine, cl: ClData, q: np.ndarray, sel: np.ndarray, safe_z: float) -> list[str]:
     """G-code of one pass (rows ``sel`` of the CL data): rapids at safe Z, approach, plunge, feed moves, retract."""
     names = machine.axis_names
     zc = names.index("Z")
@@ -416,7 +321,7 @@ class PartProgram:
 
     text: str
     raw: str
-    cl: ClPath
+    cl: ClData
     q: np.ndarray
     machine: Machine
     safe_z: float
@@ -458,8 +363,8 @@ def refine_cone_steps(machine: Machine, cone: dict, tool_radius: float, offsets,
         err = np.zeros(len(theta) - 1)
         for off in offsets:
             tip, g = cone_flank_poses(cone, tool_radius, 0, off, overlap_deg, theta_deg=theta)
-            cl = ClPath(tip, g, np.ones(len(tip)), np.array(["cut"] * len(tip)), np.zeros(len(tip), int))
-            q = cl_to_axes(machine, cl)
+            cl = ClData.of_passes(tip, g, np.ones(len(tip)), np.array(["cut"] * len(tip)), np.zeros(len(tip), int))
+            q, _ = cl_axes(cl, machine, branch="first-fit")
             tm, um = forward_nominal(machine, 0.5 * (q[:-1] + q[1:]))
             for lever in (0.0, ap):
                 d = cone_signed_distance(tm + lever * um, cone) - (tool_radius + off)
@@ -515,7 +420,7 @@ def nas979_program(machine: Machine, params: Nas979Params | None = None, *, comp
     if generatrix > machine.tool.flute_length:
         raise ValueError(f"the cone's generatrix ({generatrix:.2f} mm) is longer than the tool's flutes "
                          f"({machine.tool.flute_length:g} mm)")
-    q = cl_to_axes(placed, cl)
+    q, _ = cl_axes(cl, placed, branch="first-fit")
     safe_z = safe_height(placed, _nas979_hull(p), q)
     setup = setup_comment("nas979", placed.workpiece_origin, placement, tool_diameter, compensation,
                           twin_id(machine) if compensation != "none" else None)
@@ -574,7 +479,7 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, po
     feed = fz * z_fl * n_rpm
     cl, slot_of = slots_cl(p, clearance=clearance, feed=feed, plunge_feed=feed * 0.2,
                            conditions={"fz": fz, "n": n_rpm, "z": z_fl, "mode": "down"})
-    q = cl_to_axes(placed, cl)
+    q, _ = cl_axes(cl, placed, branch="first-fit")
     hull = np.array([[x, y, z] for x in (0, p.block_length_x) for y in (0, p.block_width_y)
                      for z in (-p.block_height_z, 0.0)])
     safe_z = safe_height(placed, hull, q, clearance=10.0)

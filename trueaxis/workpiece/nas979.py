@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .mesh import _unit, nas979_mesh
 from .part import surface
 from .parts import Nas979Params, _nas979_chord_bound, build_nas979, cone_surface_points, nas979_description
 
@@ -39,6 +40,11 @@ class Nas979:
     title: str = "NAS 979 cone frustum"
     default_machine: str = "nmv1500dcg"
     params_type: type = Nas979Params
+    evaluation: str = "cone"
+    map_view: str = "3d"
+    # A = block bottom, B = a block side normal to X (xneg or xpos), C = a block side normal to Y (yneg or ypos)
+    datums: tuple = (("A", ("block_bottom",), 3), ("B", ("block_side_xneg", "block_side_xpos"), 2),
+                     ("C", ("block_side_yneg", "block_side_ypos"), 1))
 
     def build(self, params=None):
         return build_nas979(params)
@@ -62,6 +68,29 @@ class Nas979:
         c = np.asarray(cone["base_center"], float)
         h0, h1 = cone["height_range"]
         return lambda p: ((p - c) @ a >= h0) & ((p - c) @ a <= h1)
+
+    def params_from(self, description):
+        return Nas979Params.from_kwargs(**description["parameters"])
+
+    def derived_surfaces(self, description):
+        return []  # the JSON lists every face
+
+    def bbox(self, description):
+        p = description["parameters"]
+        cone = next(s for s in description["surfaces"] if s["type"] == "cone")
+        a = _unit(cone["axis"])
+        t = math.atan2(a[0], a[2])
+        half_l, half_w = p["block_length_x"] / 2, p["block_width_y"] / 2
+        h = float(cone["height_range"][1])
+        r_top = float(cone["top_radius"])
+        z_top = max(half_l * math.tan(t), h * a[2] + r_top * abs(math.sin(t)) + 0.0,
+                    float(cone["base_radius"]) * abs(math.sin(t)))
+        return (np.array([-half_l, -half_w, float(description["derived"]["z_bottom"])]),
+                np.array([half_l, half_w, z_top]))
+
+    def mesh(self, description):
+        """Meshed from the JSON with numpy (``nas979_mesh``): OCCT needs tens of seconds for the same chord bound."""
+        return nas979_mesh(description)
 
 
 PART = Nas979()

@@ -34,12 +34,21 @@ class Part(Protocol):
     name : the part's key (the CLI's choice, the JSON's ``"part"``, the stem of the files ``write_part`` writes).
     title : what a report calls it.  default_machine : the fixture machine it is cut on by default.
     params_type : its frozen parameter dataclass (``from_overrides``, ``from_kwargs``, ``as_dict``).
+    evaluation : which of the inspection's feature evaluations reads its features (``"cone"``: the cone, its roundness
+    sections and diameter; ``"slots"``: width, straightness, parallelism, position and depth per slot; the table
+    ``trueaxis.inspect.report.EVALUATIONS``). A part with features of a new kind adds its evaluation there.
+    map_view : how the inspection draws its deviation map: ``"3d"`` (a scatter in space) or ``"plan"`` (XY, with the
+    slots' tool-centre paths when the JSON has slot features).
+    datums : its datum reference frame, primary first: ((label, candidate surface ids, minimum points), ...).
     """
 
     name: str
     title: str
     default_machine: str
     params_type: type
+    evaluation: str
+    map_view: str
+    datums: tuple
 
     def build(self, params=None) -> Any:
         """CAD: a ``cadquery.Workplane`` holding one solid, part frame, mm."""
@@ -57,6 +66,19 @@ class Part(Protocol):
 
     def material_mask(self, description: dict) -> Callable[[np.ndarray], np.ndarray]:
         """Callable points (P, 3) mm -> (P,) bool: where the raw part has material (the first cut's engagement)."""
+
+    def params_from(self, description: dict):
+        """Its parameter dataclass from a part JSON's ``parameters`` (ValueError or KeyError when they do not fit)."""
+
+    def derived_surfaces(self, description: dict) -> list[dict]:
+        """Analytic surfaces the JSON does not list but the parameters define (the inspection adds them)."""
+
+    def bbox(self, description: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounding box (min (3,), max (3,)) in the part frame, mm, from the JSON."""
+
+    def mesh(self, description: dict):
+        """Its own closed mesh (``trueaxis.workpiece.mesh.CadMesh``, chord error below 0.1 um) from the JSON, or None:
+        then the inspection tessellates ``build(params_from(description))`` with OCCT (or reads the STL beside it)."""
 
 
 def parts() -> dict[str, Part]:

@@ -74,6 +74,24 @@ def slot_pattern(part: dict, n_points: int, margin_mm: float = 0.5, floor_offset
 
 
 
+def _block_sides(part: dict) -> list[dict]:
+    """The slot block's four side faces, from its parameters (``derived: true``)."""
+    p = part["parameters"]
+    length, width, height = p["block_length_x"], p["block_width_y"], p["block_height_z"]
+    z = [-height, 0.0]
+    note = "derived by trueaxis.inspect.deviation from the block's parameters"
+    return [
+        {"id": "block_side_xneg", "type": "plane", "point": [0.0, 0.0, 0.0], "normal": [-1.0, 0.0, 0.0],
+         "y_range": [0.0, width], "z_range": z, "derived": True, "note": note},
+        {"id": "block_side_xpos", "type": "plane", "point": [length, 0.0, 0.0], "normal": [1.0, 0.0, 0.0],
+         "y_range": [0.0, width], "z_range": z, "derived": True, "note": note},
+        {"id": "block_side_yneg", "type": "plane", "point": [0.0, 0.0, 0.0], "normal": [0.0, -1.0, 0.0],
+         "x_range": [0.0, length], "z_range": z, "derived": True, "note": note},
+        {"id": "block_side_ypos", "type": "plane", "point": [0.0, width, 0.0], "normal": [0.0, 1.0, 0.0],
+         "x_range": [0.0, length], "z_range": z, "derived": True, "note": note},
+    ]
+
+
 @dataclass(frozen=True)
 class SlotBlock:
     """The slot block: three slots posted with no, geometric and comprehensive compensation (default: xh714)."""
@@ -82,6 +100,11 @@ class SlotBlock:
     title: str = "slot block"
     default_machine: str = "xh714"
     params_type: type = SlotBlockParams
+    evaluation: str = "slots"
+    map_view: str = "plan"
+    # A = block top, B = front side (y = 0, or back y = W), C = left end (x = 0, or right end x = L)
+    datums: tuple = (("A", ("block_top",), 3), ("B", ("block_side_yneg", "block_side_ypos"), 2),
+                     ("C", ("block_side_xneg", "block_side_xpos"), 1))
 
     def build(self, params=None):
         return build_slot_block(params)
@@ -102,6 +125,21 @@ class SlotBlock:
     def material_mask(self, description):
         """The block below its top face z = 0."""
         return lambda p: p[:, 2] <= 0.0
+
+    def params_from(self, description):
+        return SlotBlockParams.from_kwargs(**{k: (tuple(map(tuple, v)) if k == "slot_path" else v)
+                                              for k, v in description["parameters"].items()})
+
+    def derived_surfaces(self, description):
+        """The block's four side faces (the JSON lists only its top and bottom), from its parameters."""
+        return _block_sides(description) if "parameters" in description else []
+
+    def bbox(self, description):
+        p = description["parameters"]
+        return np.array([0.0, 0.0, -p["block_height_z"]]), np.array([p["block_length_x"], p["block_width_y"], 0.0])
+
+    def mesh(self, description):
+        return None  # tessellated from the CAD (OCCT), or the STL written beside the JSON
 
 
 PART = SlotBlock()
