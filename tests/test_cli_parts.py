@@ -102,6 +102,21 @@ def test_program_nas979_writes_program_and_cl(tmp_path, capsys):
     assert cl.read_text().splitlines()[0] == "x,y,z,i,j,k,f"
 
 
+def test_the_cl_csv_a_program_writes_posts_with_its_rapids_as_rapids(tmp_path, capsys):
+    """`program --cl` writes f = 0 on its rapids; `post` of that file reads them as rapids (it refused the file)."""
+    out, cl, posted = tmp_path / "cone.ngc", tmp_path / "cl.csv", tmp_path / "posted.ngc"
+    assert main(["program", "nas979", "-o", str(out), "--cl", str(cl), "--compensate", "none", "--step-deg", "3",
+                 "--chord-tol-um", "5"]) == 0
+    rows = [line.split(",") for line in cl.read_text().splitlines()[1:]]
+    rapids = sum(float(r[6]) == 0.0 for r in rows)
+    assert rapids >= 2  # the approach and the move between the passes
+    from trueaxis.resources import machine_file
+
+    assert main(["post", str(cl), "-o", str(posted), "--machine", str(machine_file("nmv1500dcg"))]) == 0
+    moves = [ln for ln in posted.read_text().splitlines() if re.search(r"\bG0?[01]\b", ln)]
+    assert sum(bool(re.search(r"\bG0?0\b", ln)) for ln in moves) == rapids
+
+
 def test_program_refuses_bad_input(tmp_path, capsys):
     out = tmp_path / "p.ngc"
     assert main(["program", "nas979", "-o", str(out), "--placement-mm", "1,2,3"]) == 2
@@ -175,3 +190,20 @@ def test_simulate_perfect_machine_cuts_the_cone(tmp_path, capsys):
     dev = np.array(truth["per_point"]["deviation_um"])
     assert truth["points_not_cut"] == 0
     assert np.sqrt(np.mean(dev**2)) < 0.3 and np.abs(dev).max() < 0.5
+
+
+@pytest.mark.parametrize("body, line, reason", [
+    ("10,0,5,0,0,1,500\n12,0,5,0,0,1,-100\n", 3, "feed must be positive"),
+    ("10,0,5,0,0,1,500\n12,0,5,0,0,0,500\n", 3, "tool-axis vector"),
+    ("10,0,5,0,0,1,500\n12,0,abc,0,0,1,500\n", 3, "not a number"),
+])
+def test_post_refuses_bad_cl_data_with_its_line(tmp_path, capsys, body, line, reason):
+    """Bad CL data through `trueaxis post`: exit 3, one line `file:line: reason`, nothing written."""
+    from trueaxis.resources import machine_file
+
+    cl, posted = tmp_path / "bad.csv", tmp_path / "out.ngc"
+    cl.write_text("x,y,z,i,j,k,f\n" + body)
+    assert main(["post", str(cl), "-o", str(posted), "--machine", str(machine_file("nmv1500dcg"))]) == 3
+    err = _one_line_error(capsys)
+    assert err.startswith(f"{cl}:{line}:") and reason in err
+    assert not posted.exists()

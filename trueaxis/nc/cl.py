@@ -147,7 +147,7 @@ class ClData:
                        line=self.line[sel], setup=(), kind=pick(self.kind), pass_no=pick(self.pass_no))
 
     def csv_text(self) -> str:
-        """CSV ``x,y,z,i,j,k,f`` (mm, unit vector, mm/min), one row per CL point."""
+        """CSV ``x,y,z,i,j,k,f`` (mm, unit vector, mm/min; f = 0 on a rapid), one row per CL point."""
         rows = np.column_stack([self.tip, self.axis, self.feed])
         body = "\n".join(",".join(f"{v:.6f}" for v in r[:6]) + f",{r[6]:.1f}" for r in rows)
         return "x,y,z,i,j,k,f\n" + body + "\n"
@@ -278,7 +278,10 @@ def _read_csv(text: str, source: str) -> ClData:
 
     vals = np.column_stack([numbers(c, False) for c in idx]) if n else np.zeros((0, 6))
     feed = numbers(fcol, True) if (fcol is not None and n) else np.full(n, np.nan)
-    rapid = np.zeros(n, bool)
+    # A feed of 0 marks a rapid (the convention of CL CSVs, and what ``ClData.csv_text`` writes for its rapids); the
+    # first point is reached by a rapid in any case. A negative feed stays an error (``_finish``).
+    rapid = feed == 0
+    feed = np.where(rapid, np.nan, feed)
     if n:
         rapid[0] = True
     return _finish(vals[:, :3], vals[:, 3:], feed, rapid, line_no, source, "csv")

@@ -406,7 +406,7 @@ def without_header(text: str) -> str:
 
 def _post_cl(text, machine, mode, *, tol_um, max_correction_mm, singular_deg, conditions, source, feed_mm_min,
              branch, setup=None, output_mode="joint"):
-    from ..nc.cl import cl_program, read_cl
+    from ..nc.cl import ClError, cl_program, read_cl
 
     try:
         cl = read_cl(text, source)
