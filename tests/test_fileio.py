@@ -25,3 +25,24 @@ def test_a_writer_that_fails_leaves_the_old_file_and_no_temporary(tmp_path):
             raise OSError("exporter failed")
     assert target.read_text() == "old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["part.step"]
+
+
+def test_a_noted_signal_stops_every_later_publish_and_leaves_the_old_files(tmp_path, monkeypatch):
+    """A SIGINT whose KeyboardInterrupt was lost inside compiled code must still keep the output unwritten."""
+    import trueaxis.fileio as fileio
+
+    out, folder = tmp_path / "out.ngc", tmp_path / "report"
+    out.write_text("previous")
+    monkeypatch.setattr(fileio, "_signalled", None)
+    fileio.atomic_write(out, "first")  # no signal: written
+    assert out.read_text() == "first"
+    fileio.note_signal(2)
+    with pytest.raises(fileio.Interrupted) as caught:
+        fileio.atomic_write(out, "second")
+    assert caught.value.signum == 2
+    temp = tmp_path / "tmpdir"
+    temp.mkdir()
+    with pytest.raises(fileio.Interrupted):
+        fileio.publish_folder(temp, folder)
+    assert out.read_text() == "first" and not folder.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.ngc", "tmpdir"]  # no temporary file left

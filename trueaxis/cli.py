@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .fileio import Interrupted
+
 EXIT_BAD_INPUT = 2  # usage: an option, a value or a path
 EXIT_REFUSED = 3  # an input or a computed result refused: nothing written
 
@@ -626,14 +628,24 @@ class _Terminated(BaseException):
 
 
 def _on_sigterm(signum, frame):
+    from .fileio import note_signal
+
+    note_signal(signum)
     raise _Terminated()
+
+
+def _on_sigint(signum, frame):
+    from .fileio import note_signal
+
+    note_signal(signum)  # the raise below can be lost in compiled code: then the next publish refuses
+    raise KeyboardInterrupt
 
 
 def _interruption(exc: BaseException | None) -> BaseException | None:
     """The KeyboardInterrupt or SIGTERM behind ``exc``, or None (a compiled kernel reports a KeyboardInterrupt raised
     while it ran as a SystemError whose context is the KeyboardInterrupt)."""
     for _ in range(10):
-        if exc is None or isinstance(exc, (KeyboardInterrupt, _Terminated)):
+        if exc is None or isinstance(exc, (KeyboardInterrupt, _Terminated, Interrupted)):
             return exc
         exc = exc.__cause__ or exc.__context__
     return None
@@ -651,11 +663,12 @@ def main(argv=None) -> int:
     line); 130 / 143 interrupted by SIGINT / SIGTERM (one line; earlier outputs intact, no temporary file left)."""
     import signal
 
-    from .fileio import check_outputs
+    from .fileio import check_outputs, raise_if_signalled
 
     args = build_parser().parse_args(argv)
     if threading_main():
         signal.signal(signal.SIGTERM, _on_sigterm)
+        signal.signal(signal.SIGINT, _on_sigint)
     try:
         inputs, outputs = _paths(args)
         for option, path in inputs:
@@ -664,8 +677,10 @@ def main(argv=None) -> int:
             if option in _NAMED_FILES and path is not None and path != "-" and not Path(path).exists():
                 raise UsageError(f"{option} {path}: cannot read the file: no such file")
         check_outputs(inputs, outputs)
-        return int(args.func(args) or 0)
-    except (KeyboardInterrupt, _Terminated) as exc:
+        status = int(args.func(args) or 0)
+        raise_if_signalled()  # a signal whose exception compiled code swallowed still ends the run as interrupted
+        return status
+    except (KeyboardInterrupt, _Terminated, Interrupted) as exc:
         return _report_interruption(args.command, exc)
     except Exception as exc:  # noqa: BLE001 - sorted by _report_error; what it does not know is raised again
         return _report_error(args.command, exc)
@@ -703,7 +718,7 @@ def _report_interruption(command: str, exc: BaseException) -> int:
     if threading_main():  # a signal still pending (or a second one) must not turn the exit status into a traceback
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    term = isinstance(exc, _Terminated)
+    term = isinstance(exc, _Terminated) or (isinstance(exc, Interrupted) and exc.signum == signal.SIGTERM)
     print(f"trueaxis {command}: {'terminated' if term else 'interrupted'}; outputs not finished were not written",
           file=sys.stderr)
     return EXIT_SIGTERM if term else EXIT_SIGINT

@@ -25,6 +25,32 @@ class OutputPathError(ValueError):
     """An output path the gate refuses (a device, a folder for a file, an input named as output, ...)."""
 
 
+class Interrupted(BaseException):
+    """The process was asked to stop (``signum``: SIGINT or SIGTERM) while it worked: what was not yet published is
+    not written."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+_signalled: int | None = None
+
+
+def note_signal(signum: int) -> None:
+    """Record a SIGINT / SIGTERM (the application's signal handler calls it before raising): every later publish of
+    an output refuses with :class:`Interrupted`, even when the exception the handler raised was lost inside compiled
+    code that called back into Python (the output is then never written as if nothing had happened)."""
+    global _signalled
+    _signalled = signum
+
+
+def raise_if_signalled() -> None:
+    """Raise :class:`Interrupted` when :func:`note_signal` recorded a signal."""
+    if _signalled is not None:
+        raise Interrupted(_signalled)
+
+
 def _umask() -> int:
     """The process' umask (read without changing it for longer than the call)."""
     mask = os.umask(0o022)
@@ -115,6 +141,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield Path(temp)
         os.chmod(temp, mode)
+        raise_if_signalled()
         os.replace(temp, target)
     except BaseException:
         if os.path.exists(temp):
@@ -138,6 +165,7 @@ def publish_folder(temp: Path, out: Path) -> None:
     """Move a finished temporary folder ``temp`` into place as ``out`` (an old ``out`` is replaced whole), with the
     umask's permissions (``mkdtemp`` makes 0700)."""
     out = resolve_output(out, folder=True)
+    raise_if_signalled()
     os.chmod(temp, new_folder_mode())
     old = None
     if out.exists():

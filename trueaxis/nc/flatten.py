@@ -435,7 +435,7 @@ class _Flattener:
                     v = v10 / 10
                 words.append(c.upper() + format_value(v))
             else:
-                self.err(f"unexpected character '{c}'")
+                self.err(f"unexpected character {c!r}")
         for key, v in sets:
             self.assign(key, v)
         m_calls = [w for w in words if w in ("M98", "M99")]
@@ -712,6 +712,7 @@ def read_flat(text: str, source: str, passthrough: bool, split, interpret):
     prefix = re.escape(source) + r":([0-9]+):"
     prog.warnings = [re.sub("^" + prefix, lambda m: f"{source}:{line_map[min(int(m.group(1)), len(line_map)) - 1]}:",
                             w) for w in prog.warnings]
-    prog.warnings.insert(0, f"{source}: flattened: parameters, expressions and O-word / M98 control flow evaluated "
-                            f"({len(flat.source_line)} flat blocks); the output is the flat program")
+    first = next((n for n, ln in enumerate(split(text), 1) if _FEATURES.search(ln)), 1)  # the first line flattened
+    prog.warnings.insert(0, f"{source}:{first}: flattened: parameters, expressions and O-word / M98 control flow "
+                            f"evaluated ({len(flat.source_line)} flat blocks); the output is the flat program")
     return prog
