@@ -46,7 +46,9 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from collections import deque
 from functools import cached_property
+from itertools import islice
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -626,28 +628,26 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         r_kind, r_words, r_state, r_arc, cycle = self.r_kind, self.r_words, self.r_state, self.r_arc, self.cycle_words
         pos, motion_mode, feed, cur_state, absolute, inverse, diameter, plane, arc_abs, arc_tol = self.fast_locals()
         fast_match, hypot, n_lines = _FAST.match, math.hypot, len(lines)
-        pre = self.pre_scan(lines)
-        min_run = self.min_run
-        blk_lo = blk_hi = skip_to = 0  # skip_to: lines before it were read by fast_interp
-        for li, raw in enumerate(lines):
-            if li < skip_to:
-                continue
+        pre, min_run = self.pre_scan(lines)
+        blk_lo = blk_hi = 0
+        numbered, drain = enumerate(lines), deque(maxlen=0).extend  # drain: consumes an iterator
+        for li, raw in numbered:
             fast = None  # the fast path: a plain G0-G3 block ("N300G1X4.6526Z-.0007", "X1 Y2 F300"); else block()
             if pre is not None:
                 if li >= blk_hi:  # the next FAST_READ_BLOCK lines
                     blk_lo, blk_hi, blk, blk_code, blk_vals, blk_run = self.scan_block(pre, li, n_lines)
-                g = blk_code[li - blk_lo]
-                if g < 4 and blk_run[li - blk_lo] >= min_run:
+                i = li - blk_lo
+                g = blk_code[i]
+                if g < 4 and blk_run[i] >= min_run:
                     run = self.fast_run(blk, li, blk_lo, pos, motion_mode, feed)
-                    if run is not None:
-                        pos, motion_mode, feed, cur_state, skip_to = run
+                    if run is not None:  # its lines after this one skipped (in C)
+                        pos, motion_mode, feed, cur_state, n_run = run
+                        drain(islice(numbered, n_run - 1))
                         continue
-                if g < 4:
-                    fast = True
-                    o = (li - blk_lo) * 11
+                fast = g < 4 or (None if g == 4 else False)  # 4: more digits than the pre-scan reads: the regex
+                if fast:
+                    o = i * 11
                     x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = blk_vals[o:o + 11]
-                elif g == 5:
-                    fast = False  # (4: a number with more digits than the pre-scan reads exactly: the regex path)
             if fast is None:
                 fast, g, x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = _regex_words(fast_match(raw))
             if fast:  # (values: NaN where the block has no such word; g: -1 where it has no G word)
@@ -685,7 +685,10 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                         w0, w1 = ijk[a0], ijk[a1]
                         o0 = w0 if w0 == w0 else 0.0
                         o1 = w1 if w1 == w1 else 0.0
-                        c0, c1 = (o0, o1) if arc_abs else (pos[a0] + o0, pos[a1] + o1)
+                        if arc_abs:
+                            c0, c1 = o0, o1
+                        else:
+                            c0, c1 = pos[a0] + o0, pos[a1] + o1
                         rad1 = hypot(pos[a0] - c0, pos[a1] - c1)
                         rad2 = hypot(target[a0] - c0, target[a1] - c1)
                         dr = abs(rad1 - rad2)
@@ -733,18 +736,17 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
 
     def pre_scan(self, lines):
         """The compiled pre-scan (fast_read) of the whole text (line starts, bytes), or None (regular expressions
-        only). ``scan_block`` then reads which lines are plain blocks, their G digit and values, exactly as the
-        regular expression and float() read them, FAST_READ_BLOCK lines at a time."""
-        self.min_run = 0
+        only), and the shortest run of plain moves read in compiled code. ``scan_block`` then reads which lines are
+        plain blocks, their G digit and values, exactly as the regular expression and float() read them,
+        FAST_READ_BLOCK lines at a time."""
         if not (FAST_READ and lines):
-            return None
+            return None, 0
         from . import fast_interp, fast_read  # runs of plain straight moves read in compiled code
 
-        self.min_run = fast_interp.MIN_RUN
         pre = fast_read.scan_text(self.text)
         if pre is not None and len(pre[0]) != len(lines) + 1:
             pre = None  # not split as split_lines splits (cannot happen for ASCII text): no pre-scan
-        return pre
+        return pre, fast_interp.MIN_RUN
 
     def scan_block(self, pre, lo, n_lines):
         """The pre-scan of FAST_READ_BLOCK lines from lo: (lo, hi, the kernel's arrays, code per line, flat values, run
@@ -762,7 +764,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
 
     def fast_run(self, blk, li, lo, pos, motion_mode, feed):
         """A run of plain straight moves from line li, read in compiled code (fast_interp): (position, motion
-        mode, feed, state, the first line after the run), or None when it reads none."""
+        mode, feed, state, the run's number of lines), or None when it reads none."""
         from . import fast_interp
 
         b_status, b_g, b_vals = blk
@@ -781,7 +783,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                                                    ROW_PROGRAMMED, self.r_arc, self.plane)
         if run[6]:
             self.cycle_words["il_flag"] = False
-        return pos, motion_mode, feed, self.cur_state, li + run[0]
+        return pos, motion_mode, feed, self.cur_state, run[0]
 
     def fast_arc(self, li, mode, target, seen, i_, j_, k_, r_):
         """A plain arc block the inline I J K path did not take (an R arc, an end point off the circle)."""
