@@ -629,8 +629,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         pos, motion_mode, feed, cur_state, absolute, inverse, diameter, plane, arc_abs, arc_tol = self.fast_locals()
         fast_match, hypot, n_lines = _FAST.match, math.hypot, len(lines)
         pre, min_run = self.pre_scan(lines)
-        blk_lo = blk_hi = 0
-        numbered, drain = enumerate(lines), deque(maxlen=0).extend  # drain: consumes an iterator
+        numbered, drain, blk_lo, blk_hi = enumerate(lines), deque(maxlen=0).extend, 0, 0  # drain: consumes
         for li, raw in numbered:
             fast = None  # the fast path: a plain G0-G3 block ("N300G1X4.6526Z-.0007", "X1 Y2 F300"); else block()
             if pre is not None:
@@ -715,10 +714,11 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                         self.pos = pos
                         self.fast_arc(li, mode, target, seen, i_, j_, k_, r_)
                         continue
-            state = self.block(li, raw, pos, motion_mode)
-            if state is None:  # the program's end
+            self.pos, self.motion_mode = pos, motion_mode  # the general path, on the state's attributes
+            if self.block(li, raw):  # the program's end
                 break
-            pos, motion_mode, feed, cur_state, absolute, inverse, diameter, plane, arc_abs, arc_tol = state
+            pos, motion_mode, feed, cur_state = self.pos, self.motion_mode, self.feed, self.cur_state
+            absolute, inverse, diameter, plane, arc_abs, arc_tol = self.fast_locals()[4:]
         return self.assemble(lines)
 
     def fast_locals(self):
@@ -798,16 +798,10 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         except ValueError as exc:
             raise self.err(li + 1, str(exc)) from None
 
-    def block(self, li, raw, pos, motion_mode):
-        """A line the fast path did not take, read with the fast path's position and motion mode written back to the
-        state: the values the fast path holds in locals after it, None after the program's end."""
-        self.pos, self.motion_mode = pos, motion_mode
-        self.general(li, raw)
-        return None if self.ended else self.fast_locals()
-
-    def general(self, li, raw) -> None:
+    def block(self, li, raw):
         """A line the fast path did not take: blank, %, o-word, a literal parameter assignment, or a block for
-        ``interp_read.read_block`` and ``interp_convert``; its errors as ``file:line: reason``."""
+        ``interp_read.read_block`` and ``interp_convert``; its errors as ``file:line: reason``. True at the program's
+        end (M2, M30, the second %)."""
         line_no = li + 1
         stripped = raw.strip()
         if not stripped:
@@ -816,7 +810,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             self.percent_seen += 1
             if self.percent_seen >= 2:
                 self.ended = True
-            return
+            return self.ended
         if (stripped[0] in "oO" or stripped[:1] in "nN") and _OWORD.match(raw):
             if self.passthrough:
                 self.unsupported_block(line_no, "o-word subroutine / control flow")
@@ -839,6 +833,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             raise
         except (ValueError, OverflowError, ZeroDivisionError, KeyError) as exc:
             raise self.err(line_no, str(exc) or type(exc).__name__) from None
+        return self.ended
 
     def assemble(self, lines) -> Program:
         """The row accumulators into a :class:`Program` (the states' values per row, the setup used)."""

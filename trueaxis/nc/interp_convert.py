@@ -31,15 +31,17 @@ class Conversion:
         for k in "XYZABC":
             if k in fvals:
                 self.used_axes.add(k)
-        new_motion, nonmodal, g53, meta_changed = self.convert_g(line_no, gnums, vals)
+        new_motion, nonmodal, g53, meta_changed, tlo_codes = self.convert_g(line_no, gnums, vals)
         # feed, spindle, tool
         if "F" in fvals:
             self.feed = fvals["F"]
         if "T" in fvals:
             self.next_tool = int(fvals["T"])
-        meta_changed |= self.convert_m(line_no, mnums)
-        ax, changed = self.tool_length(line_no, gnums, fvals, ax)
-        meta_changed |= changed
+        if mnums:
+            meta_changed |= self.convert_m(line_no, mnums)
+        if tlo_codes:
+            ax, changed = self.tool_length(line_no, gnums, fvals, ax)
+            meta_changed |= changed
         if new_motion in (0, 10, 20, 30, 800):
             self.cycle_words["il_flag"] = False
         if gnums or mnums or "F" in fvals:
@@ -55,13 +57,15 @@ class Conversion:
             self.off_now = self.offsets().tolist()
             self.meta_now = self.meta()
             self.refresh_state()
-        self.convert_motion(li, line_no, new_motion, g53, fvals, ax, words_mask)
+        if new_motion is not None or ax:
+            self.convert_motion(li, line_no, new_motion, g53, fvals, ax, words_mask)
 
     def convert_g(self, line_no, gnums, vals):
         """The block's G codes in the order written (each modal group's effect but the motion and the non-modal
-        group, which come later): (new motion mode or None, non-modal code or None, G53, the setup changed)."""
+        group, which come later): (new motion mode or None, non-modal code or None, G53, the setup changed, a tool
+        length code is there)."""
         new_motion = nonmodal = None
-        meta_changed = g53 = False
+        meta_changed = g53 = tlo_codes = False
         for g in gnums:
             if g in MOTION_G:
                 new_motion = g
@@ -84,7 +88,7 @@ class Conversion:
                     self.warn(line_no, f"G{self.cutter} cutter radius compensation: rows follow the programmed "
                               "contour, not the tool centre")
             elif g in (430, 431, 432, 490):
-                pass  # handled after the tool change (tool_length)
+                tlo_codes = True  # handled after the tool change (tool_length)
             elif (540 <= g <= 590 and g % 10 == 0) or g in (591, 592, 593):
                 self.select_work((g - 530) // 10 if g % 10 == 0 else 7 + (g - 591))
                 meta_changed = True
@@ -110,7 +114,7 @@ class Conversion:
                 self.not_understood(line_no, "G43.4 / G43.5 tool centre point control: the post reads and "
                                     "writes machine-axis (joint) positions, not tool-tip positions"
                                     if g in (434, 435) else f"G{g / 10:g} not understood")
-        return new_motion, nonmodal, g53, meta_changed
+        return new_motion, nonmodal, g53, meta_changed, tlo_codes
 
     def set_units(self, want_inch: bool) -> None:
         """G20 / G21: every length of the state to the new unit (LinuxCNC keeps its state in program units)."""
