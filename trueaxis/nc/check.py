@@ -197,23 +197,23 @@ def _raise(text, offset, source, line_map, reason):
     raise GcodeError(source, line, reason)
 
 
-def _check_block(block: str, state, passthrough: bool, fail):
-    """Check one block and update ``state`` (:class:`_State`) with its modal codes."""
-    motion = state.motion
+def _block_words(block: str, fail):
+    """The block's G codes (x10), M codes and other words {letter: value}; None for a block the reader judges itself
+    (a % line, macro syntax, a word with no number, a number out of range)."""
     gcodes, mcodes, letters = [], [], {}
     first = True
     stripped = block.lstrip()
     if stripped[:1] == "%":
-        return
+        return None
     for com1, com2, letter, num, other in _WORD.findall(block):
         if com1 or com2:
             continue
         if other:
             if other == "/" and first:
                 continue
-            return  # macro syntax (passed through) or a character the reader refuses with its own message
+            return None  # macro syntax (passed through) or a character the reader refuses with its own message
         if not num:
-            return  # "word with no number": the reader's message
+            return None  # "word with no number": the reader's message
         L = letter.upper()
         if L == "N" and not first:
             fail(f"line number N{num} is not at the start of the block (rs274 reads an N word only there)")
@@ -228,11 +228,14 @@ def _check_block(block: str, state, passthrough: bool, fail):
             elif L != "N":
                 letters[L] = float(num)
         except (OverflowError, ValueError):
-            return  # a number out of range: the reader's message
+            return None  # a number out of range: the reader's message
         if L == "Q" and letters.get(L) == -1.0:
             del letters[L]  # rs274 marks an absent Q with -1: Q-1 reads as no Q word there
-    if any(g not in _G_GROUP for g in gcodes):
-        return  # a code the reader refuses or passes through with its own message (G65, G5.3, G08 P1 ...)
+    return gcodes, mcodes, letters
+
+
+def _modal_groups(gcodes, mcodes, fail) -> dict:
+    """{modal group: G code} of the block; two codes of one group (G or M), or more than five M codes, fail."""
     # two codes of one modal group
     seen = {}
     for g in gcodes:
@@ -254,6 +257,19 @@ def _check_block(block: str, state, passthrough: bool, fail):
         mseen[grp] = m
     if len(mcodes) > 5:
         fail(f"more than five M codes in a block ({len(mcodes)})")
+    return seen
+
+
+def _check_block(block: str, state, passthrough: bool, fail):
+    """Check one block and update ``state`` (:class:`_State`) with its modal codes."""
+    motion = state.motion
+    words = _block_words(block, fail)
+    if words is None:
+        return
+    gcodes, mcodes, letters = words
+    if any(g not in _G_GROUP for g in gcodes):
+        return  # a code the reader refuses or passes through with its own message (G65, G5.3, G08 P1 ...)
+    seen = _modal_groups(gcodes, mcodes, fail)
     g0 = seen.get(0)
     g1 = seen.get(1)
     axes = any(a in letters for a in "XYZABCUVW")

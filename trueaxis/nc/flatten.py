@@ -541,6 +541,45 @@ class _Flattener:
         self.at = start
         self.err("Fanuc subprogram without M99")
 
+    def call(self, k, label, rest):
+        """o<label> call [args]: the arguments into #1..#30 (the caller's saved), on to the subroutine's body."""
+        start = self.subs.get(label)
+        if start is None:
+            self.err(f"subroutine o{label} is not in this file (LinuxCNC would look for a file of that name "
+                     "in its subroutine path)")
+        args, i = [], 0
+        while i < len(rest):
+            if rest[i] == "(":
+                break
+            if rest[i] != "[":
+                self.err("call arguments must be in [ ]")
+            v, i = self.expression(rest, i)
+            args.append(v)
+        if len(args) > 30:
+            self.err("more than 30 call arguments")
+        if len(self.frames) > 200:
+            self.err("subroutine calls nested more than 200 deep (a recursion that does not end?)")
+        saved = {j: self.params.get(j, 0.0) for j in range(1, 31)}
+        for j in range(1, 31):
+            self.params[j] = args[j - 1] if j <= len(args) else 0.0
+        self.frames.append(_Frame(k + 1, saved, start))
+        return start + 1
+
+    def sub_return(self, label, kw, rest):
+        """o<label> endsub / return [value]: the caller's #1..#30 restored, back after the call."""
+        if len(self.frames) == 1:
+            if kw == "endsub":
+                self.err(f"o{label} endsub outside a subroutine")
+            self.err(f"o{label} return outside a subroutine")
+        rest_code = rest.split("(", 1)[0]
+        if rest_code.startswith("["):
+            self.globals["_value"], _ = self.expression(rest_code, 0)
+        f = self.frames.pop()
+        if f.saved is None:
+            self.err("o-word return inside an M98 subprogram")
+        self.params.update(f.saved)
+        return f.return_to
+
     def control(self, k, o):
         label, kw, rest = o
         frame = self.frames[-1]
@@ -550,40 +589,9 @@ class _Flattener:
                 self.err(f"o{label} sub without o{label} endsub")
             return end + 1
         if kw == "call":
-            start = self.subs.get(label)
-            if start is None:
-                self.err(f"subroutine o{label} is not in this file (LinuxCNC would look for a file of that name "
-                         "in its subroutine path)")
-            args, i = [], 0
-            while i < len(rest):
-                if rest[i] == "(":
-                    break
-                if rest[i] != "[":
-                    self.err("call arguments must be in [ ]")
-                v, i = self.expression(rest, i)
-                args.append(v)
-            if len(args) > 30:
-                self.err("more than 30 call arguments")
-            if len(self.frames) > 200:
-                self.err("subroutine calls nested more than 200 deep (a recursion that does not end?)")
-            saved = {j: self.params.get(j, 0.0) for j in range(1, 31)}
-            for j in range(1, 31):
-                self.params[j] = args[j - 1] if j <= len(args) else 0.0
-            self.frames.append(_Frame(k + 1, saved, start))
-            return start + 1
+            return self.call(k, label, rest)
         if kw in ("endsub", "return"):
-            if len(self.frames) == 1:
-                if kw == "endsub":
-                    self.err(f"o{label} endsub outside a subroutine")
-                self.err(f"o{label} return outside a subroutine")
-            rest_code = rest.split("(", 1)[0]
-            if rest_code.startswith("["):
-                self.globals["_value"], _ = self.expression(rest_code, 0)
-            f = self.frames.pop()
-            if f.saved is None:
-                self.err("o-word return inside an M98 subprogram")
-            self.params.update(f.saved)
-            return f.return_to
+            return self.sub_return(label, kw, rest)
         cond = None
         if kw in ("if", "elseif", "while", "dowhile", "repeat"):
             rest_code = rest.split("(", 1)[0]

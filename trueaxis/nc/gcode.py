@@ -45,9 +45,10 @@ from __future__ import annotations
 
 import math
 import re
-from array import array
 from dataclasses import dataclass, field
+from collections import deque
 from functools import cached_property
+from itertools import islice
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -55,7 +56,12 @@ import numpy as np
 from .grammar import NUMBER, PLANE_AXES
 from .interp_arc import ArcConversion
 from .interp_cycles import CycleConversion
+from .interp_codes import (  # noqa: F401  (MAX_WORD_VALUE, WORD_BITS: this module's names too)
+    AXES, LINEAR as _LINEAR, MAX_WORD_VALUE, MM_PER_INCH, SYSTEM_NAMES as _SYSTEM_NAMES, WORD_BIT as _WORD_BIT,
+    WORD_BITS, add as _add)
+from .interp_convert import Conversion
 from .interp_read import read_block
+from .interp_state import InterpState
 from .rows import ARC_CCW, ARC_CW, FEED, RAPID, ROW_CYCLE, ROW_MACHINE, ROW_PROGRAMMED, ROW_REFERENCE
 
 __all__ = [
@@ -79,14 +85,6 @@ __all__ = [
     "ROW_REFERENCE",
     "ROW_MACHINE",
 ]
-
-AXES = "XYZABC"
-MM_PER_INCH = 25.4
-
-
-# Program.words bit mask: which words the source block had (bit i for letter WORD_BITS[i])
-WORD_BITS = "XYZABCIJKRPF"
-_WORD_BIT = {c: 1 << i for i, c in enumerate(WORD_BITS)}
 
 # One tokenizer for the whole project. Alternatives, in order:
 #   1 a () comment (an unclosed one runs to the end of the line), 2 a ; comment,
@@ -121,15 +119,6 @@ _OTHER_BREAKS = re.compile("[\x0b\x0c\x1c\x1d\x1e\x85\u2028\u2029]")
 # (the same results, slower). FAST_READ_BLOCK lines are scanned at a time (their values as Python floats).
 FAST_READ = True
 FAST_READ_BLOCK = 4096
-# Word values (coordinates, offsets, feeds) must stay below this in size: 1000 km, or 25,400 km in inches, is no
-# machine's travel, and bounded values keep every sum, square and unit conversion downstream finite. The fast path's
-# regular expression takes at most 9 digits before the point, so larger values go through the checked general path.
-MAX_WORD_VALUE = 1e9
-
-_SYSTEM_NAMES = ("G54", "G55", "G56", "G57", "G58", "G59", "G59.1", "G59.2", "G59.3")
-_AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2, "A": 3, "B": 4, "C": 5}
-_LINEAR = np.array([True, True, True, False, False, False])
-_LINEAR_T = (True, True, True, False, False, False)
 
 
 def split_lines(text: str) -> list:
@@ -139,24 +128,50 @@ def split_lines(text: str) -> list:
     return _LINE.findall(text)
 
 
-def _add(pos: list, delta) -> None:
-    """pos += delta, in place, for the 6-element position list."""
-    for i in range(6):
-        pos[i] += float(delta[i])
 _PLANE_AXES = PLANE_AXES
-_KNOWN_M = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 19, 30, 48, 49, 50, 51, 52, 53, 60, 61, 62, 63, 64, 65, 66, 67, 68, 70, 71, 72, 73}
-_MOVING_M = {98: "subprogram call M98", 99: "subprogram return M99"}
-# G codes (x10) whose moves the reader cannot reproduce: refused (or passed through on request)
-_MOVING_G = {
-    650: "macro call G65", 660: "modal macro call G66", 661: "modal macro call G66.1",
-    330: "spindle-synchronised motion G33", 331: "rigid tapping G33.1", 760: "threading cycle G76",
-    382: "probing G38.2", 383: "probing G38.3", 384: "probing G38.4", 385: "probing G38.5",
-    50: "spline G5", 51: "spline G5.1", 52: "NURBS G5.2",
-    520: "local coordinate offset G52 (later positions read without it)",
-    171: "plane G17.1", 181: "plane G18.1", 191: "plane G19.1",
-}
-_MOTION_G = (0, 10, 20, 30, 730, 740, 810, 820, 830, 840, 850, 860, 870, 880, 890)
-_CYCLE_G = frozenset(_MOTION_G[4:])
+_NOT_FAST = (False,) + (0,) * 12
+
+
+def _regex_words(fm):
+    """(True, G digit or -1, X Y Z A B C I J K R F: NaN where not given) of a plain block matched by ``_FAST``;
+    ``_NOT_FAST`` for no match, or a match without a motion or axis word (not a move: the general path)."""
+    if fm is None:
+        return _NOT_FAST
+    g, x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = fm.groups()
+    if g is None and x is None and y is None and z is None and a_ is None and b_ is None and c_ is None:
+        return _NOT_FAST
+    nan = math.nan
+    return (True, -1 if g is None else int(g), nan if x is None else float(x), nan if y is None else float(y),
+            nan if z is None else float(z), nan if a_ is None else float(a_), nan if b_ is None else float(b_),
+            nan if c_ is None else float(c_), nan if i_ is None else float(i_), nan if j_ is None else float(j_),
+            nan if k_ is None else float(k_), nan if r_ is None else float(r_), nan if f_ is None else float(f_))
+_I_BIT, _J_BIT, _K_BIT = _WORD_BIT["I"], _WORD_BIT["J"], _WORD_BIT["K"]
+
+
+def _rotary_words(target: list, seen: int, absolute: bool, a_: float, b_: float, c_: float) -> int:
+    """The fast path's A B C words (NaN: not given) into target; the words' bits added to seen."""
+    for n, v in ((3, a_), (4, b_), (5, c_)):
+        if v == v:
+            target[n] = v if absolute else target[n] + v
+            seen |= 1 << n
+    return seen
+
+
+def _incremental_words(target: list, x: float, y: float, z: float) -> int:
+    """The fast path's X Y Z words (NaN: not given) added to target (G91); their bits."""
+    seen = 0
+    if x == x:
+        target[0] += x
+        seen = 1
+    if y == y:
+        target[1] += y
+        seen |= 2
+    if z == z:
+        target[2] += z
+        seen |= 4
+    return seen
+
+
 _OWORD = re.compile(
     r"^\s*(?:[Nn]\s*[0-9]+\s*)?[Oo]\s*(?:<[^>]*>|[0-9]+)\s*(?:sub|endsub|call|if|elseif|else|endif|while|"
     r"endwhile|do|repeat|endrepeat|return|break|continue)\b",
@@ -543,9 +558,11 @@ def parse_program(
         t, source, passthrough_unsupported, tool_table, reference_points, setup, require_setup).run())
 
 
-class _Interpreter(ArcConversion, CycleConversion):
-    """One lean pass over the lines; state in current program units like LinuxCNC's interpreter. Arcs
-    (``interp_arc``) and canned cycles (``interp_cycles``) are its parts in their own modules."""
+class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
+    """One lean pass over the lines; state in current program units like LinuxCNC's interpreter. Its parts are in
+    their own modules, as rs274ngc's: the state (``interp_state``), a block's words (``interp_read``), its checks
+    (``interp_check``), the conversion by modal group (``interp_convert``), arcs (``interp_arc``) and canned cycles
+    (``interp_cycles``); here the block loop with the fast path of plain moves, and the rows into a Program."""
 
     def __init__(self, text, source, passthrough, tool_table, reference_points, setup=None, require_setup=False):
         self.text = text
@@ -603,248 +620,43 @@ class _Interpreter(ArcConversion, CycleConversion):
         self.unsupported_block(line_no, reason)
 
     def run(self) -> Program:
+        """Read every line: a plain G0 / G1 / G2 / G3 block on the fast path below (its few values in locals), any other
+        block through :meth:`block` (the state's attributes, synchronised around it); the rows into a Program."""
         lines = split_lines(self.text)
-        # state, in current program units (lengths) and degrees
-        inch = False
-        self.inch = False
-        u_scale = np.array([1.0, 1, 1, 1, 1, 1])  # mm per program unit, per axis
-        g5x = np.zeros((10, 6))  # index 1..9: G54..G59.3
-        rot = [0.0] * 10  # XY rotation of each work system, deg (LinuxCNC's R, parameter 5230 + 20 (k - 1))
-        active = 1
-        g92 = np.zeros(6)
-        tlo = np.zeros(6)
-        # What is known of the control's setup, and where each value came from. A value's "version" changes when the
-        # program changes it, so that the rows' states can name the value they used (setup_used).
-        setup = self.setup
-        zero_ok = self.offsets_zero
-        g5x_known = np.full((10, 6), zero_ok)
-        g5x_src = ["--offsets-zero" if zero_ok else "not given"] * 10
-        g5x_ver = [0] * 10
-        hist = {}  # ("g5x", index, version) / ("g92", version) / ("tlo", version) -> record for setup_used
-        g92_reason = ""
-        g92_ver = [0]
-        tlo_ver = [0]
-        tlo_reason = ""
-        tlo_h = -1  # the tool whose offsets are in force (-1 none, -2 G43.1 given in the program)
-        selects_work = False
-        g92_stored = None  # (values mm, source) of the shift G92.3 restores; None: unknown
-        if setup is not None and setup.g92_stored is not None:
-            g92_stored = (np.asarray(setup.g92_stored.values, float), setup.g92_stored.source)
-        elif zero_ok:
-            g92_stored = (np.zeros(6), "--offsets-zero")
-        tool_change_mode = setup is not None and setup.tool_length == "tool_change"
-        if setup is not None:
-            for k, off in setup.work_offsets.items():
-                g5x[k] = off.values
-                rot[k] = float(off.rotation_deg)
-                g5x_known[k] = True
-                g5x_src[k] = off.source
-            if setup.active is not None:
-                active = int(setup.active)
-            if setup.g92 is not None:
-                g92[:] = setup.g92.values
-        hist[("g92", 0)] = {"values": g92.copy(), "source": setup.g92.source if setup is not None and
-                            setup.g92 is not None else "none at program start"}
-        hist[("tlo", 0)] = {"tool": -1, "values": np.zeros(6), "source": ""}
-        for k in range(1, 10):
-            hist[("g5x", k, 0)] = {"values": g5x[k].copy(), "rotation": rot[k], "source": g5x_src[k],
-                                   "known": g5x_known[k].copy()}
-        arc_tol = 0.05  # arc end point off the circle by more than this (and 0.1 %): refused, like LinuxCNC
-        pos = [0.0] * 6  # program coordinates (a list: numpy is slow for 6 numbers at a time)
-        off_now = [[0.0] * 6]  # G5x + G92 + tool length offset, refreshed after every block that can change it
-        motion_mode = 0  # G code *10 of the modal motion (0, 10, 20, 30, 730, 810..890, 800)
-        plane = 17
-        absolute = True
-        arc_abs = False
-        inverse = False
-        diameter = False  # G7 (lathe diameter mode: X words are diameters, halved as LinuxCNC does; I is not)
-        feed = 0.0
-        retract_r = False  # G99
-        cutter = 40
-        tool = 0
-        next_tool = 0
-        cycle = {"r": 0.0, "cc": 0.0, "p": 0.0, "q": 0.0, "i": 0.0, "j": 0.0, "k": 0.0, "il": 0.0, "il_flag": False}
-        refs = {k: v.copy() for k, v in self.ref_mm.items()}  # machine coords, mm (converted on use)
-        used_axes = set()
-        units_seen = set()
-        percent_seen = 0
-
-        # row accumulators (flat lists; converted to arrays at the end)
-        # Row accumulators: flat lists, turned into arrays once at the end. What rarely changes between rows
-        # (feed, modes, tool, offsets) is stored once per distinct state and indexed per row.
-        # start / end points as packed doubles (8 bytes a number, not a float object each: a million-block program)
-        r_start, r_end = array("d"), array("d")
-        # and the per-row integers packed too (no list of a million references for every full garbage collection
-        # to walk)
-        r_line, r_motion, r_kind, r_words, r_state = array("q"), array("q"), array("q"), array("q"), array("q")
-        r_arc = {}  # row -> (centre (3,), plane, turns)
-        states: dict = {}
-        cur_state = [0]
-
-        def offsets():
-            """G5x + G92 + tool offsets, the G92 shift turned by the system's rotation: machine = R p + offsets."""
-            r = rot[active]
-            if r == 0.0:
-                return g5x[active] + g92 + tlo
-            c, s = math.cos(math.radians(r)), math.sin(math.radians(r))
-            g = g92.copy()
-            g[0], g[1] = c * g92[0] - s * g92[1], s * g92[0] + c * g92[1]
-            return g5x[active] + g + tlo
-
-        def machine_of(p):
-            """Machine position (current units) of program position p: R (p + G92) + G5x + tool offset."""
-            u = [p[i] + g92[i] for i in range(6)]
-            r = rot[active]
-            if r != 0.0:
-                c, s = math.cos(math.radians(r)), math.sin(math.radians(r))
-                u[0], u[1] = c * u[0] - s * u[1], s * u[0] + c * u[1]
-            return [u[i] + g5x[active, i] + tlo[i] for i in range(6)]
-
-        def program_of(m):
-            """The inverse of machine_of."""
-            u = [m[i] - g5x[active, i] - tlo[i] for i in range(6)]
-            r = rot[active]
-            if r != 0.0:
-                c, s = math.cos(math.radians(r)), math.sin(math.radians(r))
-                u[0], u[1] = c * u[0] + s * u[1], -s * u[0] + c * u[1]
-            return [u[i] - g92[i] for i in range(6)]
-
-        def meta():
-            """The setup in force, for the rows' states: rotation, system and the versions of the values used, and
-            what is unknown (work axes not given, G92 / tool length reasons)."""
-            unknown = "".join(AXES[i] for i in range(6) if not g5x_known[active, i])
-            return (rot[active], active, g5x_ver[active], g92_ver[0], tlo_ver[0], unknown, g92_reason, tlo_reason)
-
-        meta_now = [meta()]
-
-        def refresh_state():
-            key = (feed, inverse, inch, cutter, tool, not absolute, not arc_abs, tuple(off_now[0]), meta_now[0],
-                   diameter)
-            cur_state[0] = states.setdefault(key, len(states))
-
-        if setup is not None:
-            off_now[0] = offsets().tolist()
-            refresh_state()
-
-        def emit(motion, kind, target, li, words=0, center=None, pl=0, turns=0):
-            if center is not None:
-                r_arc[len(r_line)] = (center, pl, turns)
-            r_start.extend(pos)
-            r_end.extend(target)
-            r_line.append(li)
-            r_motion.append(motion)
-            r_kind.append(kind)
-            r_words.append(words)
-            r_state.append(cur_state[0])
-            pos[:] = target
-
-        fast_match = _FAST.match
-        word_bit = _WORD_BIT
-        pre_cycle_mode = 0
-        token_findall = _TOKEN.findall
-        axis_index = _AXIS_INDEX
-        ended = False
-        nan = math.nan
-
-        # The compiled pre-scan (fast_read): which lines are plain blocks, their G digit and values, read exactly as
-        # the regular expression and float() read them; FAST_READ_BLOCK lines at a time.
-        pre = None
-        if FAST_READ and lines:
-            from . import fast_read
-
-            from . import fast_interp  # runs of plain straight moves read in compiled code
-
-            pre = fast_read.scan_text(self.text)
-            if pre is not None and len(pre[0]) != len(lines) + 1:
-                pre = None  # not split as split_lines splits (cannot happen for ASCII text): no pre-scan
-        blk_lo = blk_hi = 0
-        blk_code = blk_vals = None
-        n_lines = len(lines)
-
-        skip_to = 0  # lines before it were read by fast_interp
-        for li, raw in enumerate(lines):
-            if li < skip_to:
-                continue
-            if ended:
-                break
-            # Fast path: a plain G0/G1 block ("N300G1X4.6526Z-.0007", "X1 Y2 F300") in G0/G1 mode.
+        self.start_state()
+        r_start, r_end, r_line, r_motion = self.r_start, self.r_end, self.r_line, self.r_motion
+        r_kind, r_words, r_state, r_arc, cycle = self.r_kind, self.r_words, self.r_state, self.r_arc, self.cycle_words
+        pos, motion_mode, feed, cur_state, absolute, inverse, diameter, plane, arc_abs, arc_tol = self.fast_locals()
+        fast_match, hypot, n_lines = _FAST.match, math.hypot, len(lines)
+        pre, min_run = self.pre_scan(lines)
+        numbered, drain, blk_lo, blk_hi = enumerate(lines), deque(maxlen=0).extend, 0, 0  # drain: consumes
+        for li, raw in numbered:
+            fast = None  # the fast path: a plain G0-G3 block ("N300G1X4.6526Z-.0007", "X1 Y2 F300"); else block()
             if pre is not None:
-                if li >= blk_hi:
-                    blk_lo, blk_hi = li, min(n_lines, li + FAST_READ_BLOCK)
-                    b_status, b_g, b_vals = fast_read.scan_lines(pre[1], pre[0], blk_lo, blk_hi)
-                    # code: the G digit (-1: none) for a block read here, 4: by the regex, 5: not a fast block
-                    blk_code = np.where(b_status == fast_read.LINE_FAST, b_g,
-                                        np.where(b_status == fast_read.LINE_SLOW, 4, 5)).tolist()
-                    # one flat list of floats (no list per line: fewer objects for the garbage collector)
-                    blk_vals = b_vals.ravel().tolist()
-                    blk_run = (fast_interp.run_lengths(b_status, b_g, b_vals).tolist() if fast_interp.ENABLED
-                               else [0] * len(blk_code))
-                g = blk_code[li - blk_lo]
-                if g < 4 and blk_run[li - blk_lo] >= fast_interp.MIN_RUN:
-                    run = fast_interp.straight_run(b_status, b_g, b_vals, li - blk_lo, np.array(pos, float),
-                                                   motion_mode, feed, absolute, inverse, diameter, plane, arc_abs,
-                                                   arc_tol)
-                    if run[0]:
-                        state0, changed = cur_state[0], []
-                        for c in fast_interp.feed_changes(run[5], feed):  # the states, where the feed changes
-                            feed = float(run[5][c])
-                            refresh_state()
-                            changed.append((c, cur_state[0]))
-                        pos, motion_mode = fast_interp.append_rows(run, li, state0, changed, r_start, r_end, r_line,
-                                                                   r_motion, r_kind, r_words, r_state, ROW_PROGRAMMED,
-                                                                   r_arc, plane)
-                        if run[6]:
-                            cycle["il_flag"] = False
-                        skip_to = li + run[0]
+                if li >= blk_hi:  # the next FAST_READ_BLOCK lines
+                    blk_lo, blk_hi, blk, blk_code, blk_vals, blk_run = self.scan_block(pre, li, n_lines)
+                i = li - blk_lo
+                g = blk_code[i]
+                if g < 4 and blk_run[i] >= min_run:
+                    run = self.fast_run(blk, li, blk_lo, pos, motion_mode, feed)
+                    if run is not None:  # its lines after this one skipped (in C)
+                        pos, motion_mode, feed, cur_state, n_run = run
+                        drain(islice(numbered, n_run - 1))
                         continue
-                if g < 4:
-                    fast = True
-                    o = (li - blk_lo) * 11
+                fast = g < 4 or (None if g == 4 else False)  # 4: more digits than the pre-scan reads: the regex
+                if fast:
+                    o = i * 11
                     x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = blk_vals[o:o + 11]
-                else:
-                    fast = False
-                    if g == 4:  # a number with more digits than the pre-scan reads exactly: the regex path
-                        fast = None
-            else:
-                fast = None
             if fast is None:
-                fm = fast_match(raw)
-                if fm is not None:
-                    g, x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = fm.groups()
-                    if g is None and x is None and y is None and z is None and a_ is None and b_ is None \
-                            and c_ is None:
-                        fast = False  # no motion word and no axis word: not a move (general path)
-                    else:
-                        fast = True
-                        g = -1 if g is None else int(g)
-                        x = nan if x is None else float(x)
-                        y = nan if y is None else float(y)
-                        z = nan if z is None else float(z)
-                        a_ = nan if a_ is None else float(a_)
-                        b_ = nan if b_ is None else float(b_)
-                        c_ = nan if c_ is None else float(c_)
-                        i_ = nan if i_ is None else float(i_)
-                        j_ = nan if j_ is None else float(j_)
-                        k_ = nan if k_ is None else float(k_)
-                        r_ = nan if r_ is None else float(r_)
-                        f_ = nan if f_ is None else float(f_)
-                else:
-                    fast = False
-            if diameter and fast and x == x:
-                x = 0.5 * x  # G7: the X word is a diameter
-            # (values: NaN where the block has no such word; g: -1 where it has no G word)
-            if fast:
+                fast, g, x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = _regex_words(fast_match(raw))
+            if fast:  # (values: NaN where the block has no such word; g: -1 where it has no G word)
+                if diameter and x == x:
+                    x = 0.5 * x  # G7: the X word is a diameter
                 mode = motion_mode if g < 0 else g * 10
-                if f_ == f_:
-                    new_feed = f_
-                    if new_feed < 0.0:
-                        raise self.err(li + 1, f"negative feed rate F{fast_match(raw).group(12)}")
-                    if new_feed != feed:
-                        feed = new_feed
-                        refresh_state()
+                if f_ == f_ and f_ != feed:
+                    feed, cur_state = self.fast_feed(li, raw, f_)
                 if mode == 0 or (mode <= 30 and feed != 0.0 and (f_ == f_ or not inverse)):
-                    target = pos[:]
-                    seen = 0
+                    target, seen = pos[:], 0
                     if absolute:
                         if x == x:
                             target[0] = x
@@ -856,458 +668,179 @@ class _Interpreter(ArcConversion, CycleConversion):
                             target[2] = z
                             seen |= 4
                     else:
-                        if x == x:
-                            target[0] += x
-                            seen = 1
-                        if y == y:
-                            target[1] += y
-                            seen |= 2
-                        if z == z:
-                            target[2] += z
-                            seen |= 4
+                        seen = _incremental_words(target, x, y, z)
                     if a_ == a_ or b_ == b_ or c_ == c_:
-                        for n, v in ((3, a_), (4, b_), (5, c_)):
-                            if v == v:
-                                target[n] = v if absolute else target[n] + v
-                                seen |= 1 << n
+                        seen = _rotary_words(target, seen, absolute, a_, b_, c_)
                     if f_ == f_:
                         seen |= 2048
-                    arcw = i_ == i_ or j_ == j_ or k_ == k_ or r_ == r_
                     if g >= 0:
                         cycle["il_flag"] = False
-                    if mode <= 10 and not arcw:
-                        motion_mode = mode
-                        # emit(), inlined: this line is the hot path
-                        r_start.fromlist(pos)
-                        r_end.fromlist(target)
-                        r_line.append(li)
-                        r_motion.append(mode // 10)
-                        r_kind.append(ROW_PROGRAMMED)
-                        r_words.append(seen)
-                        r_state.append(cur_state[0])
-                        pos = target
-                        continue
-                    if mode >= 20 and r_ != r_:
-                        # I J K arc, inlined (the other hot path); R arcs and odd cases go through arc_to
+                    code = -1  # the row's motion code where the block is read here (emit() inlined: the hot path)
+                    if mode <= 10 and not (i_ == i_ or j_ == j_ or k_ == k_ or r_ == r_):
+                        code = mode // 10
+                    elif mode >= 20 and r_ != r_:  # an I J K arc (the other hot path); R arcs, odd cases: arc_to
                         a0, a1, an = _PLANE_AXES[plane]
                         ijk = (i_, j_, k_)
                         w0, w1 = ijk[a0], ijk[a1]
-                        if w0 == w0 or w1 == w1:
-                            o0 = w0 if w0 == w0 else 0.0
-                            o1 = w1 if w1 == w1 else 0.0
-                            if arc_abs:
-                                c0, c1 = o0, o1
-                            else:
-                                c0, c1 = pos[a0] + o0, pos[a1] + o1
-                            rad1 = math.hypot(pos[a0] - c0, pos[a1] - c1)
-                            rad2 = math.hypot(target[a0] - c0, target[a1] - c1)
-                            dr = abs(rad1 - rad2)
-                            if rad1 > 0.0 and (dr <= arc_tol or dr <= 0.001 * max(rad1, rad2)):
-                                for letter, v in (("I", i_), ("J", j_), ("K", k_)):
-                                    if v == v:
-                                        seen |= word_bit[letter]
-                                center = [0.0, 0.0, 0.0]
-                                center[a0], center[a1], center[an] = c0, c1, pos[an]
-                                motion_mode = mode
-                                r_arc[len(r_line)] = (center, plane, 1)
-                                r_start.fromlist(pos)
-                                r_end.fromlist(target)
-                                r_line.append(li)
-                                r_motion.append(2 if mode == 20 else 3)
-                                r_kind.append(ROW_PROGRAMMED)
-                                r_words.append(seen)
-                                r_state.append(cur_state[0])
-                                pos = target
-                                continue
+                        o0 = w0 if w0 == w0 else 0.0
+                        o1 = w1 if w1 == w1 else 0.0
+                        if arc_abs:
+                            c0, c1 = o0, o1
+                        else:
+                            c0, c1 = pos[a0] + o0, pos[a1] + o1
+                        rad1 = hypot(pos[a0] - c0, pos[a1] - c1)
+                        rad2 = hypot(target[a0] - c0, target[a1] - c1)
+                        dr = abs(rad1 - rad2)
+                        if (w0 == w0 or w1 == w1) and rad1 > 0.0 and (dr <= arc_tol or dr <= 0.001 * max(rad1, rad2)):
+                            center = [0.0, 0.0, 0.0]
+                            center[a0], center[a1], center[an] = c0, c1, pos[an]
+                            r_arc[len(r_line)] = (center, plane, 1)
+                            seen |= (_I_BIT if i_ == i_ else 0) | (_J_BIT if j_ == j_ else 0) | \
+                                (_K_BIT if k_ == k_ else 0)
+                            code = 2 if mode == 20 else 3
+                    if code >= 0:
+                        motion_mode = mode
+                        r_start.fromlist(pos)
+                        r_end.fromlist(target)
+                        r_line.append(li)
+                        r_motion.append(code)
+                        r_kind.append(ROW_PROGRAMMED)
+                        r_words.append(seen)
+                        r_state.append(cur_state)
+                        pos = target
+                        continue
                     if mode >= 20:
                         motion_mode = mode
-                        extra = {}
-                        for letter, v in (("I", i_), ("J", j_), ("K", k_), ("R", r_)):
-                            if v == v:
-                                extra[letter] = v
-                                seen |= word_bit[letter]
-                        try:
-                            self.arc_to(li + 1, li, mode, extra, target, pos, plane, arc_abs, inch, emit, seen)
-                        except ValueError as exc:
-                            raise self.err(li + 1, str(exc)) from None
+                        self.pos = pos
+                        self.fast_arc(li, mode, target, seen, i_, j_, k_, r_)
                         continue
-                # anything else: the general path below handles (or reports) it
-            line_no = li + 1
-            stripped = raw.strip()
-            if not stripped:
-                continue
-            if stripped[0] == "%":
-                percent_seen += 1
-                if percent_seen >= 2:
-                    ended = True
-                continue
-            if (stripped[0] in "oO" or stripped[:1] in "nN") and _OWORD.match(raw):
-                if self.passthrough:
-                    self.unsupported_block(line_no, "o-word subroutine / control flow")
-                    continue
-                raise self.err(line_no, "o-word subroutine / control flow is not supported (the moves it makes "
-                               "are not in the text)")
-            if "#" in raw:
-                m = _ASSIGN.match(raw.rstrip("\r\n"))
-                if m:
-                    self.params[int(m.group(1))] = float(m.group(2))
-                    continue
-            gcodes, mcodes, vals, refuse, macro_nonmoving = read_block(self, raw, line_no, token_findall)
-            if not gcodes and not mcodes and not vals:
-                if macro_nonmoving:
-                    self.unsupported_block(line_no, macro_nonmoving)
-                continue
+            self.pos, self.motion_mode = pos, motion_mode  # the general path, on the state's attributes
+            if self.block(li, raw):  # the program's end
+                break
+            pos, motion_mode, feed, cur_state = self.pos, self.motion_mode, self.feed, self.cur_state
+            absolute, inverse, diameter, plane, arc_abs, arc_tol = self.fast_locals()[4:]
+        return self.assemble(lines)
 
-            try:
-                gnums = []
-                for g in gcodes:
-                    gnums.append(int(round(float(g) * 10)))
-                mnums = [int(round(float(m))) for m in mcodes]
-                if refuse is None:
-                    for g in gnums:
-                        if g in _MOVING_G:
-                            refuse = _MOVING_G[g]
-                    for m in mnums:
-                        if m in _MOVING_M:
-                            refuse = _MOVING_M[m]
-                    if refuse is None and any(k in vals for k in "UVW"):
-                        refuse = "U V W axes are not supported"
-                if refuse is not None:
-                    if self.passthrough:
-                        self.unsupported_block(line_no, refuse)
-                        continue
-                    raise self.err(line_no, refuse + " (the moves it makes are not in the text; "
-                                   "--passthrough-unsupported leaves the block as it is)")
-                if macro_nonmoving:
-                    self.unsupported_block(line_no, macro_nonmoving)
+    def fast_locals(self):
+        """The state the fast path holds in locals (it writes back the position, motion mode and feed)."""
+        return (self.pos, self.motion_mode, self.feed, self.cur_state, self.absolute, self.inverse, self.diameter,
+                self.plane, self.arc_abs, self.arc_tol)
 
-                fvals = {}
-                for k, v in vals.items():
-                    fv = float(v)
-                    if not abs(fv) < MAX_WORD_VALUE and k not in "NO":
-                        raise self.err(line_no, f"number out of range: {k}{v[:20]}{'...' if len(v) > 20 else ''} "
-                                       f"(the reader takes values below {MAX_WORD_VALUE:.0e})")
-                    fvals[k] = fv
-                if fvals.get("F", 0.0) < 0.0:
-                    raise self.err(line_no, f"negative feed rate F{vals['F']}")
-                if "T" in fvals and not 0 <= fvals["T"] <= 2**31 - 1:
-                    raise self.err(line_no, f"tool number T{fvals['T']:g} out of range (0 .. 2147483647)")
-                words_mask = 0
-                for k in vals:
-                    words_mask |= _WORD_BIT.get(k, 0)
-                if 70 in gnums or (80 in gnums and "P" not in fvals):
-                    diameter = 70 in gnums  # G7 / G8 (LinuxCNC's lathe modes), in force for this block's words
-                ax = [(axis_index[k], 0.5 * fvals[k] if diameter and k == "X" else fvals[k])
-                      for k in "XYZABC" if k in fvals]
-                for k in "XYZABC":
-                    if k in fvals:
-                        used_axes.add(k)
+    def fast_feed(self, li, raw, f_):
+        """A plain block's new F word: (the feed, the state with it)."""
+        if f_ < 0.0:
+            raise self.err(li + 1, f"negative feed rate F{_FAST.match(raw).group(12)}")
+        self.feed = f_
+        self.refresh_state()
+        return f_, self.cur_state
 
-                # -- modal and non-modal G codes, in LinuxCNC's order of execution ---------------------------
-                new_motion = None
-                nonmodal = None
-                meta_changed = False
-                g53 = False
-                for g in gnums:
-                    if g in _MOTION_G:
-                        new_motion = g
-                    elif g == 800:
-                        if new_motion is None:
-                            new_motion = 800
-                    elif g == 930:
-                        inverse = True
-                    elif g in (940, 950):
-                        if g == 950:
-                            self.warn(line_no, "G95 feed per revolution: feed values are per revolution")
-                        inverse = False
-                    elif g in (170, 180, 190):
-                        plane = g // 10
-                    elif g in (200, 210):
-                        want_inch = g == 200
-                        units_seen.add("inch" if want_inch else "mm")
-                        if want_inch != inch:
-                            f = (1 / MM_PER_INCH) if want_inch else MM_PER_INCH
-                            lin = _LINEAR
-                            for arr in (g92, tlo):
-                                arr[lin] *= f
-                            pos[:] = [p * f if lin_i else p for p, lin_i in zip(pos, _LINEAR_T)]
-                            g5x[:, lin] *= f
-                            cycle["r"] *= f
-                            cycle["cc"] *= f
-                            cycle["q"] *= f
-                            cycle["il"] *= f
-                            for key in "ijk":
-                                cycle[key] *= f
-                            feed *= f if not inverse else 1.0
-                            inch = want_inch
-                            arc_tol = 0.002 if inch else 0.05
-                            u_scale = np.where(_LINEAR, MM_PER_INCH if inch else 1.0, 1.0)
-                    elif g in (400, 410, 420, 411, 421):
-                        cutter = g // 10
-                        if cutter != 40:
-                            self.warn(line_no, f"G{cutter} cutter radius compensation: rows follow the programmed "
-                                      "contour, not the tool centre")
-                    elif g in (430, 431, 432, 490):
-                        pass  # handled after the tool change below
-                    elif (540 <= g <= 590 and g % 10 == 0) or g in (591, 592, 593):
-                        new_active = (g - 530) // 10 if g % 10 == 0 else 7 + (g - 591)
-                        selects_work = meta_changed = True
-                        if new_active != active:
-                            if rot[active] == 0.0 and rot[new_active] == 0.0:
-                                _add(pos, g5x[active] - g5x[new_active])
-                                active = new_active
-                            else:  # the machine position stays; the program position follows the rotation
-                                m_pos = machine_of(pos)
-                                active = new_active
-                                pos[:] = program_of(m_pos)
-                    elif g == 900:
-                        absolute = True
-                    elif g == 910:
-                        absolute = False
-                    elif g == 901:
-                        arc_abs = True
-                    elif g == 911:
-                        arc_abs = False
-                    elif g == 980:
-                        retract_r = False
-                    elif g == 990:
-                        retract_r = True
-                    elif g in (40, 100, 280, 281, 300, 301, 920, 921, 922, 923):
-                        nonmodal = g
-                    elif g == 530:
-                        g53 = True
-                    elif g == 70:
-                        pass  # G7, lathe diameter mode: taken before the axis words (above)
-                    elif g in (610, 611, 640, 960, 970):
-                        pass  # path control and spindle modes: no effect on positions
-                    elif g == 80:
-                        if "P" in vals:
-                            self.unsupported_block(line_no, "Fanuc G08 P (look-ahead) is not an RS-274 code")
-                        # else LinuxCNC's G8 (lathe radius mode), the default: nothing to do
-                    else:
-                        self.not_understood(line_no, "G43.4 / G43.5 tool centre point control: the post reads and "
-                                            "writes machine-axis (joint) positions, not tool-tip positions"
-                                            if g in (434, 435) else f"G{g / 10:g} not understood")
+    def pre_scan(self, lines):
+        """The compiled pre-scan (fast_read) of the whole text (line starts, bytes), or None (regular expressions
+        only), and the shortest run of plain moves read in compiled code. ``scan_block`` then reads which lines are
+        plain blocks, their G digit and values, exactly as the regular expression and float() read them,
+        FAST_READ_BLOCK lines at a time."""
+        if not (FAST_READ and lines):
+            return None, 0
+        from . import fast_interp, fast_read  # runs of plain straight moves read in compiled code
 
-                # feed, spindle, tool
-                if "F" in fvals:
-                    feed = fvals["F"]
-                if "T" in fvals:
-                    next_tool = int(fvals["T"])
-                for m in mnums:
-                    if m == 6:
-                        tool = next_tool
-                        if tool_change_mode:
-                            # the control applies the new tool's length at the change (Hurco, some Fanuc setups)
-                            new, tlo_h, tlo_reason = self.tool_offsets(tool, u_scale, zero_ok, line_no, "M6")
-                            m_pos = machine_of(pos)
-                            tlo = new
-                            pos[:] = program_of(m_pos)
-                            tlo_ver[0] += 1
-                            meta_changed = True
-                            hist[("tlo", tlo_ver[0])] = {"tool": tool, "values": new * u_scale,
-                                                         "source": self.tool_source(tool, zero_ok), "how": "M6"}
-                    elif m in (2, 30):
-                        ended = True
-                    elif m not in _KNOWN_M and not (100 <= m <= 199):
-                        self.not_understood(line_no, f"M{m} is not an RS-274 code")
-                # tool length offset
-                for g in gnums:
-                    if g not in (430, 431, 432, 490):
-                        continue
-                    if g == 430:
-                        h = int(fvals["H"]) if "H" in fvals else tool
-                        new, tlo_h, tlo_reason = self.tool_offsets(h, u_scale, zero_ok, line_no, f"G43 H{h}")
-                        rec = {"tool": h, "source": self.tool_source(h, zero_ok), "how": f"G43 H{h}"}
-                    elif g == 431:
-                        new = tlo.copy()
-                        for i, v in ax:
-                            new[i] = v
-                        ax = []
-                        tlo_h, tlo_reason = -2, ""
-                        rec = {"tool": -2, "source": f"{self.source}:{line_no} (G43.1)", "how": "G43.1"}
-                    elif g == 432:
-                        h = int(fvals.get("H", 0))
-                        add, _, reason = self.tool_offsets(h, u_scale, zero_ok, line_no, f"G43.2 H{h}")
-                        new = tlo + add
-                        tlo_reason = tlo_reason or reason
-                        rec = {"tool": h, "source": self.tool_source(h, zero_ok), "how": f"G43.2 H{h} (added)"}
-                    else:
-                        new = np.zeros(6)
-                        tlo_h, tlo_reason = -1, ""
-                        rec = {"tool": -1, "source": "", "how": "G49"}
-                    if rot[active] == 0.0:
-                        _add(pos, tlo - new)
-                        tlo = new
-                    else:
-                        m_pos = machine_of(pos)
-                        tlo = new
-                        pos[:] = program_of(m_pos)
-                    tlo_ver[0] += 1
-                    meta_changed = True
-                    rec["values"] = tlo * u_scale
-                    hist[("tlo", tlo_ver[0])] = rec
+        pre = fast_read.scan_text(self.text)
+        if pre is not None and len(pre[0]) != len(lines) + 1:
+            pre = None  # not split as split_lines splits (cannot happen for ASCII text): no pre-scan
+        return pre, fast_interp.MIN_RUN
 
-                if new_motion is not None:
-                    if new_motion in (0, 10, 20, 30, 800):
-                        cycle["il_flag"] = False
-                    motion_here = new_motion
-                else:
-                    motion_here = None
+    def scan_block(self, pre, lo, n_lines):
+        """The pre-scan of FAST_READ_BLOCK lines from lo: (lo, hi, the kernel's arrays, code per line, flat values, run
+        length per line)."""
+        from . import fast_interp, fast_read
 
-                if gnums or mnums or "F" in fvals:
-                    off_now[0] = offsets().tolist()
-                    if meta_changed:
-                        meta_now[0] = meta()
-                    refresh_state()
-                # -- non-modal: G10, G28, G30, G92, G4 -------------------------------------------------------
-                if nonmodal == 100:
-                    # the active system may change: the machine position stays, the program position moves
-                    changed = self.g10(line_no, fvals, ax, g5x, rot, active, g92, tlo, pos, u_scale, machine_of,
-                                       program_of)
-                    if changed is not None:
-                        idx, letters = changed
-                        for i in letters:
-                            g5x_known[idx, i] = True
-                        g5x_src[idx] = f"{self.source}:{line_no} (G10 L{int(fvals.get('L', -1))})"
-                        g5x_ver[idx] += 1
-                        hist[("g5x", idx, g5x_ver[idx])] = {"values": g5x[idx] * u_scale, "rotation": rot[idx],
-                                                            "source": g5x_src[idx], "known": g5x_known[idx].copy()}
-                    ax = []
-                elif nonmodal in (280, 300):
-                    key = "G28" if nonmodal == 280 else "G30"
-                    if ax:
-                        target = list(pos)
-                        for i, v in ax:
-                            target[i] = v if absolute else pos[i] + v
-                        emit(RAPID, ROW_REFERENCE, target, li, words_mask)
-                        moving = [i for i, _ in ax]
-                    else:
-                        moving = list(range(6))
-                    if rot[active] == 0.0:
-                        home = refs[key] / u_scale - offsets()
-                        target = list(pos)
-                        for i in moving:
-                            target[i] = float(home[i])
-                    else:  # as LinuxCNC: the home point in program coordinates, its named axes taken
-                        home = program_of([float(refs[key][i] / u_scale[i]) for i in range(6)])
-                        target = list(pos)
-                        for i in moving:
-                            target[i] = home[i]
-                    emit(RAPID, ROW_REFERENCE, target, li, 0)
-                    ax = []
-                elif nonmodal in (281, 301):
-                    refs["G28" if nonmodal == 281 else "G30"] = np.array(machine_of(pos)) * u_scale
-                elif nonmodal in (920, 921, 922, 923):
-                    old_g92 = g92.copy()
-                    if nonmodal == 920:
-                        for i, v in ax:
-                            g92[i] = pos[i] + g92[i] - v
-                        ax = []
-                        g92_stored = (g92 * u_scale, f"{self.source}:{line_no} (G92)")
-                        src, g92_reason = g92_stored[1], ""
-                    elif nonmodal in (921, 922):
-                        g92[:] = 0.0
-                        src, g92_reason = f"{self.source}:{line_no} (G92.{nonmodal - 920})", ""
-                        if nonmodal == 921:
-                            g92_stored = (np.zeros(6), src)
-                    elif g92_stored is not None:
-                        g92[:] = g92_stored[0] / u_scale
-                        src, g92_reason = f"{g92_stored[1]}, restored by G92.3 at line {line_no}", ""
-                    else:
-                        g92[:] = 0.0
-                        src = "--offsets-zero" if zero_ok else "not given"
-                        g92_reason = "" if zero_ok else \
-                            "the G92 shift that G92.3 restores (stored in the control) was not given"
-                    # the machine position stays: the program position moves by the change (G92 is applied before
-                    # the system's rotation, so the same formula holds in a rotated system)
-                    _add(pos, old_g92 - g92)
-                    g92_ver[0] += 1
-                    hist[("g92", g92_ver[0])] = {"values": g92 * u_scale, "source": src}
+        hi = min(n_lines, lo + FAST_READ_BLOCK)
+        b_status, b_g, b_vals = fast_read.scan_lines(pre[1], pre[0], lo, hi)
+        # code: the G digit (-1: none) for a block read here, 4: by the regex, 5: not a fast block
+        code = np.where(b_status == fast_read.LINE_FAST, b_g, np.where(b_status == fast_read.LINE_SLOW, 4, 5)).tolist()
+        # one flat list of floats (no list per line: fewer objects for the garbage collector)
+        vals = b_vals.ravel().tolist()
+        runs = fast_interp.run_lengths(b_status, b_g, b_vals).tolist() if fast_interp.ENABLED else [0] * len(code)
+        return lo, hi, (b_status, b_g, b_vals), code, vals, runs
 
-                if ended and not ax and motion_here is None:
-                    break
+    def fast_run(self, blk, li, lo, pos, motion_mode, feed):
+        """A run of plain straight moves from line li, read in compiled code (fast_interp): (position, motion
+        mode, feed, state, the run's number of lines), or None when it reads none."""
+        from . import fast_interp
 
-                # -- motion ---------------------------------------------------------------------------------
-                if nonmodal is not None:
-                    off_now[0] = offsets().tolist()
-                    meta_now[0] = meta()
-                    refresh_state()
-                prior_mode = motion_mode
-                if motion_here is not None:
-                    motion_mode = motion_here
-                if motion_here is None and not ax:
-                    continue
-                mm = motion_mode
-                if motion_here in _CYCLE_G and prior_mode not in _CYCLE_G:
-                    pre_cycle_mode = prior_mode
-                if mm == 800:
-                    if not ax:
-                        continue
-                    if pre_cycle_mode not in (0, 10, 20, 30):
-                        raise self.err(line_no, "axis words with G80 and no motion mode to fall back to")
-                    # Fanuc: G80 ends the cycle and the G0/G1 modal from before the cycle moves on (LinuxCNC
-                    # refuses axis words here; a program LinuxCNC accepts never reaches this line)
-                    self.warn(line_no, f"axis words after G80: moved with G{pre_cycle_mode // 10}, the motion "
-                              "mode before the canned cycle (Fanuc behaviour; LinuxCNC refuses this)")
-                    mm = motion_mode = pre_cycle_mode
-                if g53:
-                    if mm not in (0, 10):
-                        raise self.err(line_no, "G53 needs G0 or G1")
-                    if not absolute:
-                        raise self.err(line_no, "G53 in incremental mode (G91)")
-                    if rot[active] == 0.0:
-                        target = list(pos)
-                        off = offsets()
-                        for i, v in ax:
-                            target[i] = v - off[i]
-                    else:
-                        m_pos = machine_of(pos)
-                        for i, v in ax:
-                            m_pos[i] = v
-                        target = program_of(m_pos)
-                    if mm == 10 and feed == 0.0:
-                        raise self.err(line_no, "G1 with zero feed rate (no F word yet)")
-                    emit(RAPID if mm == 0 else FEED, ROW_MACHINE, target, li, words_mask)
-                    if ended:
-                        break
-                    continue
-                if mm in (0, 10):
-                    target = list(pos)
-                    if absolute:
-                        for i, v in ax:
-                            target[i] = v
-                    else:
-                        for i, v in ax:
-                            target[i] += v
-                    if mm == 10:
-                        if inverse and "F" not in fvals:
-                            raise self.err(line_no, "G93 inverse-time feed needs an F word on every feed block")
-                        if feed == 0.0:
-                            raise self.err(line_no, "G1 with zero feed rate (no F word yet)")
-                    emit(RAPID if mm == 0 else FEED, ROW_PROGRAMMED, target, li, words_mask)
-                elif mm in (20, 30):
-                    self.arc(line_no, li, mm, fvals, ax, pos, plane, absolute, arc_abs, inch, feed, inverse,
-                             emit, words_mask)
-                else:
-                    if inverse:
-                        raise self.err(line_no, "canned cycle in G93 inverse-time mode")
-                    if feed == 0.0:
-                        raise self.err(line_no, "canned cycle with zero feed rate (no F word yet)")
-                    if cutter != 40:
-                        raise self.err(line_no, "canned cycle with cutter radius compensation on")
-                    self.cycle(line_no, li, mm, motion_here, fvals, ax, pos, plane, absolute, retract_r, inch,
-                               cycle, emit, words_mask, prior_mode)
-                if ended:
-                    break
-            except GcodeError:
-                raise
-            except (ValueError, OverflowError, ZeroDivisionError, KeyError) as exc:
-                raise self.err(line_no, str(exc) or type(exc).__name__) from None
+        b_status, b_g, b_vals = blk
+        run = fast_interp.straight_run(b_status, b_g, b_vals, li - lo, np.array(pos, float), motion_mode, feed,
+                                       self.absolute, self.inverse, self.diameter, self.plane, self.arc_abs,
+                                       self.arc_tol)
+        if not run[0]:
+            return None
+        state0, changed = self.cur_state, []
+        for c in fast_interp.feed_changes(run[5], feed):  # the states, where the feed changes
+            self.feed = feed = float(run[5][c])
+            self.refresh_state()
+            changed.append((c, self.cur_state))
+        pos, motion_mode = fast_interp.append_rows(run, li, state0, changed, self.r_start, self.r_end, self.r_line,
+                                                   self.r_motion, self.r_kind, self.r_words, self.r_state,
+                                                   ROW_PROGRAMMED, self.r_arc, self.plane)
+        if run[6]:
+            self.cycle_words["il_flag"] = False
+        return pos, motion_mode, feed, self.cur_state, run[0]
 
+    def fast_arc(self, li, mode, target, seen, i_, j_, k_, r_):
+        """A plain arc block the inline I J K path did not take (an R arc, an end point off the circle)."""
+        extra = {}
+        for letter, v in (("I", i_), ("J", j_), ("K", k_), ("R", r_)):
+            if v == v:
+                extra[letter] = v
+                seen |= _WORD_BIT[letter]
+        try:
+            self.arc_to(li + 1, li, mode, extra, target, self.pos, self.plane, self.arc_abs, self.inch, self.emit,
+                        seen)
+        except ValueError as exc:
+            raise self.err(li + 1, str(exc)) from None
+
+    def block(self, li, raw):
+        """A line the fast path did not take: blank, %, o-word, a literal parameter assignment, or a block for
+        ``interp_read.read_block`` and ``interp_convert``; its errors as ``file:line: reason``. True at the program's
+        end (M2, M30, the second %)."""
+        line_no = li + 1
+        stripped = raw.strip()
+        if not stripped:
+            return
+        if stripped[0] == "%":
+            self.percent_seen += 1
+            if self.percent_seen >= 2:
+                self.ended = True
+            return self.ended
+        if (stripped[0] in "oO" or stripped[:1] in "nN") and _OWORD.match(raw):
+            if self.passthrough:
+                self.unsupported_block(line_no, "o-word subroutine / control flow")
+                return
+            raise self.err(line_no, "o-word subroutine / control flow is not supported (the moves it makes "
+                           "are not in the text)")
+        if "#" in raw:
+            m = _ASSIGN.match(raw.rstrip("\r\n"))
+            if m:
+                self.params[int(m.group(1))] = float(m.group(2))
+                return
+        gcodes, mcodes, vals, refuse, macro_nonmoving = read_block(self, raw, line_no, _TOKEN.findall)
+        if not gcodes and not mcodes and not vals:
+            if macro_nonmoving:
+                self.unsupported_block(line_no, macro_nonmoving)
+            return
+        try:
+            self.convert_block(li, line_no, gcodes, mcodes, vals, refuse, macro_nonmoving)
+        except GcodeError:
+            raise
+        except (ValueError, OverflowError, ZeroDivisionError, KeyError) as exc:
+            raise self.err(line_no, str(exc) or type(exc).__name__) from None
+        return self.ended
+
+    def assemble(self, lines) -> Program:
+        """The row accumulators into a :class:`Program` (the states' values per row, the setup used)."""
+        r_line, r_arc, used_axes = self.r_line, self.r_arc, self.used_axes
         m = len(r_line)
-        state_rows = list(states)  # dicts keep insertion order: index == state id
-        sid = np.array(r_state, np.int64)
+        state_rows = list(self.states)  # dicts keep insertion order: index == state id
+        sid = np.array(self.r_state, np.int64)
         st_feed = np.array([k[0] for k in state_rows] or [0.0], float)
         st_flags = np.array([k[1:7] for k in state_rows] or [(False, False, 40, 0, False, True)],
                             np.int64).reshape(-1, 6)
@@ -1316,12 +849,12 @@ class _Interpreter(ArcConversion, CycleConversion):
         # the setup in force per state: few distinct ones (states differ mostly by feed, e.g. under G93)
         meta_index: dict = {}
         meta_of_state = np.array([meta_index.setdefault(k[8], len(meta_index)) for k in state_rows]
-                                 or [meta_index.setdefault(meta_now[0], 0)], np.int64)
+                                 or [meta_index.setdefault(self.meta_now, 0)], np.int64)
         metas = list(meta_index)
         mid = meta_of_state[sid]
         rotation = np.array([mt[0] for mt in metas], float)[mid].reshape(m)
-        setup_used = self.setup_report(mid, np.array(r_kind, np.int64), np.array(r_line, np.int64), metas, hist,
-                                       selects_work, used_axes)
+        setup_used = self.setup_report(mid, np.array(self.r_kind, np.int64), np.array(r_line, np.int64), metas,
+                                       self.hist, self.selects_work, used_axes)
         arc_center = np.full((m, 3), np.nan)
         arc_plane = np.zeros(m, np.int8)
         arc_turns = np.zeros(m, np.int16)
@@ -1330,12 +863,13 @@ class _Interpreter(ArcConversion, CycleConversion):
             arc_center[idx] = [v[0] for v in r_arc.values()]
             arc_plane[idx] = [v[1] for v in r_arc.values()]
             arc_turns[idx] = [v[2] for v in r_arc.values()]
-        words = np.array(r_words, np.uint16)
+        words = np.array(self.r_words, np.uint16)
         mask = int(np.bitwise_or.reduce(words)) if m else 0
         used_axes.update(c for c in AXES if mask & _WORD_BIT[c])
+        units_seen = self.units_seen
         units = "mixed" if len(units_seen) > 1 else ("inch" if units_seen == {"inch"} else "mm")
-        start = np.array(r_start, float).reshape(m, 6)
-        end = np.array(r_end, float).reshape(m, 6)
+        start = np.array(self.r_start, float).reshape(m, 6)
+        end = np.array(self.r_end, float).reshape(m, 6)
         offset = st_off[sid].reshape(m, 6)
         feed_rows = st_feed[sid].reshape(m)
         # Numbers too large for a float (a 400-digit X), or sums of huge ones, must not reach a writer as inf/NaN.
@@ -1345,32 +879,18 @@ class _Interpreter(ArcConversion, CycleConversion):
             bad = int(np.argmin(finite))
             raise self.err(int(r_line[bad]) + 1, "number out of range: a position, offset or feed is not finite")
         return Program(
-            source=self.source,
-            start=start,
-            end=end,
-            offset=offset,
-            motion=np.array(r_motion, np.int8),
-            kind=np.array(r_kind, np.int8),
-            arc_center=arc_center,
-            arc_plane=arc_plane,
-            arc_turns=arc_turns,
-            feed=feed_rows,
+            source=self.source, start=start, end=end, offset=offset,
+            motion=np.array(self.r_motion, np.int8), kind=np.array(self.r_kind, np.int8),
+            arc_center=arc_center, arc_plane=arc_plane, arc_turns=arc_turns, feed=feed_rows,
             inverse_time=st_flags[sid, 0].astype(bool).reshape(m),
             inch=st_flags[sid, 1].astype(bool).reshape(m),
             cutter_comp=st_flags[sid, 2].astype(np.int8).reshape(m),
             tool=st_flags[sid, 3].astype(np.int32).reshape(m),
             incremental=st_flags[sid, 4].astype(bool).reshape(m),
             arc_incremental=st_flags[sid, 5].astype(bool).reshape(m),
-            diameter=st_diameter[sid].reshape(m),
-            line_index=np.array(r_line, np.int32),
-            words=words,
-            lines=lines,
-            units=units,
-            axes_present="".join(a for a in AXES if a in used_axes),
-            warnings=self.warnings,
-            unsupported=self.unsupported,
-            rotation=rotation,
-            setup_used=setup_used,
+            diameter=st_diameter[sid].reshape(m), line_index=np.array(r_line, np.int32), words=words, lines=lines,
+            units=units, axes_present="".join(a for a in AXES if a in used_axes), warnings=self.warnings,
+            unsupported=self.unsupported, rotation=rotation, setup_used=setup_used,
         )
 
     def setup_report(self, sid, kind, line, st_meta, hist, selects_work, used_axes):

@@ -118,6 +118,44 @@ def _arc_geometry(start, end, center, plane, motion, turns):
     return first, second, normal, a0, sweep, radius, dn
 
 
+def _durations(program, delta, lin_len, rot_len_deg, dt, rapid_mm_min, rapid_deg_min, rapid_settle_s):
+    """Each row's duration (s: whole interpolation periods, a rapid's settling time added), its moving time and its
+    path speed (mm/min, or deg/min for a rotary-only move)."""
+    m = len(program)
+    motion = program.motion.astype(int)
+    feed = program.feed.astype(float)
+    feed_mm = feed * np.where(program.inch, MM_PER_INCH, 1.0)
+    moving = (lin_len > 1e-12) | (rot_len_deg > 1e-12)
+    duration = np.zeros(m)
+    rapid = motion == 0
+    if np.any(rapid):
+        per_axis = np.concatenate(
+            [np.abs(delta[:, :3]) / (rapid_mm_min / 60.0), np.degrees(np.abs(delta[:, 3:])) / (rapid_deg_min / 60.0)],
+            axis=1,
+        )
+        duration = np.where(rapid, per_axis.max(axis=1), duration)
+    cut = ~rapid & moving
+    bad = cut & (feed <= 0)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise ValueError(f"{program.source}:{program.line_index[i] + 1}: feed move with zero feed rate")
+    inv = program.inverse_time.astype(bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_g94 = np.where(lin_len > 1e-12, lin_len / feed_mm, rot_len_deg / feed) * 60.0
+        t_g93 = 60.0 / feed
+    duration = np.where(cut, np.where(inv, t_g93, t_g94), duration)
+    duration = np.where(moving, duration, 0.0)
+    # Like a CNC's interpolator, every block takes a whole number of interpolation periods (its time rounded up), so
+    # that every block end is a sample: the tool passes through each corner and end point exactly, as the continuous
+    # motion does, instead of skipping up to one period of path (17 um at 1000 mm/min) at every block end.
+    duration = np.where(moving, np.ceil(duration / dt - 1e-9) * dt, 0.0)
+    move_time = duration.copy()
+    duration = np.where(rapid & moving, duration + max(0.0, float(rapid_settle_s)), duration)
+    path_speed = np.where(duration > 0, np.where(lin_len > 1e-12, lin_len, rot_len_deg) / np.maximum(move_time, 1e-300)
+                          * 60.0, 0.0)
+    return duration, move_time, path_speed
+
+
 def interpolate(
     program,
     machine: Machine,
@@ -167,37 +205,8 @@ def interpolate(
     lin_len = np.where(is_arc, arc_len, lin_len)
     rot_len_deg = np.degrees(np.linalg.norm(delta[:, 3:], axis=1))
 
-    # Durations (s).
-    feed = program.feed.astype(float)
-    feed_mm = feed * np.where(program.inch, MM_PER_INCH, 1.0)
-    moving = (lin_len > 1e-12) | (rot_len_deg > 1e-12)
-    duration = np.zeros(m)
-    rapid = motion == 0
-    if np.any(rapid):
-        per_axis = np.concatenate(
-            [np.abs(delta[:, :3]) / (rapid_mm_min / 60.0), np.degrees(np.abs(delta[:, 3:])) / (rapid_deg_min / 60.0)],
-            axis=1,
-        )
-        duration = np.where(rapid, per_axis.max(axis=1), duration)
-    cut = ~rapid & moving
-    bad = cut & (feed <= 0)
-    if np.any(bad):
-        i = int(np.argmax(bad))
-        raise ValueError(f"{program.source}:{program.line_index[i] + 1}: feed move with zero feed rate")
-    inv = program.inverse_time.astype(bool)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_g94 = np.where(lin_len > 1e-12, lin_len / feed_mm, rot_len_deg / feed) * 60.0
-        t_g93 = 60.0 / feed
-    duration = np.where(cut, np.where(inv, t_g93, t_g94), duration)
-    duration = np.where(moving, duration, 0.0)
-    # Like a CNC's interpolator, every block takes a whole number of interpolation periods (its time rounded up), so
-    # that every block end is a sample: the tool passes through each corner and end point exactly, as the continuous
-    # motion does, instead of skipping up to one period of path (17 um at 1000 mm/min) at every block end.
-    duration = np.where(moving, np.ceil(duration / dt - 1e-9) * dt, 0.0)
-    move_time = duration.copy()
-    duration = np.where(rapid & moving, duration + max(0.0, float(rapid_settle_s)), duration)
-    path_speed = np.where(duration > 0, np.where(lin_len > 1e-12, lin_len, rot_len_deg) / np.maximum(move_time, 1e-300)
-                          * 60.0, 0.0)
+    duration, move_time, path_speed = _durations(program, delta, lin_len, rot_len_deg, dt, rapid_mm_min,
+                                                 rapid_deg_min, rapid_settle_s)
 
     t_end = np.cumsum(duration)
     t_start = t_end - duration
