@@ -56,6 +56,7 @@ from ..nc.gcode import (
     write_number,
 )
 from ..nc import fast_write
+from ..nc.grammar import NUMBER
 from .arcs import fit_arcs, full_turns_close
 from .solver import corrected_directions, solve_commanded
 
@@ -81,7 +82,7 @@ def condition_marks(lines, source: str) -> list[tuple[int, dict]]:
             marks.append((i, fields))
     return marks
 _MOTION_WORD = re.compile(r"^G0*([0-3])$", re.IGNORECASE)
-_NUM = r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)"
+_NUM = NUMBER  # the RS-274 number of the one grammar (nc/grammar.py)
 # A plain motion block: N G X Y Z A B C I J K R F, each optional, in this order, nothing else (the writer's fast path)
 _PLAIN = re.compile(
     r"[ \t]*(?P<n>[Nn][0-9]+)?[ \t]*(?P<g>[Gg]0*[0-3](?![0-9.]))?[ \t]*"
@@ -406,7 +407,7 @@ def without_header(text: str) -> str:
 
 def _post_cl(text, machine, mode, *, tol_um, max_correction_mm, singular_deg, conditions, source, feed_mm_min,
              branch, setup=None, output_mode="joint"):
-    from ..nc.cl import cl_program, read_cl
+    from ..nc.cl import ClError, cl_program, read_cl
 
     try:
         cl = read_cl(text, source)
