@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
+from typing import NamedTuple
 from pathlib import Path
 
 import numpy as np
@@ -55,8 +56,8 @@ from ..nc.gcode import (
     write_number,
 )
 from ..nc import fast_write
-from .arcs import fit_arcs, full_turns_close
 from ..nc.grammar import NUMBER
+from .arcs import fit_arcs, full_turns_close
 from .solver import corrected_directions, solve_commanded
 
 MODES = ("none", "geometric", "comprehensive")
@@ -444,6 +445,14 @@ def _check_axes(prog: Program, machine: Machine, source: str):
 # --------------------------------------------------------------------------------------------------- internals ---
 
 
+class _PieceWords(NamedTuple):
+    """The written pieces of split moves (``_Poster._piece_words``), by index k into the compensated rows."""
+
+    first: dict  # k -> index of the piece's first point into ``words``
+    pts: dict  # k -> (n, 6) program coordinates of its pieces' ends
+    words: dict | None  # axis letter -> the formatted words of every piece end, in order; None: no pieces
+
+
 class _Poster:
     def __init__(self, prog, machine, mode, tol_um, max_corr, singular_deg, conditions, rep):
         self.p = prog
@@ -806,34 +815,12 @@ class _Poster:
 
         All points of all moves live in flat arrays (move, fraction, commanded pose, residual) and only new points
         are solved, one batch per round."""
-        out = {}
         if feed_idx.size == 0:
-            return out
-        p = self.p
-        n6 = 6 if self.orientation else 3
+            return {}
         idx = np.asarray(feed_idx, int)
         f_all = None if force is None else force
-        # Judged is the position error along the directions the axes can correct (all three on a mill, X and Z on a
-        # lathe, whose error along Y moves the turned radius by second order only and no axis can remove).
-        correctable = corrected_directions(self.m)
-        correctable = correctable.T @ correctable
-
-        def residual(i_move, fr, qc):
-            q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
-            pn, un = self.twin.nominal_pose(q_nom)
-            pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
-            return np.hstack([(pa - pn) @ correctable, ua - un])[:, :n6]
-
-        # A move's commanded start is usually the previous move's commanded end (same pose, same force): reuse it.
-        q0 = np.empty((idx.size, q_start.shape[1]))
-        same = idx > 0
-        prev = idx[same] - 1
-        same[same] = np.all(q_start[idx[same]] == q_end[prev], axis=1) & (
-            True if f_all is None else np.all(f_all[idx[same]] == f_all[prev], axis=1))
-        q0[same] = q_cmd_end[idx[same] - 1]
-        if not same.all():
-            fresh = idx[~same]
-            q0[~same], _ = self.solve(q_start[fresh], None if f_all is None else f_all[fresh], rows[fresh])
+        residual = self._path_residual(q_start, q_end, f_all)
+        q0 = self._commanded_starts(rows, idx, q_start, q_end, f_all, q_cmd_end)
         I = np.r_[idx, idx]
         F = np.r_[np.zeros(idx.size), np.ones(idx.size)]
         C = np.vstack([q0, q_cmd_end[idx]])
@@ -841,12 +828,7 @@ class _Poster:
         R = residual(I, F, C)
         active = np.zeros(len(rows), bool)
         active[idx] = True
-        # The tolerance is a promise about the written program: the ends' own residuals (the solver's tolerance) and
-        # the rounding of the written numbers come off it before the chord is judged.
-        # (At most half of it: a tolerance near the written digits is then kept to within their rounding.)
-        tol_mm = max(self.tol_mm - 1e-3 * (self.solve_tol_um + WRITE_ROUNDING_UM), self.tol_mm / 2)
-        tol_rad = max(self.tol_rad - 1e-6 * (SOLVE_TOL_URAD + WRITE_ROUNDING_URAD), self.tol_rad / 2)
-        scale = np.r_[np.full(3, 1 / tol_mm), np.full(3, 1 / tol_rad)][:n6]
+        scale = self._split_scale()
         worst_final = np.zeros(0)
         for _ in range(max_rounds):
             order = np.lexsort((F, I))
@@ -855,34 +837,13 @@ class _Poster:
             if ia.size == 0:
                 break
             owner, a, b = I[ia], F[ia], F[ia + 1]
-            ca, cb, ra, rb = C[ia], C[ia + 1], R[ia], R[ia + 1]
-            worst = np.zeros(owner.size)
-            dev_um = np.zeros(owner.size)
-            dev_urad = np.zeros(owner.size)
-            # Inside the singular cone the ends keep a tool-axis error (free axis held): judged is what the chord adds
-            # to the straight blend of the ends' residuals. Elsewhere the whole deviation.
-            held = (S[ia] | S[ia + 1])[:, None]
-            for sfrac in (0.25, 0.5, 0.75):
-                c_at = ca + sfrac * (cb - ca) if self.tcp is None else self.tcp.interpolate(ca, cb, sfrac)
-                e = residual(owner, a + sfrac * (b - a), c_at)
-                e = e - np.where(held, (1 - sfrac) * ra + sfrac * rb, 0.0)
-                ep = np.linalg.norm(e[:, :3], axis=1)
-                eu = np.linalg.norm(e[:, 3:], axis=1) if self.orientation else np.zeros(owner.size)
-                dev_um, dev_urad = np.maximum(dev_um, ep * 1e3), np.maximum(dev_urad, eu * 1e6)
-                worst = np.maximum(worst, np.maximum(ep * scale[0], eu * scale[-1]))
+            worst = self._chord_deviation(residual, owner, a, b, (C[ia], C[ia + 1]), (R[ia], R[ia + 1]),
+                                          S[ia] | S[ia + 1], scale)
             bad = worst > 1.0
             worst_final = worst
-            self.rep.max_split_deviation_um = max(self.rep.max_split_deviation_um, float(dev_um[~bad].max(initial=0)))
-            self.rep.max_split_deviation_urad = max(self.rep.max_split_deviation_urad,
-                                                    float(dev_urad[~bad].max(initial=0)))
             if not np.any(bad):
                 break
-            # Deviations of a chord shrink with the square of its length: about sqrt(worst) sub-pieces each.
-            nsub = np.where(bad, np.maximum(2, np.ceil(np.sqrt(worst))), 1).astype(int)
-            rep_ = np.repeat(np.arange(owner.size), nsub - 1)
-            j = np.arange(rep_.size) - np.repeat(np.cumsum(nsub - 1) - (nsub - 1), nsub - 1) + 1
-            fr = a[rep_] + (b[rep_] - a[rep_]) * j / nsub[rep_]
-            mv = owner[rep_]
+            mv, fr = _subdivide(owner, a, b, worst, bad)
             q_nom = q_start[mv] + fr[:, None] * (q_end[mv] - q_start[mv])
             qc, _ = self.solve(q_nom, None if f_all is None else f_all[mv], rows[mv])
             self.check(q_nom, qc, rows[mv])
@@ -893,8 +854,85 @@ class _Poster:
         else:
             still = np.unique(owner[worst_final > 1.0]) if worst_final.size else np.array([], int)
             for i in still:
-                self.rep.warnings.append(f"{p.source}:{int(p.line_no[rows[i]])}: the move was split {max_rounds} "
-                                         "times and still leaves the nominal path by more than the tolerance")
+                self.rep.warnings.append(f"{self.p.source}:{int(self.p.line_no[rows[i]])}: the move was split "
+                                         f"{max_rounds} times and still leaves the nominal path by more than the "
+                                         "tolerance")
+        return self._split_pieces(rows, I, F, C, q_start, q_end, inch)
+
+    def _path_residual(self, q_start, q_end, f_all):
+        """residual(i_move, fr, qc) -> (K, 3 or 6): the actual pose at commanded poses qc less the nominal pose at the
+        fractions fr of the moves i_move (indices into the chunk's rows), position then tool axis.
+
+        Judged is the position error along the directions the axes can correct (all three on a mill, X and Z on a
+        lathe, whose error along Y moves the turned radius by second order only and no axis can remove)."""
+        n6 = 6 if self.orientation else 3
+        correctable = corrected_directions(self.m)
+        correctable = correctable.T @ correctable
+
+        def residual(i_move, fr, qc):
+            q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
+            pn, un = self.twin.nominal_pose(q_nom)
+            pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
+            return np.hstack([(pa - pn) @ correctable, ua - un])[:, :n6]
+
+        return residual
+
+    def _commanded_starts(self, rows, idx, q_start, q_end, f_all, q_cmd_end):
+        """(K, n_axes) commanded start poses of the moves idx. A move's commanded start is usually the previous move's
+        commanded end (same pose, same force): reused; the others are solved."""
+        q0 = np.empty((idx.size, q_start.shape[1]))
+        same = idx > 0
+        prev = idx[same] - 1
+        same[same] = np.all(q_start[idx[same]] == q_end[prev], axis=1) & (
+            True if f_all is None else np.all(f_all[idx[same]] == f_all[prev], axis=1))
+        q0[same] = q_cmd_end[idx[same] - 1]
+        if not same.all():
+            fresh = idx[~same]
+            q0[~same], _ = self.solve(q_start[fresh], None if f_all is None else f_all[fresh], rows[fresh])
+        return q0
+
+    def _split_scale(self):
+        """Per-component scale (3 or 6,) of the residuals: 1 / the tolerance a chord is judged by (1 / mm, 1 / rad).
+
+        The tolerance is a promise about the written program: the ends' own residuals (the solver's tolerance) and
+        the rounding of the written numbers come off it before the chord is judged. (At most half of it: a tolerance
+        near the written digits is then kept to within their rounding.)"""
+        n6 = 6 if self.orientation else 3
+        tol_mm = max(self.tol_mm - 1e-3 * (self.solve_tol_um + WRITE_ROUNDING_UM), self.tol_mm / 2)
+        tol_rad = max(self.tol_rad - 1e-6 * (SOLVE_TOL_URAD + WRITE_ROUNDING_URAD), self.tol_rad / 2)
+        return np.r_[np.full(3, 1 / tol_mm), np.full(3, 1 / tol_rad)][:n6]
+
+    def _chord_deviation(self, residual, owner, a, b, c_ends, r_ends, held, scale):
+        """(K,) the worst scaled deviation (> 1: out of tolerance) of the chords between the fractions a and b of the
+        moves owner, commanded poses c_ends = (ca, cb) and residuals r_ends = (ra, rb) at their ends, compared at 1/4,
+        1/2, 3/4 of each chord; the report's largest deviation within tolerance is updated.
+
+        Inside the singular cone (held: either end's free axis held) the ends keep a tool-axis error: judged is what
+        the chord adds to the straight blend of the ends' residuals. Elsewhere the whole deviation."""
+        (ca, cb), (ra, rb) = c_ends, r_ends
+        worst = np.zeros(owner.size)
+        dev_um = np.zeros(owner.size)
+        dev_urad = np.zeros(owner.size)
+        held = held[:, None]
+        for sfrac in (0.25, 0.5, 0.75):
+            c_at = ca + sfrac * (cb - ca) if self.tcp is None else self.tcp.interpolate(ca, cb, sfrac)
+            e = residual(owner, a + sfrac * (b - a), c_at)
+            e = e - np.where(held, (1 - sfrac) * ra + sfrac * rb, 0.0)
+            ep = np.linalg.norm(e[:, :3], axis=1)
+            eu = np.linalg.norm(e[:, 3:], axis=1) if self.orientation else np.zeros(owner.size)
+            dev_um, dev_urad = np.maximum(dev_um, ep * 1e3), np.maximum(dev_urad, eu * 1e6)
+            worst = np.maximum(worst, np.maximum(ep * scale[0], eu * scale[-1]))
+        bad = worst > 1.0
+        self.rep.max_split_deviation_um = max(self.rep.max_split_deviation_um, float(dev_um[~bad].max(initial=0)))
+        self.rep.max_split_deviation_urad = max(self.rep.max_split_deviation_urad,
+                                                float(dev_urad[~bad].max(initial=0)))
+        return worst
+
+    def _split_pieces(self, rows, I, F, C, q_start, q_end, inch):
+        """The split moves' pieces from the flat points (move I, fraction F, commanded pose C): {k: (n, 6) program
+        coordinates of the inner piece ends}; their fractions (with 0 and 1) go to ``self.fractions`` by row."""
+        p = self.p
+        out = {}
         order = np.lexsort((F, I))
         I, F, C = I[order], F[order], C[order]
         counts = np.bincount(I, minlength=len(rows))
@@ -991,50 +1029,89 @@ class _Poster:
         """The output text: every line of the input, the compensated motion blocks rewritten (plus the extra pieces
         of split moves after them); returns (text, report)."""
         p = self.p
-        info = p.format_info
-        sep = info.separator
-        axes_out = [a for a in AXES if a in self.names and (a in p.axes_present or a in "XYZ")]
-        if self.m.kind == "lathe":
-            axes_out = [a for a in axes_out if a in p.axes_present or a in "XZ"]
-        numbers = _Numbers(info)
+        axes_out = self._axes_out()
+        numbers = _Numbers(p.format_info)
         is_cycle = p.kind[rows] == ROW_CYCLE
-        # The end point written for every program row (program coordinates): compensated moves' corrected ends,
-        # everything else (and canned cycles, rewritten from their hole and R level) as programmed. A block's
-        # incremental words and arc centres count from the end written for the row before it.
-        written_end = p.end.copy()
-        written_end[rows[~is_cycle]] += delta_prog[~is_cycle]
-        first_row_of_line = np.full(len(p.lines), -1)
-        first_row_of_line[p.line_index[::-1]] = np.arange(len(p))[::-1]
+        written_end, first_row_of_line = self._written_ends(rows, delta_prog, is_cycle)
         # Each compensated move's corrected end; the axis words of the pieces of split moves and linearised arcs (the
         # block's own end last), formatted in one pass per axis.
         target = p.end[rows] + delta_prog
         inch_rows = p.inch[rows]
+        split = self._piece_words(pieces, arc_mode, target, inch_rows, axes_out, numbers)
+        line_of = p.line_index[rows]
+        starts = np.r_[0, np.nonzero(np.diff(line_of))[0] + 1]
+        ends = np.r_[starts[1:], rows.size]
+        # The compiled writer (fast_write) takes the plain blocks with absolute axis words, not split, not canned
+        # cycles; every other compensated line goes through ``_write_lines``.
+        fast = self._fast_lines(rows, starts, ends, target, inch_rows, split.first, arc_mode, axes_out, numbers,
+                                delta_prog, written_end, first_row_of_line)
+        if fast is not None:
+            keep = ~fast["handled"]
+            starts, ends = starts[keep], ends[keep]
+        out = list(p.lines) if fast is None else {}
+        ends_written = (written_end, first_row_of_line)
+        extra = self._write_lines(out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out,
+                                  numbers, ends_written)
+        self.rep.blocks_out = len(p.lines) + extra
+        if fast is None:
+            return "".join(out), self.rep
+        return self._fast_assemble(fast, out), self.rep
+
+    def _axes_out(self):
+        """The axis words every rewritten block carries: X Y Z and the program's other axes of the machine (a lathe:
+        X Z and the program's)."""
+        p = self.p
+        axes_out = [a for a in AXES if a in self.names and (a in p.axes_present or a in "XYZ")]
+        if self.m.kind == "lathe":
+            axes_out = [a for a in axes_out if a in p.axes_present or a in "XZ"]
+        return axes_out
+
+    def _written_ends(self, rows, delta_prog, is_cycle):
+        """(written_end (M, 6), first_row_of_line (lines,)): the end point written for every program row (program
+        coordinates) and each line's first row (-1: none).
+
+        Compensated moves end at their corrected ends, everything else (and canned cycles, rewritten from their hole
+        and R level) as programmed. A block's incremental words and arc centres count from the end written for the
+        row before it."""
+        p = self.p
+        written_end = p.end.copy()
+        written_end[rows[~is_cycle]] += delta_prog[~is_cycle]
+        first_row_of_line = np.full(len(p.lines), -1)
+        first_row_of_line[p.line_index[::-1]] = np.arange(len(p))[::-1]
+        return written_end, first_row_of_line
+
+    def _piece_words(self, pieces, arc_mode, target, inch_rows, axes_out, numbers):
+        """The pieces of split moves and linearised or fitted arcs (not the kept arcs), their block's own end last:
+        ``_PieceWords`` with each one's first index into the words, its (n, 6) points, and the axis words of all of
+        them, formatted in one pass per axis."""
         piece_keys = [k for k in pieces if arc_mode.get(k) != "arc"]
         piece_pts = [pieces[k] if arc_mode.get(k) in ("lines", "fit") else np.vstack([pieces[k], target[k]])
                      for k in piece_keys]
         piece_first = dict(zip(piece_keys, np.cumsum([0] + [len(x) for x in piece_pts]).tolist()))
         piece_pts_of = dict(zip(piece_keys, piece_pts))
+        piece_words = None
         if piece_pts:
             flat = np.vstack(piece_pts)
             flat_inch = np.repeat(inch_rows[piece_keys], [len(x) for x in piece_pts])
             piece_words = {a: numbers.words(a, flat[:, AXES.index(a)], flat_inch) for a in axes_out}
+        return _PieceWords(piece_first, piece_pts_of, piece_words)
+
+    def _write_lines(self, out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out, numbers,
+                     ends_written):
+        """The Python writer: rewrite the lines of the row groups ``starts``/``ends`` into ``out`` (by line index);
+        returns the number of blocks added (the later pieces of split moves)."""
+        p = self.p
+        sep = p.format_info.separator
+        written_end, first_row_of_line = ends_written
         line_of = p.line_index[rows]
-        starts = np.r_[0, np.nonzero(np.diff(line_of))[0] + 1]
-        ends = np.r_[starts[1:], rows.size]
-        # The compiled writer (fast_write) takes the plain blocks with absolute axis words, not split, not canned
-        # cycles; every other compensated line goes through the loop below.
-        fast = self._fast_lines(rows, starts, ends, target, inch_rows, piece_first, arc_mode, axes_out, numbers,
-                                delta_prog, written_end, first_row_of_line)
-        if fast is not None:
-            keep = ~fast["handled"]
-            starts, ends = starts[keep], ends[keep]
+        inch_rows = p.inch[rows]
         # Python scalars for the per-line loop (numpy scalar access costs more than the rewrite itself).
         rows_l, motion_l, inch_l = rows.tolist(), p.motion.tolist(), p.inch.tolist()
         inverse_l, r_form_l = p.inverse_time.tolist(), (p.words & _R_BIT).astype(bool).tolist()
         cycle_l = is_cycle.tolist()
         incremental_l = p.incremental.tolist()
         formatters = {False: numbers.formatter(False), True: numbers.formatter(True)}
-        out = list(p.lines) if fast is None else {}
+        piece_first = split.first
         extra = 0
         # The bulk of the axis words, formatted in one pass per axis and window of the loop's lines (memory stays
         # bounded): each line's corrected end (its last row's).
@@ -1061,64 +1138,68 @@ class _Poster:
             r = rows_l[k]
             motion = motion_l[r]
             arc_kept = arc_mode.get(k) == "arc"
-            split = k in piece_first
+            is_split = k in piece_first
             inc = incremental_l[r]
-            if inc or split or arc_kept:
+            if inc or is_split or arc_kept:
                 last_written = _written_before(np.array([li]), written_end, first_row_of_line)[0]
-            rest = []
-            if split:
-                # The block itself goes to the first piece's end, so that its other words (F, S, M, N) act where
-                # they did; the remaining pieces follow as plain moves.
-                o = piece_first[k]
-                pts = piece_pts_of[k]
-                n = len(pts)
-                if arc_mode.get(k) == "lines":
-                    motion = FEED
-                centres = self.arc_centres.get(r) if arc_mode.get(k) == "fit" else None
-                arc_start = last_written
-                if centres is not None and np.isnan(centres[0, 0]):  # a fitted arc's first piece is straight
-                    motion = FEED
-                # G93: each piece takes its share of the block's time (the control interpolates the axes linearly
-                # in time, so a piece over the fraction df of the move takes df of it): inverse time F / df.
-                piece_f = p.feed[r] / np.diff(self.fractions.get(r, np.linspace(0.0, 1.0, n + 1)))
-                if inverse_l[r]:
-                    body = _replace_feed(body, piece_f[0], fmt, sep)
-                if inc:
-                    words = [fmt(a, _out_value(pts[0], last_written, a, inc)) for a in axes_out]
-                    last_written = pts[0]
-                else:
-                    words = [piece_words[a][o] for a in axes_out]
-                rest = range(1, n)
-            elif inc:
+            if is_split:
+                out[li], n_more = self._split_block(body, ending, k, r, motion, inc, inverse_l[r], last_written,
+                                                    arc_mode, split, axes_out, fmt, sep)
+                extra += n_more
+                continue
+            if inc:
                 words = [fmt(a, _out_value(target[k], last_written, a, inc)) for a in axes_out]
             else:
                 words = [axis_words[a][j - window[0]] for a in axes_out]
             if arc_kept and not r_form_l[r]:
                 words += self._centre_words(r, delta_prog[k], last_written, fmt)
-            if split and centres is not None and not np.isnan(centres[0, 0]):  # a fitted arc: its first sub-arc
-                words += self._fit_centre_words(r, centres[0], arc_start, fmt)
-            texts = [self._rewrite_motion(body, motion, words, arc_kept, r, sep), ending]
-            word = "G0" if motion == RAPID else "G1"
-            for i_piece in rest:
-                if inc:
-                    piece = [word] + [fmt(a, _out_value(pts[i_piece], last_written, a, inc)) for a in axes_out]
-                    last_written = pts[i_piece]
-                elif centres is not None and np.isnan(centres[i_piece, 0]):  # a sub-arc that did not hold
-                    piece = ["G1"] + [piece_words[a][o + i_piece] for a in axes_out]
-                elif centres is not None:
-                    piece = [_motion_text("G1", p.motion[r])] + [piece_words[a][o + i_piece] for a in axes_out]
-                    piece += self._fit_centre_words(r, centres[i_piece], pts[i_piece - 1], fmt)
-                else:
-                    piece = [word] + [piece_words[a][o + i_piece] for a in axes_out]
-                if inverse_l[r]:
-                    piece.append(fmt("F", piece_f[i_piece], inch=False))
-                texts += [sep.join(piece), ending]
-            extra += len(rest)
-            out[li] = "".join(texts)
-        self.rep.blocks_out = len(p.lines) + extra
-        if fast is None:
-            return "".join(out), self.rep
-        return self._fast_assemble(fast, out), self.rep
+            out[li] = "".join([self._rewrite_motion(body, motion, words, arc_kept, r, sep), ending])
+        return extra
+
+    def _split_block(self, body, ending, k, r, motion, inc, inverse, last_written, arc_mode, split, axes_out, fmt,
+                     sep):
+        """(text, number of blocks added) of a split move (straight pieces, or a fitted arc's sub-arcs): the block
+        itself goes to the first piece's end, so that its other words (F, S, M, N) act where they did; the remaining
+        pieces follow as plain moves (G93: each with its share of the block's inverse-time feed)."""
+        p = self.p
+        o = split.first[k]
+        pts = split.pts[k]
+        n = len(pts)
+        if arc_mode.get(k) == "lines":
+            motion = FEED
+        centres = self.arc_centres.get(r) if arc_mode.get(k) == "fit" else None
+        arc_start = last_written
+        if centres is not None and np.isnan(centres[0, 0]):  # a fitted arc's first piece is straight
+            motion = FEED
+        # G93: each piece takes its share of the block's time (the control interpolates the axes linearly in time,
+        # so a piece over the fraction df of the move takes df of it): inverse time F / df.
+        piece_f = p.feed[r] / np.diff(self.fractions.get(r, np.linspace(0.0, 1.0, n + 1)))
+        if inverse:
+            body = _replace_feed(body, piece_f[0], fmt, sep)
+        if inc:
+            words = [fmt(a, _out_value(pts[0], last_written, a, inc)) for a in axes_out]
+            last_written = pts[0]
+        else:
+            words = [split.words[a][o] for a in axes_out]
+        if centres is not None and not np.isnan(centres[0, 0]):  # a fitted arc: its first sub-arc
+            words += self._fit_centre_words(r, centres[0], arc_start, fmt)
+        texts = [self._rewrite_motion(body, motion, words, False, r, sep), ending]
+        word = "G0" if motion == RAPID else "G1"
+        for i_piece in range(1, n):
+            if inc:
+                piece = [word] + [fmt(a, _out_value(pts[i_piece], last_written, a, inc)) for a in axes_out]
+                last_written = pts[i_piece]
+            elif centres is not None and np.isnan(centres[i_piece, 0]):  # a sub-arc that did not hold
+                piece = ["G1"] + [split.words[a][o + i_piece] for a in axes_out]
+            elif centres is not None:
+                piece = [_motion_text("G1", p.motion[r])] + [split.words[a][o + i_piece] for a in axes_out]
+                piece += self._fit_centre_words(r, centres[i_piece], pts[i_piece - 1], fmt)
+            else:
+                piece = [word] + [split.words[a][o + i_piece] for a in axes_out]
+            if inverse:
+                piece.append(fmt("F", piece_f[i_piece], inch=False))
+            texts += [sep.join(piece), ending]
+        return "".join(texts), n - 1
 
     def _fast_lines(self, rows, starts, ends, target, inch_rows, piece_first, arc_mode, axes_out, numbers,
                     delta_prog, written_end, first_row_of_line):
@@ -1372,6 +1453,16 @@ def _rewrite_tokens(code, motion, words, arc, was_arc, sep):
         keep.insert(_after_line_number(keep), f"G{motion}")
     pos = _word_position(keep)
     return sep.join(keep[:pos] + words + keep[pos:])
+
+
+def _subdivide(owner, a, b, worst, bad):
+    """(moves, fractions) of the new points that split the chords [a, b] of the moves owner found bad. Deviations of a
+    chord shrink with the square of its length: about sqrt(worst) sub-pieces each."""
+    nsub = np.where(bad, np.maximum(2, np.ceil(np.sqrt(worst))), 1).astype(int)
+    rep_ = np.repeat(np.arange(owner.size), nsub - 1)
+    j = np.arange(rep_.size) - np.repeat(np.cumsum(nsub - 1) - (nsub - 1), nsub - 1) + 1
+    fr = a[rep_] + (b[rep_] - a[rep_]) * j / nsub[rep_]
+    return owner[rep_], fr
 
 
 def _written_before(lines, written_end, first_row_of_line):
