@@ -207,3 +207,20 @@ def test_post_refuses_bad_cl_data_with_its_line(tmp_path, capsys, body, line, re
     err = _one_line_error(capsys)
     assert err.startswith(f"{cl}:{line}:") and reason in err
     assert not posted.exists()
+
+
+def test_every_command_takes_a_fixture_machine_by_its_short_name(tmp_path, capsys):
+    """`post --machine nmv1500dcg` as `program --machine nmv1500dcg` (it said "file not found"); an unknown name is a
+    usage error that lists the fixture machines."""
+    prog, posted = tmp_path / "p.ngc", tmp_path / "out.ngc"
+    prog.write_text("G21 G90 G54\nG0 X10 Y10 Z50 B0 C0\nG1 X20 F500\nM30\n")
+    assert main(["post", str(prog), "-o", str(posted), "--machine", "nmv1500dcg", "--offsets-zero"]) == 0
+    from trueaxis.resources import machine_file
+
+    assert f"machine file {machine_file('nmv1500dcg')} sha256" in posted.read_text()  # the header names the file
+    capsys.readouterr()
+    assert main(["machine", "show", "xh714"]) == 0
+    assert "XH714" in capsys.readouterr().out
+    assert main(["post", str(prog), "-o", str(tmp_path / "x.ngc"), "--machine", "nosuch"]) == 2
+    err = _one_line_error(capsys)
+    assert "nosuch" in err and "nmv1500dcg" in err and "xh714" in err
