@@ -87,18 +87,11 @@ NON_NEGATIVE = _number(low=0.0)
 
 
 # ---------------------------------------------------------------------------------------------------- commands ----
-def _machine_path(name: str) -> Path:
-    """A machine file named by the user: a path, or a fixture machine's short name ('nmv1500dcg'), as every command
-    takes it (trueaxis.resources.machine_file; an unknown name lists the fixture machines)."""
-    from .resources import machine_file
-
-    return machine_file(name)
-
-
 def cmd_machine_check(args) -> int:
     from .machine import load_machine
+    from .resources import machine_file  # a path, or a fixture machine's short name
 
-    m = load_machine(_machine_path(args.file))
+    m = load_machine(machine_file(args.file))
     print(
         f"{args.file}: ok: {m.name} ({m.kind}, axes {' '.join(m.axis_names)},"
         f" {len(m.parameter_names())} geometric parameters)"
@@ -108,9 +101,10 @@ def cmd_machine_check(args) -> int:
 
 def cmd_machine_show(args) -> int:
     from .machine import load_machine
+    from .resources import machine_file  # a path, or a fixture machine's short name
     from .machine.model import unit_of
 
-    m = load_machine(_machine_path(args.file))
+    m = load_machine(machine_file(args.file))
     print(f"{m.name}  ({m.kind}; {m.source})")
     if m.note:
         print(f"  note: {m.note}")
@@ -147,8 +141,9 @@ def cmd_machine_show(args) -> int:
 
 def cmd_error(args) -> int:
     from .machine import ErrorTwin, load_machine
+    from .resources import machine_file  # a path, or a fixture machine's short name
 
-    m = load_machine(_machine_path(args.machine))
+    m = load_machine(machine_file(args.machine))
     pose = _parse_at(args.at, m.axis_names, m.rotary_axes)
     force = None if args.force_n is None else _parse_vector(args.force_n, "--force-n")
     # Direction of motion of every axis (+1 forward, -1 backward): it chooses among the lathe paper's response surfaces.
@@ -164,9 +159,10 @@ def cmd_error(args) -> int:
 
 def cmd_post(args) -> int:
     from .machine import load_machine
+    from .resources import machine_file  # a path, or a fixture machine's short name
     from .postproc.post import post_text, _read_input, resolve_setup
 
-    machine = load_machine(_machine_path(args.machine))
+    machine = load_machine(machine_file(args.machine))
     setup = resolve_setup(machine, setup=args.setup, var=args.var, tool_table=args.tool_table,
                           machine_units=args.machine_units, offsets_zero=args.offsets_zero)
     if args.output == "-" and args.report == "-":
