@@ -696,8 +696,9 @@ def read_flat(text: str, source: str, passthrough: bool, split, interpret):
 
     flat = None
     if _FEATURES.search(text) is not None:
+        lines = split(text)  # (only a program with macros is split here: a plain one goes to the reader as it is)
         try:
-            flat = _Flattener(split(text), None).run()
+            flat = _Flattener(lines, None).run()
         except FlattenError as exc:
             if not passthrough:
                 raise GcodeError(source, exc.line, exc.reason) from None
@@ -705,7 +706,7 @@ def read_flat(text: str, source: str, passthrough: bool, split, interpret):
     if flat is None:  # nothing to evaluate (or refused and passed through)
         check_blocks(text, source, passthrough, None)
         return interpret(text)
-    flat_text = FLAT_NOTE + _ending(split(text)[0]) + flat.text
+    flat_text = FLAT_NOTE + _ending(lines[0]) + flat.text
     line_map = [1] + flat.source_line
     check_blocks(flat_text, source, passthrough, line_map)
     try:
@@ -720,7 +721,7 @@ def read_flat(text: str, source: str, passthrough: bool, split, interpret):
     prefix = re.escape(source) + r":([0-9]+):"
     prog.warnings = [re.sub("^" + prefix, lambda m: f"{source}:{line_map[min(int(m.group(1)), len(line_map)) - 1]}:",
                             w) for w in prog.warnings]
-    first = next((n for n, ln in enumerate(split(text), 1) if _FEATURES.search(ln)), 1)  # the first line flattened
+    first = next((n for n, ln in enumerate(lines, 1) if _FEATURES.search(ln)), 1)  # the first line flattened
     prog.warnings.insert(0, f"{source}:{first}: flattened: parameters, expressions and O-word / M98 control flow "
                             f"evaluated ({len(flat.source_line)} flat blocks); the output is the flat program")
     return prog
