@@ -11,6 +11,8 @@ from hypothesis import given, settings, strategies as st
 from scipy.optimize import least_squares, minimize
 from scipy.spatial.transform import Rotation
 
+from trueaxis.inspect import form
+
 from trueaxis.inspect.form import (
     ConeFit, fit_circle_least_squares, fit_cone, fit_line, fit_plane, minimum_zone_circle, parallelism, roundness,
     section_ring, straightness,
@@ -628,3 +630,74 @@ def test_least_squares_sphere_cylinder_and_circle_in_space_agree_with_a_second_f
     second = least_squares(circle_residuals, x0, method="trf", jac="3-point", xtol=1e-15, ftol=1e-15, gtol=1e-15)
     assert _angle(axis_of(second.x[3], second.x[4]), fit.normal) < URAD
     assert np.abs(second.x[:3] - fit.center).max() < UM and abs(second.x[5] - fit.radius) < UM
+
+
+def test_zone_linear_program_matches_highs_on_random_and_degenerate_programs():
+    """The hand-written simplex of the minimum-zone steps against scipy's HiGHS: the same optimal zone (to rounding
+    of the optimum, 1e-11 relative), and its x feasible with the zone it reports; rounded data make ties and
+    degenerate vertices."""
+    from scipy.optimize import linprog
+
+    rng = np.random.default_rng(0)
+    for trial in range(150):
+        k, m = int(rng.integers(1, 6)), int(rng.integers(3, 300))
+        slopes = rng.normal(size=(m, k))
+        values = rng.normal(size=m)
+        if trial % 3 == 0:
+            slopes, values = np.round(slopes, 1), np.round(values, 1)
+        bound = float(rng.choice([1e-3, 0.1, 1.0, 10.0]))
+        x, zone = form._zone_linear_program(slopes, values, bound)
+        assert np.all(np.abs(x) <= bound * (1 + 1e-12))
+        assert abs(np.ptp(values + slopes @ x) - zone) <= 1e-11 * max(1.0, zone)
+        upper = np.column_stack([slopes, -np.ones(m), np.zeros(m)])
+        lower = np.column_stack([-slopes, np.zeros(m), np.ones(m)])
+        highs = linprog(c=np.r_[np.zeros(k), 1.0, -1.0], A_ub=np.vstack([upper, lower]), b_ub=np.r_[-values, values],
+                        bounds=[(-bound, bound)] * k + [(None, None)] * 2, method="highs",
+                        options=dict(primal_feasibility_tolerance=1e-10, dual_feasibility_tolerance=1e-10))
+        assert highs.status == 0
+        assert zone == pytest.approx(highs.fun, rel=1e-11, abs=1e-11)
+
+
+def test_inspection_imports_neither_scipy_nor_numba():
+    """The inspection's own path (deviations, fits, point files) starts without scipy.optimize (0.45 s) or numba
+    (its kernels compiled ahead of time by trueaxis.warm, when they were built)."""
+    import subprocess
+    import sys
+
+    from trueaxis.compiled import aot_available
+
+    code = ("import sys, numpy as np\n"
+            "from trueaxis.inspect import form, report, cloud\n"
+            "t = np.linspace(0, 6.28, 400)\n"
+            "p = np.column_stack([(40 - np.tile([1.0, 9.0], 200) * 0.27) * np.cos(t), "
+            "(40 - np.tile([1.0, 9.0], 200) * 0.27) * np.sin(t), np.tile([1.0, 9.0], 200)])\n"
+            "form.fit_cone(p, initial_axis=[0, 0, 1])\n"
+            "form.minimum_zone_circle(p[:, :2])\n"
+            "print('scipy.optimize' in sys.modules, 'numba' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[0] == "False"
+    if aot_available():
+        assert out[1] == "False"
+
+
+def test_cone_normal_equations_match_the_numpy_jacobian_and_finite_differences():
+    """The compiled pass (trueaxis.inspect.kernels) against the numpy Jacobian of the same model, and that Jacobian
+    against central differences of the residuals: J^T J, J^T f and f agree to rounding."""
+    rng = np.random.default_rng(3)
+    axis0 = np.array([np.sin(0.17), 0.0, np.cos(0.17)])
+    e1, e2 = form._perpendicular_basis(axis0)
+    h, th = rng.uniform(0.0, 20.0, 2000), rng.uniform(0.0, 2 * np.pi, 2000)
+    radius = 40.0 - h * np.tan(np.radians(15.0)) + rng.normal(0, 0.01, 2000)
+    points = h[:, None] * axis0 + radius[:, None] * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
+    unpack, residuals, jacobian, normal_equations = form._cone_model(points, axis0, np.zeros(3))
+    params = np.array([1e-3, -2e-3, 0.05, -0.02, 40.01, np.radians(15.2)])
+    normal, gradient, f, cost = normal_equations(params)
+    jac = jacobian(params)
+    np.testing.assert_allclose(f, residuals(params), rtol=0, atol=1e-13)
+    assert cost == pytest.approx(f @ f, rel=1e-12)
+    np.testing.assert_allclose(normal, jac.T @ jac, rtol=1e-11, atol=1e-9)
+    np.testing.assert_allclose(gradient, jac.T @ f, rtol=1e-9, atol=1e-11)
+    step = 1e-6
+    numeric = np.column_stack([(residuals(params + step * e) - residuals(params - step * e)) / (2 * step)
+                               for e in np.eye(6)])
+    np.testing.assert_allclose(jac, numeric, rtol=0, atol=1e-7)

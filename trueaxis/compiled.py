@@ -37,7 +37,7 @@ import numpy as np
 __all__ = ["numba", "Kernel", "KERNEL_MODULES", "build_aot", "aot_available", "numba_imported"]
 
 KERNEL_MODULES = ("trueaxis.nc.fast_read", "trueaxis.nc.fast_interp", "trueaxis.nc.fast_write",
-                  "trueaxis.machine.error_kernel", "trueaxis.machine.chain_kernel")
+                  "trueaxis.machine.error_kernel", "trueaxis.machine.chain_kernel", "trueaxis.inspect.kernels")
 AOT_NAME = "_aot_kernels"
 _HERE = Path(__file__).resolve().parent
 _UNSET = object()
@@ -283,7 +283,8 @@ def _called_from_python() -> set:
             "trueaxis.nc.fast_interp.straight_run", "trueaxis.nc.fast_interp.run_lengths",
             "trueaxis.nc.fast_write.scan", "trueaxis.nc.fast_write.assemble",
             "trueaxis.machine.error_kernel.evaluate_packed", "trueaxis.machine.chain_kernel.pose",
-            "trueaxis.machine.chain_kernel.pose_and_axis_jacobian"}
+            "trueaxis.machine.chain_kernel.pose_and_axis_jacobian",
+            "trueaxis.inspect.kernels.cone_normal_equations", "trueaxis.inspect.kernels.csv_rows"}
 
 
 def aot_available() -> bool:

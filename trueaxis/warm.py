@@ -1,6 +1,6 @@
 """Fill the caches the post loads at start-up, once (the Makefile's venv target runs it after installing).
 
-``python -m trueaxis.warm`` compiles the numba kernels the post uses (``fast_read``, ``fast_write``, the twin's
+``python -m trueaxis.warm`` compiles the numba kernels the post and the inspection use (``fast_read``, ``fast_write``, the twin's
 ``error_kernel`` and ``chain_kernel``, with and without force) and stores them in numba's cache (``cache=True``), and
 stores the cubic tables' unit splines of the fixture machines (``error_functions._unit_coefficients``), so that the
 first post does not spend ~20 s compiling nor import scipy. It posts small programs on every fixture machine in every
@@ -78,8 +78,28 @@ def warm(out=sys.stderr) -> None:
                     post_text(text, m, mode, source=f"warm:{path.stem}", setup=Setup(offsets_zero=True))
                 except Exception as e:  # noqa: BLE001 -- best effort: a program this machine refuses fills caches too
                     print(f"trueaxis.warm: {path.stem} {mode}: {e}", file=out)
-    print(f"trueaxis.warm: the post's compiled kernels and spline tables cached ({time.perf_counter() - t0:.1f} s)",
-          file=out)
+    _warm_inspection()
+    print(f"trueaxis.warm: the post's and the inspection's compiled kernels and spline tables cached "
+          f"({time.perf_counter() - t0:.1f} s)", file=out)
+
+
+def _warm_inspection() -> None:
+    """The inspection's kernels (:mod:`trueaxis.inspect.kernels`) with the types ``inspect`` calls them with: a cone
+    fitted and a deviation CSV written, from a small cloud on the default NAS 979 cone."""
+    import os
+    import tempfile
+
+    from .inspect.cloud import write_deviation_csv
+    from .inspect.form import fit_cone
+
+    theta, h = np.meshgrid(np.linspace(0.0, 2.0 * np.pi, 36, endpoint=False), np.linspace(1.0, 19.0, 6))
+    radius = 40.0 - h * np.tan(np.radians(15.0))
+    points = np.column_stack([(radius * np.cos(theta)).ravel(), (radius * np.sin(theta)).ravel(), h.ravel()])
+    fit_cone(points, initial_axis=[0.0, 0.0, 1.0])
+    with tempfile.TemporaryDirectory() as tmp:
+        csv = os.path.join(tmp, "warm.csv")
+        write_deviation_csv(csv, points, np.zeros(len(points)))
+        write_deviation_csv(csv, points, np.zeros(len(points)), surface=(["cone"], np.zeros(len(points), int)))
 
 
 def main() -> None:

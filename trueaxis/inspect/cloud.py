@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..fileio import atomic_write
+from .kernels import csv_rows
 
 __all__ = ["Cloud", "CloudError", "read_cloud", "write_cloud_ply", "write_deviation_ply", "write_deviation_csv",
            "check_extent"]
@@ -655,28 +656,31 @@ def write_deviation_csv(path: str | os.PathLike, points: np.ndarray, deviation_u
     if not (np.isfinite(points).all() and np.isfinite(deviation_um).all()):
         raise CloudError(f"{path}: NaN or infinite values cannot be written")
     n = len(points)
-    comma = np.full((n, 1), ord(","), dtype=np.uint8)
-    newline = np.full((n, 1), ord("\n"), dtype=np.uint8)
-    blocks = [_fixed_point_bytes(points[:, 0], 6), comma, _fixed_point_bytes(points[:, 1], 6), comma,
-              _fixed_point_bytes(points[:, 2], 6), comma, _fixed_point_bytes(deviation_um, 4)]
     header = "x_mm,y_mm,z_mm,deviation_um"
+    names_table, name_lengths, codes = np.zeros((0, 1), np.uint8), np.zeros(0, np.int64), np.zeros(0, np.int64)
     if surface is not None:
         if isinstance(surface, tuple):
             names, codes = [str(name) for name in surface[0]], np.asarray(surface[1], dtype=np.int64)
         else:
             names, codes = np.unique(np.asarray(surface, dtype=str), return_inverse=True)
+        codes = np.ascontiguousarray(codes, dtype=np.int64)
         if codes.shape != (n,) or (n and (codes.min() < 0 or codes.max() >= len(names))):
             raise ValueError(f"surface must name each of the {n} points")
         if any(("," in name or "\n" in name or not name.isascii() or not name) for name in names):
             raise ValueError("surface names must be non-empty ASCII without ',' or line breaks")
-        width = max(len(name) for name in names)
-        table = np.zeros((len(names), width), dtype=np.uint8)
+        names_table = np.zeros((len(names), max(len(name) for name in names)), dtype=np.uint8)
+        name_lengths = np.array([len(name) for name in names], dtype=np.int64)
         for k, name in enumerate(names):
-            table[k, :len(name)] = np.frombuffer(name.encode("ascii"), dtype=np.uint8)
-        blocks += [comma, table[codes.reshape(-1)]]
+            names_table[k, :len(name)] = np.frombuffer(name.encode("ascii"), dtype=np.uint8)
         header += ",surface"
-    rows = np.hstack(blocks + [newline]).ravel()
-    body = rows[rows != 0].tobytes()  # the padding bytes go, every row keeps its own width
+    decimals = np.array([6, 6, 6, 4], dtype=np.int64)
+    scaled = np.round(np.column_stack([points, deviation_um]) * 10.0 ** decimals)
+    if np.abs(scaled).max(initial=0.0) >= 2.0 ** 62:
+        raise ValueError("value too large for fixed-point output")
+    scaled = np.ascontiguousarray(scaled.astype(np.int64))
+    # a row's widest form: per number sign, 19 digits and the point, a comma; the name and the newline
+    out = np.empty(n * (4 * 22 + 1 + names_table.shape[1]) + 1, dtype=np.uint8)
+    body = out[:csv_rows(scaled, decimals, codes, names_table, name_lengths, out)].tobytes()
     atomic_write(str(path), (header + "\n").encode("ascii") + body)
 
 

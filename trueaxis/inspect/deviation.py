@@ -564,6 +564,8 @@ class RigidMotion:
     @property
     def rotation_urad(self) -> np.ndarray:
         """(3,) rotation vector (axis times angle) of the motion, urad, part frame."""
+        if np.array_equal(self.rotation, np.eye(3)):
+            return np.zeros(3)  # no rotation (no alignment): without scipy.spatial's import (0.3 s)
         from scipy.spatial.transform import Rotation
 
         return Rotation.from_matrix(self.rotation).as_rotvec() * 1e6

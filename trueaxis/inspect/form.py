@@ -15,8 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares, linprog
-from scipy.spatial import ConvexHull
+
+from .kernels import cone_normal_equations
 
 __all__ = [
     "CircleFit", "ZoneCircle", "ConeFit", "PlaneFit", "LineFit",
@@ -63,6 +63,64 @@ def _perpendicular_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(axis, e1)
 
 
+# ---------------------------------------------------------------------------------------- nonlinear least squares
+
+def _normal_equations_of(residuals, jacobian):
+    """``normal_equations(params) -> (J^T J, J^T f, f, f . f)`` from a residual function and its Jacobian."""
+
+    def normal_equations(params):
+        f, jac = residuals(params), jacobian(params)
+        return jac.T @ jac, jac.T @ f, f, float(f @ f)
+
+    return normal_equations
+
+
+def _levenberg_marquardt(params, normal_equations, max_evaluations: int = 2000):
+    """Minimise sum f^2 by Levenberg-Marquardt (Marquardt 1963; More, "The Levenberg-Marquardt algorithm:
+    implementation and theory", 1978): each step solves (J^T J + lambda D) d = -J^T f, D the diagonal of J^T J
+    (scale invariance), lambda lowered tenfold after a step that lowers the sum and raised tenfold after one that does
+    not. Stops when a step changes the parameters by less than 1e-15 of their size (after scaling by D), when an
+    accepted step lowers the sum by less than 1e-15 of it and promised no more, or after ``max_evaluations``.
+
+    Why not scipy's ``least_squares``: importing scipy.optimize costs ``inspect`` 0.45 s, more than every fit of a
+    million-point cone together, and the fits here are small (3 to 6 parameters, their Jacobians exact and
+    well scaled), where the normal equations of a compiled pass (:func:`_cone_model`) are what makes them fast.
+
+    params : (k,) float start. normal_equations(params) -> (J^T J (k, k), J^T f (k,), f (n,), sum f^2).
+    Returns (params, J^T J, f, sum f^2) at the solution.
+    """
+    params = np.asarray(params, dtype=np.float64)
+    normal, gradient, f, cost = normal_equations(params)
+    damping = 1e-3
+    evaluations = 1
+    while evaluations < max_evaluations and cost > 0.0:
+        scale = np.sqrt(np.diag(normal))
+        scale[scale == 0] = 1.0
+        scaled = normal / np.outer(scale, scale)
+        try:
+            step = -np.linalg.solve(scaled + damping * np.eye(len(params)), gradient / scale) / scale
+        except np.linalg.LinAlgError:
+            damping *= 10.0
+            continue
+        if np.linalg.norm(step * scale) <= 1e-15 * max(np.linalg.norm(params * scale), 1e-300):
+            break  # the step is below the parameters' rounding
+        promised = -float(2.0 * gradient @ step + step @ normal @ step)
+        trial = params + step
+        normal_new, gradient_new, f_new, cost_new = normal_equations(trial)
+        evaluations += 1
+        if cost_new < cost:
+            small = cost - cost_new <= 1e-15 * cost and promised <= 1e-15 * cost
+            params, normal, gradient, f, cost = trial, normal_new, gradient_new, f_new, cost_new
+            damping = max(damping / 10.0, 1e-15)
+            if small:
+                break
+        else:
+            damping *= 10.0
+            if damping > 1e16:
+                break
+    return params, normal, f, cost
+
+
 # ----------------------------------------------------------------------------------------------------------- circles
 
 @dataclass(frozen=True)
@@ -102,7 +160,7 @@ def fit_circle_least_squares(points2d) -> CircleFit:
 
     Method: the algebraic fit of Kasa (1976, IEEE Trans. Instrum. Meas. IM-25, "A circle fitting procedure and its
     error analysis"), x^2 + y^2 = 2 a x + 2 b y + c solved as a linear least-squares problem, gives the start; a
-    Levenberg-Marquardt refinement (scipy ``least_squares``) of the geometric residuals |p - c| - R with their exact
+    Levenberg-Marquardt refinement (:func:`_levenberg_marquardt`) of the geometric residuals |p - c| - R with their exact
     Jacobian gives the ISO 12181-2 least-squares reference circle (Gauss-Newton on the geometric distance, as in
     ISO/TS 12181-2 and Forbes, NPL DITC 140/89).
 
@@ -138,10 +196,9 @@ def fit_circle_least_squares(points2d) -> CircleFit:
         distance = np.hypot(*delta.T)[:, None]
         return np.column_stack([-delta / distance, -np.ones(len(delta))])
 
-    fit = least_squares(residuals, np.r_[center0, radius0], jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15,
-                        gtol=1e-15)
-    center = origin + fit.x[:2] * scale
-    radius = float(fit.x[2] * scale)
+    solution = _levenberg_marquardt(np.r_[center0, radius0], _normal_equations_of(residuals, jacobian))[0]
+    center = origin + solution[:2] * scale
+    radius = float(solution[2] * scale)
     return CircleFit(center=center, radius=radius, residuals=np.hypot(*(points2d - center).T) - radius)
 
 
@@ -265,7 +322,9 @@ def _cone_model(points, axis0, base0):
     """The cone's residuals and Jacobian in the parameters (u, v, s, t, rho, alpha) about a start axis: axis =
     normalise(axis0 + u e1 + v e2) has no singularity near axis0; the axis point base0 + s e1 + t e2 stays in the plane
     through base0 normal to axis0; rho is the radius there. Neither the apex nor 1/tan(alpha) appears, so a nearly
-    cylindrical cone is as well posed as a steep one. Returns (unpack, residuals, jacobian, e1, e2)."""
+    cylindrical cone is as well posed as a steep one. Returns (unpack, residuals, jacobian, normal_equations): the
+    fits use the compiled normal equations; the numpy residuals and Jacobian are their reference formulation
+    (``tests/test_form.py`` compares the two and the Jacobian with finite differences)."""
     e1, e2 = _perpendicular_basis(axis0)
 
     def unpack(params):
@@ -276,7 +335,7 @@ def _cone_model(points, axis0, base0):
         axis, base, radius, alpha, _ = unpack(params)
         return _cone_distance(points, base, axis, radius, alpha)[0]
 
-    def jacobian(params, with_residuals=False):
+    def jacobian(params):
         axis, base, radius, alpha, norm = unpack(params)
         w = points - base
         h = w @ axis
@@ -297,11 +356,22 @@ def _cone_model(points, axis0, base0):
         jac[:, 3] = -cos * q_dir[:, 3] + sin * (axis @ e2)
         jac[:, 4] = -cos
         jac[:, 5] = -(r - radius) * sin - h * cos
-        if with_residuals:
-            return jac, (r - radius) * cos - h * sin
         return jac
 
-    return unpack, residuals, jacobian
+    contiguous = np.ascontiguousarray(points, dtype=np.float64)
+
+    def normal_equations(params):
+        """(J^T J (6, 6), J^T f (6,), f (n,), sum f^2) at params, in one compiled pass (the same formulas as
+        :func:`jacobian`, per point; see :mod:`trueaxis.inspect.kernels`)."""
+        axis, base, radius, alpha, norm = unpack(params)
+        project = (np.eye(3) - np.outer(axis, axis)) / norm
+        f, normal, gradient = np.empty(len(contiguous)), np.empty((6, 6)), np.empty(6)
+        cost = cone_normal_equations(contiguous, base, axis, e1, e2, np.ascontiguousarray(project @ e1),
+                                     np.ascontiguousarray(project @ e2), float(radius), float(alpha), f, normal,
+                                     gradient)
+        return normal, gradient, f, cost
+
+    return unpack, residuals, jacobian, normal_equations
 
 
 def _algebraic_cone_start(points, axis0, base0):
@@ -319,14 +389,12 @@ def _algebraic_cone_start(points, axis0, base0):
 
 
 def _fit_cone_from(points, axis0, base0, start=None):
-    """One Levenberg-Marquardt fit from a start axis (and, optionally, start parameters); returns (scipy result,
+    """One Levenberg-Marquardt fit from a start axis (and, optionally, start parameters); returns (parameters,
     unpack function)."""
     if start is None:
         start = _algebraic_cone_start(points, axis0, base0)
-    unpack, residuals, jacobian = _cone_model(points, axis0, base0)
-    result = least_squares(residuals, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                           max_nfev=2000)
-    return result, unpack
+    unpack, _, _, normal_equations = _cone_model(points, axis0, base0)
+    return _levenberg_marquardt(start, normal_equations)[0], unpack
 
 
 def _quadric_cone_axis(points) -> np.ndarray:
@@ -350,22 +418,19 @@ def _quadric_cone_axis(points) -> np.ndarray:
     return vectors[:, 0] if values[2] - values[1] < values[1] - values[0] else vectors[:, 2]
 
 
-def _gauss_newton_polish(params, jacobian, residuals, max_iterations: int = 20):
+def _gauss_newton_polish(params, normal_equations, max_iterations: int = 20):
     """Gauss-Newton from a start near the least-squares minimum; each step solves the 6 x 6 normal equations
     J^T J d = -J^T f (scaled by the diagonal). The decrease a step promises, Delta = d^T J^T J d, measures it in
     standard errors: k^2 = Delta (n - 6) / sum f^2. Near a minimum with non-zero residuals Gauss-Newton converges
     linearly, each step smaller than the one before by a rate r (measured from the two); when r k < 1e-4 (what is
-    left after this step, in standard errors) the step is the last one, checked with the residuals alone, the
-    Jacobian kept from before it (it changes by that step: negligibly for the standard errors). Stops too when a step promises less than the
-    rounding of the sum of squares, or fails to lower it. ``jacobian(params, with_residuals=True)`` gives both in
-    one pass over the points. Returns (params, Jacobian, residuals at params)."""
-    jac, f = jacobian(params, with_residuals=True)
-    cost = float(f @ f)
+    left after this step, in standard errors) the step is the last one, its normal equations kept from before it
+    (they change by that step: negligibly for the standard errors). Stops too when a step promises less than the
+    rounding of the sum of squares, or fails to lower it. ``normal_equations(params)`` gives (J^T J, J^T f, f,
+    sum f^2) in one pass over the points. Returns (params, J^T J, residuals at params)."""
+    normal, gradient, f, cost = normal_equations(params)
     n = max(len(f) - len(params), 1)
     previous = None
     for _ in range(max_iterations):
-        normal = jac.T @ jac
-        gradient = jac.T @ f
         scale = np.sqrt(np.diag(normal))
         scale[scale == 0] = 1.0
         step = -np.linalg.solve(normal / np.outer(scale, scale), gradient / scale) / scale
@@ -378,17 +443,15 @@ def _gauss_newton_polish(params, jacobian, residuals, max_iterations: int = 20):
         size = np.sqrt(promised * n / cost)
         rate = 1.0 if previous is None else min(1.0, np.sqrt(promised / previous))
         previous = promised
-        if size * rate <= 1e-4:
-            f_new = residuals(trial)
-            if float(f_new @ f_new) < cost:
-                params, f = trial, f_new
-            break
-        jac_new, f_new = jacobian(trial, with_residuals=True)
-        cost_new = float(f_new @ f_new)
+        last = size * rate <= 1e-4
+        normal_new, gradient_new, f_new, cost_new = normal_equations(trial)
         if not cost_new < cost:
             break  # at the minimum to rounding: the step is noise
-        params, jac, f, cost = trial, jac_new, f_new, cost_new
-    return params, jac, f
+        if last:
+            params, f = trial, f_new
+            break
+        params, normal, gradient, f, cost = trial, normal_new, gradient_new, f_new, cost_new
+    return params, normal, f
 
 
 CONE_SAMPLE = 20_000  # points of the coarse fit; the polish uses all of them
@@ -441,14 +504,14 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     if initial_apex is not None:
         apex = np.asarray(initial_apex, dtype=np.float64).reshape(3)
         base0 = apex + ((centroid - apex) @ axis0) * axis0  # the centroid's foot on the start axis
-    result, unpack = _fit_cone_from(sample, axis0, base0)
-    axis, base, radius, alpha, _ = unpack(result.x)
+    solution, unpack = _fit_cone_from(sample, axis0, base0)
+    axis, base, radius, alpha, _ = unpack(solution)
     # re-centre on the coarse solution: the axis point to the centroid's foot, the radius along the generator
     shift = (centroid - base) @ axis
     base, radius = base + shift * axis, radius + shift * np.tan(alpha)
-    unpack, residuals_of, jacobian_of = _cone_model(points, axis, base)
-    params, jac, residuals = _gauss_newton_polish(np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]), jacobian_of,
-                                                  residuals_of)
+    unpack, _, _, normal_equations = _cone_model(points, axis, base)
+    params, normal, residuals = _gauss_newton_polish(np.array([0.0, 0.0, 0.0, 0.0, radius, alpha]),
+                                                     normal_equations)
     axis, base, radius, alpha, norm = unpack(params)
     if alpha < 0:  # radius grows along -axis: turn the axis round so that the half angle is positive
         axis, alpha = -axis, -alpha
@@ -469,7 +532,7 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     dof = max(n - 6, 1)
     sigma2 = float(residuals @ residuals) / dof
     try:
-        covariance = sigma2 * np.linalg.inv(jac.T @ jac)
+        covariance = sigma2 * np.linalg.inv(normal)
         std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     except np.linalg.LinAlgError:
         std = np.full(6, np.nan)
@@ -647,6 +710,8 @@ def _minimum_width(points2d: np.ndarray) -> float:
     scale = np.abs(centred).max()
     if scale == 0.0:
         return 0.0
+    from scipy.spatial import ConvexHull  # here: scipy.spatial's import is 0.3 s that most inspections do not need
+
     try:
         hull = ConvexHull(centred / scale)
     except Exception:  # Qhull refuses a degenerate (collinear) set: its width is 0 to machine precision
@@ -683,6 +748,72 @@ def parallelism(plane_a_points, plane_b) -> float:
 
 # ------------------------------------------------------------------------------------------ Chebyshev (minimum zone)
 
+def _zone_linear_program(slopes, values, bound: float, max_pivots: int = 10_000):
+    """The linear program of one minimum-zone step: minimise a - b over (x, a, b) subject to
+    b <= values_i + slopes_i . x <= a for every point i and |x_j| <= bound.
+
+    Method: the primal simplex method on its dual, which has only k + 2 rows (k the parameters): minimise h . lam
+    subject to G^T lam = -c, lam >= 0, G and h the constraints' rows and right-hand sides, c = (0, 1, -1). A basis
+    is k + 2 of the 2 m + 2 k dual columns; a feasible one is known at once (the point of largest and the point of
+    smallest value, and one side of each box bound), so no first phase is needed. Each pivot prices every column
+    (vectorised) and solves two (k + 2)-square systems; at the optimum the basis' multipliers are the primal (x, a, b)
+    (G pi <= h is the dual's optimality). The largest-decrease rule picks the entering column, Bland's rule after a
+    run of degenerate pivots (no cycling).
+
+    Why not scipy's ``linprog``: importing scipy.optimize costs ``inspect`` 0.45 s, where these programs (4 to 7
+    variables, a few thousand constraints) take milliseconds; ``tests/test_form.py`` checks this against HiGHS.
+
+    slopes : (m, k) float, values : (m,) float, bound : float > 0. Returns (x (k,), a - b).
+    """
+    m, k = slopes.shape
+    n_rows = k + 2
+    # dual columns: 0..m-1 the upper rows (slopes_i, -1, 0), m..2m-1 the lower rows (-slopes_i, 0, 1),
+    # then +e_j and -e_j (the box); their costs h
+    cost = np.r_[-values, values, np.full(2 * k, bound)]
+    rhs = np.r_[np.zeros(k), -1.0, 1.0]
+
+    def column(index):
+        col = np.zeros(n_rows)
+        if index < m:
+            col[:k], col[k] = slopes[index], -1.0
+        elif index < 2 * m:
+            col[:k], col[k + 1] = -slopes[index - m], 1.0
+        else:
+            j = index - 2 * m
+            col[j % k] = 1.0 if j < k else -1.0
+        return col
+
+    top, low = int(np.argmax(values)), int(np.argmin(values))
+    difference = slopes[top] - slopes[low]
+    basis = [top, m + low] + [2 * m + k + j if difference[j] > 0 else 2 * m + j for j in range(k)]
+    tolerance = 1e-12 * max(1.0, float(np.abs(cost).max()))
+    degenerate = 0
+    for _ in range(max_pivots):
+        matrix = np.column_stack([column(i) for i in basis])
+        weights = np.linalg.solve(matrix, rhs)  # the basic dual variables, >= 0 (to rounding)
+        pi = np.linalg.solve(matrix.T, cost[basis])  # the multipliers: the primal (x, a, b)
+        along = slopes @ pi[:k]
+        reduced = np.r_[-values - along + pi[k], values + along - pi[k + 1], bound - pi[:k], bound + pi[:k]]
+        reduced[basis] = 0.0
+        if degenerate > 50:
+            candidates = np.flatnonzero(reduced < -tolerance)
+            entering = int(candidates[0]) if len(candidates) else -1
+        else:
+            entering = int(np.argmin(reduced)) if reduced.min() < -tolerance else -1
+        if entering < 0:
+            return pi[:k], float(pi[k] - pi[k + 1])
+        direction = np.linalg.solve(matrix, column(entering))
+        positive = direction > 1e-12
+        if not positive.any():  # the dual unbounded: the primal infeasible, which it never is (x = 0 is feasible)
+            raise RuntimeError("minimum-zone linear program: no bounded step (rounding)")
+        ratios = np.where(positive, np.maximum(weights, 0.0) / np.where(positive, direction, 1.0), np.inf)
+        leaving = int(np.argmin(ratios)) if degenerate <= 50 else int(
+            min(np.flatnonzero(ratios == ratios.min()), key=lambda r: basis[r]))
+        degenerate = degenerate + 1 if ratios[leaving] <= 1e-15 else 0
+        basis[leaving] = entering
+    raise RuntimeError(f"minimum-zone linear program: no optimum after {max_pivots} pivots")
+
+
 def _chebyshev_zone(distance, jacobian, theta0, step_scale, lipschitz: float, n_points: int,
                     candidates: int = 1500, max_iterations: int = 300):
     """Minimise the zone width max_i f_i(theta) - min_i f_i(theta) over the parameters theta (the feature's
@@ -710,7 +841,6 @@ def _chebyshev_zone(distance, jacobian, theta0, step_scale, lipschitz: float, n_
     size = max(float(np.abs(f).max()), 1e-300)
     k = len(theta)
     trust = 1.0
-    options = dict(primal_feasibility_tolerance=1e-10, dual_feasibility_tolerance=1e-10)
     for _ in range(max_iterations):
         if width <= 1e-14 * size:
             break  # a perfect form to machine precision
@@ -731,14 +861,8 @@ def _chebyshev_zone(distance, jacobian, theta0, step_scale, lipschitz: float, n_
         scale = max(width, 1e-12 * size)
         dev = (fi - fi.mean()) / scale
         m = len(index)
-        upper = np.column_stack([js / scale, -np.ones(m), np.zeros(m)])
-        lower = np.column_stack([-js / scale, np.zeros(m), np.ones(m)])
-        result = linprog(c=np.r_[np.zeros(k), 1.0, -1.0], A_ub=np.vstack([upper, lower]), b_ub=np.r_[-dev, dev],
-                         bounds=[(-bound, bound)] * k + [(None, None)] * 2, method="highs", options=options)
-        if result.status != 0:
-            raise RuntimeError(f"minimum-zone linear program failed: {result.message}")
-        x = result.x[:k]
-        predicted = width - result.fun * scale
+        x, zone = _zone_linear_program(js / scale, dev, bound)
+        predicted = width - zone * scale
         if predicted <= 1e-12 * max(width, 1e-300) or np.abs(x).max() == 0.0:
             if bound < trust and np.abs(x).max() > 0.99 * bound:
                 pass  # the cap, not the optimum, stopped the step: take it and look again
@@ -819,9 +943,9 @@ def fit_sphere(points) -> SphereFit:
         delta = local - params[:3]
         return np.column_stack([-delta / np.linalg.norm(delta, axis=1)[:, None], -np.ones(len(delta))])
 
-    fit = least_squares(residuals, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
-    center = origin + fit.x[:3] * scale
-    radius = float(fit.x[3] * scale)
+    solution = _levenberg_marquardt(start, _normal_equations_of(residuals, jacobian))[0]
+    center = origin + solution[:3] * scale
+    radius = float(solution[3] * scale)
     res = np.linalg.norm(points - center, axis=1) - radius
     return SphereFit(center=center, radius=radius, residuals=res, rms=float(np.sqrt(np.mean(res ** 2))))
 
@@ -994,16 +1118,16 @@ def fit_cylinder(points, initial_axis=None) -> CylinderFit:
         def jacobian(params, radial=radial):
             return np.column_stack([radial(points, params[:4])[1], -np.ones(len(points))])
 
-        result = least_squares(residuals, np.r_[np.zeros(4), r0.mean()], jac=jacobian, method="lm", xtol=1e-15,
-                               ftol=1e-15, gtol=1e-15, max_nfev=2000)
-        if best is None or result.cost < best[0].cost:
-            best = (result, unpack)
-    result, unpack = best
-    axis, base, _ = unpack(result.x[:4])
+        solution, _, _, cost = _levenberg_marquardt(np.r_[np.zeros(4), r0.mean()],
+                                                    _normal_equations_of(residuals, jacobian))
+        if best is None or cost < best[1]:
+            best = (solution, cost, unpack)
+    solution, _, unpack = best
+    axis, base, _ = unpack(solution[:4])
     axis, base = _finish_axis(axis, base, points)
     w = points - base
-    res = np.linalg.norm(w - np.outer(w @ axis, axis), axis=1) - result.x[4]
-    return CylinderFit(axis=axis, axis_point=base, radius=float(result.x[4]), residuals=res,
+    res = np.linalg.norm(w - np.outer(w @ axis, axis), axis=1) - solution[4]
+    return CylinderFit(axis=axis, axis_point=base, radius=float(solution[4]), residuals=res,
                        rms=float(np.sqrt(np.mean(res ** 2))))
 
 
@@ -1097,9 +1221,8 @@ def fit_circle_3d(points) -> Circle3DFit:
         jr = np.column_stack([(-z[:, None] * q_hat) @ dn, -q_hat @ dc, -np.ones(len(w))])
         return np.vstack([jz, jr])
 
-    fit = least_squares(residuals, start, jac=jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15,
-                        max_nfev=2000)
-    n, c, radius, _, _, z, _, rho = parts(fit.x)
+    solution = _levenberg_marquardt(start, _normal_equations_of(residuals, jacobian))[0]
+    n, c, radius, _, _, z, _, rho = parts(solution)
     sign = 1.0 if n[np.argmax(np.abs(n))] >= 0 else -1.0
     return Circle3DFit(center=c, normal=sign * n, radius=float(radius), radial_residuals=rho - radius,
                        normal_residuals=sign * z, rms=float(np.sqrt(np.mean(z ** 2 + (rho - radius) ** 2))))
