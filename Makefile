@@ -38,6 +38,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e ".[test,bench]"
 	$(PY) -m trueaxis.warm
+	$(PY) -m compileall -q trueaxis  # the bytecode once: where PYTHONDONTWRITEBYTECODE is set, every start compiled it
 	@touch $(STAMP)
 
 debs-runtime:

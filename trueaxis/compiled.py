@@ -284,7 +284,8 @@ def _called_from_python() -> set:
             "trueaxis.nc.fast_write.scan", "trueaxis.nc.fast_write.assemble",
             "trueaxis.machine.error_kernel.evaluate_packed", "trueaxis.machine.chain_kernel.pose",
             "trueaxis.machine.chain_kernel.pose_and_axis_jacobian",
-            "trueaxis.inspect.kernels.cone_normal_equations", "trueaxis.inspect.kernels.csv_rows"}
+            "trueaxis.inspect.kernels.cone_normal_equations", "trueaxis.inspect.kernels.csv_rows",
+            "trueaxis.inspect.kernels.cone_patch_distance"}
 
 
 def aot_available() -> bool:

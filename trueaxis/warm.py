@@ -84,18 +84,22 @@ def warm(out=sys.stderr) -> None:
 
 
 def _warm_inspection() -> None:
-    """The inspection's kernels (:mod:`trueaxis.inspect.kernels`) with the types ``inspect`` calls them with: a cone
-    fitted and a deviation CSV written, from a small cloud on the default NAS 979 cone."""
+    """The inspection's kernels (:mod:`trueaxis.inspect.kernels`) with the types ``inspect`` calls them with: the
+    deviations from the NAS 979 part's surfaces, a cone fitted and a deviation CSV written, from a small cloud on the
+    default cone."""
     import os
     import tempfile
 
     from .inspect.cloud import write_deviation_csv
+    from .inspect.deviation import analytic_deviation, analytic_surfaces
     from .inspect.form import fit_cone
+    from .workpiece.parts import nas979_description
 
     theta, h = np.meshgrid(np.linspace(0.0, 2.0 * np.pi, 36, endpoint=False), np.linspace(1.0, 19.0, 6))
     radius = 40.0 - h * np.tan(np.radians(15.0))
     points = np.column_stack([(radius * np.cos(theta)).ravel(), (radius * np.sin(theta)).ravel(), h.ravel()])
     fit_cone(points, initial_axis=[0.0, 0.0, 1.0])
+    analytic_deviation(points, analytic_surfaces(nas979_description()))
     with tempfile.TemporaryDirectory() as tmp:
         csv = os.path.join(tmp, "warm.csv")
         write_deviation_csv(csv, points, np.zeros(len(points)))

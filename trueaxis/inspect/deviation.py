@@ -50,6 +50,7 @@ import numpy as np
 from ..workpiece.mesh import (MAX_ASPECT, CadMesh, _axis_basis, _unit, cone_frustum_mesh,  # noqa: F401
                                nas979_mesh)
 from ..workpiece.part import part_of
+from .kernels import cone_patch_distance
 
 __all__ = [
     "InspectionError", "analytic_surfaces", "patch_distance", "SurfaceDeviation", "analytic_deviation",
@@ -120,25 +121,17 @@ def _cone_patch(points, s):
     alpha = math.radians(float(s["half_angle_deg"]))
     radius = float(s["base_radius"])
     h0, h1 = (float(v) for v in s.get("height_range", [0.0, radius / math.tan(alpha)]))
-    v = points - c
-    h = v @ a
-    radial = v - h[:, None] * a
-    rho = np.linalg.norm(radial, axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        e = radial / rho[:, None]
-    e[rho < 1e-300] = _axis_basis(a)[0]  # on the axis: any radial direction
     ca, sa = math.cos(alpha), math.sin(alpha)
     # generator direction in (h, rho): g = (cos a, -sin a) (the radius shrinks with h); outward normal n = (sin a, cos a)
     r0 = radius - h0 * math.tan(alpha)
-    along = (h - h0) * ca - (rho - r0) * sa
-    length = (h1 - h0) / ca
-    along_c = np.clip(along, 0.0, length)
-    foot_h = h0 + along_c * ca
-    foot_rho = r0 - along_c * sa
-    foot = c + foot_h[:, None] * a + foot_rho[:, None] * e
-    offset = (h - h0) * sa + (rho - r0) * ca  # signed distance to the generator line, + outside the material
-    outward = ca * e + sa * a
-    return _finish(points, foot, offset, outward)
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    n = len(points)
+    signed, unsigned, normal = np.empty(n), np.empty(n), np.empty((n, 3))
+    # one compiled pass per point (trueaxis.inspect.kernels): the numpy form of the same formulas made some twenty
+    # temporary arrays and took 0.2 s of a million-point inspection
+    cone_patch_distance(points, c, a, np.ascontiguousarray(_axis_basis(a)[0]), h0, r0, ca, sa, (h1 - h0) / ca,
+                        signed, unsigned, normal)
+    return signed, unsigned, normal
 
 
 def _clamp_angle(phi, lo, hi):
@@ -272,7 +265,9 @@ def _lower_bound(points, surface: dict):
     distance to the patch's unbounded plane (|offset along the normal|) or cylinder (|r - radius|); None for a cone
     (measured in full)."""
     if surface["type"] == "plane":
-        return np.abs((points - np.asarray(surface["point"], float)) @ _unit(surface["normal"]))
+        # p . n - p0 . n: one product over the points, no (n, 3) temporary (a bound: rounding is harmless here)
+        normal = _unit(surface["normal"])
+        return np.abs(points @ normal - float(np.asarray(surface["point"], float) @ normal))
     if surface["type"] == "cylinder":
         xy = points[:, :2] - np.asarray(surface["center"], float)[:2]
         return np.abs(np.hypot(xy[:, 0], xy[:, 1]) - float(surface["radius"]))

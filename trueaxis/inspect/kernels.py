@@ -128,3 +128,41 @@ def csv_rows(scaled, decimals, codes, names, name_lengths, out):
         out[at] = 10  # '\n'
         at += 1
     return at
+
+
+@numba.njit(cache=True)
+def cone_patch_distance(points, centre, axis, fallback, h0, r0, ca, sa, length, signed, unsigned, normal):
+    """Exact distance of each point to a cone frustum patch (``deviation._cone_patch``'s formulas, per point).
+
+    points : (n, 3) float64, mm. centre, axis : (3,) the base centre and unit axis. fallback : (3,) a radial unit
+    vector for points on the axis. h0 : mm, the patch's lower height; r0 : mm, its radius there; ca, sa : cos and sin
+    of the half angle; length : mm, the generator's length. Writes the signed distance (+ outside the material) into
+    ``signed`` (n,), its magnitude into ``unsigned`` (n,) and the unit gradient into ``normal`` (n, 3).
+    """
+    for i in range(points.shape[0]):
+        vx, vy, vz = points[i, 0] - centre[0], points[i, 1] - centre[1], points[i, 2] - centre[2]
+        h = vx * axis[0] + vy * axis[1] + vz * axis[2]
+        rx, ry, rz = vx - h * axis[0], vy - h * axis[1], vz - h * axis[2]
+        rho = np.sqrt(rx * rx + ry * ry + rz * rz)
+        if rho < 1e-300:
+            ex, ey, ez = fallback[0], fallback[1], fallback[2]
+        else:
+            ex, ey, ez = rx / rho, ry / rho, rz / rho
+        # in the meridian half plane: the perpendicular foot on the generator, clamped to the patch
+        along = (h - h0) * ca - (rho - r0) * sa
+        along = min(max(along, 0.0), length)
+        foot_h = h0 + along * ca
+        foot_rho = r0 - along * sa
+        dx = points[i, 0] - (centre[0] + foot_h * axis[0] + foot_rho * ex)
+        dy = points[i, 1] - (centre[1] + foot_h * axis[1] + foot_rho * ey)
+        dz = points[i, 2] - (centre[2] + foot_h * axis[2] + foot_rho * ez)
+        distance = np.sqrt(dx * dx + dy * dy + dz * dz)
+        sign = 1.0 if (h - h0) * sa + (rho - r0) * ca >= 0 else -1.0
+        signed[i] = sign * distance
+        unsigned[i] = distance
+        if distance < 1e-12:  # on the surface: its outward normal
+            normal[i, 0], normal[i, 1], normal[i, 2] = ca * ex + sa * axis[0], ca * ey + sa * axis[1], \
+                ca * ez + sa * axis[2]
+        else:
+            normal[i, 0], normal[i, 1], normal[i, 2] = sign * dx / distance, sign * dy / distance, \
+                sign * dz / distance

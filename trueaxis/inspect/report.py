@@ -194,7 +194,7 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
                          note=f"fewer than {MIN_RING_POINTS} cone points within {slab_mm} mm of this height")
         else:
             ls = form.fit_circle_least_squares(planar)
-            mz = form.minimum_zone_circle(planar)
+            mz = form.minimum_zone_circle(planar, start=ls.center)  # the LS centre: a start within a zone width
             entry.update(least_squares=float(np.ptp(ls.residuals) * 1e3), minimum_zone=mz.width * 1e3,
                          diameter_ls_mm=2 * ls.radius,
                          nominal_diameter_mm=feature.get("nominal_diameter"))
