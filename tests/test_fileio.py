@@ -46,3 +46,15 @@ def test_a_noted_signal_stops_every_later_publish_and_leaves_the_old_files(tmp_p
         fileio.publish_folder(temp, folder)
     assert out.read_text() == "first" and not folder.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.ngc", "tmpdir"]  # no temporary file left
+
+
+def test_atomic_write_of_pieces_writes_them_in_order_without_joining(tmp_path):
+    """A list of pieces (bytes and C-contiguous numpy arrays, any dtype) is written as their bytes one after the
+    other: the same file as their concatenation."""
+    import numpy as np
+
+    table = np.arange(12, dtype="<f8").reshape(4, 3)
+    digits = np.frombuffer(b"0123456789", dtype=np.uint8)[2:7]
+    target = tmp_path / "out.bin"
+    atomic_write(target, [b"head\n", table, digits])
+    assert target.read_bytes() == b"head\n" + table.tobytes() + b"23456"

@@ -352,8 +352,10 @@ def cmd_inspect(args) -> int:
     # the pictures are drawn by a second process started now (matplotlib imports while the cloud is read), and the
     # inspection's BLAS runs on one thread (trueaxis.inspect.workers: same numbers, faster on a busy machine)
     keep_freed_memory()  # fewer page faults for the large temporary arrays (same values)
+    # imported before the worker forks: the child then has the report module (and its kernels) without importing it
+    from .inspect.report import inspect_cloud, write_report
+
     with FigureWorker() as figures:
-        from .inspect.report import inspect_cloud, write_report  # scipy's import while the worker imports matplotlib
 
         with single_blas_thread():
             result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align,

@@ -149,13 +149,20 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
-def atomic_write(path: str | os.PathLike, data: bytes | str, encoding: str = "utf-8") -> Path:
+def atomic_write(path: str | os.PathLike, data, encoding: str = "utf-8") -> Path:
     """Write ``data`` to ``path`` atomically (flushed to disk first); text is encoded without newline translation.
-    Returns the path."""
-    payload = data.encode(encoding) if isinstance(data, str) else bytes(data)
+    data : str, bytes, or a list of bytes-like pieces (bytes, C-contiguous numpy arrays) written one after the other,
+    so that a large array is not first copied into one bytes object. Returns the path."""
+    if isinstance(data, str):
+        pieces = [data.encode(encoding)]
+    elif isinstance(data, list):
+        pieces = [memoryview(piece).cast("B") for piece in data]
+    else:
+        pieces = [bytes(data)]
     with atomic_path(path) as temp:
         with open(temp, "wb") as f:
-            f.write(payload)
+            for piece in pieces:
+                f.write(piece)
             f.flush()
             os.fsync(f.fileno())
     return Path(path)

@@ -604,8 +604,8 @@ def write_deviation_ply(path: str | os.PathLike, points: np.ndarray, deviation_u
         + [deviation_um[:, None]]
     header = ["ply", "format binary_little_endian 1.0"] + [f"comment {c}" for c in comments]
     header += [f"element vertex {len(points)}"] + [f"property double {n}" for n in names] + ["end_header"]
-    body = np.ascontiguousarray(np.hstack(columns), dtype="<f8").tobytes()
-    atomic_write(name, ("\n".join(header) + "\n").encode("ascii") + body)
+    body = np.ascontiguousarray(np.hstack(columns), dtype="<f8")
+    atomic_write(name, [("\n".join(header) + "\n").encode("ascii"), body])  # the array written as it is, no copy
 
 
 def _fixed_point_bytes(values: np.ndarray, decimals: int) -> np.ndarray:
@@ -680,8 +680,8 @@ def write_deviation_csv(path: str | os.PathLike, points: np.ndarray, deviation_u
     scaled = np.ascontiguousarray(scaled.astype(np.int64))
     # a row's widest form: per number sign, 19 digits and the point, a comma; the name and the newline
     out = np.empty(n * (4 * 22 + 1 + names_table.shape[1]) + 1, dtype=np.uint8)
-    body = out[:csv_rows(scaled, decimals, codes, names_table, name_lengths, out)].tobytes()
-    atomic_write(str(path), (header + "\n").encode("ascii") + body)
+    body = out[:csv_rows(scaled, decimals, codes, names_table, name_lengths, out)]
+    atomic_write(str(path), [(header + "\n").encode("ascii"), body])
 
 
 # ------------------------------------------------------------------------------------------------------------ extent
