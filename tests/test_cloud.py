@@ -437,3 +437,26 @@ def test_deviation_csv_reads_back_as_a_cloud(tmp_path):
     assert lines[0] == "x_mm,y_mm,z_mm,deviation_um,surface" and lines[1].endswith(",cone")
     np.testing.assert_allclose(read_cloud(tmp_path / "dev.csv").points, points, rtol=0, atol=5e-7)
     np.testing.assert_allclose([float(line.split(",")[3]) for line in lines[1:]], deviation_um, atol=5e-5)
+
+
+def test_deviation_csv_numbers_are_printfs_digits_without_minus_zero(tmp_path):
+    """The compiled CSV writer against Python's '%.6f' / '%.4f' (C's printf): the same digits for every value that is
+    not an exact binary tie, and no '-0.000000' for a negative value that rounds to zero; surface names as given."""
+    from trueaxis.inspect.cloud import write_deviation_csv
+
+    rng = np.random.default_rng(7)
+    special = np.array([0.0, -0.0, 4e-7, -4e-7, 0.9999996, -0.9999996, 123456.7891234, -987.0000004, 1e-12, 41.5])
+    points = np.column_stack([np.r_[special, rng.uniform(-500, 500, 400)],
+                              np.r_[-special, rng.normal(0, 1e-3, 400)], np.r_[special[::-1], rng.uniform(-1, 1, 400)]])
+    deviation_um = np.r_[special, rng.normal(0, 30, 400)]
+    names = np.array(["cone", "block_top", "x"])[rng.integers(0, 3, len(points))]
+    write_deviation_csv(tmp_path / "dev.csv", points, deviation_um, list(names))
+
+    def printf(value, decimals):
+        text = f"%.{decimals}f" % value
+        return text[1:] if text.startswith("-") and float(text) == 0.0 else text
+
+    lines = (tmp_path / "dev.csv").read_text().splitlines()[1:]
+    expected = [",".join([printf(x, 6), printf(y, 6), printf(z, 6), printf(d, 4), name])
+                for (x, y, z), d, name in zip(points, deviation_um, names)]
+    assert lines == expected

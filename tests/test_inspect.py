@@ -82,6 +82,32 @@ def test_analytic_cone_patch_equals_the_exact_cone_distance():
     np.testing.assert_allclose(d.deviation_mm, cone_signed_distance(q, CONE), atol=1e-12)
 
 
+def test_cone_patch_beyond_its_rims_and_on_its_axis_measures_to_the_nearest_rim_point():
+    """Points whose perpendicular foot falls beyond the frustum's rims are nearest to a rim circle: the distance to
+    that circle, computed here from the circle alone; a point on the axis is as far from every point of its rim."""
+    h0, h1 = CONE["height_range"]
+    rng = np.random.default_rng(5)
+    theta = rng.uniform(0, 2 * np.pi, 200)
+    radial = np.cos(theta)[:, None] * U + np.sin(theta)[:, None] * W
+    centre = np.asarray(CONE["base_center"], float)
+    for h_rim, beyond in ((h1, 1.0), (h0, -1.0)):
+        r_rim = CONE["base_radius"] - h_rim * math.tan(ALPHA)
+        rim = centre + h_rim * AXIS + r_rim * radial
+        # beyond the rim along the axis and outwards: the foot on the generator line lies past the rim
+        q = rim + beyond * rng.uniform(0.5, 3.0, 200)[:, None] * AXIS + rng.uniform(0.0, 0.2, 200)[:, None] * radial
+        signed, unsigned, normal = dv.patch_distance(q, CONE)
+        np.testing.assert_allclose(unsigned, np.linalg.norm(q - rim, axis=1), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(normal * unsigned[:, None], np.sign(signed)[:, None] * (q - rim), atol=1e-12)
+    on_axis = centre + np.array([0.5, 5.0, 19.5])[:, None] * AXIS
+    signed, unsigned, _ = dv.patch_distance(on_axis, CONE)
+    # on the axis every meridian is as near: the distance to the rim-clamped generator of any one, here along U
+    heights = np.array([0.5, 5.0, 19.5])
+    generator = np.linspace(h0, h1, 200_001)  # 0.1 um steps along the meridian's generator
+    meridian = centre + generator[:, None] * AXIS + (CONE["base_radius"] - generator * math.tan(ALPHA))[:, None] * U
+    nearest = np.array([np.linalg.norm(meridian - p, axis=1).min() for p in on_axis])
+    np.testing.assert_allclose(signed, -nearest, rtol=0, atol=1e-8)
+
+
 def test_raycast_on_the_fine_mesh_agrees_with_the_analytic_cone_within_the_chord_error():
     mesh = dv.cone_frustum_mesh(CONE, chord_error_mm=5e-5)
     assert mesh.chord_error_mm <= 5e-5

@@ -50,7 +50,7 @@ import numpy as np
 from ..workpiece.mesh import (MAX_ASPECT, CadMesh, _axis_basis, _unit, cone_frustum_mesh,  # noqa: F401
                                nas979_mesh)
 from ..workpiece.part import part_of
-from .kernels import cone_patch_distance
+from .kernels import ON_AXIS_MM, cone_patch_distance
 
 __all__ = [
     "InspectionError", "analytic_surfaces", "patch_distance", "SurfaceDeviation", "analytic_deviation",
@@ -177,12 +177,14 @@ def _plane_patch(points, s):
         v = foot - centre
         r = np.linalg.norm(v, axis=1)
         rc = np.clip(r, r0, r1)
+        # within ON_AXIS_MM of the centre the in-plane vector is rounding noise (not in the plane): the centre
+        centre_hit = r <= ON_AXIS_MM
         with np.errstate(invalid="ignore", divide="ignore"):
-            scale = np.where(r > 1e-300, rc / r, 0.0)
-        if r0 > 0 and np.any(r <= 1e-300):  # the centre of an annulus: any direction to its inner circle
+            scale = np.where(centre_hit, 0.0, rc / r)
+        if r0 > 0 and np.any(centre_hit):  # the centre of an annulus: any direction to its inner circle
             u = _axis_basis(n)[0]
-            v[r <= 1e-300] = u
-            scale[r <= 1e-300] = r0
+            v[centre_hit] = u
+            scale[centre_hit] = r0
         foot = centre + v * scale[:, None]
     elif "swept_path_xy" in s:
         foot = foot.copy()

@@ -130,6 +130,11 @@ def csv_rows(scaled, decimals, codes, names, name_lengths, out):
     return at
 
 
+#: A point nearer the cone's axis than this (mm) is on it: there the radial vector is rounding noise of the
+#: axial one (1e-16 mm, not perpendicular to the axis), so any meridian is taken, as every one is equally near.
+ON_AXIS_MM = 1e-9
+
+
 @numba.njit(cache=True)
 def cone_patch_distance(points, centre, axis, fallback, h0, r0, ca, sa, length, signed, unsigned, normal):
     """Exact distance of each point to a cone frustum patch (``deviation._cone_patch``'s formulas, per point).
@@ -144,7 +149,7 @@ def cone_patch_distance(points, centre, axis, fallback, h0, r0, ca, sa, length, 
         h = vx * axis[0] + vy * axis[1] + vz * axis[2]
         rx, ry, rz = vx - h * axis[0], vy - h * axis[1], vz - h * axis[2]
         rho = np.sqrt(rx * rx + ry * ry + rz * rz)
-        if rho < 1e-300:
+        if rho < ON_AXIS_MM:  # on the axis (to rounding, whose direction is noise): every meridian alike
             ex, ey, ez = fallback[0], fallback[1], fallback[2]
         else:
             ex, ey, ez = rx / rho, ry / rho, rz / rho
