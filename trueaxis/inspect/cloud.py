@@ -678,8 +678,11 @@ def write_deviation_csv(path: str | os.PathLike, points: np.ndarray, deviation_u
     if np.abs(scaled).max(initial=0.0) >= 2.0 ** 62:
         raise ValueError("value too large for fixed-point output")
     scaled = np.ascontiguousarray(scaled.astype(np.int64))
-    # a row's widest form: per number sign, 19 digits and the point, a comma; the name and the newline
-    out = np.empty(n * (4 * 22 + 1 + names_table.shape[1]) + 1, dtype=np.uint8)
+    # a row's widest form: per number its sign, its digits (at least one before the point) and the point, a comma;
+    # the name and the newline
+    largest = np.abs(scaled).max(axis=0, initial=0)
+    widths = [2 + max(len(str(int(m))), int(d) + 1) for m, d in zip(largest, decimals)]
+    out = np.empty(n * (sum(widths) + len(widths) + 1 + names_table.shape[1]) + 1, dtype=np.uint8)
     body = out[:csv_rows(scaled, decimals, codes, names_table, name_lengths, out)]
     atomic_write(str(path), [(header + "\n").encode("ascii"), body])
 
