@@ -203,3 +203,38 @@ def test_one_over_long_number_does_not_set_the_precision_of_every_block(tmp_path
     words = [w for line in out.read_text().splitlines() if not line.startswith("(")
              for w in line.split() if w[0] in "XYZBC" and "." in w]
     assert words and max(len(w.split(".")[1]) for w in words) == 6
+
+
+def test_inspect_refuses_an_output_folder_holding_other_files_before_any_work(tmp_path):
+    """`inspect -o DIR` replaces DIR whole: a folder with a user's file in it (here the tolerance file it reads) is
+    refused with exit 2 and left as it was; an earlier report folder is replaced."""
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    from trueaxis.inspect.cloud import write_cloud_ply
+    from trueaxis.workpiece.parts import nas979_description
+
+    cone = nas979_description()["surfaces"][0]
+    axis = np.asarray(cone["axis"])
+    e1 = np.cross([0.0, 1.0, 0.0], axis)
+    e2 = np.cross(axis, e1)
+    h, th = np.meshgrid(np.linspace(1, 19, 10), np.linspace(0, 2 * np.pi, 90, endpoint=False))
+    radius = (cone["base_radius"] - h * np.tan(np.radians(cone["half_angle_deg"]))).ravel()
+    points = h.ravel()[:, None] * axis + radius[:, None] * (np.cos(th).ravel()[:, None] * e1
+                                                           + np.sin(th).ravel()[:, None] * e2)
+    write_cloud_ply(tmp_path / "c.ply", points)
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    (folder / "tol.toml").write_text("[cone]\nhalf_angle_urad = 50.0\n")
+    run = subprocess.run([sys.executable, "-m", "trueaxis.cli", "inspect", str(tmp_path / "c.ply"), "--part",
+                          "nas979", "--tolerances", str(folder / "tol.toml"), "-o", str(folder)],
+                         capture_output=True, text=True)
+    assert run.returncode == 2 and "tol.toml" in run.stderr
+    assert sorted(p.name for p in folder.iterdir()) == ["tol.toml"]
+    report = tmp_path / "report"
+    for _ in range(2):  # the second run replaces the first one's report
+        run = subprocess.run([sys.executable, "-m", "trueaxis.cli", "inspect", str(tmp_path / "c.ply"), "--part",
+                              "nas979", "-o", str(report)], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr

@@ -58,3 +58,31 @@ def test_atomic_write_of_pieces_writes_them_in_order_without_joining(tmp_path):
     target = tmp_path / "out.bin"
     atomic_write(target, [b"head\n", table, digits])
     assert target.read_bytes() == b"head\n" + table.tobytes() + b"23456"
+
+
+def test_a_published_folder_replaces_only_what_trueaxis_published_there(tmp_path):
+    """publish_folder replaces an earlier report folder whole, but refuses (OutputPathError, nothing moved) a folder
+    holding anything else: a user's folder named by mistake, or a report folder the user added a file to."""
+    from trueaxis.fileio import FOLDER_MARKER, OutputPathError, check_replaceable_folder, publish_folder
+
+    def report(text):
+        temp = tmp_path / f"temp_{text}"
+        temp.mkdir()
+        (temp / "report.json").write_text(text)
+        return temp
+
+    out = tmp_path / "out"
+    publish_folder(report("one"), out)
+    assert sorted(p.name for p in out.iterdir()) == [FOLDER_MARKER, "report.json"]
+    publish_folder(report("two"), out)  # an earlier report: replaced
+    assert (out / "report.json").read_text() == "two"
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(OutputPathError, match="notes.txt"):
+        publish_folder(report("three"), out)
+    assert (out / "notes.txt").read_text() == "mine" and (out / "report.json").read_text() == "two"
+    users = tmp_path / "users"
+    users.mkdir()
+    (users / "cloud.ply").write_text("x")
+    with pytest.raises(OutputPathError, match="cloud.ply"):
+        check_replaceable_folder(users)
+    check_replaceable_folder(tmp_path / "empty_or_missing")  # a folder that does not exist: fine

@@ -601,7 +601,7 @@ def test_the_figure_worker_writes_the_same_report_byte_for_byte(tmp_path):
         assert worker.failures == []
     files_here, files_there = _report_files(here), _report_files(there)
     assert set(files_here) == {"report.json", "report.html", "deviations.ply", "deviations.csv",
-                               "deviation_map.png", "histogram.png", "roundness.png"}
+                               "deviation_map.png", "histogram.png", "roundness.png", ".trueaxis-output"}
     assert files_here == files_there
 
 

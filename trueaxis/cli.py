@@ -601,7 +601,8 @@ def _refusal_errors() -> tuple:
 
 
 def _paths(args) -> tuple[list, list]:
-    """The command's input files and outputs, for the output gate: ([(option, path)], [(option, path, is_folder)])."""
+    """The command's input files and outputs, for the output gate: ([(option, path)], [(option, path, folder)]), folder
+    as ``fileio.check_outputs`` takes it."""
     g = lambda name: getattr(args, name, None)  # noqa: E731 (options a subcommand does not have are None)
     cmd = args.command
     if cmd == "post":
@@ -622,8 +623,12 @@ def _paths(args) -> tuple[list, list]:
                 ("--part-json", g("part_json"))], [("-o", g("output"), True)]
     if cmd == "inspect":
         out = g("output") or Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
-        return [("cloud", g("cloud")), ("--cad", g("cad")), ("--machine", g("machine")), ("--program", g("program"))], \
-            [("-o", out, True), ("--write", g("write"), False)]
+        # the files read besides the named ones: the part JSON of --part-dir, the JSON beside --cad
+        part_json = None if g("part_dir") is None else Path(g("part_dir")) / f"{args.part}.json"
+        cad_json = None if g("cad") is None else Path(g("cad")).with_suffix(".json")
+        return [("cloud", g("cloud")), ("--cad", g("cad")), ("--machine", g("machine")), ("--program", g("program")),
+                ("--tolerances", g("tolerances")), ("--part-dir's JSON", part_json), ("--cad's JSON", cad_json)], \
+            [("-o", out, "replaced"), ("--write", g("write"), False)]
     if cmd == "demo":
         return [], [("--out", g("out"), True)]
     return [], []

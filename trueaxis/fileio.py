@@ -106,7 +106,9 @@ def check_outputs(inputs: Iterable[tuple[str, str | os.PathLike | None]],
                   outputs: Iterable[tuple[str, str | os.PathLike | None, bool]]) -> None:
     """Refuse, before any work, outputs that would destroy an input or each other.
 
-    inputs : (option name, path or None) pairs; outputs : (option name, path or None, is_folder) triples. None entries
+    inputs : (option name, path or None) pairs; outputs : (option name, path or None, folder) triples, folder False for a
+    file, True for a folder written into, "replaced" for a folder replaced whole (it may hold only what trueaxis
+    published there: :func:`check_replaceable_folder`). None entries
     (options not given) are skipped. An output folder may not contain an input file either (the old report folder is
     replaced whole). Raises OutputPathError naming both options.
     """
@@ -114,6 +116,8 @@ def check_outputs(inputs: Iterable[tuple[str, str | os.PathLike | None]],
     outs = [(name, Path(p), folder) for name, p, folder in outputs if p is not None and str(p) != "-"]
     for name, out, folder in outs:
         resolve_output(out, folder=folder)
+        if folder == "replaced":
+            check_replaceable_folder(out)
         for in_name, inp in ins:
             inside = folder and out.exists() and inp.exists() and \
                 Path(os.path.realpath(inp)).is_relative_to(Path(os.path.realpath(out)))
@@ -168,10 +172,58 @@ def atomic_write(path: str | os.PathLike, data, encoding: str = "utf-8") -> Path
     return Path(path)
 
 
+#: The file every published folder carries, listing the files published with it: such a folder may be replaced whole
+#: by the next run as long as it holds nothing else.
+FOLDER_MARKER = ".trueaxis-output"
+
+
+def _published_names(folder: Path) -> set | None:
+    """The names a folder trueaxis published holds (its marker's list, or the ``files`` of a trueaxis report.json
+    written before the marker), or None for a folder trueaxis did not publish."""
+    marker = folder / FOLDER_MARKER
+    if marker.is_file():
+        lines = marker.read_text(encoding="utf-8").splitlines()
+        return {line for line in lines[1:] if line} | {FOLDER_MARKER}
+    report = folder / "report.json"
+    if report.is_file():
+        import json
+
+        try:
+            data = json.loads(report.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+        if isinstance(data, dict) and data.get("trueaxis_report") and isinstance(data.get("files"), list):
+            return {str(name) for name in data["files"]}
+    return None
+
+
+def check_replaceable_folder(path: str | os.PathLike) -> None:
+    """Refuse to replace a folder that holds files trueaxis did not write there: an existing ``path`` may be replaced
+    whole only when it is empty or holds only what trueaxis published in it (:func:`_published_names`). Raises
+    OutputPathError naming a few of the other files."""
+    real = Path(os.path.realpath(path))
+    if not real.is_dir():
+        return
+    names = set(os.listdir(real))
+    published = _published_names(real) or set()
+    foreign = sorted(names - published)
+    if not foreign:
+        return
+    shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+    raise OutputPathError(f"{path}: holds files trueaxis did not write there ({shown}); the report replaces its "
+                          "output folder whole: name a new or empty folder")
+
+
 def publish_folder(temp: Path, out: Path) -> None:
-    """Move a finished temporary folder ``temp`` into place as ``out`` (an old ``out`` is replaced whole), with the
-    umask's permissions (``mkdtemp`` makes 0700)."""
+    """Move a finished temporary folder ``temp`` into place as ``out`` (an old ``out`` is replaced whole, when
+    :func:`check_replaceable_folder` allows it), with the umask's permissions (``mkdtemp`` makes 0700). The folder
+    gets :data:`FOLDER_MARKER`, listing its files, so that a later run may replace it."""
     out = resolve_output(out, folder=True)
+    check_replaceable_folder(out)
+    names = sorted(os.listdir(temp))
+    (Path(temp) / FOLDER_MARKER).write_text("written by trueaxis; replaced whole by the next run as long as it holds "
+                                            "only these files:\n" + "".join(f"{n}\n" for n in names),
+                                            encoding="utf-8")
     raise_if_signalled()
     os.chmod(temp, new_folder_mode())
     old = None
