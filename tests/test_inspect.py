@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 
@@ -690,3 +691,79 @@ def test_tessellating_a_step_is_announced_before_it_starts(tmp_path):
     lines.clear()
     inspect_cloud(_cloud(p[1::10]), "nas979", cad=tmp_path / "nas979.step", progress=lines.append)
     assert lines == []  # every point near the cone: the STEP is not even read
+
+
+# ------------------------------------------------------------------------- what cannot be measured is said so ----
+def test_a_section_probed_over_half_its_circle_is_not_measured_and_the_cone_says_why():
+    """An oval of 10 um probed over half the circle shows about a third of its roundness (a silent pass): a section
+    whose points leave a gap above MAX_SECTION_GAP_DEG is "not measured", the cone's partial coverage is a warning;
+    the full oval's minimum-zone roundness is 2 x 10 um / cos(15 deg) (the normal offset, radially)."""
+    from trueaxis.inspect.report import MAX_SECTION_GAP_DEG, inspection_warnings
+
+    heights, theta = np.arange(1.0, 20.0, 0.25), np.linspace(0.0, 2 * np.pi, 720, endpoint=False)
+    s, th = (v.ravel() for v in np.meshgrid(heights, theta, indexing="ij"))
+    radial = np.cos(th)[:, None] * U + np.sin(th)[:, None] * W
+    normal = math.cos(ALPHA) * radial + math.sin(ALPHA) * AXIS
+    full = s[:, None] * AXIS + (CONE["base_radius"] - s * math.tan(ALPHA))[:, None] * radial \
+        + (0.010 * np.cos(2 * th))[:, None] * normal
+    report = inspect_cloud(_cloud(full), "nas979").report
+    for ring in report["roundness_um"]:
+        assert ring["minimum_zone"] == pytest.approx(20.0 / math.cos(ALPHA), abs=0.05)
+        assert ring["largest_gap_deg"] < MAX_SECTION_GAP_DEG
+    half = inspect_cloud(_cloud(full[th < np.pi]), "nas979").report
+    # half the circle: a gap of 180 deg plus one sampling step (0.5 deg), seen from the fitted axis
+    assert all(ring["minimum_zone"] is None and re.search(r"gap of 18[01] deg", ring["note"])
+               for ring in half["roundness_um"])
+    rows = [row for row in half["feature_table"] if row["key"] == "roundness_um"]
+    assert rows and all(row["result"] == "not measured" for row in rows)
+    warnings = inspection_warnings(half)
+    assert any(re.search(r"gap of 18[01] deg about its axis", w) for w in warnings)
+    assert any("3 characteristics not measured" in w for w in warnings)
+
+
+def test_a_slot_wall_beyond_the_gate_is_not_measured_nor_its_worst_of_characteristics():
+    """A wall moved 0.6 mm (beyond the 0.5 mm gate) leaves its segment's width unmeasured: the position and
+    parallelism ("largest |offset|", "worst segment") are then unknown too, not the worst of the others; the points
+    beyond the gate are counted."""
+    from trueaxis.inspect.report import inspection_warnings
+    from trueaxis.workpiece.slot_block import slot_pattern
+
+    p, n = slot_pattern(SLOTS, 6000)
+    d = dv.analytic_deviation(p, dv.analytic_surfaces(SLOTS))
+    ids = np.array(d.surface_ids)[d.surface]
+    moved = p + np.where(ids == "slot_none_seg0_left", -0.6, 0.0)[:, None] * n
+    report = inspect_cloud(_cloud(moved), "slots").report
+    slot = next(s for s in report["slots"] if s["id"] == "slot_none")
+    assert slot["width"]["segments"][0]["width_mm"] is None and "left 0" in slot["width"]["segments"][0]["note"]
+    assert slot["position_um"]["max_abs"] is None
+    rows = {row["key"]: row for row in report["feature_table"] if row["feature"] == "slot_none"}
+    assert rows["position_um"]["result"] == rows["parallelism_um"]["result"] == "not measured"
+    assert report["beyond_gate"]["points"] == int((ids == "slot_none_seg0_left").sum())
+    assert any("not measured" in w for w in inspection_warnings(report))
+
+
+def test_a_slot_contour_from_two_stray_points_is_not_measured():
+    """Only the first slot probed, and two stray points on another slot's end cap: that slot's mean contour error
+    needs every wall and arc, so it is "not measured" (it passed on two points)."""
+    from trueaxis.workpiece.slot_block import slot_pattern
+
+    p, n = slot_pattern(SLOTS, 6000)
+    d = dv.analytic_deviation(p, dv.analytic_surfaces(SLOTS))
+    ids = np.array(d.surface_ids)[d.surface]
+    others = ~np.char.startswith(ids.astype(str), "slot_none")
+    caps = np.flatnonzero(others & np.char.startswith(ids.astype(str), "slot_geometric") & np.char.find(
+        ids.astype(str), "arc").__ge__(0))[:2]
+    keep = ~others
+    keep[caps] = True
+    report = inspect_cloud(_cloud(p[keep]), "slots").report
+    geometric = next(s for s in report["slots"] if s["id"] == "slot_geometric")
+    assert geometric["mean_contour_error_um"] is None and "not evaluated" in geometric["contour_note"]
+    none = next(s for s in report["slots"] if s["id"] == "slot_none")
+    assert none["mean_contour_error_um"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_flyer_does_not_refuse_the_cloud_and_is_counted_beyond_the_gate():
+    p, _ = deformed_cone(per_ring=90)
+    report = inspect_cloud(_cloud(np.vstack([p, [[0.0, 0.0, 40.0]]])), "nas979").report
+    assert report["beyond_gate"]["points"] == 1
+    assert report["cone"]["half_angle_error_urad"] == pytest.approx(0.0, abs=1e-3)

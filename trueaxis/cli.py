@@ -353,7 +353,7 @@ def cmd_inspect(args) -> int:
     # inspection's BLAS runs on one thread (trueaxis.inspect.workers: same numbers, faster on a busy machine)
     keep_freed_memory()  # fewer page faults for the large temporary arrays (same values)
     # imported before the worker forks: the child then has the report module (and its kernels) without importing it
-    from .inspect.report import inspect_cloud, write_report
+    from .inspect.report import inspect_cloud, inspection_warnings, write_report
 
     with FigureWorker() as figures:
 
@@ -380,7 +380,11 @@ def cmd_inspect(args) -> int:
     counts = r["feature_summary"]
     if counts["pass"] or counts["fail"]:
         line += f"; {counts['pass']} characteristics in tolerance, {counts['fail']} out"
+    if counts["not measured"]:
+        line += f", {counts['not measured']} NOT MEASURED"
     print(line)
+    for warning in inspection_warnings(r):
+        print(f"trueaxis inspect: warning: {warning}", file=sys.stderr)
     if identification is None:
         return 0
     for text in identification.verdict_lines():

@@ -689,7 +689,8 @@ def write_deviation_csv(path: str | os.PathLike, points: np.ndarray, deviation_u
 
 # ------------------------------------------------------------------------------------------------------------ extent
 
-def check_extent(points: np.ndarray, bbox_min, bbox_max, tolerance_mm: float, part: str = "part") -> None:
+def check_extent(points: np.ndarray, bbox_min, bbox_max, tolerance_mm: float, part: str = "part",
+                 outliers: float = 0.0) -> None:
     """Refuse a cloud that does not lie within a part's bounding box (grown by a tolerance).
 
     A cloud in the machine frame, or in inches or metres, lands far outside the part: catch that before any fit.
@@ -700,6 +701,8 @@ def check_extent(points: np.ndarray, bbox_min, bbox_max, tolerance_mm: float, pa
     bbox_min, bbox_max : (3,) float, mm, the part's axis-aligned bounding box in the part frame
     tolerance_mm : float >= 0, how far outside the box a point may lie (stock allowance, fixture, probe radius)
     part : the part's name, for the message
+    outliers : the share of the points (0 to 1) that may lie outside the grown box (flyers, which the inspection's
+        gate then leaves out of every feature); a cloud in another frame or unit has nearly all of them outside
 
     Raises
     ------
@@ -715,6 +718,11 @@ def check_extent(points: np.ndarray, bbox_min, bbox_max, tolerance_mm: float, pa
     if not np.isfinite(tolerance_mm) or tolerance_mm < 0:
         raise ValueError(f"tolerance_mm must be a finite number >= 0, got {tolerance_mm}")
     _refuse_non_finite(points, "cloud", "coordinates")
+    if not 0.0 <= outliers < 1.0:
+        raise ValueError(f"outliers must be a share in [0, 1), got {outliers}")
+    outside = np.any((points < bbox_min - tolerance_mm) | (points > bbox_max + tolerance_mm), axis=1)
+    if outside.sum() <= outliers * len(points):
+        return
     # how far the cloud sticks out of the box on either side, per axis
     excess = np.maximum(np.maximum(bbox_min - points.min(axis=0), points.max(axis=0) - bbox_max), 0.0)
     over = excess > tolerance_mm
@@ -723,4 +731,5 @@ def check_extent(points: np.ndarray, bbox_min, bbox_max, tolerance_mm: float, pa
         parts = [f"{excess[i]:.1f} mm in {'XYZ'[i]}" for i in order if over[i]]
         extra = f" (and {', '.join(parts[1:])})" if len(parts) > 1 else ""
         raise CloudError(f"cloud extent exceeds the {part} part by {parts[0]}{extra}, more than the "
-                         f"{tolerance_mm:g} mm allowed: is it in the part frame, in mm?")
+                         f"{tolerance_mm:g} mm allowed ({int(outside.sum())} of {len(points)} points outside): is it "
+                         "in the part frame, in mm?")

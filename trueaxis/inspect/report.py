@@ -68,8 +68,22 @@ __all__ = ["Inspection", "load_part", "inspect_cloud", "deviation_stats", "evalu
 
 ALIGNMENTS = ("none", "bestfit", "datum")
 EXTENT_TOLERANCE_MM = 1.0   # stock, probe radius and fixture allowance around the part's bounding box
+EXTENT_OUTLIERS = 0.01      # flyers: up to 1 % of the points may lie outside the part's box (then beyond the gate)
 FAR_MM = 1.0                # a point this far from every surface of the part cannot be on it
 MIN_RING_POINTS = 8
+MIN_CONTOUR_POINTS = 3  # points on each wall and arc of a slot for its mean contour error
+#: Largest angular gap (deg) of a section's points about the cone's axis for its roundness to be evaluated: a
+#: roundness is the form of the whole profile (ISO 12181-1); from an arc it is underestimated (an oval probed over
+#: half its circumference shows a third of its roundness), so a section with a larger gap is "not measured".
+MAX_SECTION_GAP_DEG = 30.0
+
+
+def largest_gap_deg(angles) -> float:
+    """The largest angle (deg) between neighbouring directions of ``angles`` (rad) around the full turn."""
+    a = np.sort(np.mod(np.asarray(angles, dtype=np.float64), 2 * np.pi))
+    if len(a) == 0:
+        return 360.0
+    return float(np.degrees(np.diff(np.r_[a, a[0] + 2 * np.pi]).max()))
 
 
 @dataclass
@@ -180,6 +194,15 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
         "form_um": float(np.ptp(fit.residuals) * 1e3),
         "points": int(len(pts)),
     }
+    e1, e2 = form._perpendicular_basis(up)
+    around = (pts - base_point) @ np.column_stack([e1, e2])
+    cone_gap = largest_gap_deg(np.arctan2(around[:, 1], around[:, 0]))
+    out["cone"]["largest_gap_deg"] = cone_gap
+    if cone_gap > MAX_SECTION_GAP_DEG:
+        out.setdefault("warnings", []).append(
+            f"the cone's points leave a gap of {cone_gap:.0f} deg about its axis: its axis, size and half angle "
+            "come from a partial surface, where form errors move them (a diameter or axis offset may be off by "
+            "the form error itself)")
     rings = []
     heights = (pts - base_point) @ up  # once for all sections; section_ring takes the exact slab from a superset
     for feature in (f for f in part["features"] if f.get("type") == "roundness"):
@@ -189,13 +212,20 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
                                           return_index=True)
         index = near[index]
         entry = {"id": feature.get("id"), "height_mm": h, "points": int(len(index)), "slab_half_width_mm": slab_mm}
+        gap = largest_gap_deg(np.arctan2(planar[:, 1], planar[:, 0])) if len(index) else 360.0
         if len(index) < MIN_RING_POINTS:
             entry.update(least_squares=None, minimum_zone=None, diameter_ls_mm=None,
                          note=f"fewer than {MIN_RING_POINTS} cone points within {slab_mm} mm of this height")
+        elif gap > MAX_SECTION_GAP_DEG:
+            entry.update(least_squares=None, minimum_zone=None, diameter_ls_mm=None, largest_gap_deg=gap,
+                         note=f"the section's points leave a gap of {gap:.0f} deg about the axis (more than "
+                              f"{MAX_SECTION_GAP_DEG:g} deg): a roundness needs the whole profile, and one from an "
+                              "arc is too small; not evaluated")
         else:
             ls = form.fit_circle_least_squares(planar)
             mz = form.minimum_zone_circle(planar, start=ls.center)  # the LS centre: a start within a zone width
             entry.update(least_squares=float(np.ptp(ls.residuals) * 1e3), minimum_zone=mz.width * 1e3,
+                         largest_gap_deg=gap,
                          diameter_ls_mm=2 * ls.radius,
                          nominal_diameter_mm=feature.get("nominal_diameter"))
             figures["rings"].append({"height_mm": h, "angle": np.arctan2(*(planar - ls.center).T[::-1]),
@@ -268,7 +298,8 @@ def evaluate_slots(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5) 
             entry = {"segment": k, "points_left": int(len(left_xy)), "points_right": int(len(right_xy))}
             if left is None or right is None:
                 entry.update(width_mm=None, width_error_um=None, position_um=None,
-                             note="a wall of this segment has fewer than 2 distinct points")
+                             note=f"a wall of this segment has fewer than 2 distinct points within {gate_mm:g} mm of "
+                                  f"it (left {len(left_xy)}, right {len(right_xy)} points)")
             else:
                 def offset_at_mid(line):
                     # where the line crosses the nominal normal through the segment's midpoint, along n_left
@@ -296,17 +327,26 @@ def evaluate_slots(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5) 
             z_nom = float(by_id[feature["floor"]]["point"][2])
             depth = {"nominal_mm": -z_nom, "measured_mm": float(-points[floor, 2].mean()),
                      "error_um": float((-points[floor, 2].mean() + z_nom) * 1e3), "points": int(floor.sum())}
+        # the contour error is a mean over the whole contour: only when every wall and arc has points on it (two
+        # stray points on one end cap are not the slot's contour)
+        sparse = [sid for sid in walls + feature["arcs"] if members(sid).sum() < MIN_CONTOUR_POINTS]
         slots.append({
             "id": feature["id"], "compensation": feature.get("compensation"), "points": int(in_slot.sum()),
             "deviation_um": deviation_stats(d_um[in_slot]),
-            "mean_contour_error_um": float(np.mean(np.abs(d_um[contour]))) if contour.any() else None,
+            "mean_contour_error_um": float(np.mean(np.abs(d_um[contour]))) if contour.any() and not sparse else None,
+            "contour_note": None if not sparse else (
+                f"not evaluated: {len(sparse)} of the contour's {len(walls + feature['arcs'])} walls and arcs have "
+                f"fewer than {MIN_CONTOUR_POINTS} points within {gate_mm:g} mm ({', '.join(sparse[:3])}"
+                f"{', ...' if len(sparse) > 3 else ''})"),
             "width": {"nominal_mm": nominal_width, "segments": segments,
                       "mean_mm": float(np.mean(widths)) if widths else None,
                       "mean_error_um": float((np.mean(widths) - nominal_width) * 1e3) if widths else None},
             "straightness_um": straightness,
             "parallelism_um": parallel,
             "position_um": {"segments": [{"segment": s["segment"], "offset_um": s["position_um"]} for s in segments],
-                            "max_abs": float(np.max(np.abs(positions))) if positions else None,
+                            # the largest offset is known only when every segment's is
+                            "max_abs": float(np.max(np.abs(positions))) if positions and len(positions) == len(
+                                segments) else None,
                             "note": "midline between the walls minus the nominal tool-centre path, along the "
                                     "segment's left normal, at its midpoint"},
             "depth": depth,
@@ -379,7 +419,7 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     bbox = (cad_mesh.vertices.min(axis=0), cad_mesh.vertices.max(axis=0)) if cad_mesh is not None \
         else dv.part_bbox(part_doc)
     try:
-        check_extent(cloud.points, *bbox, EXTENT_TOLERANCE_MM, part=part)
+        check_extent(cloud.points, *bbox, EXTENT_TOLERANCE_MM, part=part, outliers=EXTENT_OUTLIERS)
     except CloudError as exc:
         raise CloudError(f"{cloud.source}: {exc}") from None
 
@@ -407,6 +447,7 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
             figure_worker.submit(item)
 
     features, figures = EVALUATIONS[get_part(part).evaluation](aligned, dev, part_doc, gate_mm)
+    beyond = np.abs(dev.deviation_mm) > gate_mm
     d_um = dev.deviation_um
     per_surface = {}
     for k, sid in enumerate(dev.surface_ids):
@@ -440,6 +481,10 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         "alignment": motion.as_dict(),
         "deviation_um": deviation_stats(d_um),
         "deviation_by_surface_um": per_surface,
+        "beyond_gate": {
+            "gate_mm": gate_mm, "points": int(beyond.sum()), "share": float(beyond.mean()) if len(beyond) else 0.0,
+            "note": f"points farther than {gate_mm:g} mm from every nominal surface belong to no feature: no feature "
+                    "is evaluated from them (a gross error of the part, or points that are not on it)"},
         "reference": {
             "analytic_points": int((~dev.from_mesh).sum()), "cad_mesh_points": int(dev.from_mesh.sum()),
             "analytic_surfaces": len(surfaces),
@@ -460,6 +505,25 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     if figure_worker is not None:
         figures["sent"] = figure_worker
     return Inspection(cloud, aligned, normals, dev, part_doc, report, figures)
+
+
+def inspection_warnings(report: dict) -> list[str]:
+    """What a reader of the terminal must not miss, one line each: characteristics that could not be measured, and
+    points beyond the gate (in no feature). report : ``Inspection.report``."""
+    out = list(report.get("warnings") or [])
+    missing = [f"{row['feature']} {row['characteristic']}" for row in report.get("feature_table", [])
+               if row["result"] == "not measured"]
+    if missing:
+        shown = "; ".join(missing[:4]) + (f"; and {len(missing) - 4} more" if len(missing) > 4 else "")
+        out.append(f"{len(missing)} characteristic{'s' if len(missing) > 1 else ''} not measured ({shown}): "
+                   f"see the notes in report.json")
+    gate = report.get("beyond_gate") or {}
+    if gate.get("points"):
+        share = f"{gate['share'] * 100:.1f} %" if gate["share"] >= 1e-3 else "< 0.1 %"
+        out.append(f"{gate['points']} of {report['points']} points ({share}) lie more than "
+                   f"{gate['gate_mm']:g} mm from every nominal surface and belong to no feature: a gross error of the "
+                   "part, or points not on it")
+    return out
 
 
 def _alignment_words(motion: dv.RigidMotion) -> str:
@@ -819,6 +883,7 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
              "table.features td:nth-child(n+3){text-align:right;white-space:nowrap}"
              "table.header{width:100%}table.header th{width:22%}img{max-width:100%;border:1px solid #ddd}"
              "figcaption{font-size:90%;color:#444;margin-bottom:18px}.signature td{height:36px;width:260px}"
+             ".warning{border:2px solid #c0392b;background:#fdecea;padding:4px 12px;margin:10px 0}"
              "@media print{h2{page-break-after:avoid}figure{page-break-inside:avoid}}")
     d = report["deviation_um"]
     parts = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
@@ -830,6 +895,10 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
                  f"surface). Characteristics: {counts.get('pass', 0)} in tolerance, {counts.get('fail', 0)} out of "
                  f"tolerance, {counts.get('no tolerance', 0)} without a tolerance, "
                  f"{counts.get('not measured', 0)} not measured.</p>")
+    warnings = inspection_warnings(report)
+    if warnings:
+        parts.append("<div class='warning'><strong>Read first:</strong><ul>"
+                     + "".join(f"<li>{html.escape(w)}</li>" for w in warnings) + "</ul></div>")
     if report.get("feature_table"):
         parts.append(_feature_table_html(report["feature_table"]))
     parts.append("<h2>Deviation from the nominal surfaces (um)</h2>" + _table(d, unit="um"))

@@ -199,24 +199,30 @@ def feature_table(report: dict, part: dict, tolerances: dict) -> list[dict]:
             rows.append(_row(fid, "width_um", f"width, segment {segment['segment']}", "mm",
                              slot["width"]["nominal_mm"], segment["width_mm"], segment["width_error_um"],
                              _tolerance_for(tolerances, fid, "width_um"), segment.get("note")))
-        values = [v for v in slot["straightness_um"].values() if v is not None]
-        worst = max(values) if values else None
+        # a "worst of" characteristic is known only when each of its members is: else not measured, saying which
+        values = list(slot["straightness_um"].values())
+        worst = max(values) if values and None not in values else None
+        missing = [sid for sid, v in slot["straightness_um"].items() if v is None]
         rows.append(_row(fid, "straightness_um", label["straightness_um"], "um", 0.0, worst, worst,
-                         _tolerance_for(tolerances, fid, "straightness_um")))
+                         _tolerance_for(tolerances, fid, "straightness_um"),
+                         f"walls with fewer than 3 points: {', '.join(missing)}" if missing else None))
+        segments = slot["width"]["segments"]
         values = [p["parallelism_um"] for p in slot["parallelism_um"]]
-        worst = max(values) if values else None
+        worst = max(values) if values and len(values) == len(segments) else None
+        unmeasured = [str(seg["segment"]) for seg in segments if seg.get("width_mm") is None]
+        note = f"segments not measured: {', '.join(unmeasured)}" if unmeasured else None
         rows.append(_row(fid, "parallelism_um", label["parallelism_um"], "um", 0.0, worst, worst,
-                         _tolerance_for(tolerances, fid, "parallelism_um")))
+                         _tolerance_for(tolerances, fid, "parallelism_um"), note))
         worst = slot["position_um"]["max_abs"]
         rows.append(_row(fid, "position_um", label["position_um"], "um", 0.0, worst, worst,
-                         _tolerance_for(tolerances, fid, "position_um")))
+                         _tolerance_for(tolerances, fid, "position_um"), note))
         depth = slot.get("depth")
         rows.append(_row(fid, "depth_um", label["depth_um"], "mm", features.get(fid, {}).get("nominal_depth"),
                          None if depth is None else depth["measured_mm"], None if depth is None else depth["error_um"],
                          _tolerance_for(tolerances, fid, "depth_um")))
         contour = slot.get("mean_contour_error_um")
         rows.append(_row(fid, "contour_um", label["contour_um"], "um", 0.0, contour, contour,
-                         _tolerance_for(tolerances, fid, "contour_um")))
+                         _tolerance_for(tolerances, fid, "contour_um"), slot.get("contour_note")))
     return rows
 
 
