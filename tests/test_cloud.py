@@ -460,3 +460,22 @@ def test_deviation_csv_numbers_are_printfs_digits_without_minus_zero(tmp_path):
     expected = [",".join([printf(x, 6), printf(y, 6), printf(z, 6), printf(d, 4), name])
                 for (x, y, z), d, name in zip(points, deviation_um, names)]
     assert lines == expected
+
+
+def test_csv_header_units_are_read_into_mm_and_mixed_or_unknown_units_refused(tmp_path):
+    """'X [in]' columns are inches (x 25.4 into mm), 'x_um' micrometres; x, y, z in different units, or a unit
+    trueaxis does not know, are refused naming it (a declared unit was ignored: inch data read as mm)."""
+    points = np.array([[1.0, 2.0, 3.0], [-0.5, 0.25, 1.5]])
+    for header, scale in (("X [in],Y [in],Z [in]", 25.4), ("x_um,y_um,z_um", 1e-3), ("X (mm),Y (mm),Z (mm)", 1.0),
+                          ("Name;X [cm];Y [cm];Z [cm]", 10.0)):
+        delimiter = ";" if ";" in header else ","
+        names = ["P1;", "P2;"] if header.startswith("Name") else ["", ""]
+        text = header + "\n" + "".join(f"{n}{delimiter.join(str(v) for v in row)}\n" for n, row in zip(names, points))
+        (tmp_path / "c.csv").write_text(text)
+        np.testing.assert_allclose(read_cloud(tmp_path / "c.csv").points, points * scale, rtol=1e-15)
+    (tmp_path / "c.csv").write_text("X [in],Y [mm],Z [mm]\n1,2,3\n")
+    with pytest.raises(CloudError, match="different units"):
+        read_cloud(tmp_path / "c.csv")
+    (tmp_path / "c.csv").write_text("X [furlong],Y [furlong],Z [furlong]\n1,2,3\n")
+    with pytest.raises(CloudError, match="'furlong'"):
+        read_cloud(tmp_path / "c.csv")

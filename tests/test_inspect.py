@@ -237,6 +237,35 @@ def test_datum_alignment_names_the_missing_datums():
         inspect_cloud(_cloud(p), "nas979", align="datum")
 
 
+def test_datum_b_probed_one_point_above_the_other_is_refused_in_words():
+    """Datum B's two points on a vertical line (along A's normal) do not fix the rotation about it: one line, an
+    InspectionError (exit 3 through the CLI), where it was a 'Singular matrix' with a numpy warning."""
+    cone = deformed_cone(per_ring=60)[0]
+    zb = NAS["derived"]["z_bottom"]
+    rng = np.random.default_rng(8)
+    bottom = np.column_stack([rng.uniform(-45, 45, 50), rng.uniform(-45, 45, 50), np.full(50, zb)])
+    side_b = np.array([[-50.0, 0.0, zb + 3.0], [-50.0, 0.0, zb + 8.0]])  # block_side_xneg, one above the other
+    side_c = np.column_stack([rng.uniform(-45, 45, 5), np.full(5, -50.0), np.full(5, zb + 3.0)])
+    with pytest.raises(dv.InspectionError, match="datum B's points do not fix the rotation"):
+        inspect_cloud(_cloud(np.vstack([cone, bottom, side_b, side_c])), "nas979", align="datum")
+
+
+def test_a_bestfit_on_the_cone_alone_says_it_takes_a_size_error_away():
+    """A uniform +5 um on the cone is a size error; a best fit on the cone alone moves the part along the axis
+    (5 um / sin 15 deg) and the diameter error vanishes: said in a warning with that move, not on a cone with the
+    block's faces."""
+    from trueaxis.inspect.report import inspection_warnings
+
+    p, n = deformed_cone(per_ring=120)
+    report = inspect_cloud(_cloud(p + 0.005 * n), "nas979", align="bestfit").report
+    warnings = [w for w in inspection_warnings(report) if "best fit saw only the cone" in w]
+    assert len(warnings) == 1
+    moved = float(re.search(r"moved the part ([-+0-9.]+) um", warnings[0]).group(1))
+    assert abs(moved) == pytest.approx(5.0 / math.sin(ALPHA), rel=0.01)
+    both = inspect_cloud(_cloud(np.vstack([p + 0.005 * n, block_faces(300)])), "nas979", align="bestfit").report
+    assert not [w for w in inspection_warnings(both) if "best fit" in w]
+
+
 # --------------------------------------------------------------------------------------------------- slots ----
 def test_slot_width_position_straightness_and_parallelism_of_known_changes():
     from trueaxis.workpiece.slot_block import slot_pattern

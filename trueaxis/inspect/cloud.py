@@ -70,7 +70,8 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
         vertices, not precede them in a binary file.
         ``.csv`` / ``.txt``: one point a line, the fields separated by ``,``, ``;``, tab or whitespace (the first
         data line decides); with ``;`` or tab a ``,`` inside a number is a decimal comma (``1,25``). An optional
-        header line names the columns, case-insensitive, a unit in brackets allowed: ``x y z`` and optionally
+        header line names the columns, case-insensitive, with an optional length unit of the coordinates in brackets,
+        parentheses or as a suffix (``X [in]``, ``x_um``: mm, um, cm, m, in; read into mm): ``x y z`` and optionally
         ``nx ny nz`` or ``i j k``; other named columns (a point name, an id, a deviation) are ignored, so the usual
         CMM export ``Name;X;Y;Z;I;J;K`` reads as it is. Without a header the numeric columns of the first row are
         taken in order (3: x y z, 6: x y z nx ny nz) and text columns (a point name) are skipped. Lines starting with
@@ -352,11 +353,44 @@ def _split(line: str, delimiter: str | None) -> list[str]:
 _CSV_NAMES = {"x": "x", "y": "y", "z": "z", "nx": "nx", "ny": "ny", "nz": "nz", "i": "nx", "j": "ny", "k": "nz"}
 
 
+# length units a CSV header may give a coordinate column (in brackets, parentheses, or as a _suffix), in mm
+_CSV_UNITS_MM = {"mm": 1.0, "um": 1e-3, "µm": 1e-3, "micron": 1e-3, "cm": 10.0, "m": 1000.0, "in": 25.4,
+                 "inch": 25.4, "inches": 25.4, '"': 25.4}
+
+
 def _column_name(word: str) -> str:
     """'X [mm]' -> 'x', 'x_mm' -> 'x', ' "I" ' -> 'nx'; any other name is kept lower-case (a name or id column,
     ignored)."""
-    word = re.sub(r"(\s*[\[(].*?[\])]|[\s_]+mm)\s*$", "", word.strip().lower())
-    return _CSV_NAMES.get(word, word)
+    return _column_name_and_unit(word)[0]
+
+
+def _column_name_and_unit(word: str) -> tuple[str, str | None]:
+    """('x', 'in') for 'X [in]', 'X (in)' or 'x_in'; ('x', None) for 'X'; the unit lower-case as written."""
+    word = word.strip().lower()
+    match = re.match(r"^(.*?)\s*[\[(]\s*(.*?)\s*[\])]\s*$", word) or \
+        re.match(rf"^(.*?)[\s_]+({'|'.join(map(re.escape, _CSV_UNITS_MM))})\s*$", word)
+    name, unit = (match.group(1), match.group(2)) if match else (word, None)
+    return _CSV_NAMES.get(name, name), unit or None
+
+
+def _header_scale(words: list[str], name: str) -> float:
+    """The factor (mm per unit) the coordinate columns' unit declares: 1 without one; refused when x, y and z declare
+    different units or one trueaxis does not know."""
+    units = {}
+    for word in words:
+        column, unit = _column_name_and_unit(word)
+        if column in "xyz" and len(column) == 1 and unit is not None:
+            units[column] = unit
+    if not units:
+        return 1.0
+    unknown = sorted({u for u in units.values() if u not in _CSV_UNITS_MM})
+    if unknown:
+        raise CloudError(f"{name}: CSV header gives the coordinates in {unknown[0]!r}, a unit trueaxis does not know "
+                         f"(known: {', '.join(u for u in _CSV_UNITS_MM if u != chr(34))})")
+    scales = {_CSV_UNITS_MM[u] for u in units.values()}
+    if len(scales) > 1:
+        raise CloudError(f"{name}: CSV header gives x, y and z in different units ({', '.join(units.values())})")
+    return scales.pop()
 
 
 def _read_csv(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -399,7 +433,8 @@ def _read_csv(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
     if repeated:
         raise CloudError(f"{name}: CSV header names column {repeated[0]} twice")
     table = _parse_table(lines, delimiter, name, "CSV", [header.index(c) for c in wanted], width)
-    return table[:, :3], (table[:, 3:] if present else None)
+    # coordinates in the header's unit (mm when it names none), into mm; normals have none
+    return table[:, :3] * _header_scale(first, name), (table[:, 3:] if present else None)
 
 
 def _read_xyz(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:

@@ -749,9 +749,15 @@ def align_datum(points, part: dict, surfaces: list[dict], gate_mm: float = 1.0) 
             n_b = np.cross(direction, e3)
     else:
         direction = sets["B"][-1] - sets["B"][0]
-        n_b = np.cross(direction, e3)
+        n_b = np.cross(direction / max(np.linalg.norm(direction), 1e-300), e3)
     n_b = n_b * np.sign(n_b @ nominal_n["B"])
     e1 = n_b - (n_b @ e3) * e3
+    if not np.linalg.norm(e1) > 1e-6:  # n_b is a unit vector, or the sine of B's line's angle to A's normal
+        # B's points on a line along A's normal (one above the other), or a B plane parallel to A: the rotation
+        # about A's normal is not fixed (refused here, where it would be a singular matrix)
+        raise InspectionError("datum alignment: datum B's points do not fix the rotation about datum A's normal "
+                              "(they lie on a line normal to datum A, or on a plane parallel to it): probe datum B "
+                              "at points apart along the face, not one above the other")
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(e3, e1)
     s_c = np.sign(e2 @ nominal_n["C"])

@@ -76,6 +76,10 @@ MIN_CONTOUR_POINTS = 3  # points on each wall and arc of a slot for its mean con
 #: roundness is the form of the whole profile (ISO 12181-1); from an arc it is underestimated (an oval probed over
 #: half its circumference shows a third of its roundness), so a section with a larger gap is "not measured".
 MAX_SECTION_GAP_DEG = 30.0
+ROUNDNESS_NOTE = ("Roundness of the unfiltered profiles (no ISO 12181-2 profile filter applied: probe noise and every "
+                  "undulation count, so the values grow with the noise and the point density); sections are slabs "
+                  "of +-0.5 mm about their height, the points moved along the fitted cone's generator to it; "
+                  "a section whose points leave a gap above 30 deg about the axis is not evaluated.")
 
 
 def largest_gap_deg(angles) -> float:
@@ -232,6 +236,7 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
                                      "residual_um": ls.residuals * 1e3})
         rings.append(entry)
     out["roundness_um"] = rings
+    out["roundness_note"] = ROUNDNESS_NOTE
     diameter = next((f for f in part["features"] if f.get("type") == "diameter"), None)
     if diameter is not None:
         h = float(diameter["height"])
@@ -448,6 +453,8 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
 
     features, figures = EVALUATIONS[get_part(part).evaluation](aligned, dev, part_doc, gate_mm)
     beyond = np.abs(dev.deviation_mm) > gate_mm
+    if align == "bestfit":
+        features.setdefault("warnings", []).extend(_bestfit_warnings(motion, dev, surfaces, beyond))
     d_um = dev.deviation_um
     per_surface = {}
     for k, sid in enumerate(dev.surface_ids):
@@ -505,6 +512,21 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     if figure_worker is not None:
         figures["sent"] = figure_worker
     return Inspection(cloud, aligned, normals, dev, part_doc, report, figures)
+
+
+def _bestfit_warnings(motion: dv.RigidMotion, dev: dv.Deviation, surfaces: list, beyond: np.ndarray) -> list[str]:
+    """A best fit on cones alone: a move along a cone's axis changes its size at every height, so the fit takes a
+    size error away (and the diameter with it). Said, with the move along the axis, when no other surface has
+    points."""
+    kinds = {k: s["type"] for k, s in enumerate(surfaces)}
+    probed = {kinds.get(int(k)) for k in np.unique(dev.surface[~beyond & ~dev.from_mesh])}
+    if probed != {"cone"}:
+        return []
+    cone = next(s for s in surfaces if s["type"] == "cone")
+    along = float(motion.translation @ dv._unit(cone["axis"])) * 1e3
+    return [f"the best fit saw only the cone: it moved the part {along:+.1f} um along the cone's axis, which takes a "
+            f"size error away with it (the diameter and the axis position are not measured this way); probe the "
+            f"block's faces, or use --align datum or none"]
 
 
 def inspection_warnings(report: dict) -> list[str]:
@@ -916,7 +938,8 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
                        f"<td>{_value(r['least_squares'], 'um')}</td><td>{_value(r['minimum_zone'], 'um')}</td>"
                        f"<td>{_value(r.get('diameter_ls_mm'), 'mm')}</td><td>{r['points']:,}</td></tr>"
                        for r in report["roundness_um"])
-        parts.append("<h2>Roundness</h2><table><tr><th>section</th><th>height (mm)</th><th>least squares, RONt "
+        parts.append("<h2>Roundness</h2><p>" + html.escape(ROUNDNESS_NOTE) + "</p>"
+                     "<table><tr><th>section</th><th>height (mm)</th><th>least squares, RONt "
                      "(um)</th><th>minimum zone, RONt (um)</th><th>least-squares diameter (mm)</th><th>points</th>"
                      "</tr>" + rows + "</table>")
     if report.get("diameter"):
