@@ -233,7 +233,7 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
                          diameter_ls_mm=2 * ls.radius,
                          nominal_diameter_mm=feature.get("nominal_diameter"))
             figures["rings"].append({"height_mm": h, "angle": np.arctan2(*(planar - ls.center).T[::-1]),
-                                     "residual_um": ls.residuals * 1e3})
+                                     "residual_um": ls.residuals * 1e3, "minimum_zone_um": mz.width * 1e3})
         rings.append(entry)
     out["roundness_um"] = rings
     out["roundness_note"] = ROUNDNESS_NOTE
@@ -721,8 +721,8 @@ def draw_figure(inputs: dict) -> tuple[str, bytes, str, dict]:
             ax.set_yticklabels([f"{t:+g} um" if t else "0" for t in ticks], fontsize=7)
             ax.set_rlabel_position(100)
             ax.tick_params(axis="x", labelsize=8)
-            ax.set_title(f"h = {ring['height_mm']:g} mm\nLS roundness {np.ptp(ring['residual_um']):.2f} um",
-                         fontsize=10, pad=18)
+            ax.set_title(f"h = {ring['height_mm']:g} mm\nRONt: minimum zone {ring['minimum_zone_um']:.2f} um, "
+                         f"LS {np.ptp(ring['residual_um']):.2f} um", fontsize=9, pad=18)
             entry = {"height_mm": ring["height_mm"], "reference": "least-squares circle",
                      "angle_deg": np.round(np.degrees(angle), 3)}
             if low is None:
@@ -736,7 +736,9 @@ def draw_figure(inputs: dict) -> tuple[str, bytes, str, dict]:
         fig.subplots_adjust(left=0.04, right=0.96, bottom=0.06, top=0.76, wspace=0.45)
         name = "roundness.png"
         caption = ("Roundness profiles of the sections about their least-squares circles (dashed); the radial axis is "
-                   "the deviation in um, the same scale for every section.")
+                   "the deviation in um, the same scale for every section. Angles counter-clockwise seen from the "
+                   "cone's top, 0 deg along w x a (a the cone's axis, w the world axis least parallel to it: for the "
+                   "default cone about +X, tilted with the axis); the profiles are in report.json. Unfiltered.")
         data["roundness_file"] = name
     elif kind == "identified":
         names, values, stds, units = inputs["names"], inputs["values"], inputs["stds"], inputs["units"]
