@@ -597,8 +597,10 @@ class _Poster:
             return np.zeros(q.shape[0], bool)
         return np.abs(np.sin(q[:, pair[1].column])) < np.sin(self.singular)
 
-    def solve(self, q, force, rows):
-        """Commanded poses for nominal poses q (K, n_axes), and (K,) bool: the free axis was held (singular cone).
+    def solve(self, q, force, rows, poses=False):
+        """Commanded poses for nominal poses q (K, n_axes), and (K,) bool: the free axis was held (singular cone);
+        with ``poses`` also (actual tip, axis at the commanded poses, nominal tip, axis at q), which the solve computed
+        (the split checks take them instead of evaluating the twin there again: the same numbers).
 
         Every solve is recorded: its residuals (for the report) and the blocks with points in the singular cone."""
         hold = np.zeros_like(q, bool)
@@ -625,7 +627,7 @@ class _Poster:
             st["urad_singular"] = max(st["urad_singular"], float(res.axis_residual_urad[held].max(initial=0.0)))
         st["singular_points"] += int(held.sum())
         st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
-        return res.q, held
+        return (res.q, held, res.actual + res.nominal) if poses else (res.q, held)
 
     def check(self, q_nom, q_cmd, rows):
         """Correction bound and travel, per point; raises PostError naming the block."""
@@ -747,7 +749,7 @@ class _Poster:
         if np.any(arcs) and len(lin) == 3:
             direction[arcs] = self._arc_end_tangent(rows[arcs], q_end[arcs])
         force = self.forces(rows, direction, q_end)
-        q_cmd, singular = self.solve(q_end, force, rows)
+        q_cmd, singular, end_poses = self.solve(q_end, force, rows, poses=True)
         self.check(q_end, q_cmd, rows)
         dq = q_cmd - q_end
         delta_prog = self.to_program_delta(dq if self.tcp is None else self.command_delta(q_cmd, q_end), inch, rows)
@@ -755,7 +757,7 @@ class _Poster:
         pieces, arc_mode = {}, {}
         # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
         feed_rows = np.nonzero((p.motion[rows] == FEED) & self.start_known[rows])[0]
-        pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd))
+        pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd, end_poses))
         if np.any(arcs):
             arc_pieces, modes = self._arcs(rows, np.nonzero(arcs)[0], q_start, q_end, force, inch, delta_prog)
             pieces.update(arc_pieces)
@@ -803,7 +805,7 @@ class _Poster:
         # a direction: turned by the rotation, not offset
         return p.to_machine(tang6, arc_rows)[:, :3] - p.to_machine(np.zeros_like(tang6), arc_rows)[:, :3]
 
-    def _split_lines(self, rows, feed_idx, q_start, q_end, force, inch, q_cmd_end, max_rounds=10):
+    def _split_lines(self, rows, feed_idx, q_start, q_end, force, inch, q_cmd_end, end_poses, max_rounds=10):
         """Straight feed moves: split until the actual path stays within tolerance of the nominal path.
 
         The nominal path is the one the control makes of the programmed move: the axes interpolated linearly (in five
@@ -814,18 +816,18 @@ class _Poster:
         (free axis held): what is compared there is the deviation beyond the straight blend of the ends' residuals.
 
         All points of all moves live in flat arrays (move, fraction, commanded pose, residual) and only new points
-        are solved, one batch per round."""
+        are solved, one batch per round. ``end_poses``: the solve's poses at the ends (``solve(poses=True)``)."""
         if feed_idx.size == 0:
             return {}
         idx = np.asarray(feed_idx, int)
         f_all = None if force is None else force
         residual = self._path_residual(q_start, q_end, f_all)
-        q0 = self._commanded_starts(rows, idx, q_start, q_end, f_all, q_cmd_end)
+        q0, start_poses = self._commanded_starts(rows, idx, q_start, q_end, f_all, q_cmd_end, end_poses)
         I = np.r_[idx, idx]
         F = np.r_[np.zeros(idx.size), np.ones(idx.size)]
         C = np.vstack([q0, q_cmd_end[idx]])
         S = np.r_[self.singular_at(q_start[idx]), self.singular_at(q_end[idx])]
-        R = residual(I, F, C)
+        R = residual(I, F, C, self._end_poses(idx, q_start, q_end, start_poses, end_poses))
         active = np.zeros(len(rows), bool)
         active[idx] = True
         scale = self._split_scale()
@@ -845,10 +847,10 @@ class _Poster:
                 break
             mv, fr = _subdivide(owner, a, b, worst, bad)
             q_nom = q_start[mv] + fr[:, None] * (q_end[mv] - q_start[mv])
-            qc, _ = self.solve(q_nom, None if f_all is None else f_all[mv], rows[mv])
+            qc, _, known = self.solve(q_nom, None if f_all is None else f_all[mv], rows[mv], poses=True)
             self.check(q_nom, qc, rows[mv])
             I, F, C, S = np.r_[I, mv], np.r_[F, fr], np.vstack([C, qc]), np.r_[S, self.singular_at(q_nom)]
-            R = np.vstack([R, residual(mv, fr, qc)])
+            R = np.vstack([R, residual(mv, fr, qc, known)])
             active[:] = False
             active[np.unique(owner[bad])] = True
         else:
@@ -860,8 +862,9 @@ class _Poster:
         return self._split_pieces(rows, I, F, C, q_start, q_end, inch)
 
     def _path_residual(self, q_start, q_end, f_all):
-        """residual(i_move, fr, qc) -> (K, 3 or 6): the actual pose at commanded poses qc less the nominal pose at the
-        fractions fr of the moves i_move (indices into the chunk's rows), position then tool axis.
+        """residual(i_move, fr, qc, known=None) -> (K, 3 or 6): the actual pose at commanded poses qc less the nominal
+        pose at the fractions fr of the moves i_move (indices into the chunk's rows), position then tool axis;
+        ``known``: (actual tip, axis, nominal tip, axis) there, computed already (then the twin is not called).
 
         Judged is the position error along the directions the axes can correct (all three on a mill, X and Z on a
         lathe, whose error along Y moves the turned radius by second order only and no axis can remove)."""
@@ -869,27 +872,51 @@ class _Poster:
         correctable = corrected_directions(self.m)
         correctable = correctable.T @ correctable
 
-        def residual(i_move, fr, qc):
-            q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
-            pn, un = self.twin.nominal_pose(q_nom)
-            pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
+        def residual(i_move, fr, qc, known=None):
+            if known is None:
+                q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
+                pn, un = self.twin.nominal_pose(q_nom)
+                pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
+            else:
+                pa, ua, pn, un = known
             return np.hstack([(pa - pn) @ correctable, ua - un])[:, :n6]
 
         return residual
 
-    def _commanded_starts(self, rows, idx, q_start, q_end, f_all, q_cmd_end):
-        """(K, n_axes) commanded start poses of the moves idx. A move's commanded start is usually the previous move's
-        commanded end (same pose, same force): reused; the others are solved."""
+    def _commanded_starts(self, rows, idx, q_start, q_end, f_all, q_cmd_end, end_poses):
+        """(K, n_axes) commanded start poses of the moves idx, and their poses (actual tip, axis there, nominal tip,
+        axis at the nominal start; each (K, 3)). A move's commanded start is usually the previous move's commanded end
+        (same pose, same force): reused, with its poses (``end_poses``, the solve's at the ends); the others are
+        solved."""
         q0 = np.empty((idx.size, q_start.shape[1]))
+        poses = tuple(np.empty((idx.size, 3)) for _ in range(4))
         same = idx > 0
         prev = idx[same] - 1
         same[same] = np.all(q_start[idx[same]] == q_end[prev], axis=1) & (
             True if f_all is None else np.all(f_all[idx[same]] == f_all[prev], axis=1))
         q0[same] = q_cmd_end[idx[same] - 1]
+        for mine, theirs in zip(poses, end_poses):
+            mine[same] = theirs[idx[same] - 1]
         if not same.all():
             fresh = idx[~same]
-            q0[~same], _ = self.solve(q_start[fresh], None if f_all is None else f_all[fresh], rows[fresh])
-        return q0
+            q0[~same], _, solved = self.solve(q_start[fresh], None if f_all is None else f_all[fresh], rows[fresh],
+                                              poses=True)
+            for mine, theirs in zip(poses, solved):
+                mine[~same] = theirs
+        return q0, poses
+
+    def _end_poses(self, idx, q_start, q_end, start_poses, end_poses):
+        """(actual tip, axis, nominal tip, axis) (2K, 3) each at the starts then the ends of the moves idx, as
+        ``residual`` takes them: the actual poses the solves computed; the nominal pose at the start the solve's (the
+        start is the fraction 0), at the end the solve's where the fraction 1 gives the end's axes exactly, else
+        evaluated at that fraction."""
+        pa0, ua0, pn0, un0 = start_poses
+        pa1, ua1, pn1, un1 = (x[idx] for x in end_poses)
+        q_one = q_start[idx] + 1.0 * (q_end[idx] - q_start[idx])
+        other = np.nonzero(~np.all(q_one == q_end[idx], axis=1))[0]
+        if other.size:
+            pn1[other], un1[other] = self.twin.nominal_pose(q_one[other])
+        return np.vstack([pa0, pa1]), np.vstack([ua0, ua1]), np.vstack([pn0, pn1]), np.vstack([un0, un1])
 
     def _split_scale(self):
         """Per-component scale (3 or 6,) of the residuals: 1 / the tolerance a chord is judged by (1 / mm, 1 / rad).
