@@ -17,8 +17,11 @@ both ways and compares the bytes. A build whose source no longer matches the ker
 spec file) is not used. ``TRUEAXIS_AOT=0`` switches the ahead-of-time twins off; ``TRUEAXIS_AOT_DIR`` names another
 folder for them. ``python -m trueaxis.warm`` builds them (:func:`build_aot`, given the warm-up posts).
 
-The parallel kernels (numba ``prange``, long programs) have no ahead-of-time twin (pycc compiles serial code only):
-they import numba when first used, which a long program can afford.
+The parallel kernels (numba ``prange``, long programs) have no ahead-of-time twin (pycc compiles serial code only).
+The twins release the GIL instead (compiled so, :class:`_releasing_the_gil`), and a long program's twin runs the
+serial kernels' twins on threads, each on its share of the poses (:func:`run_twins`; ``machine.twin``,
+``machine.error_kernel``): the same numbers pose by pose, and numba is not imported at all (its import and first
+cache load cost a long post about 0.7 s). Without twins the parallel kernels import numba when first used.
 """
 
 from __future__ import annotations
@@ -34,7 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["numba", "Kernel", "KERNEL_MODULES", "build_aot", "aot_available", "numba_imported"]
+__all__ = ["numba", "Kernel", "KERNEL_MODULES", "build_aot", "aot_available", "numba_imported", "THREADS_MIN",
+           "thread_slices", "run_twins"]
 
 KERNEL_MODULES = ("trueaxis.nc.fast_read", "trueaxis.nc.fast_interp", "trueaxis.nc.fast_write",
                   "trueaxis.machine.error_kernel", "trueaxis.machine.chain_kernel")
@@ -45,6 +49,44 @@ _UNSET = object()
 _kernels: list = []  # every Kernel made
 _real = None  # the numba module, once imported
 _aot = _UNSET  # {qualified kernel name: (function, argument spec)} or None
+
+
+# From this many poses on, a kernel's work is shared among threads (numba prange, or ahead-of-time twins on threads).
+THREADS_MIN = 4096
+_pool = None
+
+
+def thread_count() -> int:
+    """Threads for the kernels' parallel work: NUMBA_NUM_THREADS, as numba's parallel kernels take it, else the CPU
+    count."""
+    return max(1, int(os.environ.get("NUMBA_NUM_THREADS") or 0) or os.cpu_count() or 1)
+
+
+def thread_slices(n: int) -> list:
+    """Contiguous slices of ``range(n)``, one per thread, when ``n`` is worth sharing (THREADS_MIN and more) and
+    there is more than one thread; else []."""
+    t = thread_count()
+    if n < THREADS_MIN or t < 2:
+        return []
+    edges = [n * k // t for k in range(t + 1)]
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def run_twins(kernel, calls):
+    """Run ``kernel`` on each argument tuple of ``calls`` by its ahead-of-time twin, the calls on threads of their own
+    (the twins release the GIL): the list of results, or None when a call has no twin (the caller takes numba's
+    parallel kernel instead). Each call computes what it would alone: the same numbers as one call, or as numba's
+    parallel kernel, which does the same pose by pose."""
+    global _pool
+    twin = getattr(kernel, "twin", None)  # (numba's dispatcher once the twins are off: none)
+    fns = [twin(*args) for args in calls] if twin is not None else [None]
+    if any(fn is None for fn in fns):
+        return None
+    if _pool is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _pool = ThreadPoolExecutor(max_workers=thread_count(), thread_name_prefix="trueaxis-kernel")
+    return list(_pool.map(lambda fa: fa[0](*fa[1]), zip(fns, calls)))
 
 
 def numba_imported() -> bool:
@@ -75,8 +117,17 @@ class Kernel:
             _jit_all()
         return self.dispatcher(*args)
 
+    def twin(self, *args):
+        """The ahead-of-time twin that takes exactly these arguments, or None (then only numba would). Twins release
+        the GIL while they run: callers may run them on threads of their own."""
+        table = _aot if _aot is not _UNSET else _load_aot()
+        for fn, spec in (table or {}).get(self.key, ()):
+            if _fits(args, spec):
+                return fn
+        return None
+
     def __getattr__(self, name):  # dispatcher attributes (signatures, overloads ...): numba's
-        if name.startswith("__") or name in ("py_func", "options", "key", "dispatcher"):
+        if name.startswith("__") or name in ("py_func", "options", "key", "dispatcher", "twin"):
             raise AttributeError(name)
         _jit_all()
         return getattr(self.dispatcher, name)
@@ -270,7 +321,7 @@ def build_aot(warm_up, folder: Path | None = None, out=sys.stderr) -> Path:
             export = f"{k.key.replace('.', '__')}__{i}"
             cc.export(export, sig)(k.py_func)
             kernels.setdefault(k.key, []).append({"export": export, "args": args, "signature": str(sig)})
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, _releasing_the_gil():
         cc.output_dir = tmp
         cc.compile()
         built = next(Path(tmp).glob(f"{AOT_NAME}*"))
@@ -282,6 +333,29 @@ def build_aot(warm_up, folder: Path | None = None, out=sys.stderr) -> Path:
     print(f"trueaxis.compiled: {sum(map(len, kernels.values()))} kernel signatures compiled ahead of time into "
           f"{target}", file=out)
     return spec_path
+
+
+class _releasing_the_gil:
+    """While compiling ahead of time: every exported kernel's Python wrapper releases the GIL around the call
+    (numba's ``nogil``; pycc takes its compile flags from ``numba.core.compiler.Flags``, which has no such option of
+    its own). The kernels touch no Python object, so threads may run them side by side (``machine.twin``: the chain of
+    a long program on all cores, without numba's parallel kernels)."""
+
+    def __enter__(self):
+        from numba.pycc import compiler
+
+        self._module, self._flags = compiler, compiler.Flags
+
+        class Flags(compiler.Flags):
+            def __init__(self, *args, **kwargs):
+                super().__init__(*args, **kwargs)
+                self.release_gil = True
+
+        compiler.Flags = Flags
+
+    def __exit__(self, *exc):
+        self._module.Flags = self._flags
+        return False
 
 
 def _called_from_python() -> set:

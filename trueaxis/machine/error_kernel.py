@@ -19,7 +19,7 @@ derivative to ``dval``) for pose i, its position being ``q[i, column_g]``; slots
 
 from __future__ import annotations
 
-from ..compiled import numba  # numba, or the kernels compiled ahead of time (see ..compiled)
+from ..compiled import numba, run_twins, thread_slices  # numba, or the kernels compiled ahead of time
 import numpy as np
 
 TWO_PI = 2.0 * np.pi
@@ -76,9 +76,32 @@ class CompiledErrors:
         A, B = self.shape
         val = np.empty((A, n, B))
         dval = np.empty((A, n, B)) if derivative else val  # without derivatives it stands in, unwritten
+        if self._threaded(q, derivative, val, dval):
+            return val, (dval if derivative else None)
         evaluate_packed(q, self.groups, self.grid, self.members, self.coef, self.scale, self.zero_slots,
                         self.n_harmonics, derivative, val, dval)
         return val, (dval if derivative else None)
+
+
+    def _threaded(self, q, derivative, val, dval) -> bool:
+        """Many poses: ``evaluate_packed``'s ahead-of-time twin on threads, each on a contiguous share of the poses
+        (each pose's values are computed alone: the same numbers), into ``val`` / ``dval``; False when not done."""
+        parts = thread_slices(q.shape[0])
+        if not parts:
+            return False
+        A, B = self.shape
+        calls = []
+        for sl in parts:
+            v = np.empty((A, sl.stop - sl.start, B))
+            calls.append((q[sl], self.groups, self.grid, self.members, self.coef, self.scale, self.zero_slots,
+                          self.n_harmonics, derivative, v, np.empty_like(v) if derivative else v))
+        if run_twins(evaluate_packed, calls) is None:
+            return False
+        for sl, call in zip(parts, calls):
+            val[:, sl] = call[-2]
+            if derivative:
+                dval[:, sl] = call[-1]
+        return True
 
 
 # --------------------------------------------------------------------------------------------- the pieces ----
