@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["numba", "Kernel", "KERNEL_MODULES", "build_aot", "aot_available", "numba_imported", "THREADS_MIN",
-           "thread_slices", "run_twins"]
+           "thread_slices", "run_twins", "run_threads"]
 
 KERNEL_MODULES = ("trueaxis.nc.fast_read", "trueaxis.nc.fast_interp", "trueaxis.nc.fast_write",
                   "trueaxis.machine.error_kernel", "trueaxis.machine.chain_kernel")
@@ -77,16 +77,22 @@ def run_twins(kernel, calls):
     (the twins release the GIL): the list of results, or None when a call has no twin (the caller takes numba's
     parallel kernel instead). Each call computes what it would alone: the same numbers as one call, or as numba's
     parallel kernel, which does the same pose by pose."""
-    global _pool
     twin = getattr(kernel, "twin", None)  # (numba's dispatcher once the twins are off: none)
     fns = [twin(*args) for args in calls] if twin is not None else [None]
     if any(fn is None for fn in fns):
         return None
+    return run_threads(lambda fa: fa[0](*fa[1]), list(zip(fns, calls)))
+
+
+def run_threads(fn, items) -> list:
+    """``[fn(item) for item in items]``, the calls on the kernels' threads (``fn`` should spend its time in twins,
+    which release the GIL, and must not call ``run_threads`` itself: the threads would wait for each other)."""
+    global _pool
     if _pool is None:
         from concurrent.futures import ThreadPoolExecutor
 
         _pool = ThreadPoolExecutor(max_workers=thread_count(), thread_name_prefix="trueaxis-kernel")
-    return list(_pool.map(lambda fa: fa[0](*fa[1]), zip(fns, calls)))
+    return list(_pool.map(fn, items))
 
 
 def numba_imported() -> bool:

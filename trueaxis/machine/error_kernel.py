@@ -69,19 +69,36 @@ class CompiledErrors:
         self.zero_slots = np.argwhere(~covered).astype(np.int64).reshape(-1, 2)
         self.n_harmonics = max([int(g[4] - g[3]) for g in g_int if g[0] == FOURIER], default=0)
 
-    def evaluate(self, q: np.ndarray, derivative: bool = True):
-        """Values (A, n, B) and, with derivative, d/dq (A, n, B) (else None) at poses q (n, n_columns)."""
+    def evaluate(self, q: np.ndarray, derivative: bool = True, threads: bool = True):
+        """Values (A, n, B) and, with derivative, d/dq (A, n, B) (else None) at poses q (n, n_columns).
+        ``threads``: many poses may be shared among threads (False: on this thread, as from one of them)."""
         q = np.ascontiguousarray(q, dtype=float)
         n = q.shape[0]
         A, B = self.shape
         val = np.empty((A, n, B))
         dval = np.empty((A, n, B)) if derivative else val  # without derivatives it stands in, unwritten
-        if self._threaded(q, derivative, val, dval):
+        if threads and self._threaded(q, derivative, val, dval):
             return val, (dval if derivative else None)
         evaluate_packed(q, self.groups, self.grid, self.members, self.coef, self.scale, self.zero_slots,
                         self.n_harmonics, derivative, val, dval)
         return val, (dval if derivative else None)
 
+
+    def twin_evaluate(self, q: np.ndarray, derivative: bool):
+        """``evaluate(q, derivative, threads=False)`` by ``evaluate_packed``'s ahead-of-time twin only (no numba:
+        callable from the kernels' threads), or None when no twin takes the arguments."""
+        q = np.ascontiguousarray(q, dtype=float)
+        A, B = self.shape
+        val = np.empty((A, q.shape[0], B))
+        dval = np.empty_like(val) if derivative else val
+        args = (q, self.groups, self.grid, self.members, self.coef, self.scale, self.zero_slots, self.n_harmonics,
+                derivative, val, dval)
+        twin = getattr(evaluate_packed, "twin", None)
+        fn = twin(*args) if twin is not None else None
+        if fn is None:
+            return None
+        fn(*args)
+        return val, (dval if derivative else None)
 
     def _threaded(self, q, derivative, val, dval) -> bool:
         """Many poses: ``evaluate_packed``'s ahead-of-time twin on threads, each on a contiguous share of the poses

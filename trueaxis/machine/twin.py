@@ -37,7 +37,7 @@ from functools import cached_property
 
 import numpy as np
 
-from ..compiled import THREADS_MIN, run_twins, thread_slices
+from ..compiled import THREADS_MIN, run_threads, run_twins, thread_slices
 from . import chain_kernel
 from .error_kernel import CompiledErrors
 from .kinematics import Z_TOOL, Link, axis_motion, chain_links, validate_poses
@@ -567,6 +567,10 @@ class ErrorTwin:
         """Tip (n,3), unit axis (n,3) and, with jacobian, the axis Jacobian (n, 6, n_axes) (else None), by the
         compiled chain: the numbers of ``_evaluate(..., cols="axes")`` up to round-off."""
         q = np.ascontiguousarray(q)
+        if errors and force_n is None and q.shape[0] >= PARALLEL_MIN:
+            out = self._threaded_unloaded(q, jacobian)
+            if out is not None:
+                return out
         values = self._chain_values(q, force_n, motion, errors, jacobian)
         # many poses: the serial kernels' ahead-of-time twins on threads, each on its share of the poses, else numba's
         # parallel kernels (the same numbers, pose by pose); few: the serial ones (no thread start-up)
@@ -581,6 +585,32 @@ class ErrorTwin:
             return kernel(q, *self._layout, *values)
         kernel = chain_kernel.pose_parallel if parallel else chain_kernel.pose
         return (*kernel(q, *self._layout, *values), None)
+
+    def _threaded_unloaded(self, q, jacobian: bool):
+        """``_compose`` of many poses without force: each thread evaluates the component errors of its share of the
+        poses and composes their chains (both by the kernels' ahead-of-time twins; the other inputs are the same for
+        every pose, as ``_chain_values`` gives them without force), the shares joined; None without twins."""
+        parts = thread_slices(q.shape[0])
+        if not parts:
+            return None
+        kernel = chain_kernel.pose_and_axis_jacobian if jacobian else chain_kernel.pose
+        twin = getattr(kernel, "twin", None)
+        shared = self._constant_location, self._nominal_values[5], self._zero_derivatives[1]
+
+        def share(sl):
+            evaluated = self._components.twin_evaluate(q[sl], jacobian)
+            if evaluated is None or twin is None:
+                return None
+            comp, dcomp = evaluated
+            args = (q[sl], *self._layout, *shared[0], comp, shared[1]) + ((dcomp, shared[2]) if jacobian else ())
+            fn = twin(*args)
+            return None if fn is None else fn(*args)
+
+        results = run_threads(share, parts)
+        if any(r is None for r in results):
+            return None
+        out = tuple(np.concatenate(x) for x in zip(*results))
+        return out if jacobian else (*out, None)
 
     # ------------------------------------------------------------------------------------ the chain, in numpy ----
     def _evaluate(self, q, force_n, motion, errors: bool, jacobian: bool, cols: str = "all"):
