@@ -280,3 +280,48 @@ def test_number_style_is_the_regular_expressions_answer():
 @SETTINGS
 def test_number_style_is_the_regular_expressions_answer_on_random_text(text):
     assert _compiled_style(text) == _reference_style(text)
+
+
+# --------------------------------------------------------------------- the block checks' scans (nc.check) ----
+def _reference_candidate(text, pos):
+    from trueaxis.nc.check import _CANDIDATES
+
+    found = [m.start() for m in (p.search(text, pos) for p in _CANDIDATES) if m is not None]
+    return min(found) if found else -1
+
+
+def _reference_ijkr(text, a, b):
+    from trueaxis.nc.check import _IJKR_AFTER_LINEAR
+
+    m = _IJKR_AFTER_LINEAR.search(text, a, b)
+    return -1 if m is None else m.end() - 1
+
+
+def _check_scans_agree(text):
+    text = "".join(c if c.isascii() else "?" for c in text)
+    buf = np.frombuffer(text.encode("ascii"), np.uint8)
+    for pos in sorted({0, 1, len(text) // 3, len(text) // 2, len(text)}):
+        if pos <= len(text):
+            assert fast_read.next_check_candidate(buf, fast_read._PLAIN_BYTES, pos) == _reference_candidate(text, pos)
+    for a, b in ((0, len(text)), (len(text) // 4, len(text)), (0, (2 * len(text)) // 3), (1, len(text) - 1)):
+        if 0 <= a <= b <= len(text):
+            assert fast_read.ijkr_after_linear(buf, a, b) == _reference_ijkr(text, a, b), (text, a, b)
+
+
+CHECK_PIECES = st.sampled_from(["G0", "G00", "G01", "G1", "G2", "G03", "G 1", "G\t0", "G 01", "G011", "G1.", "G0.",
+                                "G4", "G10", "G", "N", "N10", " N5", "N-1", "N +2", "X1", "I2", "J", "K.5", "R3",
+                                "F100", "M3", "(c)", ";", " ", "\t", "\n", "\r", "\r\n", "0", "1", ".", "-", "g1",
+                                "x"])
+CHECK_TEXT = st.one_of(st.text("GNXIJKR01234.+- \t\r\nM(;", max_size=40), st.lists(CHECK_PIECES, max_size=20)
+                       .map("".join))
+
+
+@given(CHECK_TEXT)
+@SETTINGS
+def test_the_block_checks_compiled_scans_are_their_patterns(text):
+    _check_scans_agree(text)
+
+
+def test_the_block_checks_compiled_scans_on_the_nist_programs():
+    for name in ("mtc_plate_1.nc", "mtc_cover_rev_a.nc", "d2mi_827-9999-904_op1.nc"):
+        _check_scans_agree((ROOT / "fixtures" / "programs" / "nist" / name).read_text(errors="replace"))

@@ -367,7 +367,8 @@ class _releasing_the_gil:
 def _called_from_python() -> set:
     """The kernels the post calls from Python (module-level names other modules or the post use), not helpers."""
     return {"trueaxis.nc.fast_read.line_starts", "trueaxis.nc.fast_read.scan_lines",
-            "trueaxis.nc.fast_read.number_style",
+            "trueaxis.nc.fast_read.number_style", "trueaxis.nc.fast_read.next_check_candidate",
+            "trueaxis.nc.fast_read.ijkr_after_linear",
             "trueaxis.nc.fast_interp.straight_run", "trueaxis.nc.fast_interp.run_lengths",
             "trueaxis.nc.fast_write.scan", "trueaxis.nc.fast_write.assemble",
             "trueaxis.machine.error_kernel.evaluate_packed", "trueaxis.machine.chain_kernel.pose",

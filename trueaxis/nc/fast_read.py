@@ -25,7 +25,7 @@ from ..compiled import numba  # numba, or the kernels compiled ahead of time (se
 import numpy as np
 
 __all__ = ["LINE_NO_MATCH", "LINE_NO_MOTION", "LINE_FAST", "LINE_SLOW", "WORDS", "line_starts", "scan_lines",
-           "scan_text", "number_style"]
+           "scan_text", "number_style", "next_check_candidate", "ijkr_after_linear"]
 
 # per-line status
 LINE_NO_MATCH = 0  # the line is not a _FAST block (general path)
@@ -284,6 +284,81 @@ def number_style(buf):
             if j >= 0 and _is_leading_letter(buf[j]):
                 leading = 1 if zero else 0
     return decimals, bare, leading
+
+
+# The bytes a plain move may hold: N G X Y Z A B C F I J K R, digits, point, signs, blanks, line endings
+_PLAIN_BYTES = np.zeros(256, np.bool_)
+for _c in b"NGXYZABCFIJKR0123456789.+- \t\r\n":
+    _PLAIN_BYTES[_c] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _digit_or_point(buf, i, end):
+    return i < end and (_is_digit(buf[i]) or buf[i] == _DOT)
+
+
+@numba.njit(cache=True, nogil=True)
+def next_check_candidate(buf, plain, pos):
+    """The first offset >= ``pos`` of ``buf`` (uint8, ASCII) where a block may need the checks word by word
+    (``nc.check``), or -1: where one of its patterns matches -- a byte no plain move has (``plain``: True for the
+    bytes one may), a G code other than G0..G3 (``G(?![ \t]*0?[0-3](?![0-9.]))``), a G followed by another on its
+    line (``G[^G\n]*G``), an N not at the start of a line, an N with a sign (``N[ \t]*[-+]``)."""
+    n = buf.shape[0]
+    for i in range(pos, n):
+        c = buf[i]
+        if not plain[c]:
+            return i
+        if c == _G:
+            j = i + 1
+            while j < n and (buf[j] == _SP or buf[j] == _TAB):
+                j += 1
+            # G0..G3 (G00..G03): the lookahead's two ways, '0' then the digit, or the digit alone
+            motion = False
+            if j + 1 < n and buf[j] == _D0 and buf[j + 1] >= _D0 and buf[j + 1] <= _D3 \
+                    and not _digit_or_point(buf, j + 2, n):
+                motion = True
+            elif j < n and buf[j] >= _D0 and buf[j] <= _D3 and not _digit_or_point(buf, j + 1, n):
+                motion = True
+            if not motion:
+                return i
+            k = i + 1
+            while k < n and buf[k] != _G and buf[k] != _LF:
+                k += 1
+            if k < n and buf[k] == _G:
+                return i
+        elif c == _N:
+            if i > 0 and buf[i - 1] != _LF:
+                return i
+            j = i + 1
+            while j < n and (buf[j] == _SP or buf[j] == _TAB):
+                j += 1
+            if j < n and (buf[j] == _PLUS or buf[j] == _MINUS):
+                return i
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def ijkr_after_linear(buf, a, b):
+    """In ``buf[a:b]`` (uint8, ASCII): the offset of the first I J K or R word that follows a G0 / G1 (``G0?[01]``
+    not followed by a digit or point) with no G between (line ends allowed), or -1 -- where
+    ``G0?[01](?![0-9.])[^G\nIJKR]*+(?:\n[^G\nIJKR]*+)*+[IJKR]`` would end."""
+    for g in range(a, b):
+        if buf[g] != _G:
+            continue
+        j = g + 1
+        end = -1
+        if j + 1 < b and buf[j] == _D0 and (buf[j + 1] == _D0 or buf[j + 1] == 49) and not _digit_or_point(buf, j + 2, b):
+            end = j + 2
+        elif j < b and (buf[j] == _D0 or buf[j] == 49) and not _digit_or_point(buf, j + 1, b):
+            end = j + 1
+        if end < 0:
+            continue
+        k = end
+        while k < b and buf[k] != _G and buf[k] != 73 and buf[k] != 74 and buf[k] != 75 and buf[k] != 82:
+            k += 1
+        if k < b and buf[k] != _G:
+            return k
+    return -1
 
 
 def scan_text(text: str):
