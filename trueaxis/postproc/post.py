@@ -1200,8 +1200,9 @@ class _Poster:
             motion = FEED
         # G93: each piece takes its share of the block's time (the control interpolates the axes linearly in time,
         # so a piece over the fraction df of the move takes df of it): inverse time F / df.
-        piece_f = p.feed[r] / np.diff(self.fractions.get(r, np.linspace(0.0, 1.0, n + 1)))
         if inverse:
+            fractions = self.fractions.get(r)
+            piece_f = p.feed[r] / np.diff(np.linspace(0.0, 1.0, n + 1) if fractions is None else fractions)
             body = _replace_feed(body, piece_f[0], fmt, sep)
         if inc:
             words = [fmt(a, _out_value(pts[0], last_written, a, inc)) for a in axes_out]
@@ -1276,9 +1277,12 @@ class _Poster:
             inch0 = p.inch[cand_r0[arcs]]
             n_extra[arcs] = 2
             extra_val[arcs] = values
+            # (per letter and unit, not per arc: a program has hundreds of thousands of them)
+            table = np.array([[numbers.decimals(c, inch) for inch in (False, True)] for c in "IJK"], np.int64)
             for j in range(2):
-                extra_letter[arcs, j] = [ord(c) for c in letters[:, j]]
-                extra_dec[arcs, j] = [numbers.decimals(c, bool(i)) for c, i in zip(letters[:, j], inch0)]
+                which = np.searchsorted(np.array(list("IJK")), letters[:, j])
+                extra_letter[arcs, j] = np.frombuffer(b"IJK", np.uint8)[which]
+                extra_dec[arcs, j] = table[which, inch0.astype(np.int64)]
         ok, spans = fast_write.scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch,
                                     n_extra, extra_val, extra_dec)
         handled = np.zeros(starts.size, bool)
