@@ -144,10 +144,23 @@ class InterpState:
 
     def refresh_state(self) -> None:
         """The index of the state in force (feed, modes, tool, offsets, setup) into ``cur_state``."""
-        key = (self.feed, self.inverse, self.inch, self.cutter, self.tool, not self.absolute, not self.arc_abs,
-               tuple(self.off_now), self.meta_now, self.diameter)
         states = self.states
-        self.cur_state = states.setdefault(key, len(states))
+        self.cur_state = states.setdefault((self.feed,) + self.state_key_rest(), len(states))
+
+    def state_key_rest(self) -> tuple:
+        """The state's key after its feed: the modes, tool, offsets and setup in force."""
+        return (self.inverse, self.inch, self.cutter, self.tool, not self.absolute, not self.arc_abs,
+                tuple(self.off_now), self.meta_now, self.diameter)
+
+    def feed_states(self, feeds) -> list:
+        """The state indices of ``feeds`` (Python floats) in turn, nothing else changing (a run of plain moves whose
+        feed changes: one key's rest for all, as ``refresh_state`` would make them one by one); the last one and its
+        feed are in force after."""
+        states, rest = self.states, self.state_key_rest()
+        out = [states.setdefault((f,) + rest, len(states)) for f in feeds]
+        if out:
+            self.feed, self.cur_state = feeds[-1], out[-1]
+        return out
 
     def emit(self, motion, kind, target, li, words=0, center=None, pl=0, turns=0):
         """One row from the position to ``target`` (which becomes the position)."""
