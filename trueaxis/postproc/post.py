@@ -864,7 +864,8 @@ class _Poster:
     def _path_residual(self, q_start, q_end, f_all):
         """residual(i_move, fr, qc, known=None) -> (K, 3 or 6): the actual pose at commanded poses qc less the nominal
         pose at the fractions fr of the moves i_move (indices into the chunk's rows), position then tool axis;
-        ``known``: (actual tip, axis, nominal tip, axis) there, computed already (then the twin is not called).
+        ``known``: (actual tip, axis, nominal tip, axis) there, computed already (then the twin is not called);
+        ``residual.poses(i_move, fr, qc)`` computes them.
 
         Judged is the position error along the directions the axes can correct (all three on a mill, X and Z on a
         lathe, whose error along Y moves the turned radius by second order only and no axis can remove)."""
@@ -872,15 +873,17 @@ class _Poster:
         correctable = corrected_directions(self.m)
         correctable = correctable.T @ correctable
 
+        def poses(i_move, fr, qc):
+            q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
+            pn, un = self.twin.nominal_pose(q_nom)
+            pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
+            return pa, ua, pn, un
+
         def residual(i_move, fr, qc, known=None):
-            if known is None:
-                q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
-                pn, un = self.twin.nominal_pose(q_nom)
-                pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
-            else:
-                pa, ua, pn, un = known
+            pa, ua, pn, un = poses(i_move, fr, qc) if known is None else known
             return np.hstack([(pa - pn) @ correctable, ua - un])[:, :n6]
 
+        residual.poses = poses
         return residual
 
     def _commanded_starts(self, rows, idx, q_start, q_end, f_all, q_cmd_end, end_poses):
@@ -941,9 +944,16 @@ class _Poster:
         dev_um = np.zeros(owner.size)
         dev_urad = np.zeros(owner.size)
         held = held[:, None]
-        for sfrac in (0.25, 0.5, 0.75):
-            c_at = ca + sfrac * (cb - ca) if self.tcp is None else self.tcp.interpolate(ca, cb, sfrac)
-            e = residual(owner, a + sfrac * (b - a), c_at)
+        fractions = (0.25, 0.5, 0.75)
+        at = [a + sfrac * (b - a) for sfrac in fractions]
+        c_at = [ca + sfrac * (cb - ca) if self.tcp is None else self.tcp.interpolate(ca, cb, sfrac)
+                for sfrac in fractions]
+        # the twin once for the three fractions' points (the same poses; one call, not three), judged fraction by
+        # fraction
+        k = owner.size
+        known = residual.poses(np.tile(owner, 3), np.concatenate(at), np.vstack(c_at))
+        for j, sfrac in enumerate(fractions):
+            e = residual(owner, at[j], c_at[j], tuple(x[j * k : (j + 1) * k] for x in known))
             e = e - np.where(held, (1 - sfrac) * ra + sfrac * rb, 0.0)
             ep = np.linalg.norm(e[:, :3], axis=1)
             eu = np.linalg.norm(e[:, 3:], axis=1) if self.orientation else np.zeros(owner.size)
