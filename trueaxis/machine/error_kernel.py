@@ -19,7 +19,7 @@ derivative to ``dval``) for pose i, its position being ``q[i, column_g]``; slots
 
 from __future__ import annotations
 
-from ..compiled import numba, run_twins, thread_slices  # numba, or the kernels compiled ahead of time
+from ..compiled import aot_available, numba, run_twins, thread_slices  # numba, or ahead-of-time twins
 import numpy as np
 
 TWO_PI = 2.0 * np.pi
@@ -104,7 +104,7 @@ class CompiledErrors:
         """Many poses: ``evaluate_packed``'s ahead-of-time twin on threads, each on a contiguous share of the poses
         (each pose's values are computed alone: the same numbers), into ``val`` / ``dval``; False when not done."""
         parts = thread_slices(q.shape[0])
-        if not parts:
+        if not parts or getattr(evaluate_packed, "twin", None) is None or not aot_available():
             return False
         A, B = self.shape
         calls = []

@@ -37,7 +37,7 @@ from functools import cached_property
 
 import numpy as np
 
-from ..compiled import THREADS_MIN, run_threads, run_twins, thread_slices
+from ..compiled import THREADS_MIN, aot_available, run_threads, run_twins, thread_slices
 from . import chain_kernel
 from .error_kernel import CompiledErrors
 from .kinematics import Z_TOOL, Link, axis_motion, chain_links, validate_poses
@@ -767,8 +767,8 @@ def _threaded(kernel, q, layout, values):
     """``kernel(q, *layout, *values)`` as its ahead-of-time twin on threads, each on a contiguous share of the poses
     (the per-pose inputs cut to it, shared ones as they are), the outputs joined; None where no twin takes them."""
     parts = thread_slices(q.shape[0])
-    if not parts:
-        return None
+    if not parts or getattr(kernel, "twin", None) is None or not aot_available():
+        return None  # (numba's parallel kernel then: the inputs are not cut for nothing)
     calls = []
     for sl in parts:
         cut = tuple(v if v.shape[ax] == 1 else np.ascontiguousarray(v[sl] if ax == 0 else v[:, sl])
