@@ -739,7 +739,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             return None
         state0 = self.cur_state
         rows = fast_interp.feed_changes(run[5], feed)  # the states, where the feed changes
-        changed = list(zip(rows, self.feed_states(run[5][rows].tolist())))
+        changed = list(zip(rows, self.feed_states(run[5][rows])))
         if changed:
             feed = self.feed
         pos, motion_mode = fast_interp.append_rows(run, li, state0, changed, self.r_start, self.r_end, self.r_line,
