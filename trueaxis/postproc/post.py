@@ -626,7 +626,8 @@ class _Poster:
             st["urad"] = max(st["urad"], float(res.axis_residual_urad[~held].max(initial=0.0)))
             st["urad_singular"] = max(st["urad_singular"], float(res.axis_residual_urad[held].max(initial=0.0)))
         st["singular_points"] += int(held.sum())
-        st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
+        if held.any():  # (line_no is made for the whole program each time it is read)
+            st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
         return (res.q, held, res.actual + res.nominal) if poses else (res.q, held)
 
     def check(self, q_nom, q_cmd, rows):
@@ -1353,10 +1354,12 @@ class _Poster:
         p = self.p
         inch = bool(p.inch[r])
         if p.arc_incremental[r]:
-            if not hasattr(self, "_fit_numbers"):
-                self._fit_numbers = _Numbers(p.format_info)
-            dec = np.array([self._fit_numbers.decimals(a, inch) for a in "XYZ"])
-            written = np.round(np.asarray(start[:3], float) * 10.0**dec) / 10.0**dec
+            if not hasattr(self, "_fit_scale"):
+                numbers = _Numbers(p.format_info)
+                self._fit_scale = {flag: 10.0 ** np.array([numbers.decimals(a, flag) for a in "XYZ"])
+                                   for flag in (False, True)}  # (per unit, not per sub-arc)
+            scale = self._fit_scale[inch]
+            written = np.round(np.asarray(start[:3], float) * scale) / scale
             centre = centre - written
         plane = int(p.arc_plane[r])
         cols = {17: (0, 1), 18: (0, 2), 19: (1, 2)}[plane]

@@ -99,8 +99,8 @@ def solve_commanded(
         # Normal equations, batched (matmul on stacks of small matrices); held axes get a unit diagonal so their step
         # is zero.
         Jt = J.transpose(0, 2, 1)
-        A = Jt @ J
-        A[:, np.arange(k), np.arange(k)] += ~fr
+        A = Jt @ J  # (a new C-ordered stack: its diagonals are every (k + 1)-th element of a row of k * k)
+        A.reshape(A.shape[0], k * k)[:, :: k + 1] += ~fr
         b = Jt @ r[..., None]
         q[todo] = qa - np.linalg.solve(A, b)[..., 0]
     ok = pos_err <= tol_um
