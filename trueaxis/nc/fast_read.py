@@ -347,7 +347,8 @@ def ijkr_after_linear(buf, a, b):
             continue
         j = g + 1
         end = -1
-        if j + 1 < b and buf[j] == _D0 and (buf[j + 1] == _D0 or buf[j + 1] == 49) and not _digit_or_point(buf, j + 2, b):
+        if j + 1 < b and buf[j] == _D0 and (buf[j + 1] == _D0 or buf[j + 1] == 49) \
+                and not _digit_or_point(buf, j + 2, b):
             end = j + 2
         elif j < b and (buf[j] == _D0 or buf[j] == 49) and not _digit_or_point(buf, j + 1, b):
             end = j + 1

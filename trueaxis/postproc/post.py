@@ -760,7 +760,8 @@ class _Poster:
         feed_rows = np.nonzero((p.motion[rows] == FEED) & self.start_known[rows])[0]
         pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd, end_poses))
         if np.any(arcs):
-            arc_pieces, modes = self._arcs(rows, np.nonzero(arcs)[0], q_start, q_end, force, inch, delta_prog)
+            arc_pieces, modes = self._arcs(rows, np.nonzero(arcs)[0], q_start, (q_end, q_cmd), force, inch,
+                                           delta_prog)
             pieces.update(arc_pieces)
             arc_mode.update(modes)
         return delta_prog, dq, pieces, arc_mode
@@ -992,11 +993,12 @@ class _Poster:
             self.fractions[int(rows[i])] = np.r_[0.0, fr[sel], 1.0]
         return out
 
-    def _arcs(self, rows, arc_idx, q_start, q_end, force, inch, delta_prog):
+    def _arcs(self, rows, arc_idx, q_start, solved_ends, force, inch, delta_prog):
         """Arcs whose correction is constant within tolerance stay arcs; others are fitted (``.arcs``, where
         ``fit_arcs``) or become straight pieces.
 
-        All arcs are sampled and solved together (one Newton solve per stage, not per arc)."""
+        All arcs are sampled and solved together (one Newton solve per stage, not per arc); ``solved_ends``: (nominal,
+        commanded) poses of the chunk's block ends, whose solves the arcs' last points take."""
         p = self.p
         out, modes = {}, {}
         arc_idx = np.asarray(arc_idx, int)
@@ -1008,7 +1010,7 @@ class _Poster:
         n_s = np.clip(np.ceil(length / ARC_SAMPLE_MM), 4, 16).astype(int)
         pts6 = _arcs_points(p, r_arcs, n_s)
         owner = np.repeat(np.arange(arc_idx.size), n_s + 1)
-        q_c, q_pts = self._solve_arc_points(rows, arc_idx, owner, pts6, force)
+        q_c, q_pts = self._solve_arc_points(rows, arc_idx, owner, pts6, force, solved_ends)
         lin = [j for j, a in enumerate(self.names) if not self.m.axes[a].is_rotary]
         d = (q_c - q_pts)[:, lin]
         last = np.cumsum(n_s + 1) - 1
@@ -1039,7 +1041,7 @@ class _Poster:
         counts = np.maximum(2, np.ceil(sweep / step)).astype(int)
         pts6 = _arcs_points(p, r_lin, counts)
         owner = np.repeat(np.arange(lin.size), np.asarray(counts) + 1)
-        q_c, q_pts = self._solve_arc_points(rows, lin, owner, pts6, force)
+        q_c, q_pts = self._solve_arc_points(rows, lin, owner, pts6, force, solved_ends)
         self.check(q_pts, q_c, rows[lin][owner])
         cmd6 = pts6 + self.to_program_delta(self.command_delta(q_c, q_pts), p.inch[rows[lin]][owner], rows[lin][owner])
         first = np.r_[0, np.cumsum(np.asarray(counts) + 1)[:-1]]
@@ -1049,8 +1051,12 @@ class _Poster:
         self.rep.arcs_linearised += int(lin.size)
         return out, modes
 
-    def _solve_arc_points(self, rows, arc_idx, owner, pts6, force):
-        """Commanded and nominal machine poses (K, n_axes) for points ``pts6`` (K, 6) on the arcs ``arc_idx[owner]``."""
+    def _solve_arc_points(self, rows, arc_idx, owner, pts6, force, ends=None):
+        """Commanded and nominal machine poses (K, n_axes) for points ``pts6`` (K, 6) on the arcs ``arc_idx[owner]``.
+
+        ``ends``: (nominal, commanded) poses of the chunk's block ends, solved already: an arc's last point is its end
+        (``_arcs_points`` puts it there exactly), and where it gives the same nominal pose under the same load its
+        commanded pose is taken from there (the same solve of the same numbers)."""
         p = self.p
         r = rows[arc_idx][owner]
         q_pts = self.to_machine(p.to_machine(pts6, r), p.inch[r])
@@ -1058,9 +1064,28 @@ class _Poster:
         if f is not None and f.shape[1] > 3:  # a lathe's loads: force and motion follow the arc (see .turning)
             from .turning import arc_point_loads
 
-            f = arc_point_loads(self, r, pts6, f)
-        q_c, _ = self.solve(q_pts, f, r)
+            f, ends = arc_point_loads(self, r, pts6, f), None
+        taken = np.zeros(owner.size, bool)
+        if ends is not None:
+            last = np.nonzero(np.r_[owner[1:] != owner[:-1], True])[0]
+            block = arc_idx[owner[last]]
+            last = last[np.all(q_pts[last] == ends[0][block], axis=1)]
+            taken[last] = True
+        q_c = np.empty_like(q_pts)
+        if taken.any():
+            q_c[taken] = ends[1][arc_idx[owner[taken]]]
+            self._record_taken(q_pts[taken], r[taken])
+        if not taken.all():
+            q_c[~taken], _ = self.solve(q_pts[~taken], None if f is None else f[~taken], r[~taken])
         return q_c, q_pts
+
+    def _record_taken(self, q, rows):
+        """What ``solve`` records of its points (the residuals aside: recorded by the solve they come from), for points
+        whose commanded poses were taken from another solve: the points and blocks in the singular cone."""
+        held = self.singular_at(q)
+        self.stats["singular_points"] += int(held.sum())
+        if held.any():
+            self.stats["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
 
     # --- writing -------------------------------------------------------------------------------------------------
     def _write(self, rows, delta_prog, pieces, arc_mode):
