@@ -202,3 +202,17 @@ def test_long_programs_run_the_twins_on_threads_with_the_numbers_of_the_serial_a
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out == {"numba imported by the threaded kernels": False, "same as serial": True,
                    "same as numba parallel": True}
+
+
+def test_a_forked_child_makes_its_own_kernel_threads():
+    # the parent's pool threads do not exist in a forked child: it must not wait for them
+    compiled.run_threads(abs, [-1, -2])
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            code = 0 if compiled.run_threads(abs, [-3, -4]) == [3, 4] else 1
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0

@@ -84,6 +84,16 @@ def run_twins(kernel, calls):
     return run_threads(lambda fa: fa[0](*fa[1]), list(zip(fns, calls)))
 
 
+def _forget_pool():
+    """In a forked child: the parent's kernel threads are not there (a new pool is made when needed)."""
+    global _pool
+    _pool = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
 def run_threads(fn, items) -> list:
     """``[fn(item) for item in items]``, the calls on the kernels' threads (``fn`` should spend its time in twins,
     which release the GIL, and must not call ``run_threads`` itself: the threads would wait for each other)."""
