@@ -140,11 +140,13 @@ def _big_program(path: Path, blocks: int):
 
 
 def _wait_until_computing(proc, timeout=60.0):
-    """Until the process has imported the compiled kernels (it is past start-up and inside the post)."""
+    """Until the process has loaded the compiled kernels, ahead of time (a long post no longer imports numba) or
+    numba's (it is past start-up and inside the post)."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         try:
-            if "llvmlite" in Path(f"/proc/{proc.pid}/maps").read_text():
+            maps = Path(f"/proc/{proc.pid}/maps").read_text()
+            if "_aot_kernels" in maps or "llvmlite" in maps:
                 return
         except OSError:
             pass

@@ -148,3 +148,71 @@ def test_a_build_from_other_source_is_not_used(aot_dir, tmp_path):
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={**os.environ, "PYTHONPATH": str(ROOT), "TRUEAXIS_AOT_DIR": str(aot_dir)})
     assert res.stdout.strip() == "True"
+
+
+_THREADS = r"""
+import json, sys
+import numpy as np
+from trueaxis import compiled
+from trueaxis.machine import ErrorTwin, load_machine
+from trueaxis.machine.twin import PARALLEL_MIN
+m = load_machine(sys.argv[1])
+rng = np.random.default_rng(1)
+values = m.parameter_values()
+m = m.with_parameters(np.where(values == 0.0, rng.normal(0.0, 10.0, values.size), values))
+twin = ErrorTwin(m)
+n = 3 * PARALLEL_MIN + 17
+lo = np.array([twin.machine.axes[a].travel[0] if twin.machine.axes[a].travel is not None else -3.0
+               for a in m.axis_names])
+hi = np.array([twin.machine.axes[a].travel[1] if twin.machine.axes[a].travel is not None else 3.0
+               for a in m.axis_names])
+q = lo + (hi - lo) * rng.random((n, len(lo)))
+force = rng.normal(0.0, 100.0, (n, 3))
+out = {}
+threaded = [twin.actual_pose(q, force), twin.pose_and_axis_jacobian(q, force), twin.nominal_pose(q),
+            twin.actual_pose(q), twin.pose_and_axis_jacobian(q)]
+out["numba imported by the threaded kernels"] = "numba" in sys.modules
+# the serial kernels, poses in small batches (below PARALLEL_MIN)
+cut = range(0, n, 1000)
+serial = [[np.concatenate(x) for x in zip(*[f(q[i:i + 1000], force[i:i + 1000]) for i in cut])]
+          for f in (twin.actual_pose, twin.pose_and_axis_jacobian)]
+serial.append([np.concatenate(x) for x in zip(*[twin.nominal_pose(q[i:i + 1000]) for i in cut])])
+serial += [[np.concatenate(x) for x in zip(*[f(q[i:i + 1000]) for i in cut])]
+           for f in (twin.actual_pose, twin.pose_and_axis_jacobian)]
+# numba's parallel kernels (the twins off)
+compiled._aot = None
+compiled._jit_all()
+parallel = [twin.actual_pose(q, force), twin.pose_and_axis_jacobian(q, force), twin.nominal_pose(q),
+            twin.actual_pose(q), twin.pose_and_axis_jacobian(q)]
+out["same as serial"] = all(np.array_equal(a, b) for x, y in zip(threaded, serial) for a, b in zip(x, y))
+out["same as numba parallel"] = all(np.array_equal(a, b) for x, y in zip(threaded, parallel) for a, b in zip(x, y))
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.slow
+def test_long_programs_run_the_twins_on_threads_with_the_numbers_of_the_serial_and_parallel_kernels(aot_dir):
+    # A long program's twin: the serial kernels' ahead-of-time twins on threads (they release the GIL), instead of
+    # numba's parallel kernels, whose import and first load cost ~0.7 s: bit for bit the same poses and Jacobians,
+    # with force (the error values evaluated first, then the chain on threads) and without (both on each thread).
+    res = subprocess.run([sys.executable, "-c", _THREADS, str(MACHINES / "nmv1500dcg.toml")], capture_output=True,
+                         text=True, check=False, env={**os.environ, "PYTHONPATH": str(ROOT),
+                                                      "TRUEAXIS_AOT_DIR": str(aot_dir), "NUMBA_NUM_THREADS": "2"})
+    assert res.returncode == 0, res.stderr[-2000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out == {"numba imported by the threaded kernels": False, "same as serial": True,
+                   "same as numba parallel": True}
+
+
+def test_a_forked_child_makes_its_own_kernel_threads():
+    # the parent's pool threads do not exist in a forked child: it must not wait for them
+    compiled.run_threads(abs, [-1, -2])
+    pid = os.fork()
+    if pid == 0:
+        code = 1
+        try:
+            code = 0 if compiled.run_threads(abs, [-3, -4]) == [3, 4] else 1
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0

@@ -215,3 +215,15 @@ def test_the_block_checks_still_refuse_after_g93s_first_feed(bad, message):
     with pytest.raises(GcodeError) as info:
         parse_program(text, "t.ngc", setup=Setup(offsets_zero=True), require_setup=True)
     assert f"t.ngc:{4 + 60}:" in str(info.value) and message in str(info.value)
+
+
+def test_a_run_whose_feed_changes_on_most_lines_reads_to_the_same_states(monkeypatch):
+    """A run of plain moves whose feed changes line by line, feeds coming back (G93 programs write one per line): the
+    states of the compiled run (each distinct feed looked up once) are the reader's line by line, in the same order."""
+    feeds = [350.25, 350.5, 350.25, 351.0, 350.5, 352.0, 351.0, 350.25] * 40
+    text = "G21 G90 G17 G94\nG0 X0 Y0 Z0\nF100\n" + "".join(
+        f"G1 X{0.1 * k:.4f} Y{0.05 * k:.4f} F{f}\n" for k, f in enumerate(feeds)) + "G93\n" + "".join(
+        f"G1 X{5 - 0.1 * k:.4f} F{f * 10}\n" for k, f in enumerate(feeds[:90])) + "M30\n"
+    fast, slow, taken = _tables(text, monkeypatch)
+    assert taken > 300
+    _assert_same_program(fast, slow)

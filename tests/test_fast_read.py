@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -211,3 +213,115 @@ def test_random_programs_parse_the_same(data):
     with pytest.MonkeyPatch.context() as mp:
         assert_same_parse(text, mp)
         assert_same_parse(text, mp, passthrough_unsupported=True)
+
+
+# ------------------------------------------------------------------------------------ number_style (format_info) ----
+# The reference: the regular expressions and the byte-wise numpy pass format_info used before the compiled scan.
+_REF_LEADING_ZERO = re.compile(r"[XYZIJKR][-+]?(0?)\.[0-9]")
+_REF_COMMENT_TO_EOL = re.compile(r"[(;][^\r\n]*")
+
+
+def _reference_number_style(code: str):
+    b = np.frombuffer(code.encode("latin-1", "replace"), np.uint8)
+    digit = (b >= 48) & (b <= 57)
+    dots = np.nonzero(b == 46)[0]
+    if dots.size == 0:
+        return {}, False
+    other = np.nonzero(~digit)[0]
+    k = np.searchsorted(other, dots, side="right")
+    frac = np.where(k < other.size, other[np.minimum(k, other.size - 1)], b.size) - dots - 1
+    before = np.searchsorted(other, dots, side="left") - 1
+    pos = np.where(before >= 0, other[np.maximum(before, 0)], -1)
+    signed = (pos >= 0) & np.isin(b[np.maximum(pos, 0)], (43, 45))
+    pos = np.where(signed, pos - 1, pos)
+    blank = (b == 32) | (b == 9)
+    nonblank = np.nonzero(~blank)[0]
+    j = np.searchsorted(nonblank, pos, side="right") - 1
+    ok = (pos >= 0) & (j >= 0)
+    pos = np.where(ok, nonblank[np.maximum(j, 0)], -1)
+    letter_b = np.where(ok, b[np.maximum(pos, 0)], 0)
+    upper = np.where((letter_b >= 97) & (letter_b <= 122), letter_b - 32, letter_b)
+    ok &= (upper >= 65) & (upper <= 90)
+    decimals = {}
+    for code_point in np.unique(upper[ok]).tolist():
+        decimals[chr(code_point)] = int(frac[ok & (upper == code_point)].max())
+    bare = ok & (frac == 0) & np.isin(upper, np.frombuffer(b"XYZABCF", np.uint8))
+    return decimals, bool(bare.any())
+
+
+def _reference_style(text: str):
+    code = _REF_COMMENT_TO_EOL.sub("", text)
+    decimals, bare = _reference_number_style(code)
+    m = _REF_LEADING_ZERO.search(code)
+    return decimals, bare, (-1 if m is None else int(m.group(1) == "0"))
+
+
+def _compiled_style(text: str):
+    dec, bare, leading = fast_read.number_style(np.frombuffer(text.encode("latin-1", "replace"), np.uint8))
+    return {chr(65 + k): int(dec[k]) for k in range(26) if dec[k] >= 0}, bool(bare), int(leading)
+
+
+def test_number_style_is_the_regular_expressions_answer():
+    import random
+
+    rng = random.Random(18)
+    alphabet = list("XYZxyzABCFIJKRGNPQ0123456789..--+  \t()\n\r;") + ["é", "\u2028", "0.", "X.", "X-0.", "Z+.", "0"]
+    texts = ["", "G1 X1 Y2\n", "X.5", "X-0.25 (Y.5)\nY0.5", "X00.5 Y0.5", "x .5", "(X0.5\rX.5", "X- 1.5 Y -2.",
+             "5-3.2 X1.", "X1.2.3"]
+    for _ in range(3000):
+        texts.append("".join(rng.choice(alphabet) for _ in range(rng.randint(1, 40))))
+    for name in ("mtc_plate_1.nc", "mtc_cover_rev_a.nc", "d2mi_827-9999-904_op1.nc"):
+        texts.append((ROOT / "fixtures" / "programs" / "nist" / name).read_text(errors="replace"))
+    for text in texts:
+        assert _compiled_style(text) == _reference_style(text), repr(text[:200])
+
+
+@given(TEXT)
+@SETTINGS
+def test_number_style_is_the_regular_expressions_answer_on_random_text(text):
+    assert _compiled_style(text) == _reference_style(text)
+
+
+# --------------------------------------------------------------------- the block checks' scans (nc.check) ----
+def _reference_candidate(text, pos):
+    from trueaxis.nc.check import _CANDIDATES
+
+    found = [m.start() for m in (p.search(text, pos) for p in _CANDIDATES) if m is not None]
+    return min(found) if found else -1
+
+
+def _reference_ijkr(text, a, b):
+    from trueaxis.nc.check import _IJKR_AFTER_LINEAR
+
+    m = _IJKR_AFTER_LINEAR.search(text, a, b)
+    return -1 if m is None else m.end() - 1
+
+
+def _check_scans_agree(text):
+    text = "".join(c if c.isascii() else "?" for c in text)
+    buf = np.frombuffer(text.encode("ascii"), np.uint8)
+    for pos in sorted({0, 1, len(text) // 3, len(text) // 2, len(text)}):
+        if pos <= len(text):
+            assert fast_read.next_check_candidate(buf, fast_read._PLAIN_BYTES, pos) == _reference_candidate(text, pos)
+    for a, b in ((0, len(text)), (len(text) // 4, len(text)), (0, (2 * len(text)) // 3), (1, len(text) - 1)):
+        if 0 <= a <= b <= len(text):
+            assert fast_read.ijkr_after_linear(buf, a, b) == _reference_ijkr(text, a, b), (text, a, b)
+
+
+CHECK_PIECES = st.sampled_from(["G0", "G00", "G01", "G1", "G2", "G03", "G 1", "G\t0", "G 01", "G011", "G1.", "G0.",
+                                "G4", "G10", "G", "N", "N10", " N5", "N-1", "N +2", "X1", "I2", "J", "K.5", "R3",
+                                "F100", "M3", "(c)", ";", " ", "\t", "\n", "\r", "\r\n", "0", "1", ".", "-", "g1",
+                                "x"])
+CHECK_TEXT = st.one_of(st.text("GNXIJKR01234.+- \t\r\nM(;", max_size=40), st.lists(CHECK_PIECES, max_size=20)
+                       .map("".join))
+
+
+@given(CHECK_TEXT)
+@SETTINGS
+def test_the_block_checks_compiled_scans_are_their_patterns(text):
+    _check_scans_agree(text)
+
+
+def test_the_block_checks_compiled_scans_on_the_nist_programs():
+    for name in ("mtc_plate_1.nc", "mtc_cover_rev_a.nc", "d2mi_827-9999-904_op1.nc"):
+        _check_scans_agree((ROOT / "fixtures" / "programs" / "nist" / name).read_text(errors="replace"))

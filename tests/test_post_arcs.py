@@ -265,3 +265,38 @@ def test_a_sub_arc_that_cannot_hold_becomes_straight_pieces_alone(xh714, tmp_pat
     feeds = [k for k in written.kind if k != "traverse"]
     assert "arc" in feeds and feeds.count("feed") > 20
     assert dev_um.max() <= TOL_UM + 0.03, dev_um.max()
+
+
+@pytest.mark.parametrize("machine_name, arcs", [("xh714", True), ("xh714", False), ("nmv1500dcg", False)])
+def test_arc_ends_taken_from_the_block_ends_solve_change_nothing(machine_name, arcs, monkeypatch):
+    """An arc's last sample point is its block's end: its commanded pose is taken from the end's solve. Posting with
+    every point solved again gives the same bytes and the same report (singular points and blocks included: the
+    five-axis program's arcs at B0 lie in the singular cone)."""
+    from trueaxis.postproc import post as post_module
+
+    if machine_name == "xh714":
+        from trueaxis.machine import parse_machine
+
+        text = (ROOT / "fixtures" / "programs" / "arcs_planes.ngc").read_text()
+        machine_text = (ROOT / "fixtures" / "machines" / "xh714.toml").read_text()
+        for old in ("[-200.0, 200.0]", "[-150.0, 150.0]", "[-400.0, 0.0]"):
+            machine_text = machine_text.replace(old, "[-2000.0, 2000.0]")
+        machine = parse_machine(machine_text, source="xh714-wide")
+    else:
+        machine = load_machine(ROOT / "fixtures" / "machines" / f"{machine_name}.toml")
+        text = ("G21 G90 G17 G94\nG0 X10 Y5 Z-20 B0 C0\nG1 X20 Y5 Z-20 F500\nG2 X30 Y15 I0 J10\n"
+                "G3 X20 Y25 I-10 J0\nG1 X20 Y30 B0.3 C10\nG2 X30 Y40 I10 J0\nM30\n")
+
+    def post():
+        return post_text(text, machine, "geometric", source="t.ngc", setup=Setup(offsets_zero=True), arcs=arcs)
+
+    out, rep = post()
+    real = post_module._Poster._solve_arc_points
+    monkeypatch.setattr(post_module._Poster, "_solve_arc_points",
+                        lambda self, rows, arc_idx, owner, pts6, force, ends=None:
+                        real(self, rows, arc_idx, owner, pts6, force, None))
+    again, rep_again = post()
+    assert out == again
+    assert rep.as_dict() == rep_again.as_dict()
+    if machine_name == "nmv1500dcg":
+        assert rep.singular_points > 0

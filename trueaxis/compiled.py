@@ -17,8 +17,11 @@ both ways and compares the bytes. A build whose source no longer matches the ker
 spec file) is not used. ``TRUEAXIS_AOT=0`` switches the ahead-of-time twins off; ``TRUEAXIS_AOT_DIR`` names another
 folder for them. ``python -m trueaxis.warm`` builds them (:func:`build_aot`, given the warm-up posts).
 
-The parallel kernels (numba ``prange``, long programs) have no ahead-of-time twin (pycc compiles serial code only):
-they import numba when first used, which a long program can afford.
+The parallel kernels (numba ``prange``, long programs) have no ahead-of-time twin (pycc compiles serial code only).
+The twins release the GIL instead (compiled so, :class:`_releasing_the_gil`), and a long program's twin runs the
+serial kernels' twins on threads, each on its share of the poses (:func:`run_twins`; ``machine.twin``,
+``machine.error_kernel``): the same numbers pose by pose, and numba is not imported at all (its import and first
+cache load cost a long post about 0.7 s). Without twins the parallel kernels import numba when first used.
 """
 
 from __future__ import annotations
@@ -34,7 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["numba", "Kernel", "KERNEL_MODULES", "build_aot", "aot_available", "numba_imported"]
+__all__ = ["numba", "Kernel", "KERNEL_MODULES", "build_aot", "aot_available", "numba_imported", "THREADS_MIN",
+           "thread_slices", "run_twins", "run_threads"]
 
 KERNEL_MODULES = ("trueaxis.nc.fast_read", "trueaxis.nc.fast_interp", "trueaxis.nc.fast_write",
                   "trueaxis.machine.error_kernel", "trueaxis.machine.chain_kernel", "trueaxis.inspect.kernels")
@@ -45,6 +49,60 @@ _UNSET = object()
 _kernels: list = []  # every Kernel made
 _real = None  # the numba module, once imported
 _aot = _UNSET  # {qualified kernel name: (function, argument spec)} or None
+
+
+# From this many poses on, a kernel's work is shared among threads (numba prange, or ahead-of-time twins on threads).
+THREADS_MIN = 4096
+_pool = None
+
+
+def thread_count() -> int:
+    """Threads for the kernels' parallel work: NUMBA_NUM_THREADS, as numba's parallel kernels take it, else the CPU
+    count."""
+    return max(1, int(os.environ.get("NUMBA_NUM_THREADS") or 0) or os.cpu_count() or 1)
+
+
+def thread_slices(n: int) -> list:
+    """Contiguous slices of ``range(n)``, one per thread, when ``n`` is worth sharing (THREADS_MIN and more) and
+    there is more than one thread; else []."""
+    t = thread_count()
+    if n < THREADS_MIN or t < 2:
+        return []
+    edges = [n * k // t for k in range(t + 1)]
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def run_twins(kernel, calls):
+    """Run ``kernel`` on each argument tuple of ``calls`` by its ahead-of-time twin, the calls on threads of their own
+    (the twins release the GIL): the list of results, or None when a call has no twin (the caller takes numba's
+    parallel kernel instead). Each call computes what it would alone: the same numbers as one call, or as numba's
+    parallel kernel, which does the same pose by pose."""
+    twin = getattr(kernel, "twin", None)  # (numba's dispatcher once the twins are off: none)
+    fns = [twin(*args) for args in calls] if twin is not None else [None]
+    if any(fn is None for fn in fns):
+        return None
+    return run_threads(lambda fa: fa[0](*fa[1]), list(zip(fns, calls)))
+
+
+def _forget_pool():
+    """In a forked child: the parent's kernel threads are not there (a new pool is made when needed)."""
+    global _pool
+    _pool = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
+def run_threads(fn, items) -> list:
+    """``[fn(item) for item in items]``, the calls on the kernels' threads (``fn`` should spend its time in twins,
+    which release the GIL, and must not call ``run_threads`` itself: the threads would wait for each other)."""
+    global _pool
+    if _pool is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _pool = ThreadPoolExecutor(max_workers=thread_count(), thread_name_prefix="trueaxis-kernel")
+    return list(_pool.map(fn, items))
 
 
 def numba_imported() -> bool:
@@ -64,17 +122,28 @@ class Kernel:
         _kernels.append(self)
 
     def __call__(self, *args):
+        # The ahead-of-time twin first, also once numba is in (a long program's parallel kernels need it): loading a
+        # kernel from numba's cache costs about 0.07 s, the twin nothing.
+        table = _aot if _aot is not _UNSET else _load_aot()
+        if table is not None:
+            for fn, spec in table.get(self.key, ()):
+                if _fits(args, spec):
+                    return fn(*args)
         if self.dispatcher is None:
-            table = _aot if _aot is not _UNSET else _load_aot()
-            if table is not None:
-                for fn, spec in table.get(self.key, ()):
-                    if _fits(args, spec):
-                        return fn(*args)
             _jit_all()
         return self.dispatcher(*args)
 
+    def twin(self, *args):
+        """The ahead-of-time twin that takes exactly these arguments, or None (then only numba would). Twins release
+        the GIL while they run: callers may run them on threads of their own."""
+        table = _aot if _aot is not _UNSET else _load_aot()
+        for fn, spec in (table or {}).get(self.key, ()):
+            if _fits(args, spec):
+                return fn
+        return None
+
     def __getattr__(self, name):  # dispatcher attributes (signatures, overloads ...): numba's
-        if name.startswith("__") or name in ("py_func", "options", "key", "dispatcher"):
+        if name.startswith("__") or name in ("py_func", "options", "key", "dispatcher", "twin"):
             raise AttributeError(name)
         _jit_all()
         return getattr(self.dispatcher, name)
@@ -104,7 +173,9 @@ numba = _STAND_IN = _NumbaStandIn()
 
 def _jit_all():
     """Import numba and make every kernel its numba dispatcher; the kernel modules' globals (``numba`` and the
-    kernels, which compiled kernels call) become the real ones, as if they had imported numba themselves."""
+    kernels, which compiled kernels call) become the real ones, as if they had imported numba themselves -- but for
+    the kernels with an ahead-of-time twin, which stay :class:`Kernel` objects so that Python's calls still reach the
+    twin (no compiled kernel calls one of them: they are the ones the post calls from Python)."""
     global _real
     if _real is None:
         import numba as real
@@ -119,8 +190,9 @@ def _jit_all():
         d = vars(mod)
         if d.get("numba") is _STAND_IN:
             d["numba"] = _real
+        twins = _aot if isinstance(_aot, dict) else {}
         for key, v in list(d.items()):
-            if isinstance(v, Kernel):
+            if isinstance(v, Kernel) and v.key not in twins:
                 d[key] = v.dispatcher
 
 
@@ -235,8 +307,10 @@ def build_aot(warm_up, folder: Path | None = None, out=sys.stderr) -> Path:
 
     from numba.pycc import CC
 
+    global _aot
     folder = Path(folder) if folder else _aot_dir()
     folder.mkdir(parents=True, exist_ok=True)
+    _aot = None  # the warm-up below must reach numba's dispatchers (they record the signatures exported), not a build
     source = _source_hash()
     if source is None:
         raise FileNotFoundError(f"a kernel module of {', '.join(KERNEL_MODULES)} is not in {_HERE}")
@@ -263,7 +337,7 @@ def build_aot(warm_up, folder: Path | None = None, out=sys.stderr) -> Path:
             export = f"{k.key.replace('.', '__')}__{i}"
             cc.export(export, sig)(k.py_func)
             kernels.setdefault(k.key, []).append({"export": export, "args": args, "signature": str(sig)})
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, _releasing_the_gil():
         cc.output_dir = tmp
         cc.compile()
         built = next(Path(tmp).glob(f"{AOT_NAME}*"))
@@ -277,9 +351,34 @@ def build_aot(warm_up, folder: Path | None = None, out=sys.stderr) -> Path:
     return spec_path
 
 
+class _releasing_the_gil:
+    """While compiling ahead of time: every exported kernel's Python wrapper releases the GIL around the call
+    (numba's ``nogil``; pycc takes its compile flags from ``numba.core.compiler.Flags``, which has no such option of
+    its own). The kernels touch no Python object, so threads may run them side by side (``machine.twin``: the chain of
+    a long program on all cores, without numba's parallel kernels)."""
+
+    def __enter__(self):
+        from numba.pycc import compiler
+
+        self._module, self._flags = compiler, compiler.Flags
+
+        class Flags(compiler.Flags):
+            def __init__(self, *args, **kwargs):
+                super().__init__(*args, **kwargs)
+                self.release_gil = True
+
+        compiler.Flags = Flags
+
+    def __exit__(self, *exc):
+        self._module.Flags = self._flags
+        return False
+
+
 def _called_from_python() -> set:
     """The kernels the post calls from Python (module-level names other modules or the post use), not helpers."""
     return {"trueaxis.nc.fast_read.line_starts", "trueaxis.nc.fast_read.scan_lines",
+            "trueaxis.nc.fast_read.number_style", "trueaxis.nc.fast_read.next_check_candidate",
+            "trueaxis.nc.fast_read.ijkr_after_linear",
             "trueaxis.nc.fast_interp.straight_run", "trueaxis.nc.fast_interp.run_lengths",
             "trueaxis.nc.fast_write.scan", "trueaxis.nc.fast_write.assemble",
             "trueaxis.machine.error_kernel.evaluate_packed", "trueaxis.machine.chain_kernel.pose",

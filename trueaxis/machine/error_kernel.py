@@ -19,7 +19,7 @@ derivative to ``dval``) for pose i, its position being ``q[i, column_g]``; slots
 
 from __future__ import annotations
 
-from ..compiled import numba  # numba, or the kernels compiled ahead of time (see ..compiled)
+from ..compiled import aot_available, numba, run_twins, thread_slices  # numba, or ahead-of-time twins
 import numpy as np
 
 TWO_PI = 2.0 * np.pi
@@ -69,16 +69,56 @@ class CompiledErrors:
         self.zero_slots = np.argwhere(~covered).astype(np.int64).reshape(-1, 2)
         self.n_harmonics = max([int(g[4] - g[3]) for g in g_int if g[0] == FOURIER], default=0)
 
-    def evaluate(self, q: np.ndarray, derivative: bool = True):
-        """Values (A, n, B) and, with derivative, d/dq (A, n, B) (else None) at poses q (n, n_columns)."""
+    def evaluate(self, q: np.ndarray, derivative: bool = True, threads: bool = True):
+        """Values (A, n, B) and, with derivative, d/dq (A, n, B) (else None) at poses q (n, n_columns).
+        ``threads``: many poses may be shared among threads (False: on this thread, as from one of them)."""
         q = np.ascontiguousarray(q, dtype=float)
         n = q.shape[0]
         A, B = self.shape
         val = np.empty((A, n, B))
         dval = np.empty((A, n, B)) if derivative else val  # without derivatives it stands in, unwritten
+        if threads and self._threaded(q, derivative, val, dval):
+            return val, (dval if derivative else None)
         evaluate_packed(q, self.groups, self.grid, self.members, self.coef, self.scale, self.zero_slots,
                         self.n_harmonics, derivative, val, dval)
         return val, (dval if derivative else None)
+
+
+    def twin_evaluate(self, q: np.ndarray, derivative: bool):
+        """``evaluate(q, derivative, threads=False)`` by ``evaluate_packed``'s ahead-of-time twin only (no numba:
+        callable from the kernels' threads), or None when no twin takes the arguments."""
+        q = np.ascontiguousarray(q, dtype=float)
+        A, B = self.shape
+        val = np.empty((A, q.shape[0], B))
+        dval = np.empty_like(val) if derivative else val
+        args = (q, self.groups, self.grid, self.members, self.coef, self.scale, self.zero_slots, self.n_harmonics,
+                derivative, val, dval)
+        twin = getattr(evaluate_packed, "twin", None)
+        fn = twin(*args) if twin is not None else None
+        if fn is None:
+            return None
+        fn(*args)
+        return val, (dval if derivative else None)
+
+    def _threaded(self, q, derivative, val, dval) -> bool:
+        """Many poses: ``evaluate_packed``'s ahead-of-time twin on threads, each on a contiguous share of the poses
+        (each pose's values are computed alone: the same numbers), into ``val`` / ``dval``; False when not done."""
+        parts = thread_slices(q.shape[0])
+        if not parts or getattr(evaluate_packed, "twin", None) is None or not aot_available():
+            return False
+        A, B = self.shape
+        calls = []
+        for sl in parts:
+            v = np.empty((A, sl.stop - sl.start, B))
+            calls.append((q[sl], self.groups, self.grid, self.members, self.coef, self.scale, self.zero_slots,
+                          self.n_harmonics, derivative, v, np.empty_like(v) if derivative else v))
+        if run_twins(evaluate_packed, calls) is None:
+            return False
+        for sl, call in zip(parts, calls):
+            val[:, sl] = call[-2]
+            if derivative:
+                dval[:, sl] = call[-1]
+        return True
 
 
 # --------------------------------------------------------------------------------------------- the pieces ----

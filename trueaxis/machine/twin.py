@@ -37,6 +37,7 @@ from functools import cached_property
 
 import numpy as np
 
+from ..compiled import THREADS_MIN, aot_available, run_threads, run_twins, thread_slices
 from . import chain_kernel
 from .error_kernel import CompiledErrors
 from .kinematics import Z_TOOL, Link, axis_motion, chain_links, validate_poses
@@ -46,8 +47,9 @@ from .transforms import UNIT, skew
 UM = 1e-3  # mm per um
 URAD = 1e-6  # rad per urad
 DEFAULT_CHUNK = 20_000
-# From this many poses on, the compiled chain runs on all threads (numba prange; NUMBA_NUM_THREADS sets how many).
-PARALLEL_MIN = 4096
+# From this many poses on, the compiled chain runs on all threads (the kernels' ahead-of-time twins on threads of
+# their own, else numba prange; NUMBA_NUM_THREADS sets how many).
+PARALLEL_MIN = THREADS_MIN
 
 
 def _internal(name: str) -> float:
@@ -565,14 +567,50 @@ class ErrorTwin:
         """Tip (n,3), unit axis (n,3) and, with jacobian, the axis Jacobian (n, 6, n_axes) (else None), by the
         compiled chain: the numbers of ``_evaluate(..., cols="axes")`` up to round-off."""
         q = np.ascontiguousarray(q)
+        if errors and force_n is None and q.shape[0] >= PARALLEL_MIN:
+            out = self._threaded_unloaded(q, jacobian)
+            if out is not None:
+                return out
         values = self._chain_values(q, force_n, motion, errors, jacobian)
-        # many poses: the parallel kernels (the same numbers, pose by pose); few: the serial ones (no thread start-up)
+        # many poses: the serial kernels' ahead-of-time twins on threads, each on its share of the poses, else numba's
+        # parallel kernels (the same numbers, pose by pose); few: the serial ones (no thread start-up)
         parallel = q.shape[0] >= PARALLEL_MIN
+        if parallel:
+            out = _threaded(chain_kernel.pose_and_axis_jacobian if jacobian else chain_kernel.pose, q, self._layout,
+                            values)
+            if out is not None:
+                return out if jacobian else (*out, None)
         if jacobian:
             kernel = chain_kernel.pose_and_axis_jacobian_parallel if parallel else chain_kernel.pose_and_axis_jacobian
             return kernel(q, *self._layout, *values)
         kernel = chain_kernel.pose_parallel if parallel else chain_kernel.pose
         return (*kernel(q, *self._layout, *values), None)
+
+    def _threaded_unloaded(self, q, jacobian: bool):
+        """``_compose`` of many poses without force: each thread evaluates the component errors of its share of the
+        poses and composes their chains (both by the kernels' ahead-of-time twins; the other inputs are the same for
+        every pose, as ``_chain_values`` gives them without force), the shares joined; None without twins."""
+        parts = thread_slices(q.shape[0])
+        if not parts:
+            return None
+        kernel = chain_kernel.pose_and_axis_jacobian if jacobian else chain_kernel.pose
+        twin = getattr(kernel, "twin", None)
+        shared = self._constant_location, self._nominal_values[5], self._zero_derivatives[1]
+
+        def share(sl):
+            evaluated = self._components.twin_evaluate(q[sl], jacobian)
+            if evaluated is None or twin is None:
+                return None
+            comp, dcomp = evaluated
+            args = (q[sl], *self._layout, *shared[0], comp, shared[1]) + ((dcomp, shared[2]) if jacobian else ())
+            fn = twin(*args)
+            return None if fn is None else fn(*args)
+
+        results = run_threads(share, parts)
+        if any(r is None for r in results):
+            return None
+        out = tuple(np.concatenate(x) for x in zip(*results))
+        return out if jacobian else (*out, None)
 
     # ------------------------------------------------------------------------------------ the chain, in numpy ----
     def _evaluate(self, q, force_n, motion, errors: bool, jacobian: bool, cols: str = "all"):
@@ -719,6 +757,27 @@ class ErrorTwin:
 def _matvec(R, x):
     """R x for (n,3,3) R and (n,3) x (matmul beats einsum for stacks of 3x3)."""
     return (R @ x[..., None])[..., 0]
+
+
+# The pose dimension of each per-pose input of chain_kernel (tilt, offset, zero, d_act, comp, bed, dcomp, dbed)
+_POSE_AXIS = (1, 1, 1, 1, 1, 0, 1, 0)
+
+
+def _threaded(kernel, q, layout, values):
+    """``kernel(q, *layout, *values)`` as its ahead-of-time twin on threads, each on a contiguous share of the poses
+    (the per-pose inputs cut to it, shared ones as they are), the outputs joined; None where no twin takes them."""
+    parts = thread_slices(q.shape[0])
+    if not parts or getattr(kernel, "twin", None) is None or not aot_available():
+        return None  # (numba's parallel kernel then: the inputs are not cut for nothing)
+    calls = []
+    for sl in parts:
+        cut = tuple(v if v.shape[ax] == 1 else np.ascontiguousarray(v[sl] if ax == 0 else v[:, sl])
+                    for v, ax in zip(values, _POSE_AXIS))
+        calls.append((q[sl], *layout, *cut))
+    results = run_twins(kernel, calls)
+    if results is None:
+        return None
+    return tuple(np.concatenate(out) for out in zip(*results))
 
 
 def _chunks(n: int, size: int = DEFAULT_CHUNK):

@@ -20,14 +20,18 @@
   unless ``--passthrough-unsupported``, which keeps G52 as it is (no row; later positions read without its offset)
   and posts the programmed contour of a compensated path with its G41 / G42 kept.
 
-Cost: one regular-expression pass over the text finds the blocks that are not plain G0..G3 moves; only those are
-checked word by word, with the motion mode in force taken from the last G0..G3 word before them; two more passes find
-I J K R words on plain blocks in G0 / G1 mode. A plain program costs a few per cent of its reading time.
+Cost: one pass over the text finds the blocks that are not plain G0..G3 moves; only those are checked word by word,
+with the motion mode in force taken from the last G0..G3 word before them; two more passes find I J K R words on
+plain blocks in G0 / G1 mode. On ASCII text the first and the last pass are compiled (``fast_read``: the same
+positions as the regular expressions, which other text keeps). A plain program costs a few per cent of its reading
+time.
 """
 
 from __future__ import annotations
 
 import re
+
+import numpy as np
 
 from .grammar import NUMBER
 
@@ -105,15 +109,13 @@ _G_NAME = lambda g: f"G{g // 10}" if g % 10 == 0 else f"G{g / 10:g}"  # noqa: E7
 def check_blocks(text: str, source: str, passthrough: bool, line_map=None) -> None:
     """Raise :class:`~trueaxis.nc.gcode.GcodeError` at the first block rs274 would refuse (see the module
     docstring). ``line_map``: 1-based source line of each text line (a flattened program), or None."""
-    state = _State()
+    state = _State(text)
     pos, n = 0, len(text)
-    # the next match of each candidate pattern (re-searched only once passed): one scan of the text per pattern
-    nxt = [p.search(text) for p in _CANDIDATES]
+    candidates = _Candidates(text, state.buf)
     while True:
-        found = [m.start() for m in nxt if m is not None]
-        if not found:
+        at = candidates.next(pos)
+        if at < 0:
             break
-        at = min(found)
         start = text.rfind("\n", 0, at) + 1
         end = text.find("\n", at)
         end = n if end < 0 else end + 1
@@ -123,15 +125,35 @@ def check_blocks(text: str, source: str, passthrough: bool, line_map=None) -> No
         _check_block(text[start:end], state, passthrough, lambda reason, s=start: _raise(
             text, s, source, line_map, reason))
         pos = end
-        nxt = [m if m is None or m.start() >= pos else p.search(text, pos) for m, p in zip(nxt, _CANDIDATES)]
     _plain_blocks(text, pos, n, state, source, line_map, passthrough)
+
+
+class _Candidates:
+    """Where the next block that needs the checks word by word starts: the first match at or after a position of any
+    of the candidate patterns, by the compiled scan on ASCII text (its bytes ``buf``), else by the patterns."""
+
+    def __init__(self, text, buf):
+        self.text, self.buf = text, buf
+        # the next match of each candidate pattern (re-searched only once passed): one scan of the text per pattern
+        self.nxt = None if buf is not None else [p.search(text) for p in _CANDIDATES]
+
+    def next(self, pos) -> int:
+        if self.buf is not None:
+            from .fast_read import _PLAIN_BYTES, next_check_candidate
+
+            return int(next_check_candidate(self.buf, _PLAIN_BYTES, pos))
+        self.nxt = [m if m is None or m.start() >= pos else p.search(self.text, pos)
+                    for m, p in zip(self.nxt, _CANDIDATES)]
+        found = [m.start() for m in self.nxt if m is not None]
+        return min(found) if found else -1
 
 
 class _State:
     """What the checks need of the modal state: the motion mode (None: none yet, as rs274 starts), the plane and
-    the arc distance mode."""
+    the arc distance mode; and the text's bytes for the compiled scans (None: the text is not ASCII)."""
 
-    def __init__(self):
+    def __init__(self, text=""):
+        self.buf = np.frombuffer(text.encode("ascii"), np.uint8) if text.isascii() else None
         self.motion = None
         self.plane = 170
         self.arc_abs = False
@@ -153,7 +175,8 @@ def _plain_blocks(text, a, b, state, source, line_map, passthrough):
         return
     if state.motion is None or (state.motion == 800 and not passthrough):
         offset = a
-        for line in text[a:b].splitlines(keepends=True):
+        first_g = text.find("G", a, b)  # the loop stops at the line that holds it: the lines after it not split
+        for line in text[a:b if first_g < 0 else first_g + 1].splitlines(keepends=True):
             s = line.strip()
             if s:
                 if "G" in s:
@@ -167,9 +190,16 @@ def _plain_blocks(text, a, b, state, source, line_map, passthrough):
         bad = _IJKR_LEAD.match(text, a, b)
         if bad is not None:
             _raise(text, bad.end() - 1, source, line_map, _ijkr_no_use(bad.group()[-1]))
-    bad = _IJKR_AFTER_LINEAR.search(text, a, b)
-    if bad is not None:
-        _raise(text, bad.end() - 1, source, line_map, _ijkr_no_use(bad.group()[-1]))
+    if state.buf is not None:
+        from .fast_read import ijkr_after_linear
+
+        at = int(ijkr_after_linear(state.buf, a, b))
+        if at >= 0:
+            _raise(text, at, source, line_map, _ijkr_no_use(text[at]))
+    else:
+        bad = _IJKR_AFTER_LINEAR.search(text, a, b)
+        if bad is not None:
+            _raise(text, bad.end() - 1, source, line_map, _ijkr_no_use(bad.group()[-1]))
     gap = _LAST_MOTION.match(text, a, b)
     if gap is not None:
         state.motion = int(gap.group(1)) * 10

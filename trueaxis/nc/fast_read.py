@@ -25,7 +25,7 @@ from ..compiled import numba  # numba, or the kernels compiled ahead of time (se
 import numpy as np
 
 __all__ = ["LINE_NO_MATCH", "LINE_NO_MOTION", "LINE_FAST", "LINE_SLOW", "WORDS", "line_starts", "scan_lines",
-           "scan_text"]
+           "scan_text", "number_style", "next_check_candidate", "ijkr_after_linear"]
 
 # per-line status
 LINE_NO_MATCH = 0  # the line is not a _FAST block (general path)
@@ -205,6 +205,161 @@ def scan_lines(buf, starts, lo, hi):
         status[r] = st
         gs[r] = g
     return status, gs, vals
+
+
+_OPEN, _SEMI = 40, 59
+_LEADING_LETTERS = b"XYZIJKR"
+
+
+@numba.njit(cache=True, nogil=True)
+def _is_digit(c):
+    return c >= _D0 and c <= _D9
+
+
+@numba.njit(cache=True, nogil=True)
+def _is_leading_letter(c):
+    """One of X Y Z I J K R (upper case): the letters the writer's leading-zero style is judged on."""
+    return c == 88 or c == 89 or c == 90 or c == 73 or c == 74 or c == 75 or c == 82
+
+
+@numba.njit(cache=True, nogil=True)
+def number_style(buf):
+    """How the numbers of ``buf`` (uint8, a program's text; comments from ``(`` or ``;`` to the end of their line
+    not read) are written, for ``Program.format_info``: (decimals (26,) int64: per letter A..Z the most digits after
+    the point of its words ``letter [blanks] [sign] digits . digits``, -1 for none; bare: a word of X Y Z A B C F
+    ends in a bare point; leading: 1 when the first number below 1 of a word X Y Z I J K R is written ``0.5``, 0 when
+    ``.5``, -1 when there is none).
+
+    Word for word what the regular expressions it replaces found (``_DECIMALS``'s letter, blanks, sign, point, as the
+    byte-wise numpy pass read it; ``_LEADING_ZERO``'s first match): bytes, integers, no arithmetic on values."""
+    n = buf.shape[0]
+    decimals = np.full(26, -1, np.int64)
+    bare = False
+    leading = -1
+    in_comment = False
+    for d in range(n):
+        c = buf[d]
+        if c == _LF or c == _CR:
+            in_comment = False
+            continue
+        if in_comment:
+            continue
+        if c == _OPEN or c == _SEMI:
+            in_comment = True
+            continue
+        if c != _DOT:
+            continue
+        # digits after the point
+        e = d + 1
+        while e < n and _is_digit(buf[e]):
+            e += 1
+        frac = e - d - 1
+        # before it: digits, an optional sign, blanks, the letter
+        pos = d - 1
+        while pos >= 0 and _is_digit(buf[pos]):
+            pos -= 1
+        if pos >= 0 and (buf[pos] == _PLUS or buf[pos] == _MINUS):
+            pos -= 1
+        while pos >= 0 and (buf[pos] == _SP or buf[pos] == _TAB):
+            pos -= 1
+        if pos >= 0:
+            letter = buf[pos]
+            if letter >= 97 and letter <= 122:
+                letter -= 32
+            if letter >= 65 and letter <= 90:
+                k = letter - 65
+                if frac > decimals[k]:
+                    decimals[k] = frac
+                if frac == 0 and (letter == 88 or letter == 89 or letter == 90 or letter == 65 or letter == 66
+                                  or letter == 67 or letter == 70):
+                    bare = True
+        # the first ``[XYZIJKR][-+]?(0?)\.[0-9]``: its letter right before the point, or before a sign, a zero or both
+        if leading < 0 and frac > 0:
+            j = d - 1
+            zero = j >= 0 and buf[j] == _D0
+            if zero:
+                j -= 1
+            if j >= 0 and (buf[j] == _PLUS or buf[j] == _MINUS):
+                j -= 1
+            if j >= 0 and _is_leading_letter(buf[j]):
+                leading = 1 if zero else 0
+    return decimals, bare, leading
+
+
+# The bytes a plain move may hold: N G X Y Z A B C F I J K R, digits, point, signs, blanks, line endings
+_PLAIN_BYTES = np.zeros(256, np.bool_)
+for _c in b"NGXYZABCFIJKR0123456789.+- \t\r\n":
+    _PLAIN_BYTES[_c] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def _digit_or_point(buf, i, end):
+    return i < end and (_is_digit(buf[i]) or buf[i] == _DOT)
+
+
+@numba.njit(cache=True, nogil=True)
+def next_check_candidate(buf, plain, pos):
+    """The first offset >= ``pos`` of ``buf`` (uint8, ASCII) where a block may need the checks word by word
+    (``nc.check``), or -1: where one of its patterns matches -- a byte no plain move has (``plain``: True for the
+    bytes one may), a G code other than G0..G3 (``G(?![ \t]*0?[0-3](?![0-9.]))``), a G followed by another on its
+    line (``G[^G\n]*G``), an N not at the start of a line, an N with a sign (``N[ \t]*[-+]``)."""
+    n = buf.shape[0]
+    for i in range(pos, n):
+        c = buf[i]
+        if not plain[c]:
+            return i
+        if c == _G:
+            j = i + 1
+            while j < n and (buf[j] == _SP or buf[j] == _TAB):
+                j += 1
+            # G0..G3 (G00..G03): the lookahead's two ways, '0' then the digit, or the digit alone
+            motion = False
+            if j + 1 < n and buf[j] == _D0 and buf[j + 1] >= _D0 and buf[j + 1] <= _D3 \
+                    and not _digit_or_point(buf, j + 2, n):
+                motion = True
+            elif j < n and buf[j] >= _D0 and buf[j] <= _D3 and not _digit_or_point(buf, j + 1, n):
+                motion = True
+            if not motion:
+                return i
+            k = i + 1
+            while k < n and buf[k] != _G and buf[k] != _LF:
+                k += 1
+            if k < n and buf[k] == _G:
+                return i
+        elif c == _N:
+            if i > 0 and buf[i - 1] != _LF:
+                return i
+            j = i + 1
+            while j < n and (buf[j] == _SP or buf[j] == _TAB):
+                j += 1
+            if j < n and (buf[j] == _PLUS or buf[j] == _MINUS):
+                return i
+    return -1
+
+
+@numba.njit(cache=True, nogil=True)
+def ijkr_after_linear(buf, a, b):
+    """In ``buf[a:b]`` (uint8, ASCII): the offset of the first I J K or R word that follows a G0 / G1 (``G0?[01]``
+    not followed by a digit or point) with no G between (line ends allowed), or -1 -- where
+    ``G0?[01](?![0-9.])[^G\nIJKR]*+(?:\n[^G\nIJKR]*+)*+[IJKR]`` would end."""
+    for g in range(a, b):
+        if buf[g] != _G:
+            continue
+        j = g + 1
+        end = -1
+        if j + 1 < b and buf[j] == _D0 and (buf[j + 1] == _D0 or buf[j + 1] == 49) \
+                and not _digit_or_point(buf, j + 2, b):
+            end = j + 2
+        elif j < b and (buf[j] == _D0 or buf[j] == 49) and not _digit_or_point(buf, j + 1, b):
+            end = j + 1
+        if end < 0:
+            continue
+        k = end
+        while k < b and buf[k] != _G and buf[k] != 73 and buf[k] != 74 and buf[k] != 75 and buf[k] != 82:
+            k += 1
+        if k < b and buf[k] != _G:
+            return k
+    return -1
 
 
 def scan_text(text: str):

@@ -106,10 +106,6 @@ _FAST = re.compile(
     + "".join(rf"(?:{c}[ \t]*([-+]?(?:[0-9]{{1,9}}(?:\.[0-9]*)?|\.[0-9]+))[ \t]*)?" for c in "XYZABCIJKRF")
     + r"\r?\n?\Z"
 )
-_DECIMALS = re.compile(r"([A-Za-z])[ \t]*[-+]?[0-9]*\.([0-9]*)")
-_LEADING_ZERO = re.compile(r"[XYZIJKR][-+]?(0?)\.[0-9]")
-# From a comment's start to the end of its line (what the writer's dialect checks look past)
-_COMMENT_TO_EOL = re.compile(r"[(;][^\r\n]*")
 
 # Lines end at \n, \r\n or a lone \r, as an editor counts them (str.splitlines also splits at \f, \v, \x1c-\x1e,
 # \x85, \u2028 and \u2029, which would shift the line numbers of the messages).
@@ -123,7 +119,8 @@ FAST_READ_BLOCK = 4096
 
 def split_lines(text: str) -> list:
     """The lines of ``text`` with their endings (``"".join(split_lines(t)) == t``), split at \n, \r\n and \r only."""
-    if _OTHER_BREAKS.search(text) is None:
+    # (ASCII text: its five other breaks looked for one by one, faster than the class over all of it)
+    if (not any(c in text for c in "\x0b\x0c\x1c\x1d\x1e") if text.isascii() else _OTHER_BREAKS.search(text) is None):
         return text.splitlines(keepends=True)
     return _LINE.findall(text)
 
@@ -321,20 +318,22 @@ class Program:
     @cached_property
     def format_info(self) -> FormatInfo:
         """How the input writes numbers (decimals per word letter, leading zero, trailing point, separator)."""
-        # One pass of regular expressions over the program's code (its comments cut out), not one per line.
-        # In blocks of lines (a word never spans a line), so that the byte-wise pass stays small in memory.
-        decimals: dict = {}
+        # One compiled pass over the program's bytes (fast_read.number_style: the comments skipped), in blocks of
+        # lines (a word never spans a line) so that the bytes of a long program are not all copied at once.
+        from .fast_read import number_style
+
+        most = np.full(26, -1, np.int64)
         trailing_point = False
         leading_zero = None  # judged on the first number below 1
         for i in range(0, len(self.lines), _STYLE_BLOCK_LINES):
-            code = _COMMENT_TO_EOL.sub("", "".join(self.lines[i : i + _STYLE_BLOCK_LINES]))
-            block_decimals, block_point = _number_style(code)
-            for letter, n in block_decimals.items():
-                decimals[letter] = max(n, decimals.get(letter, -1))
-            trailing_point |= block_point
-            if leading_zero is None and (m := _LEADING_ZERO.search(code)):
-                leading_zero = m.group(1) == "0"
+            block = "".join(self.lines[i : i + _STYLE_BLOCK_LINES]).encode("latin-1", "replace")
+            block_decimals, block_point, leading = number_style(np.frombuffer(block, np.uint8))
+            np.maximum(most, block_decimals, out=most)
+            trailing_point |= bool(block_point)
+            if leading_zero is None and leading >= 0:
+                leading_zero = leading == 1
         leading_zero = True if leading_zero is None else leading_zero
+        decimals = {chr(65 + k): int(most[k]) for k in np.nonzero(most >= 0)[0].tolist()}
         separator = ""
         for i in self.line_index[:50]:
             if re.search(r"[0-9.][ \t]+[A-Za-z]", self.lines[int(i)].split("(", 1)[0]):
@@ -344,41 +343,6 @@ class Program:
 
 
 _STYLE_BLOCK_LINES = 50_000
-
-
-def _number_style(code: str) -> tuple[dict, bool]:
-    """Over every word ``letter [sign] digits . digits`` of ``code`` (what ``_DECIMALS`` matches): the most digits
-    after the point per letter (upper case), and whether a length or feed word is written with a bare trailing point.
-
-    Vectorised over the text's bytes, one pass per character class (a million-line program has millions of numbers;
-    a regex match per number costs more than the whole post of its block)."""
-    b = np.frombuffer(code.encode("latin-1", "replace"), np.uint8)
-    digit = (b >= 48) & (b <= 57)
-    dots = np.nonzero(b == 46)[0]
-    if dots.size == 0:
-        return {}, False
-    other = np.nonzero(~digit)[0]  # includes every dot
-    # digits after the point: up to the next non-digit
-    k = np.searchsorted(other, dots, side="right")
-    frac = np.where(k < other.size, other[np.minimum(k, other.size - 1)], b.size) - dots - 1
-    # before the point: digits, then an optional sign, then spaces or tabs, then the letter
-    before = np.searchsorted(other, dots, side="left") - 1  # the last non-digit before the point
-    pos = np.where(before >= 0, other[np.maximum(before, 0)], -1)
-    signed = (pos >= 0) & np.isin(b[np.maximum(pos, 0)], (43, 45))
-    pos = np.where(signed, pos - 1, pos)
-    blank = (b == 32) | (b == 9)
-    nonblank = np.nonzero(~blank)[0]
-    j = np.searchsorted(nonblank, pos, side="right") - 1  # last non-blank at or before pos
-    ok = (pos >= 0) & (j >= 0)
-    pos = np.where(ok, nonblank[np.maximum(j, 0)], -1)
-    letter_b = np.where(ok, b[np.maximum(pos, 0)], 0)
-    upper = np.where((letter_b >= 97) & (letter_b <= 122), letter_b - 32, letter_b)
-    ok &= (upper >= 65) & (upper <= 90)
-    decimals: dict = {}
-    for code_point in np.unique(upper[ok]).tolist():
-        decimals[chr(code_point)] = int(frac[ok & (upper == code_point)].max())
-    bare = ok & (frac == 0) & np.isin(upper, np.frombuffer(b"XYZABCF", np.uint8))
-    return decimals, bool(bare.any())
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -773,11 +737,11 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                                        self.arc_tol)
         if not run[0]:
             return None
-        state0, changed = self.cur_state, []
-        for c in fast_interp.feed_changes(run[5], feed):  # the states, where the feed changes
-            self.feed = feed = float(run[5][c])
-            self.refresh_state()
-            changed.append((c, self.cur_state))
+        state0 = self.cur_state
+        rows = fast_interp.feed_changes(run[5], feed)  # the states, where the feed changes
+        changed = list(zip(rows, self.feed_states(run[5][rows])))
+        if changed:
+            feed = self.feed
         pos, motion_mode = fast_interp.append_rows(run, li, state0, changed, self.r_start, self.r_end, self.r_line,
                                                    self.r_motion, self.r_kind, self.r_words, self.r_state,
                                                    ROW_PROGRAMMED, self.r_arc, self.plane)

@@ -144,10 +144,29 @@ class InterpState:
 
     def refresh_state(self) -> None:
         """The index of the state in force (feed, modes, tool, offsets, setup) into ``cur_state``."""
-        key = (self.feed, self.inverse, self.inch, self.cutter, self.tool, not self.absolute, not self.arc_abs,
-               tuple(self.off_now), self.meta_now, self.diameter)
         states = self.states
-        self.cur_state = states.setdefault(key, len(states))
+        self.cur_state = states.setdefault((self.feed,) + self.state_key_rest(), len(states))
+
+    def state_key_rest(self) -> tuple:
+        """The state's key after its feed: the modes, tool, offsets and setup in force."""
+        return (self.inverse, self.inch, self.cutter, self.tool, not self.absolute, not self.arc_abs,
+                tuple(self.off_now), self.meta_now, self.diameter)
+
+    def feed_states(self, feeds) -> list:
+        """The state indices of ``feeds`` (a float array) in turn, nothing else changing (a run of plain moves whose
+        feed changes), as ``refresh_state`` would give them one by one: a new state for each feed not seen before, in
+        the order of first appearance; the last one and its feed are in force after. (Each distinct feed looked up
+        once: a G93 program changes its feed on most lines.)"""
+        if feeds.size == 0:
+            return []
+        states, rest = self.states, self.state_key_rest()
+        _, first, inverse = np.unique(feeds, return_index=True, return_inverse=True)
+        ids = np.empty(first.size, np.int64)
+        for j in np.argsort(first, kind="stable").tolist():
+            ids[j] = states.setdefault((float(feeds[first[j]]),) + rest, len(states))
+        out = ids[inverse.reshape(-1)].tolist()
+        self.feed, self.cur_state = float(feeds[-1]), out[-1]
+        return out
 
     def emit(self, motion, kind, target, li, words=0, center=None, pl=0, turns=0):
         """One row from the position to ``target`` (which becomes the position)."""

@@ -25,6 +25,8 @@ direction normal to it, y = z x x. Rapids and plunges carry no force.
 
 from __future__ import annotations
 
+import functools
+import gc
 import math
 import re
 from dataclasses import dataclass, field
@@ -235,6 +237,26 @@ def _read_input(program, source):
     return program, source or "<string>"
 
 
+def _fewer_collections(fn):
+    """``fn`` with Python's cyclic garbage collector looking at young objects every 100,000 allocations instead of
+    every 700 (the thresholds put back after): a long post makes millions of small containers (rows, arcs, words)
+    and makes no cycles worth collecting early, and each full collection walks every live one (0.5 s CPU of a
+    million-block three-axis post)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        before = gc.get_threshold()
+        if 0 < before[0] < 100_000:
+            gc.set_threshold(100_000, *before[1:])
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            gc.set_threshold(*before)
+
+    return wrapper
+
+
+@_fewer_collections
 def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: float = 1.0,
               max_correction_mm: float = 0.5, singular_deg: float = 1.0, conditions: dict | None = None,
               passthrough_unsupported: bool = False, source: str = "<string>", cl_feed_mm_min: float | None = None,
@@ -597,8 +619,10 @@ class _Poster:
             return np.zeros(q.shape[0], bool)
         return np.abs(np.sin(q[:, pair[1].column])) < np.sin(self.singular)
 
-    def solve(self, q, force, rows):
-        """Commanded poses for nominal poses q (K, n_axes), and (K,) bool: the free axis was held (singular cone).
+    def solve(self, q, force, rows, poses=False):
+        """Commanded poses for nominal poses q (K, n_axes), and (K,) bool: the free axis was held (singular cone);
+        with ``poses`` also (actual tip, axis at the commanded poses, nominal tip, axis at q), which the solve computed
+        (the split checks take them instead of evaluating the twin there again: the same numbers).
 
         Every solve is recorded: its residuals (for the report) and the blocks with points in the singular cone."""
         hold = np.zeros_like(q, bool)
@@ -624,8 +648,9 @@ class _Poster:
             st["urad"] = max(st["urad"], float(res.axis_residual_urad[~held].max(initial=0.0)))
             st["urad_singular"] = max(st["urad_singular"], float(res.axis_residual_urad[held].max(initial=0.0)))
         st["singular_points"] += int(held.sum())
-        st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
-        return res.q, held
+        if held.any():  # (line_no is made for the whole program each time it is read)
+            st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
+        return (res.q, held, res.actual + res.nominal) if poses else (res.q, held)
 
     def check(self, q_nom, q_cmd, rows):
         """Correction bound and travel, per point; raises PostError naming the block."""
@@ -747,7 +772,7 @@ class _Poster:
         if np.any(arcs) and len(lin) == 3:
             direction[arcs] = self._arc_end_tangent(rows[arcs], q_end[arcs])
         force = self.forces(rows, direction, q_end)
-        q_cmd, singular = self.solve(q_end, force, rows)
+        q_cmd, singular, end_poses = self.solve(q_end, force, rows, poses=True)
         self.check(q_end, q_cmd, rows)
         dq = q_cmd - q_end
         delta_prog = self.to_program_delta(dq if self.tcp is None else self.command_delta(q_cmd, q_end), inch, rows)
@@ -755,9 +780,10 @@ class _Poster:
         pieces, arc_mode = {}, {}
         # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
         feed_rows = np.nonzero((p.motion[rows] == FEED) & self.start_known[rows])[0]
-        pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd))
+        pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd, end_poses))
         if np.any(arcs):
-            arc_pieces, modes = self._arcs(rows, np.nonzero(arcs)[0], q_start, q_end, force, inch, delta_prog)
+            arc_pieces, modes = self._arcs(rows, np.nonzero(arcs)[0], q_start, (q_end, q_cmd), force, inch,
+                                           delta_prog)
             pieces.update(arc_pieces)
             arc_mode.update(modes)
         return delta_prog, dq, pieces, arc_mode
@@ -803,7 +829,7 @@ class _Poster:
         # a direction: turned by the rotation, not offset
         return p.to_machine(tang6, arc_rows)[:, :3] - p.to_machine(np.zeros_like(tang6), arc_rows)[:, :3]
 
-    def _split_lines(self, rows, feed_idx, q_start, q_end, force, inch, q_cmd_end, max_rounds=10):
+    def _split_lines(self, rows, feed_idx, q_start, q_end, force, inch, q_cmd_end, end_poses, max_rounds=10):
         """Straight feed moves: split until the actual path stays within tolerance of the nominal path.
 
         The nominal path is the one the control makes of the programmed move: the axes interpolated linearly (in five
@@ -814,18 +840,18 @@ class _Poster:
         (free axis held): what is compared there is the deviation beyond the straight blend of the ends' residuals.
 
         All points of all moves live in flat arrays (move, fraction, commanded pose, residual) and only new points
-        are solved, one batch per round."""
+        are solved, one batch per round. ``end_poses``: the solve's poses at the ends (``solve(poses=True)``)."""
         if feed_idx.size == 0:
             return {}
         idx = np.asarray(feed_idx, int)
         f_all = None if force is None else force
         residual = self._path_residual(q_start, q_end, f_all)
-        q0 = self._commanded_starts(rows, idx, q_start, q_end, f_all, q_cmd_end)
+        q0, start_poses = self._commanded_starts(rows, idx, q_start, q_end, f_all, q_cmd_end, end_poses)
         I = np.r_[idx, idx]
         F = np.r_[np.zeros(idx.size), np.ones(idx.size)]
         C = np.vstack([q0, q_cmd_end[idx]])
         S = np.r_[self.singular_at(q_start[idx]), self.singular_at(q_end[idx])]
-        R = residual(I, F, C)
+        R = residual(I, F, C, self._end_poses(idx, q_start, q_end, start_poses, end_poses))
         active = np.zeros(len(rows), bool)
         active[idx] = True
         scale = self._split_scale()
@@ -845,10 +871,10 @@ class _Poster:
                 break
             mv, fr = _subdivide(owner, a, b, worst, bad)
             q_nom = q_start[mv] + fr[:, None] * (q_end[mv] - q_start[mv])
-            qc, _ = self.solve(q_nom, None if f_all is None else f_all[mv], rows[mv])
+            qc, _, known = self.solve(q_nom, None if f_all is None else f_all[mv], rows[mv], poses=True)
             self.check(q_nom, qc, rows[mv])
             I, F, C, S = np.r_[I, mv], np.r_[F, fr], np.vstack([C, qc]), np.r_[S, self.singular_at(q_nom)]
-            R = np.vstack([R, residual(mv, fr, qc)])
+            R = np.vstack([R, residual(mv, fr, qc, known)])
             active[:] = False
             active[np.unique(owner[bad])] = True
         else:
@@ -860,8 +886,10 @@ class _Poster:
         return self._split_pieces(rows, I, F, C, q_start, q_end, inch)
 
     def _path_residual(self, q_start, q_end, f_all):
-        """residual(i_move, fr, qc) -> (K, 3 or 6): the actual pose at commanded poses qc less the nominal pose at the
-        fractions fr of the moves i_move (indices into the chunk's rows), position then tool axis.
+        """residual(i_move, fr, qc, known=None) -> (K, 3 or 6): the actual pose at commanded poses qc less the nominal
+        pose at the fractions fr of the moves i_move (indices into the chunk's rows), position then tool axis;
+        ``known``: (actual tip, axis, nominal tip, axis) there, computed already (then the twin is not called);
+        ``residual.poses(i_move, fr, qc)`` computes them.
 
         Judged is the position error along the directions the axes can correct (all three on a mill, X and Z on a
         lathe, whose error along Y moves the turned radius by second order only and no axis can remove)."""
@@ -869,27 +897,53 @@ class _Poster:
         correctable = corrected_directions(self.m)
         correctable = correctable.T @ correctable
 
-        def residual(i_move, fr, qc):
+        def poses(i_move, fr, qc):
             q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
             pn, un = self.twin.nominal_pose(q_nom)
             pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
+            return pa, ua, pn, un
+
+        def residual(i_move, fr, qc, known=None):
+            pa, ua, pn, un = poses(i_move, fr, qc) if known is None else known
             return np.hstack([(pa - pn) @ correctable, ua - un])[:, :n6]
 
+        residual.poses = poses
         return residual
 
-    def _commanded_starts(self, rows, idx, q_start, q_end, f_all, q_cmd_end):
-        """(K, n_axes) commanded start poses of the moves idx. A move's commanded start is usually the previous move's
-        commanded end (same pose, same force): reused; the others are solved."""
+    def _commanded_starts(self, rows, idx, q_start, q_end, f_all, q_cmd_end, end_poses):
+        """(K, n_axes) commanded start poses of the moves idx, and their poses (actual tip, axis there, nominal tip,
+        axis at the nominal start; each (K, 3)). A move's commanded start is usually the previous move's commanded end
+        (same pose, same force): reused, with its poses (``end_poses``, the solve's at the ends); the others are
+        solved."""
         q0 = np.empty((idx.size, q_start.shape[1]))
+        poses = tuple(np.empty((idx.size, 3)) for _ in range(4))
         same = idx > 0
         prev = idx[same] - 1
         same[same] = np.all(q_start[idx[same]] == q_end[prev], axis=1) & (
             True if f_all is None else np.all(f_all[idx[same]] == f_all[prev], axis=1))
         q0[same] = q_cmd_end[idx[same] - 1]
+        for mine, theirs in zip(poses, end_poses):
+            mine[same] = theirs[idx[same] - 1]
         if not same.all():
             fresh = idx[~same]
-            q0[~same], _ = self.solve(q_start[fresh], None if f_all is None else f_all[fresh], rows[fresh])
-        return q0
+            q0[~same], _, solved = self.solve(q_start[fresh], None if f_all is None else f_all[fresh], rows[fresh],
+                                              poses=True)
+            for mine, theirs in zip(poses, solved):
+                mine[~same] = theirs
+        return q0, poses
+
+    def _end_poses(self, idx, q_start, q_end, start_poses, end_poses):
+        """(actual tip, axis, nominal tip, axis) (2K, 3) each at the starts then the ends of the moves idx, as
+        ``residual`` takes them: the actual poses the solves computed; the nominal pose at the start the solve's (the
+        start is the fraction 0), at the end the solve's where the fraction 1 gives the end's axes exactly, else
+        evaluated at that fraction."""
+        pa0, ua0, pn0, un0 = start_poses
+        pa1, ua1, pn1, un1 = (x[idx] for x in end_poses)
+        q_one = q_start[idx] + 1.0 * (q_end[idx] - q_start[idx])
+        other = np.nonzero(~np.all(q_one == q_end[idx], axis=1))[0]
+        if other.size:
+            pn1[other], un1[other] = self.twin.nominal_pose(q_one[other])
+        return np.vstack([pa0, pa1]), np.vstack([ua0, ua1]), np.vstack([pn0, pn1]), np.vstack([un0, un1])
 
     def _split_scale(self):
         """Per-component scale (3 or 6,) of the residuals: 1 / the tolerance a chord is judged by (1 / mm, 1 / rad).
@@ -914,9 +968,16 @@ class _Poster:
         dev_um = np.zeros(owner.size)
         dev_urad = np.zeros(owner.size)
         held = held[:, None]
-        for sfrac in (0.25, 0.5, 0.75):
-            c_at = ca + sfrac * (cb - ca) if self.tcp is None else self.tcp.interpolate(ca, cb, sfrac)
-            e = residual(owner, a + sfrac * (b - a), c_at)
+        fractions = (0.25, 0.5, 0.75)
+        at = [a + sfrac * (b - a) for sfrac in fractions]
+        c_at = [ca + sfrac * (cb - ca) if self.tcp is None else self.tcp.interpolate(ca, cb, sfrac)
+                for sfrac in fractions]
+        # the twin once for the three fractions' points (the same poses; one call, not three), judged fraction by
+        # fraction
+        k = owner.size
+        known = residual.poses(np.tile(owner, 3), np.concatenate(at), np.vstack(c_at))
+        for j, sfrac in enumerate(fractions):
+            e = residual(owner, at[j], c_at[j], tuple(x[j * k : (j + 1) * k] for x in known))
             e = e - np.where(held, (1 - sfrac) * ra + sfrac * rb, 0.0)
             ep = np.linalg.norm(e[:, :3], axis=1)
             eu = np.linalg.norm(e[:, 3:], axis=1) if self.orientation else np.zeros(owner.size)
@@ -954,11 +1015,12 @@ class _Poster:
             self.fractions[int(rows[i])] = np.r_[0.0, fr[sel], 1.0]
         return out
 
-    def _arcs(self, rows, arc_idx, q_start, q_end, force, inch, delta_prog):
+    def _arcs(self, rows, arc_idx, q_start, solved_ends, force, inch, delta_prog):
         """Arcs whose correction is constant within tolerance stay arcs; others are fitted (``.arcs``, where
         ``fit_arcs``) or become straight pieces.
 
-        All arcs are sampled and solved together (one Newton solve per stage, not per arc)."""
+        All arcs are sampled and solved together (one Newton solve per stage, not per arc); ``solved_ends``: (nominal,
+        commanded) poses of the chunk's block ends, whose solves the arcs' last points take."""
         p = self.p
         out, modes = {}, {}
         arc_idx = np.asarray(arc_idx, int)
@@ -970,7 +1032,7 @@ class _Poster:
         n_s = np.clip(np.ceil(length / ARC_SAMPLE_MM), 4, 16).astype(int)
         pts6 = _arcs_points(p, r_arcs, n_s)
         owner = np.repeat(np.arange(arc_idx.size), n_s + 1)
-        q_c, q_pts = self._solve_arc_points(rows, arc_idx, owner, pts6, force)
+        q_c, q_pts = self._solve_arc_points(rows, arc_idx, owner, pts6, force, solved_ends)
         lin = [j for j, a in enumerate(self.names) if not self.m.axes[a].is_rotary]
         d = (q_c - q_pts)[:, lin]
         last = np.cumsum(n_s + 1) - 1
@@ -1001,7 +1063,7 @@ class _Poster:
         counts = np.maximum(2, np.ceil(sweep / step)).astype(int)
         pts6 = _arcs_points(p, r_lin, counts)
         owner = np.repeat(np.arange(lin.size), np.asarray(counts) + 1)
-        q_c, q_pts = self._solve_arc_points(rows, lin, owner, pts6, force)
+        q_c, q_pts = self._solve_arc_points(rows, lin, owner, pts6, force, solved_ends)
         self.check(q_pts, q_c, rows[lin][owner])
         cmd6 = pts6 + self.to_program_delta(self.command_delta(q_c, q_pts), p.inch[rows[lin]][owner], rows[lin][owner])
         first = np.r_[0, np.cumsum(np.asarray(counts) + 1)[:-1]]
@@ -1011,8 +1073,12 @@ class _Poster:
         self.rep.arcs_linearised += int(lin.size)
         return out, modes
 
-    def _solve_arc_points(self, rows, arc_idx, owner, pts6, force):
-        """Commanded and nominal machine poses (K, n_axes) for points ``pts6`` (K, 6) on the arcs ``arc_idx[owner]``."""
+    def _solve_arc_points(self, rows, arc_idx, owner, pts6, force, ends=None):
+        """Commanded and nominal machine poses (K, n_axes) for points ``pts6`` (K, 6) on the arcs ``arc_idx[owner]``.
+
+        ``ends``: (nominal, commanded) poses of the chunk's block ends, solved already: an arc's last point is its end
+        (``_arcs_points`` puts it there exactly), and where it gives the same nominal pose under the same load its
+        commanded pose is taken from there (the same solve of the same numbers)."""
         p = self.p
         r = rows[arc_idx][owner]
         q_pts = self.to_machine(p.to_machine(pts6, r), p.inch[r])
@@ -1020,9 +1086,28 @@ class _Poster:
         if f is not None and f.shape[1] > 3:  # a lathe's loads: force and motion follow the arc (see .turning)
             from .turning import arc_point_loads
 
-            f = arc_point_loads(self, r, pts6, f)
-        q_c, _ = self.solve(q_pts, f, r)
+            f, ends = arc_point_loads(self, r, pts6, f), None
+        taken = np.zeros(owner.size, bool)
+        if ends is not None:
+            last = np.nonzero(np.r_[owner[1:] != owner[:-1], True])[0]
+            block = arc_idx[owner[last]]
+            last = last[np.all(q_pts[last] == ends[0][block], axis=1)]
+            taken[last] = True
+        q_c = np.empty_like(q_pts)
+        if taken.any():
+            q_c[taken] = ends[1][arc_idx[owner[taken]]]
+            self._record_taken(q_pts[taken], r[taken])
+        if not taken.all():
+            q_c[~taken], _ = self.solve(q_pts[~taken], None if f is None else f[~taken], r[~taken])
         return q_c, q_pts
+
+    def _record_taken(self, q, rows):
+        """What ``solve`` records of its points (the residuals aside: recorded by the solve they come from), for points
+        whose commanded poses were taken from another solve: the points and blocks in the singular cone."""
+        held = self.singular_at(q)
+        self.stats["singular_points"] += int(held.sum())
+        if held.any():
+            self.stats["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
 
     # --- writing -------------------------------------------------------------------------------------------------
     def _write(self, rows, delta_prog, pieces, arc_mode):
@@ -1173,8 +1258,9 @@ class _Poster:
             motion = FEED
         # G93: each piece takes its share of the block's time (the control interpolates the axes linearly in time,
         # so a piece over the fraction df of the move takes df of it): inverse time F / df.
-        piece_f = p.feed[r] / np.diff(self.fractions.get(r, np.linspace(0.0, 1.0, n + 1)))
         if inverse:
+            fractions = self.fractions.get(r)
+            piece_f = p.feed[r] / np.diff(np.linspace(0.0, 1.0, n + 1) if fractions is None else fractions)
             body = _replace_feed(body, piece_f[0], fmt, sep)
         if inc:
             words = [fmt(a, _out_value(pts[0], last_written, a, inc)) for a in axes_out]
@@ -1249,9 +1335,12 @@ class _Poster:
             inch0 = p.inch[cand_r0[arcs]]
             n_extra[arcs] = 2
             extra_val[arcs] = values
+            # (per letter and unit, not per arc: a program has hundreds of thousands of them)
+            table = np.array([[numbers.decimals(c, inch) for inch in (False, True)] for c in "IJK"], np.int64)
             for j in range(2):
-                extra_letter[arcs, j] = [ord(c) for c in letters[:, j]]
-                extra_dec[arcs, j] = [numbers.decimals(c, bool(i)) for c, i in zip(letters[:, j], inch0)]
+                which = np.searchsorted(np.array(list("IJK")), letters[:, j])
+                extra_letter[arcs, j] = np.frombuffer(b"IJK", np.uint8)[which]
+                extra_dec[arcs, j] = table[which, inch0.astype(np.int64)]
         ok, spans = fast_write.scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch,
                                     n_extra, extra_val, extra_dec)
         handled = np.zeros(starts.size, bool)
@@ -1312,10 +1401,12 @@ class _Poster:
         p = self.p
         inch = bool(p.inch[r])
         if p.arc_incremental[r]:
-            if not hasattr(self, "_fit_numbers"):
-                self._fit_numbers = _Numbers(p.format_info)
-            dec = np.array([self._fit_numbers.decimals(a, inch) for a in "XYZ"])
-            written = np.round(np.asarray(start[:3], float) * 10.0**dec) / 10.0**dec
+            if not hasattr(self, "_fit_scale"):
+                numbers = _Numbers(p.format_info)
+                self._fit_scale = {flag: 10.0 ** np.array([numbers.decimals(a, flag) for a in "XYZ"])
+                                   for flag in (False, True)}  # (per unit, not per sub-arc)
+            scale = self._fit_scale[inch]
+            written = np.round(np.asarray(start[:3], float) * scale) / scale
             centre = centre - written
         plane = int(p.arc_plane[r])
         cols = {17: (0, 1), 18: (0, 2), 19: (1, 2)}[plane]

@@ -24,13 +24,17 @@ from ..machine.twin import ErrorTwin
 @dataclass
 class SolveResult:
     """q : (N, n_axes) commanded axes (mm, rad).  position_residual_um / axis_residual_urad : (N,) norms of the
-    remaining pose error. iterations : Newton steps taken. converged : (N,) bool."""
+    remaining pose error. iterations : Newton steps taken. converged : (N,) bool. actual : (tip (N, 3) mm, unit axis
+    (N, 3)), the twin's actual pose at q (the last Newton pass computed it; the same numbers ``actual_pose`` gives).
+    nominal : (tip, unit axis), the nominal pose of q_nominal."""
 
     q: np.ndarray
     position_residual_um: np.ndarray
     axis_residual_urad: np.ndarray
     iterations: int
     converged: np.ndarray
+    actual: tuple = ()
+    nominal: tuple = ()
 
 
 def solve_commanded(
@@ -70,6 +74,7 @@ def solve_commanded(
     q = q0.copy()
     pos_err = np.empty(n)
     ax_err = np.empty(n)
+    p_act, u_act = np.empty((n, 3)), np.empty((n, 3))
     # Newton on the poses not yet converged only (most converge after the first, differential-motion step); one twin
     # pass per iteration gives the pose (the convergence check of the previous step) and the Jacobian of the next.
     todo = np.arange(n)
@@ -84,7 +89,9 @@ def solve_commanded(
             done &= (ax_err[todo] <= tol_urad) | ~fr.all(1)
         keep = ~done
         if it == max_iter or not keep.any():
+            p_act[todo], u_act[todo] = p, u
             break
+        p_act[todo[done]], u_act[todo[done]] = p[done], u[done]
         it += 1
         todo, qa, p, u, Ja, fr = todo[keep], qa[keep], p[keep], u[keep], Ja[keep], fr[keep]
         r = np.hstack([p - p_nom[todo], u - u_nom[todo]]) @ M.T
@@ -92,14 +99,15 @@ def solve_commanded(
         # Normal equations, batched (matmul on stacks of small matrices); held axes get a unit diagonal so their step
         # is zero.
         Jt = J.transpose(0, 2, 1)
-        A = Jt @ J
-        A[:, np.arange(k), np.arange(k)] += ~fr
+        A = Jt @ J  # (a new C-ordered stack: its diagonals are every (k + 1)-th element of a row of k * k)
+        A.reshape(A.shape[0], k * k)[:, :: k + 1] += ~fr
         b = Jt @ r[..., None]
         q[todo] = qa - np.linalg.solve(A, b)[..., 0]
     ok = pos_err <= tol_um
     if orientation:
         ok &= (ax_err <= tol_urad) | ~free.all(1)
-    return SolveResult(q=q, position_residual_um=pos_err, axis_residual_urad=ax_err, iterations=it, converged=ok)
+    return SolveResult(q=q, position_residual_um=pos_err, axis_residual_urad=ax_err, iterations=it, converged=ok,
+                       actual=(p_act, u_act), nominal=(p_nom, u_nom))
 
 
 def _rows(arr, idx, n):
