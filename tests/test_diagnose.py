@@ -208,6 +208,29 @@ def test_report_schema_and_cli(slots, tmp_path):
     assert p["value_um"] == pytest.approx(8.0, abs=1.5) and p["std_um"] > 0
 
 
+def test_cli_warns_of_a_program_for_another_machine_and_a_noise_far_from_the_datas(slots, tmp_path, capsys):
+    """The program's header names the machine it was written for: against another machine's twin the diagnosis names
+    that machine's differences, said in a warning; --noise-um five times the data's noise, likewise (both in
+    diagnosis.json's "warnings" too). With the right ones: no warning."""
+    from trueaxis.cli import main
+
+    m, prog, _ = slots
+    r = _cut(m, prog, {"backlash": {"Y": {"amplitude": 8.0}}}, noise=1.0, seed=5, points=300)
+    write_cmm(r, tmp_path / "cmm.ply")
+    assert "(machine: XH714" in prog.text
+    (tmp_path / "p.ngc").write_text(prog.text.replace("(machine: XH714", "(machine: Another mill"))
+    args = ["diagnose", "--cloud", str(tmp_path / "cmm.ply"), "--part", "slots", "--machine", "xh714",
+            "--program", str(tmp_path / "p.ngc"), "--candidates", "backlash_y,thermal_x"]
+    assert main(args + ["--noise-um", "5.0", "-o", str(tmp_path / "warned")]) == 0
+    err = capsys.readouterr().err
+    assert "written for the machine 'Another mill" in err and "--noise-um 5 um, but the data show" in err
+    assert len(json.loads((tmp_path / "warned" / "diagnosis.json").read_text())["warnings"]) == 2
+    (tmp_path / "p.ngc").write_text(prog.text)
+    assert main(args + ["--noise-um", "1.0", "-o", str(tmp_path / "quiet")]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert json.loads((tmp_path / "quiet" / "diagnosis.json").read_text())["warnings"] == []
+
+
 @pytest.mark.parametrize("extra,msg", [
     (["--candidates", "backlash_q"], "unknown"),
     (["--noise-um", "-1"], "noise"),

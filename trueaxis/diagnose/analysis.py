@@ -447,7 +447,7 @@ class Diagnosis:
     split: str
     skipped: list
     tied: dict = field(default_factory=dict)
-    ruled_out: list = field(default_factory=list)
+    notes: list = field(default_factory=list)  # why candidates were set aside, what the verdict rests on
     closest: list = field(default_factory=list)
     confidence_basis: dict = field(default_factory=dict)
 

@@ -64,7 +64,8 @@ def cloud_normals(points: np.ndarray, normals: np.ndarray | None, part_json: dic
 
 
 def run_diagnosis(points, normals, part: str, machine, program_text: str, *, candidates="all", split="region",
-                  noise_um=None, force_stride: int = 200, part_json=None) -> tuple[Diagnosis, TwinState]:
+                  noise_um=None, force_stride: int = 200, part_json=None,
+                  program_name: str = "<program>") -> tuple[Diagnosis, TwinState]:
     """Twin simulation, candidates, judgement. points (N,3) mm part frame; normals (N,3) or None.
 
     part_json : the part's description (dict, JSON path, or ``Nas979Params`` / ``SlotBlockParams``; default: the
@@ -75,7 +76,8 @@ def run_diagnosis(points, normals, part: str, machine, program_text: str, *, can
     check_cloud_for_part(points, part, pj)
     normals = cloud_normals(np.asarray(points, float), normals, pj)
     state = twin_state(points, normals, machine, program_text, part,
-                       want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride, part_json=pj)
+                       want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride, part_json=pj,
+                       program_name=program_name)
     if len(state) < 20:
         raise ValueError(f"only {len(state)} measured points were cut by the program: too few to diagnose")
     gap_rms = float(np.sqrt(np.mean(state.gap_um ** 2)))
@@ -143,7 +145,8 @@ def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None
         "chosen": chosen,
         "alternatives": diag.alternatives,
         "separating_measurement": diag.separating_measurement,
-        "ruled_out": diag.ruled_out,
+        "notes": diag.notes,
+        "warnings": [],
         "closest_candidates": diag.closest,
         "confidence_basis": diag.confidence_basis,
         "candidates": [_fit_dict(f) for f in diag.fits],
@@ -239,7 +242,9 @@ def _html(data: dict, pngs: dict) -> str:
     if data["alternatives"]:
         alt = (f"<p>Almost as good: {e(', '.join(data['alternatives']))}. "
                f"To separate them: {e(data['separating_measurement'] or 'a second placement')}.</p>")
-    alt += "".join(f"<p>Note: {e(r)}.</p>" for r in data.get("ruled_out", []))
+    alt += "".join(f"<p>Note: {e(r)}.</p>" for r in data.get("notes", []))
+    alt = "".join(f"<p style='border:2px solid #c0392b;background:#fdecea;padding:4px'>Warning: {e(w)}</p>"
+                  for w in data.get("warnings", [])) + alt
     if not data["chosen"] and data.get("closest_candidates"):
         alt += "<p>Closest candidates (none explains the gap): " + "; ".join(
             f"{e(c['effect'])}: {c['explained_share_above_noise'] * 100:.0f} % of the gap above the noise, "
@@ -265,12 +270,14 @@ def _html(data: dict, pngs: dict) -> str:
 """
 
 
-def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None = None) -> dict:
+def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None = None,
+                 warnings: list | None = None) -> dict:
     """Write diagnosis.json, diagnosis.html and the PNGs into ``out_dir`` together: everything is written into a
     temporary folder beside it first, then moved in with ``os.replace`` (pictures, HTML, then the JSON last), so a
     reader never sees a JSON without its pictures. Returns the JSON dict."""
     out_dir = Path(out_dir)
     data = diagnosis_dict(diag, state, inputs)
+    data["warnings"] = list(warnings or [])
     pngs = pictures(diag, state)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
@@ -309,20 +316,49 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     pts = read_cloud(cloud)
     text = program.read_text(encoding="utf-8", errors="replace")
     diag, state = run_diagnosis(pts.points, pts.normals, part, m, text, candidates=names, split=split,
-                                noise_um=noise_um, part_json=part_json)
+                                noise_um=noise_um, part_json=part_json, program_name=str(program))
     inputs = {"cloud": str(cloud), "part": part, "machine": str(machine), "program": str(program),
               "candidates": names, "split": split, "noise_um": noise_um,
               "part_json": str(part_json) if isinstance(part_json, (str, Path)) else None}
-    data = write_report(diag, state, output, inputs)
+    warnings = input_warnings(state, m, text, program, noise_um)
+    data = write_report(diag, state, output, inputs, warnings)
     return diag, data
 
 
-def summary_lines(diag: Diagnosis, output) -> list[str]:
-    """The command's summary on the terminal."""
+def input_warnings(state: TwinState, machine, program_text: str, program, noise_um: float | None) -> list[str]:
+    """What in the inputs looks wrong, one line each: a program posted for another machine (its header names the
+    machine), a probe noise given far from the one the data show."""
+    from .analysis import estimate_noise_um
+
+    out = []
+    import re
+
+    posted = re.search(r"^\(machine: (.*)\)\s*$", program_text[:20_000], re.MULTILINE)
+    # the program's header writes the machine's name with its parentheses as brackets
+    name = machine.name.replace("(", "[").replace(")", "]")
+    if posted and posted.group(1).strip() != name.strip():
+        out.append(f"{program} was written for the machine {posted.group(1).strip()!r}, the twin given is "
+                   f"{name!r}: a diagnosis against another machine's twin names that machine's differences")
+    if noise_um is not None:
+        seen = estimate_noise_um(state)
+        if not 0.5 <= noise_um / max(seen, 1e-300) <= 2.0:
+            out.append(f"--noise-um {noise_um:g} um, but the data show a probe noise of about {seen:.2f} um (the "
+                       "residual of a local fit): the shares above the noise and the parameters' std rest on it")
+    return out
+
+
+def summary_lines(diag: Diagnosis, output, named_candidates: bool = False) -> list[str]:
+    """The command's summary on the terminal. named_candidates : the user named the candidates (then those that do
+    not apply to this machine and part are listed; of the whole library they are only in the report)."""
     b, a = diag.gap_before, diag.gap_after
     out = [f"{output}: {diag.verdict} (confidence {diag.confidence:.2f}); held-out gap rms {b['rms']:.2f} -> "
            f"{a['rms']:.2f} um, max {b['max']:.2f} -> {a['max']:.2f} um; shrink {diag.shrink_raw * 100:.0f} % raw, "
            f"{diag.shrink_above_noise * 100:.0f} % above the noise (sigma {diag.noise_um:.2f} um)"]
     if diag.alternatives:
-        out.append(f"  almost as good: {', '.join(diag.alternatives)}; to separate: {diag.separating_measurement}")
+        out.append(f"  almost as good: {', '.join(diag.alternatives)}; to separate: "
+                   f"{diag.separating_measurement or 'a second placement of the part, or the other test part'}")
+    for note in diag.notes:
+        out.append(f"  note: {note}")
+    if diag.skipped and named_candidates:
+        out.append(f"  not applicable here: {', '.join(str(s) for s in diag.skipped)}")
     return out

@@ -281,7 +281,7 @@ def reversal_travel(q: np.ndarray) -> np.ndarray:
 
 
 def twin_state(points, normals, machine: Machine, program_text: str, part: str, *, want_force: bool = True,
-               force_stride: int = 10, part_json: dict | None = None) -> TwinState:
+               force_stride: int = 10, part_json: dict | None = None, program_name: str = "<program>") -> TwinState:
     """Simulate the twin ``machine`` cutting ``program_text`` and read the gap and the state at ``points``.
 
     points, normals : (N, 3) measured points (mm) and unit outward normals, part frame.
@@ -304,7 +304,7 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
                          f"{normals.shape}")
     t0 = time.perf_counter()
     machine = place_from_setup(machine, program_text, part)
-    prog = parse_program(program_text, "<program>")
+    prog = parse_program(program_text, program_name)
     has_force = bool(want_force and machine.cutting is not None)
     # A zero extra compliance: the shop then estimates the force (real engagement) without moving the tool.
     effects = Effects(force=ForceDeflection(np.zeros((3, 3)))) if has_force else Effects()
