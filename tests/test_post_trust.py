@@ -6,6 +6,9 @@ import json
 import subprocess
 import sys
 
+import numpy as np
+import pytest
+
 from conftest import MACHINES
 from trueaxis.machine import load_machine
 from trueaxis.postproc.post import compensate, without_header
@@ -47,10 +50,36 @@ def test_incremental_moves_from_an_unknown_start_stay_as_written():
 
 
 def test_a_g28_home_of_every_axis_makes_the_position_known():
+    from trueaxis.nc.setup import Offset, Setup
+
     m = load_machine(XH714)
     report = {}
-    compensate("G21 G90\nG28\nG0 Z-20\nG1 X5 F100\nM2\n", m, "geometric", report=report)
+    home = Setup(home={"G28": Offset(np.array([0.0, 0.0, -5.0, 0.0, 0.0, 0.0]), "test")})
+    compensate("G21 G90\nG28\nG0 Z-20\nG1 X5 F100\nM2\n", m, "geometric", report=report, setup=home)
     assert report["uncompensated"] == []
+
+
+def test_a_g28_to_a_home_position_not_given_is_refused_not_taken_as_machine_zero():
+    """G28 / G30 move to a home position stored in the control (#5161-5166 / #5181-5186): not given, it was taken as
+    machine zero, and the next block got Y and Z words the program never moved (a feed move driven to Y0 Z0).
+    Refused naming it and the line, in line order with the program's other missing values; accepted with the home
+    given (or --offsets-zero, which says that zero is meant)."""
+    from trueaxis.nc.gcode import GcodeError
+    from trueaxis.nc.setup import Offset, Setup
+
+    m = load_machine(XH714)
+    text = "G21 G90\nG0 X0 Y0 Z0\nG28\nG1 X100 F100\nM30\n"
+    with pytest.raises(GcodeError, match=r"<string>:3: G28 moves to its home position \(#5161-5166"):
+        compensate(text, m, "geometric")
+    home = Setup(home={"G28": Offset(np.array([20.0, 30.0, -50.0, 0.0, 0.0, 0.0]), "test.var")})
+    out = without_header(compensate(text, m, "geometric", setup=home))
+    import re
+
+    line = out.splitlines()[3]  # the G1 after G28: Y and Z stay at the home position (corrected by some um)
+    assert abs(float(re.search(r"Y(-?[0-9.]+)", line).group(1)) - 30.0) < 0.05
+    assert abs(float(re.search(r"Z(-?[0-9.]+)", line).group(1)) + 50.0) < 0.05
+    with pytest.raises(GcodeError, match=r"<string>:2: G30 moves"):
+        compensate("G21 G90\nG30\nG0 X0 Y0 Z0\nM30\n", m, "geometric")
 
 
 # --- (b) the header names what made the output; a posted program is not posted again ---------------------------------
@@ -254,3 +283,62 @@ def test_linuxcnc_trt_rotary_sense_reads_and_writes_rotary_words_negated(tmp_pat
         assert "rotary_sense" in str(exc) and "linuxcnc-trt" in str(exc)
     else:
         raise AssertionError("an unknown rotary_sense was accepted")
+
+
+SQUARENESS_ONLY = """[machine]
+name = "C0Y only"
+kind = "mill"
+format = 1
+[kinematics]
+bed_to_workpiece = ["Y", "X"]
+bed_to_tool = ["Z"]
+[axes]
+X = { type = "linear", travel = [-200.0, 200.0] }
+Y = { type = "linear", travel = [-150.0, 150.0] }
+Z = { type = "linear", travel = [-400.0, 100.0] }
+[tool]
+length = 100.0
+radius = 5.0
+[location]
+C0Y = 100.0
+"""
+
+
+@pytest.mark.parametrize("units, helix, down, depth", [("G21", "I75 J0 Z-7.7", "Z-2.5", -10.2),
+                                                       ("G20", "I3 J0 Z-0.3", "Z-0.1", -0.4)])
+def test_a_g91_helix_split_into_thousands_of_pieces_ends_where_the_program_does(tmp_path, units, helix, down, depth):
+    """An incremental helix becomes thousands of G91 pieces (C0Y moves X by 1e-4 Y inside the circle); each
+    increment rounded alone added up to 5.6 um (mm) and 20 um (inch) too shallow at the end. Written as differences
+    of the rounded ends, the increments sum to the program's own end exactly (to the last written digit)."""
+    import re
+
+    from trueaxis.machine.machine_file import load_machine as load
+
+    (tmp_path / "sq.toml").write_text(SQUARENESS_ONLY)
+    m = load(tmp_path / "sq.toml")
+    text = f"{units} G90 G17 G94 F20\nG0 X0 Y0 Z1\nG1 Z0\nG91 G2 X0 Y0 {helix} P3\nG1 {down}\nG90 G0 Z1\nM30\n"
+    out = without_header(compensate(text, m, "geometric"))
+    z, incremental, pieces = 0.0, False, 0
+    for line in out.splitlines():
+        if "G90" in line and "G0" in line:
+            break
+        incremental = incremental or "G91" in line
+        found = re.search(r"Z(-?[0-9.]+)", line)
+        if found:
+            z = z + float(found.group(1)) if incremental else float(found.group(1))
+            pieces += incremental
+    assert pieces > 1000
+    assert z == pytest.approx(depth, abs=1e-9)
+
+
+def test_g53_moves_and_rotary_axes_the_program_never_moves_are_said_not_invented():
+    """A G53 move (machine coordinates) passes through uncompensated, and a three-axis program on a five-axis
+    machine is corrected with B and C at 0: both were silent; now each is a warning (an error under --strict)."""
+    report = {}
+    compensate("G21 G90\nG0 X0 Y0 Z-10\nG53 G1 X100 F100\nG1 X50\nM30\n", load_machine(XH714), "geometric",
+               report=report)
+    assert any("1 G53 move (machine coordinates; lines 3)" in w for w in report["warnings"])
+    report = {}
+    compensate("G21 G90\nG0 X0 Y0 Z50\nG1 X50 Y50 Z40 F100\nM30\n", load_machine(MACHINES / "nmv1500dcg.toml"),
+               "geometric", report=report)
+    assert any("never commands B C: the corrections take them at 0" in w for w in report["warnings"])

@@ -414,7 +414,8 @@ def test_readers_keep_values_in_mm_with_their_sources(tmp_path, files):
 
 
 def test_the_machine_file_names_a_default_setup(tmp_path):
-    (tmp_path / "shop.toml").write_text('[setup]\nunits = "mm"\n[work_offsets]\nG54 = { X = 75, Y = 55, Z = -200 }\n')
+    (tmp_path / "shop.toml").write_text('[setup]\nunits = "mm"\n[home]\nG28 = { X = 0, Y = 0, Z = 0 }\n'
+                                        '[work_offsets]\nG54 = { X = 75, Y = 55, Z = -200 }\n')
     (tmp_path / "mill.toml").write_text(MACHINE_TOML.replace('format = 1\n', 'format = 1\nsetup = "shop.toml"\n'))
     src = tmp_path / "cover.nc"
     src.write_text((NIST / "mtc_cover_rev_a.nc").read_text())

@@ -194,7 +194,9 @@ def cmd_post(args) -> int:
     cl = (f"CL data ({report.input_format[3:]}, {report.cl_points} points, {report.cl_program_blocks} machine-axis "
           "blocks) -> " if report.input_format.startswith("cl-") else "")
     print(f"{'<stdout>' if args.output == '-' else args.output}: {cl}{report.blocks_in} blocks in, "
-          f"{report.blocks_out} out; {report.moves_split} moves split; max correction {corr} (um/urad); "
+          f"{report.blocks_out} out; {report.moves_split} moves split"
+          f"{f', {report.arcs_linearised} arcs as lines' if report.arcs_linearised else ''}; "
+          f"max correction at the block ends {corr} (um/urad); "
           f"{len(report.singular_blocks)} singular blocks", file=sys.stderr if "-" in (args.output, args.report)
           else sys.stdout)  # stdout carries the program (or the report) then
     return 0

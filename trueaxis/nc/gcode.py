@@ -557,6 +557,8 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             "G28": np.array(refs.get("G28", np.zeros(6)), float),
             "G30": np.array(refs.get("G30", np.zeros(6)), float),
         }
+        # which home positions the user gave (a program's G28.1 / G30.1 sets one too, see interp_convert)
+        self.ref_given0 = {key: key in refs for key in self.ref_mm}
         for k, v in self.ref_mm.items():
             if v.shape != (6,):
                 raise ValueError(f"reference point {k} must have 6 values (X Y Z A B C), got shape {v.shape}")
@@ -862,7 +864,22 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         """What the rows used of the control's setup (one entry per value, in the order of first use), and, under
         ``require_setup``, the refusal of the first move made under a value that was not given."""
         out, seen = [], set()
+        missing_home = self.ref_missing if self.require_setup else None
+        if missing_home is not None:
+            # only a move made after it depends on where the home is (a program that ends with G28 posts as it is)
+            after = (np.asarray(line)[(kind == ROW_PROGRAMMED) | (kind == ROW_CYCLE)] + 1) > missing_home[0]
+            missing_home = missing_home if after.any() else None
+
+        def refuse(line_no, reason, options="--var / --setup"):
+            # the program's first missing value in line order: a G28 / G30 home, or this offset
+            if missing_home is not None and missing_home[0] <= line_no:
+                line_no, reason, options = *missing_home, "--var / --setup"
+            raise self.err(line_no, f"{reason}: give the control's setup ({options}), or --offsets-zero if zero is "
+                                    "meant")
+
         if sid.size == 0:
+            if missing_home is not None:
+                refuse(*missing_home)
             return out
         uniq, first = np.unique(sid, return_index=True)
         setup_given_active = self.setup is not None and self.setup.active is not None
@@ -875,13 +892,10 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             if self.require_setup and s_id in checked:
                 missing = "".join(a for a in unknown if a in axes_used)
                 if missing and (selects_work or setup_given_active):
-                    raise self.err(line_no, f"work offset {_SYSTEM_NAMES[active - 1]} ({' '.join(missing)}) was not "
-                                   "given: give the control's setup (--var / --setup), or --offsets-zero if zero is "
-                                   "meant")
+                    refuse(line_no, f"work offset {_SYSTEM_NAMES[active - 1]} ({' '.join(missing)}) was not given")
                 for reason in (g92_reason, tlo_reason):
                     if reason:
-                        raise self.err(line_no, f"{reason}: give the control's setup (--tool-table / --var / "
-                                       "--setup), or --offsets-zero if zero is meant")
+                        refuse(line_no, reason, "--tool-table / --var / --setup")
             key = ("g5x", active, g5x_ver)
             if key not in seen:
                 seen.add(key)
@@ -906,6 +920,8 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                 what = "tool offset (G43.1)" if rec["tool"] == -2 else f"tool {rec['tool']} offset"
                 out.append({"what": what, "values_mm_deg": [float(v) for v in rec["values"]],
                             "source": rec["source"], "applied_by": rec["how"], "first_line": line_no})
+        if missing_home is not None:
+            refuse(*missing_home)
         return out
 
     def resolve(self, text):

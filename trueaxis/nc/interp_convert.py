@@ -234,10 +234,18 @@ class Conversion:
                     "known": self.g5x_known[idx].copy()}
             return []
         if nonmodal in (280, 300):
-            self.reference_return(li, "G28" if nonmodal == 280 else "G30", ax, words_mask)
+            key = "G28" if nonmodal == 280 else "G30"
+            if not self.zero_ok and not self.ref_given[key] and self.ref_missing is None:
+                # the home position lives in the control (#5161-5166 / #5181-5186): zero would be an invented move
+                # (refused under require_setup with the program's other missing values, the first in line order)
+                first = 5161 if key == "G28" else 5181
+                self.ref_missing = (line_no, f"{key} moves to its home position (#{first}-{first + 5}, stored in "
+                                             "the control), which was not given")
+            self.reference_return(li, key, ax, words_mask)
             return []
         if nonmodal in (281, 301):
             self.refs["G28" if nonmodal == 281 else "G30"] = np.array(self.machine_of(self.pos)) * self.u_scale
+            self.ref_given["G28" if nonmodal == 281 else "G30"] = True
         elif nonmodal in (920, 921, 922, 923):
             return self.g92_shift(line_no, nonmodal, ax)
         return ax

@@ -45,6 +45,8 @@ class InterpState:
         self.cycle_words = {"r": 0.0, "cc": 0.0, "p": 0.0, "q": 0.0, "i": 0.0, "j": 0.0, "k": 0.0, "il": 0.0,
                             "il_flag": False}
         self.refs = {k: v.copy() for k, v in self.ref_mm.items()}  # machine coords, mm (converted on use)
+        self.ref_given = dict(self.ref_given0)  # a home position given by the user, or set by G28.1 / G30.1
+        self.ref_missing = None  # (line number, reason) of the first G28 / G30 to a home position not given
         self.used_axes = set()
         self.units_seen = set()
         self.percent_seen = 0

@@ -46,6 +46,7 @@ from ..nc.gcode import (
     MM_PER_INCH,
     RAPID,
     ROW_CYCLE,
+    ROW_MACHINE,
     ROW_PROGRAMMED,
     ROW_REFERENCE,
     WORD_BITS,
@@ -312,6 +313,14 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     rep.blocks_in = len(prog.lines)
     rep.passthrough = [{"line": ln, "reason": r} for ln, r in prog.unsupported]
     rep.warnings = list(prog.warnings)
+    machine_rows = np.nonzero(prog.kind == ROW_MACHINE)[0]
+    if mode != "none" and machine_rows.size:
+        # G53 positions are machine coordinates, written as given: say so, a feed move among them cuts uncorrected
+        lines = sorted({int(prog.line_no[r]) for r in machine_rows})
+        shown = ", ".join(str(n) for n in lines[:5]) + (f" and {len(lines) - 5} more" if len(lines) > 5 else "")
+        rep.warnings.append(f"{source}:{lines[0]}: {len(lines)} G53 move{'s' if len(lines) > 1 else ''} (machine "
+                            f"coordinates; lines {shown}) passed through uncompensated: the twin's error is not "
+                            "corrected there")
     _check_axes(prog, machine, source)
     if prog.units != "mm":
         rep.units_note = (f"program in {prog.units} (G20); converted to mm for the {machine.name} model and back to "
@@ -729,6 +738,12 @@ class _Poster:
                 self.rep.blocks_out = len(p.lines)
                 return "".join(p.lines), self.rep
         self.rep.moves = int(rows.size)
+        idle = [a for a in self.names if self.m.axes[a].is_rotary and a not in p.axes_present]
+        if idle:
+            # a rotary axis the program never commands stands where the control left it, which the post cannot know
+            self.rep.warnings.append(f"{p.source}:1: the program never commands {' '.join(idle)}: the corrections take "
+                                     f"{'it' if len(idle) == 1 else 'them'} at 0, where "
+                                     f"{'it' if len(idle) == 1 else 'they'} must stand when the program runs")
         delta_prog = np.empty((rows.size, 6))
         pieces, arc_mode = {}, {}
         sq = np.zeros(len(self.names))
@@ -1233,7 +1248,7 @@ class _Poster:
                 extra += n_more
                 continue
             if inc:
-                words = [fmt(a, _out_value(target[k], last_written, a, inc)) for a in axes_out]
+                words = [fmt(a, _out_value(target[k], last_written, a, inc, fmt.decimals(a))) for a in axes_out]
             else:
                 words = [axis_words[a][j - window[0]] for a in axes_out]
             if arc_kept and not r_form_l[r]:
@@ -1263,7 +1278,7 @@ class _Poster:
             piece_f = p.feed[r] / np.diff(np.linspace(0.0, 1.0, n + 1) if fractions is None else fractions)
             body = _replace_feed(body, piece_f[0], fmt, sep)
         if inc:
-            words = [fmt(a, _out_value(pts[0], last_written, a, inc)) for a in axes_out]
+            words = [fmt(a, _out_value(pts[0], last_written, a, inc, fmt.decimals(a))) for a in axes_out]
             last_written = pts[0]
         else:
             words = [split.words[a][o] for a in axes_out]
@@ -1273,7 +1288,8 @@ class _Poster:
         word = "G0" if motion == RAPID else "G1"
         for i_piece in range(1, n):
             if inc:
-                piece = [word] + [fmt(a, _out_value(pts[i_piece], last_written, a, inc)) for a in axes_out]
+                piece = [word] + [fmt(a, _out_value(pts[i_piece], last_written, a, inc, fmt.decimals(a)))
+                                  for a in axes_out]
                 last_written = pts[i_piece]
             elif centres is not None and np.isnan(centres[i_piece, 0]):  # a sub-arc that did not hold
                 piece = ["G1"] + [split.words[a][o + i_piece] for a in axes_out]
@@ -1472,6 +1488,7 @@ class _Numbers:
             return letter + write_number(float(value), self.decimals(letter, inch), leading_zero=info.leading_zero,
                                          trailing_point=info.trailing_point)
 
+        fmt.decimals = lambda letter: self.decimals(letter, inch)  # (G91 increments: ``_out_value``)
         return fmt
 
     def words(self, letter: str, values, inch) -> list:
@@ -1570,9 +1587,17 @@ def _motion_text(word: str, motion: int) -> str:
     return f"G0{motion}" if word[1:].strip() in ("00", "01", "02", "03") else f"G{motion}"
 
 
-def _out_value(target6, last6, letter, incremental: bool):
+def _out_value(target6, last6, letter, incremental: bool, decimals: int = 0):
+    """The value of axis word ``letter`` for the end ``target6``: itself (G90), or (G91) the increment from
+    ``last6``, written as the difference of the two ends rounded to ``decimals`` as absolute words would be: the
+    control adds the increments up, so rounded one by one their errors would add up along a G91 run (an arc split
+    into 2,582 G91 pieces ended 5.6 um short, 20 um in inch); as differences of rounded ends they telescope to the
+    rounded last end. ``round`` is correctly rounded, ties to even, as ``write_number``."""
     j = AXES.index(letter)
-    return target6[j] - last6[j] if incremental else target6[j]
+    if not incremental:
+        return target6[j]
+    scale = 10 ** decimals
+    return (round(round(float(target6[j]), decimals) * scale) - round(round(float(last6[j]), decimals) * scale)) / scale
 
 
 def _split_ending(line: str):
