@@ -13,6 +13,7 @@ import html
 import io
 import json
 import os
+import re
 import shutil
 import tempfile
 import time
@@ -331,8 +332,6 @@ def input_warnings(state: TwinState, machine, program_text: str, program, noise_
     from .analysis import estimate_noise_um
 
     out = []
-    import re
-
     posted = re.search(r"^\(machine: (.*)\)\s*$", program_text[:20_000], re.MULTILINE)
     # the program's header writes the machine's name with its parentheses as brackets
     name = machine.name.replace("(", "[").replace(")", "]")

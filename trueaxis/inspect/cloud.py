@@ -643,38 +643,6 @@ def write_deviation_ply(path: str | os.PathLike, points: np.ndarray, deviation_u
     atomic_write(name, [("\n".join(header) + "\n").encode("ascii"), body])  # the array written as it is, no copy
 
 
-def _fixed_point_bytes(values: np.ndarray, decimals: int) -> np.ndarray:
-    """(n,) finite floats -> (n, w) uint8 ASCII of '%.{decimals}f', left-padded with 0 bytes (removed later).
-
-    Vectorised: the digits come from the integer of the value times 10^decimals, so 1,000,000 numbers take tens of
-    milliseconds, where Python's string formatting takes seconds."""
-    scaled = np.round(values * 10.0 ** decimals)
-    if np.abs(scaled).max(initial=0.0) >= 2.0 ** 62:
-        raise ValueError("value too large for fixed-point output")
-    v = scaled.astype(np.int64)
-    negative = v < 0
-    a = np.abs(v)
-    whole, fraction = a // 10 ** decimals, a % 10 ** decimals
-    digits = max(1, len(str(int(whole.max(initial=0)))))
-    out = np.zeros((len(values), 1 + digits + 1 + decimals), dtype=np.uint8)
-    out[:, 0] = np.where(negative, ord("-"), 0)
-    out[:, 1 + digits] = ord(".")
-    # digits from the right, one division each: the fraction's, then the whole part's (no leading zeros, but always
-    # the units digit); in 32-bit integers where they fit (twice the SIMD lanes of 64-bit), the digit bytes in uint8
-    rest = fraction.astype(np.int32) if decimals <= 9 else fraction
-    for k in range(decimals - 1, -1, -1):
-        quotient = rest // 10
-        out[:, 2 + digits + k] = (rest - quotient * 10).astype(np.uint8) + ord("0")
-        rest = quotient
-    rest = whole.astype(np.int32) if digits <= 9 else whole
-    for k in range(digits - 1, -1, -1):
-        quotient = rest // 10
-        digit = (rest - quotient * 10).astype(np.uint8) + ord("0")
-        out[:, 1 + k] = digit if k == digits - 1 else np.where(whole >= 10 ** (digits - 1 - k), digit, 0)
-        rest = quotient
-    return out
-
-
 def write_deviation_csv(path: str | os.PathLike, points: np.ndarray, deviation_um: np.ndarray,
                         surface=None) -> None:
     """Write one line per point, ``x_mm,y_mm,z_mm,deviation_um[,surface]``, with that header, atomically.

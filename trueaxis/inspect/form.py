@@ -101,6 +101,8 @@ def _levenberg_marquardt(params, normal_equations, max_evaluations: int = 2000):
             step = -np.linalg.solve(scaled + damping * np.eye(len(params)), gradient / scale) / scale
         except np.linalg.LinAlgError:
             damping *= 10.0
+            if damping > 1e16:
+                break
             continue
         if np.linalg.norm(step * scale) <= 1e-15 * max(np.linalg.norm(params * scale), 1e-300):
             break  # the step is below the parameters' rounding

@@ -78,8 +78,8 @@ MIN_CONTOUR_POINTS = 3  # points on each wall and arc of a slot for its mean con
 MAX_SECTION_GAP_DEG = 30.0
 ROUNDNESS_NOTE = ("Roundness of the unfiltered profiles (no ISO 12181-2 profile filter applied: probe noise and every "
                   "undulation count, so the values grow with the noise and the point density); sections are slabs "
-                  "of +-0.5 mm about their height, the points moved along the fitted cone's generator to it; "
-                  "a section whose points leave a gap above 30 deg about the axis is not evaluated.")
+                  "about their height, the points moved along the fitted cone's generator to it; a section whose "
+                  f"points leave a gap above {MAX_SECTION_GAP_DEG:g} deg about the axis is not evaluated.")
 
 
 def largest_gap_deg(angles) -> float:

@@ -1587,7 +1587,7 @@ def _motion_text(word: str, motion: int) -> str:
     return f"G0{motion}" if word[1:].strip() in ("00", "01", "02", "03") else f"G{motion}"
 
 
-def _out_value(target6, last6, letter, incremental: bool, decimals: int = 0):
+def _out_value(target6, last6, letter, incremental: bool, decimals: int):
     """The value of axis word ``letter`` for the end ``target6``: itself (G90), or (G91) the increment from
     ``last6``, written as the difference of the two ends rounded to ``decimals`` as absolute words would be: the
     control adds the increments up, so rounded one by one their errors would add up along a G91 run (an arc split
