@@ -27,7 +27,12 @@ EXPECTED ANSWERS. ``EXPECTED`` maps each effect kind to the answer the diagnosis
 for the std-coverage figure: adjust it there when the candidates' parameter names change.
 
 SCORES (each printed per set, and for all the sets run together):
-- strict attribution at >= 3x noise: the chosen set of effects equals the expected set (in-library cases);
+- strict attribution at >= 3x noise: the chosen set of effects equals the expected set (in-library cases); also
+  split by whether the case is identifiable on its part at all (``identifiability``: on the noise-free cut, does any
+  other plausible candidate or pair reproduce the true effect's deviations as well as the truth's own candidate, to
+  within what the probe noise can separate -- expected paired z below ``Z_IDENTIFIABLE``?). On a case that is not,
+  every selection rule is a coin toss among the equivalent explanations; the figure says how much of the benchmark
+  one part can answer, and the rules are judged on the rest;
 - controls flagged (any answer but "none"); out-of-library cases answered "none";
 - confidence: share right among answers with confidence >= 0.7; share of right answers at >= 3x with confidence
   >= 0.7;
@@ -558,6 +563,10 @@ def _run_case(case: dict, points: int, noise_um: float) -> dict:
     out.update(answer=answer, raw_answer=list(diag.chosen), conf=float(diag.confidence),
                alternatives=list(diag.alternatives), verdict=diag.verdict, confidence_basis=basis,
                closest=[{k: c[k] for k in ("effect", "explained_share_above_noise", "why_not")} for c in diag.closest],
+               fits=[{"name": f.name, "share": float(f.explained_share), "z": float(f.z), "n": int(f.n_parameters),
+                      "significant": bool(f.significant), "plausible": bool(f.plausible), "explains": bool(f.explains),
+                      "spline_held": bool(f.extra.get("not_beyond_constrained", False))}
+                     for f in sorted(diag.fits + diag.pairs, key=lambda f: -f.gain_um2)[:10]],
                shrink=float(diag.shrink_above_noise), shrink_raw=float(diag.shrink_raw),
                before=dict(diag.gap_before), after=dict(diag.gap_after), sigma=float(diag.noise_um),
                t_sim=t1 - t0, t_diag=t2 - t1, t_case=time.perf_counter() - t0)
@@ -578,7 +587,63 @@ def _run_case(case: dict, points: int, noise_um: float) -> dict:
         out["parameters"] = [dict(name=n, unit=u, value=float(v), std=float(sd))
                              for n, u, v, sd in zip(f.parameters, f.units, f.value, f.std)]
     out["truth_checks"] = cover
+    if kinds and out["expected"] != "none":
+        out["identifiable"] = identifiability(run(scales), cut, m, prog.text, pj, out["expected"], noise_um)
     return out
+
+
+#: A rival ties with the true effect's candidate when the paired z its held-out advantage is expected to reach at
+#: the probe noise stays below this: no rule on this part can then pick the truth reliably.
+Z_IDENTIFIABLE = 3.0
+
+
+def identifiability(clean, cut, m, program_text: str, pj, expected: str, noise_um: float) -> dict:
+    """Can this part tell the true effect from the other candidates at all? On the noise-free cut of the same
+    machine (``clean``), the candidate (or pair) of the expected answer and every other plausible candidate and pair
+    are fitted (held out, as the diagnosis fits them); a rival whose noise-free held-out residual the probe noise
+    cannot separate from the truth's -- expected paired z of the truth's advantage
+
+        z = sqrt(N) (ms_rival - ms_truth) / (2 sigma rms(pred_truth - pred_rival))
+
+    below ``Z_IDENTIFIABLE`` -- makes the case not identifiable on this part: any rule choosing among the
+    candidates is a coin toss there. The diagnosis' own rules play no part in this (only its candidates and fits)."""
+    from trueaxis.diagnose.analysis import fit_candidate, make_folds, paired_z  # noqa: F401
+    from trueaxis.diagnose.candidates import build_all
+    from trueaxis.diagnose.report import run_diagnosis
+
+    cut = np.isfinite(clean.deviations_um)
+    diag, state = run_diagnosis(clean.measured[cut], clean.normals[cut], "nas979", m, program_text,
+                                noise_um=noise_um, **_part_kwargs(pj))
+    g = state.gap_um
+    want = sorted(expected.split("+"))
+    fits = diag.fits + diag.pairs
+    effects = lambda f: sorted({normalise(x) for x in f.members})  # noqa: E731
+    truth = [f for f in fits if effects(f) == want]
+    if not truth:
+        cands, _ = build_all([c for c in _library_names(state)], state)
+        by = {normalise(c.name): c for c in cands if not c.name.startswith("thermal_spline_")}
+        if not all(w in by for w in want):
+            return {"identifiable": None, "why": "the expected candidate does not apply to this part"}
+        truth = [fit_candidate([by[w] for w in want], g, make_folds(state, diag.split))]
+    t = max(truth, key=lambda f: f.gain_um2)
+    ms_t = float(np.mean((g - t.held_out_pred_um) ** 2))
+    worst = (math.inf, None)
+    for f in fits:
+        if effects(f) == want or not f.plausible:
+            continue
+        ms_r = float(np.mean((g - f.held_out_pred_um) ** 2))
+        sep = float(np.sqrt(np.mean((t.held_out_pred_um - f.held_out_pred_um) ** 2)))
+        z = math.sqrt(g.size) * (ms_r - ms_t) / max(2.0 * noise_um * sep, 1e-12)
+        if z < worst[0]:
+            worst = (z, f.name)
+    return {"identifiable": bool(worst[0] >= Z_IDENTIFIABLE), "z_truth_over_closest_rival": worst[0],
+            "closest_rival": worst[1], "truth_plausible": bool(t.plausible)}
+
+
+def _library_names(state):
+    from trueaxis.diagnose.candidates import LIBRARY
+
+    return LIBRARY
 
 
 # ------------------------------------------------------------------------------------------------- scoring ----
@@ -604,6 +669,12 @@ def score(rows: list[dict], title: str) -> dict:
         "cases": len(rows), "run": len(done), "skipped": len(skipped), "harness_errors": len(errors),
         "strict_attribution_3x": share(right(r) for r in strong),
         "weak_1x_right": share(right(r) for r in weak),
+        # Is the case answerable on one part at all (``identifiability``)? And how the rules do on each kind.
+        "identifiable_3x": share(bool((r.get("identifiable") or {}).get("identifiable")) for r in strong),
+        "strict_attribution_3x_identifiable": share(right(r) for r in strong
+                                                    if (r.get("identifiable") or {}).get("identifiable")),
+        "strict_attribution_3x_not_identifiable": share(right(r) for r in strong
+                                                        if (r.get("identifiable") or {}).get("identifiable") is False),
         "controls_flagged": share(r["answer"] != "none" for r in controls),
         "out_of_library_none": share(r["answer"] == "none" for r in ool),
         "right_among_conf_ge_0.7": share(right(r) for r in hi),
@@ -630,6 +701,10 @@ def score(rows: list[dict], title: str) -> dict:
     print(f"\n==== {title}: {fig['run']} cases run, {fig['skipped']} skipped (effect not visible / refused"
           f"{'; ' + str(len(errors)) + ' HARNESS ERRORS' if errors else ''}) ====")
     print(f"strict attribution at >= 3x noise          {pct(fig['strict_attribution_3x'])}   (goal >= 90 %)")
+    print(f"  identifiable on the part (>= 3x)          {pct(fig['identifiable_3x'])}   (no rival within "
+          f"z {Z_IDENTIFIABLE:.0f} of the truth on the noise-free cut)")
+    print(f"  strict attribution, identifiable cases    {pct(fig['strict_attribution_3x_identifiable'])}")
+    print(f"  strict attribution, not identifiable      {pct(fig['strict_attribution_3x_not_identifiable'])}")
     print(f"1x noise cases named right                 {pct(fig['weak_1x_right'])}")
     print(f"controls flagged                           {pct(fig['controls_flagged'])}   (goal 0)")
     print(f"out-of-library answered 'none'             {pct(fig['out_of_library_none'])}   (goal 100 %)")

@@ -151,6 +151,27 @@ def _fake_fit(name, params, value, cov, pred, n_parameters):
                plausible=True, rank=len(params), n_parameters=n_parameters, cov=np.array(cov))
 
 
+@pytest.mark.parametrize("shrink,tied_away", [(0.9, False), (0.999, True)])
+def test_gain_ratio_ties_only_what_the_held_out_points_cannot_separate(shrink, tied_away):
+    # Two explanations with gains within TIE (3 %) of each other: the one with fewer parameters is preferred only while
+    # the better one's advantage is below Z_TIE_RATIO standard errors of the paired difference. Here 0.9 x the signal
+    # leaves 1 % of the gain but about 20 standard errors (20,000 points): not a tie; 0.999 x: 0.2 standard errors.
+    from trueaxis.diagnose.analysis import TIE, Z_TIE_RATIO, _prefer, paired_z
+
+    rng = np.random.default_rng(3)
+    s = rng.normal(0.0, 3.0, 20_000)
+    g = s + rng.normal(0.0, 1.0, s.size)
+    rich = _fake_fit("rich", ["a"], [1.0], [[1.0]], s.copy(), 8)
+    lean = _fake_fit("lean", ["b"], [1.0], [[1.0]], shrink * s, 1)
+    for f in (rich, lean):
+        f.gain_um2 = float(np.mean(g**2 - (g - f.held_out_pred_um) ** 2))
+    assert lean.gain_um2 >= TIE * rich.gain_um2
+    z = paired_z(g, rich.held_out_pred_um, lean.held_out_pred_um)
+    assert (z < Z_TIE_RATIO) == tied_away and (z > 15.0 or z < 0.5)
+    chosen, tied = _prefer(rich, [rich, lean], g)
+    assert (chosen is lean and tied == [rich]) if tied_away else (chosen is rich and tied == [])
+
+
 @pytest.mark.parametrize("anisotropic,vertical", [(True, True), (False, True), (True, False)])
 def test_tool_ruled_out_only_by_a_significant_anisotropy_on_a_vertical_tool(anisotropic, vertical):
     # Two fits that match the gap equally: tool bending (2 parameters) is preferred by parsimony unless the machine

@@ -30,7 +30,9 @@ The rules, in order:
 3. Candidates of different sizes are compared on held-out points only (the penalty for parameters is the
    cross-validation itself) with the *one-standard-error rule*: the candidates whose held-out squared error is not
    worse than the best one's by more than one standard error of the paired difference (``Z_TIE`` = 1), or whose gain
-   is at least ``TIE`` of the best, are tied; among them the one that explains the gap (rule 5), then the plausible,
+   is at least ``TIE`` of the best while its deficit stays below ``Z_TIE_RATIO`` standard errors (a fit better by
+   more than that is not tied away by the ratio: the flexible candidates' absorbing is held off by the ratio, a
+   clearly better explanation is not), are tied; among them the one that explains the gap (rule 5), then the plausible,
    then the fewest parameters is preferred (the twin's own location errors count only those this part resolves), and
    the others are reported as indistinguishable on this part, with the measurement that would separate them. A physical
    signature can rule a tied candidate out (``ruled_out``: a machine compliance significantly different in X and Y
@@ -76,6 +78,7 @@ MIN_GAIN_OF_NOISE = 0.1
 ALMOST = 0.9
 TIE = 0.97
 Z_TIE = 1.0
+Z_TIE_RATIO = 3.0
 PAIR_POOL = 10
 PAIR_MIN_SHARE = 0.05
 Z_PAIR = 5.0
@@ -450,6 +453,7 @@ class Diagnosis:
     notes: list = field(default_factory=list)  # why candidates were set aside, what the verdict rests on
     closest: list = field(default_factory=list)
     confidence_basis: dict = field(default_factory=dict)
+    pairs: list = field(default_factory=list)  # the pairs that stood as contenders (rule 4), fitted and judged
 
 
 def tool_along_machine_z(state: TwinState, tol: float = 0.995) -> bool:
@@ -484,14 +488,14 @@ def _prefer(best: Fit, pool: list, g: np.ndarray, tool_vertical: bool = False, n
     points (paired z of the deficit < ``Z_TIE``). A tied fit that only swaps a member of another tied fit for a
     candidate that fit's values rule out (``ruled_out``: a physical signature it cannot produce) is dropped. Among
     the tied ones the plausible (fitted values inside their bounds), then the one with fewer parameters, then the
-    larger gain is preferred."""
+    larger gain is preferred. (The ratio ties only while the deficit's z stays below ``Z_TIE_RATIO``.)"""
     tied = [best]
     for f in pool:
         if f is best:
             continue
         d = (g - f.held_out_pred_um) ** 2 - (g - best.held_out_pred_um) ** 2
         zz = float(d.mean()) / max(float(d.std(ddof=1)) / math.sqrt(g.size), 1e-300)
-        if f.gain_um2 >= TIE * best.gain_um2 or zz < Z_TIE:
+        if zz < Z_TIE or (f.gain_um2 >= TIE * best.gain_um2 and zz < Z_TIE_RATIO):
             tied.append(f)
     drop = set()
     for f in tied:
@@ -748,4 +752,4 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
     return Diagnosis(sigma, estimated, where(state, folds, sigma), fits,
                      [] if chosen_fit is None else chosen_fit.members, chosen_fit, float(round(confidence, 3)),
                      alternatives, sep, verdict, before, after, float(shrink_raw), float(shrink_noise), split,
-                     list(skipped), tied, list(dict.fromkeys(notes)), closest, conf_info)
+                     list(skipped), tied, list(dict.fromkeys(notes)), closest, conf_info, pairs)
