@@ -52,7 +52,8 @@ and the repository's fixtures: the one trueaxis is imported from, or $TRUEAXIS_R
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set tuning --cases 12 --points 600   # quick subset
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set tuning --kinds servo,backlash_B,none
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout           # once the rules are frozen
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout2          # the set added after the freeze
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout2          # added after the 11-25 freeze
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout3          # added after the 11-27 freeze
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set all --json out.json   # tuning, heldout, heldout2
 
 ``--cases N`` keeps N cases spread over the list (the case numbers and seeds stay those of the full list);
@@ -135,6 +136,20 @@ SETS = {
             {"machine": "bc_offset", "placement_mm": (30.0, -35.0), "cone": {"base_diameter": 66.0, "height": 17.0}},
             {"machine": "bc_offset", "placement_mm": (20.0, 40.0),
              "cone": {"half_angle_deg": 16.0, "height": 19.0, "axis_inclination_deg": 12.0}},
+        ],
+    },
+    # A third held-out set, added on 2026-11-27 after the rules were frozen at commit eeb4b67 ("the gain-ratio tie no
+    # longer ties away an explanation better by Z_TIE_RATIO"), run once: a fresh seed, and a layout no set had, the
+    # head-table machine (B tilting head on the tool branch, C table), beside new placements on the A-C and B-C
+    # tables. (Each placement was checked to be machinable before any case was run.)
+    "heldout3": {
+        "seed": 31_877,
+        "setups": [
+            {"machine": "headtable", "placement_mm": (25.0, -30.0), "cone": {}},
+            {"machine": "headtable", "placement_mm": (-20.0, 15.0),
+             "cone": {"base_diameter": 66.0, "height": 18.0, "half_angle_deg": 16.0}},
+            {"machine": "ac_trunnion", "placement_mm": (-40.0, -15.0), "cone": {"base_diameter": 70.0, "height": 17.0}},
+            {"machine": "bc_offset", "placement_mm": (35.0, 25.0), "cone": {"half_angle_deg": 14.0}},
         ],
     },
 }
