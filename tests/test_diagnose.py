@@ -16,7 +16,7 @@ from trueaxis.diagnose.state import twin_state
 from trueaxis.workpiece.parts import SlotBlockParams, slot_block_description
 from trueaxis.postproc.programs import slots_program
 from trueaxis.machine import load_machine
-from trueaxis.sim.effects import parse_effects
+from trueaxis.sim.effects import Backlash, parse_effects
 from trueaxis.sim.shop import simulate, write_cmm
 
 POINTS = 400
@@ -149,6 +149,21 @@ def _fake_fit(name, params, value, cov, pred, n_parameters):
     return Fit(name=name, members=[name], parameters=params, units=["um/N"] * len(params), value=np.array(value),
                std=np.sqrt(np.diag(cov)), held_out_pred_um=pred, gain_um2=1.0, z=10.0, f_stat=1.0, f_p=0.0,
                plausible=True, rank=len(params), n_parameters=n_parameters, cov=np.array(cov))
+
+
+def test_lost_motion_states_agree_with_the_shop_play():
+    # The diagnosis' play (state.lost_motion_states, tanh) and the shop's (effects.Backlash) are written apart; on a
+    # random walk with reversals of every size, nanometres included, they agree.
+    from trueaxis.diagnose.state import lost_motion_states
+
+    rng = np.random.default_rng(5)
+    steps = rng.choice([1e-6, 1e-5, 1e-3, 0.01], size=4000) * rng.choice([-1.0, 1.0], size=4000, p=[0.3, 0.7])
+    x = np.cumsum(steps)
+    for lam in (0.0, 0.005, 0.02, 0.2):
+        ours = lost_motion_states(x[:, None], [lam])[:, 0, 0]
+        shop = Backlash("X", 10.0, lam if lam > 0 else 1e-300).lost_motion_state(x, lam)
+        np.testing.assert_allclose(ours, shop, atol=1e-12)
+        assert np.all(np.abs(ours) <= 1.0)
 
 
 @pytest.mark.parametrize("shrink,tied_away", [(0.9, False), (0.999, True)])

@@ -107,6 +107,37 @@ def test_rotary_backlash_in_urad_with_its_take_up_law(bc, form):
     assert 0.3 < taken[30] < 0.7
 
 
+@pytest.mark.parametrize("form", ["tanh", "friction"])
+def test_backlash_is_a_play_with_memory(form):
+    # A long run +, back by 12 nm (a compensated program's rounding), on + again, then a full reversal: at the 12 nm
+    # the offset moves by a few thousandths of the play, not across it (a law restarting at every reversal jumped by
+    # b there, and stayed thrown until the travel took it up again); the full reversal follows the class law.
+    lam = 0.02
+    x = np.concatenate([np.linspace(0.0, 1.0, 1001), 1.0 - 1.2e-5 * np.arange(1, 5) / 4,
+                        0.999988 + np.linspace(0.0, 0.3, 301)[1:], 1.299988 - np.linspace(0.0, 0.1, 101)[1:]])
+    e = Backlash("X", 8.0, lam, form).lost_motion_state(x, lam)
+    assert e[1000] == pytest.approx(-1.0)  # moving +, taken up: lags by b/2
+    assert np.max(np.abs(e[1000:1305] + 1.0)) < 2e-3  # the 12 nm back and on: hardly moves (tanh 1e-6, friction 1e-3)
+    assert np.max(np.abs(np.diff(e))) < 0.6  # continuous along 1 mm steps (a restart would jump by up to 2)
+    s = np.abs(x[1305:] - x[1304])  # the - run from the turning point, after a full take-up +
+    f = np.tanh(s / lam) if form == "tanh" else 1 - np.exp(-s / lam)
+    np.testing.assert_allclose(e[1305:], -1.0 * (1 - 2 * f), atol=5e-3)
+
+
+def test_a_reversal_part_way_through_the_take_up_continues_from_there():
+    # 5 um after a reversal (a quarter of the 20 um transition) the motion turns back: the offset, part taken up,
+    # returns along the law from where it was, by tanh's inverse (its travel-equivalent), not from a full take-up.
+    lam = 0.02
+    x = np.concatenate([np.linspace(0.0, 0.5, 501), 0.5 - np.linspace(0.0, 0.005, 6)[1:],
+                        0.495 + np.linspace(0.0, 0.1, 101)[1:]])
+    e = Backlash("X", 8.0, lam).lost_motion_state(x, lam)
+    e_turn = -1.0 * (1 - 2 * np.tanh(0.005 / lam))  # - run, 5 um after the turning point
+    assert e[505] == pytest.approx(e_turn)
+    s0 = np.arctanh((1 - e_turn) / 2)  # the + run starts where the offset is
+    np.testing.assert_allclose(e[506:], 1 - 2 * np.tanh(np.abs(x[506:] - x[505]) / lam + s0), atol=1e-12)
+    assert abs(e[506] - e[505]) < 0.06
+
+
 # ----------------------------------------------------------------------------------------- rotary error motions ----
 def _c_turn(machine, x=30.0, n=721):
     q = np.zeros((n, len(machine.axis_names)))

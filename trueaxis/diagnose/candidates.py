@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..machine import ErrorTwin
-from .state import TwinState
+from .state import REVERSAL_TRANSITIONS, TwinState
 
 AXIS_LETTERS = "XYZ"
 
@@ -127,7 +127,7 @@ def _angle_scale(state: TwinState, axis: str) -> float:
 #: Transition lengths of the reversal candidate (mm for a linear axis, deg for a rotary one): a step, and the lost
 #: motion taken up over a short or a long travel after the reversal. The one that fits the training points best is
 #: used (``Candidate.variants``, chosen fold by fold).
-BACKLASH_TRANSITIONS = (0.0, 0.005, 0.02, 0.06, 0.2)
+BACKLASH_TRANSITIONS = REVERSAL_TRANSITIONS
 
 
 def backlash(state: TwinState, axis: str) -> Candidate | None:
@@ -139,13 +139,17 @@ def backlash(state: TwinState, axis: str) -> Candidate | None:
     d = state.direction[:, j]
     if not np.any(d):
         return None
-    s = state.reversal_travel[:, j] if state.reversal_travel is not None else np.full(len(state), np.inf)
     variants = []
-    for lam in BACKLASH_TRANSITIONS:
-        lam_i = math.radians(lam) if rotary else lam
-        # e = (b/2) d (1 - 2 tanh(s / lambda)): -(b/2) d once taken up, +(b/2) d at the turning point.
-        shape = -np.ones_like(s) if lam == 0.0 else 1.0 - 2.0 * np.tanh(s / lam_i)
-        variants.append((f"transition {lam:g} {'deg' if rotary else 'mm'}", (0.5 * d * shape * resp)[:, None]))
+    for li, lam in enumerate(BACKLASH_TRANSITIONS):
+        # e = (b/2) e_hat: -(b/2) d once taken up, +(b/2) d at the turning point after a full take-up the other way,
+        # a play with memory in between (``TwinState.lost_motion``).
+        if state.lost_motion is not None:
+            shape = state.lost_motion[:, j, li]
+        else:
+            s = state.reversal_travel[:, j] if state.reversal_travel is not None else np.full(len(state), np.inf)
+            lam_i = math.radians(lam) if rotary else lam
+            shape = -d if lam == 0.0 else d * (1.0 - 2.0 * np.tanh(s / lam_i))
+        variants.append((f"transition {lam:g} {'deg' if rotary else 'mm'}", (0.5 * shape * resp)[:, None]))
     unit = "urad" if rotary else "um"
     bound = 500.0 if rotary else 60.0
     return Candidate(f"backlash_{axis.lower()}", variants[0][1], [f"lost_motion_{axis}"], [unit], [(-bound, bound)],

@@ -50,6 +50,8 @@ class TwinState:
     axis_jacobian : (N, 6, n_axes) d(tip mm, unit axis)/d(q) at the cut (``ErrorTwin.axis_jacobian``).
     reversal_travel : (N, n_axes) each axis' travel since its last reversal at the cut (mm or rad; inf before the
         first reversal).
+    lost_motion : (N, n_axes, L) each axis' offset over half its lost motion at the cut, for the take-up
+        transitions ``REVERSAL_TRANSITIONS`` (``lost_motion_states``: a play with memory).
     lag_velocity : (N, n_axes, M) each axis' commanded velocity at the cut through first-order filters of unit DC
         gain with the time constants ``lag_taus_s`` (``lag_filtered_velocity``), mm/s or rad/s: a position loop of
         time constant tau_m and velocity feed-forward ff follows with the error -(1 - ff) tau_m w.
@@ -83,6 +85,7 @@ class TwinState:
     part: str
     dropped: int = 0
     reversal_travel: np.ndarray | None = None
+    lost_motion: np.ndarray | None = None
     lag_velocity: np.ndarray | None = None
     lag_deviation: np.ndarray | None = None
     lag_axis: np.ndarray | None = None
@@ -140,6 +143,10 @@ def _last_direction(qdot_all: np.ndarray) -> np.ndarray:
 #: per cent of its transient. With velocity feed-forward ff the loop's error is (1 - ff) times the plain loop's, so
 #: the mixture's weights are (1 - ff) tau, the lag the drive leaves. More filters would add parameters whose columns
 #: differ only at the few points cut within ~3 tau of a velocity change.
+#: Transitions over which a lost motion is taken up after a reversal (mm for a linear axis, deg for a rotary one; 0:
+#: a step): the backlash candidate's variants.
+REVERSAL_TRANSITIONS = (0.0, 0.005, 0.02, 0.06, 0.2)
+
 LAG_TAUS_S = (0.004, 0.012, 0.035)
 #: How far from the twin's cut sample a lagged tool's cut is looked for (s): 4 tau_max.
 LAG_WINDOW_S = 4.0 * max(LAG_TAUS_S)
@@ -264,6 +271,32 @@ def _last_tied_sample(res, points, normals, twin, machine) -> np.ndarray:
     return np.where(env.instance >= 0, ci[np.maximum(env.instance, 0)], -1)
 
 
+def lost_motion_states(q: np.ndarray, transitions) -> np.ndarray:
+    """(T, n, L) each axis' offset from its command over half its lost motion b/2 (in [-1, 1]) along the commanded
+    axes q (T, n), for a take-up f = tanh over each transition (L,) (mm or rad; 0: a step).
+
+    The play with memory (the diagnosis' own form of it): in each run of one direction d (the direction of the
+    step that brought the axis to the sample, held through stops) the offset is d (1 - 2 tanh(s / transition + s0)),
+    s the travel since the run's start and s0 = atanh((1 - d e0) / 2) from the offset e0 the run starts with: after a
+    long travel the other way e0 = d, s0 = 0; after a reversal of a few nanometres the offset hardly moves. Before
+    any motion an axis is taken up in its first direction. The loop is over runs (reversals), each in closed form."""
+    q = np.asarray(q, float)
+    T, n = q.shape
+    out = np.empty((T, n, len(transitions)))
+    d_all = _last_direction(np.diff(q, axis=0, prepend=q[:1]))
+    for j in range(n):
+        d = np.where(d_all[:, j] == 0, 1.0, d_all[:, j])
+        starts = np.concatenate([[0], np.nonzero(d[1:] != d[:-1])[0] + 1, [T]])
+        for li, lam in enumerate(transitions):
+            e = out[:, j, li]
+            e[: starts[1]] = -d[0]
+            for a, z in zip(starts[1:-1], starts[2:]):
+                y0 = min(max(0.5 * (1.0 - d[a] * e[a - 1]), 0.0), 1.0 - 1e-15)
+                x = np.abs(q[a:z, j] - q[a - 1, j]) / lam if lam > 0 else np.full(z - a, np.inf)
+                e[a:z] = d[a] * (1.0 - 2.0 * np.tanh(x + np.arctanh(y0)))
+    return out
+
+
 def reversal_travel(q: np.ndarray) -> np.ndarray:
     """(T, n) each axis' travel since its last reversal (mm or rad), inf before its first reversal.
 
@@ -320,7 +353,10 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
     q = traj.q[s]
     tip, u = twin.actual_pose(q)
     height = np.einsum("ij,ij->i", points[cut] - tip, u)
-    direction = _last_direction(traj.qdot)[s]
+    # The direction of the step that brought each axis to the sample (the motion a lost motion depends on, as
+    # ``reversal_travel`` and the shop's ``Backlash`` have it): ``qdot`` at a block's first sample is already the next
+    # block's, and an axis' extremum (where a surface point is cut) is where a block turns it.
+    direction = _last_direction(np.diff(traj.q, axis=0, prepend=traj.q[:1]))[s]
     jac = twin.axis_jacobian(q)
     lag_velocity = lag_filtered_velocity(traj, LAG_TAUS_S)[s]
     move = jac[:, :3] + height[:, None, None] * jac[:, 3:]  # (N, 3, n_axes) tool displacement per axis
@@ -335,13 +371,18 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
     lag_dev, lag_axis = lagged_cut(points[cut], normals[cut], traj, anchors, tips_all, axes_all, machine.tool.radius,
                                    machine.tool.flute_length, move, LAG_TAUS_S, LAG_WINDOW_S)
     travel = reversal_travel(np.asarray(traj.q, float))[s]
+    rotary = set(machine.rotary_axes)
+    lost = np.stack([lost_motion_states(traj.q[:, [j]], [math.radians(x) if a in rotary else x
+                                                          for x in REVERSAL_TRANSITIONS])[s, 0]
+                     for j, a in enumerate(machine.axis_names)], axis=1)
     return TwinState(
         points=points[cut], normals=normals[cut], gap_um=-res.deviations_um[cut], t_s=traj.t[s],
         t_end_s=float(traj.t[-1]), q=q, qdot=traj.qdot[s], direction=direction,
         feed_mm_min=traj.feed_mm_min[s], block_line=res.block_line[cut], tip=tip, axis=u, height_mm=height,
         force_n=res.force_n[cut], has_force=has_force, axis_jacobian=jac,
         axis_names=tuple(machine.axis_names), rotary=tuple(machine.rotary_axes), machine=machine, part=part,
-        dropped=int((~cut).sum()), reversal_travel=travel, lag_velocity=lag_velocity, lag_deviation=lag_dev,
+        dropped=int((~cut).sum()), reversal_travel=travel, lost_motion=lost, lag_velocity=lag_velocity,
+        lag_deviation=lag_dev,
         lag_axis=lag_axis,
         lag_taus_s=tuple(LAG_TAUS_S),
         timings={"twin_simulation_s": time.perf_counter() - t0, **res.timings})

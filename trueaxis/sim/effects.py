@@ -388,7 +388,9 @@ class Backlash:
       99.5 %).
 
     Works in the axis' own units: a rotary axis' b in urad and transition in deg (both turned into rad). Before the
-    first motion the axis is taken as settled in its first direction.
+    first motion the axis is taken as settled in its first direction. That law holds from a full take-up the other
+    way; a run that starts part-taken-up (a reversal after a short travel) continues from its offset
+    (``lost_motion_state``), so the play has memory.
     """
 
     axis: str
@@ -401,29 +403,42 @@ class Backlash:
         rotary = machine.axes[self.axis].is_rotary
         b = self.amplitude * (URAD if rotary else UM)
         lam = math.radians(self.transition) if rotary else self.transition
-        x = q[:, col]
+        if self.form not in ("tanh", "friction"):
+            raise ValueError(f"backlash {self.axis}: form must be 'tanh' or 'friction', got {self.form!r}")
+        out = q.copy()
+        out[:, col] += 0.5 * b * self.lost_motion_state(q[:, col], lam)
+        return out
+
+    def lost_motion_state(self, x, lam: float) -> np.ndarray:
+        """(T,) the axis' offset from its command over b/2, in [-1, 1], along the commanded positions x (T,).
+
+        A play with memory: in each run of one direction d (the direction of the step that brought the axis to the
+        sample, held through stops) the offset approaches -d along the travel s from the run's start as
+        d (1 - 2 f(s / transition + s0)), s0 = f^-1((1 - d e0) / 2) continuing from the offset e0 the run starts
+        with. From a full take-up the other way (e0 = d) that is the law in the class docstring; a reversal of a few
+        nanometres (a compensated program's rounding) moves the offset by as little, where a law that restarts
+        at every reversal would throw it across the whole play. Before the first motion the axis is taken up in its
+        first direction. The loop runs over the runs (reversals), each run in closed form."""
+        x = np.asarray(x, float)
         n = x.shape[0]
-        step = np.diff(x, prepend=x[0])
+        step = np.diff(x, prepend=x[:1])
         sgn = np.where(np.abs(step) > 1e-12, np.sign(step), 0.0)
         idx = np.arange(n)
         last = np.maximum.accumulate(np.where(sgn != 0, idx, 0))
         d = sgn[last]
         first = np.nonzero(sgn)[0]
         d = np.where(d == 0, sgn[first[0]] if first.size else 1.0, d)
-        rev = np.zeros(n, bool)
-        rev[1:] = d[1:] != d[:-1]
-        r = np.maximum.accumulate(np.where(rev, idx, 0))
-        travel = np.where(r > 0, np.abs(x - x[np.maximum(r - 1, 0)]), np.inf)
-        if self.form == "tanh":
-            taken = np.tanh(travel / lam)
-        elif self.form == "friction":
-            taken = -np.expm1(-travel / lam)
-        else:
-            raise ValueError(f"backlash {self.axis}: form must be 'tanh' or 'friction', got {self.form!r}")
-        e = 0.5 * b * d * (1.0 - 2.0 * taken)
-        out = q.copy()
-        out[:, col] += e
-        return out
+        starts = np.concatenate([[0], np.nonzero(d[1:] != d[:-1])[0] + 1, [n]])
+        f = np.tanh if self.form == "tanh" else (lambda v: -np.expm1(-v))
+        finv = np.arctanh if self.form == "tanh" else (lambda y: -np.log1p(-y))
+        e = np.empty(n)
+        e[: starts[1]] = -d[0]  # taken up in the first direction
+        for a, z in zip(starts[1:-1], starts[2:]):
+            di = d[a]
+            y0 = min(max(0.5 * (1.0 - di * e[a - 1]), 0.0), 1.0 - 1e-15)
+            s = np.abs(x[a:z] - x[a - 1])
+            e[a:z] = di * (1.0 - 2.0 * f((s / lam if lam > 0 else np.inf) + finv(y0)))
+        return e
 
 
 @dataclass(frozen=True)
