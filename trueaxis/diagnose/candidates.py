@@ -60,6 +60,11 @@ import numpy as np
 from ..machine import ErrorTwin
 from .state import REVERSAL_TRANSITIONS, TwinState
 
+#: Amplitudes (um for a linear axis, urad for a rotary one) at which the deepest cut with the play is read on a pass
+#: boundary (it is not linear in b there); the fit takes the one that suits the training points best.
+REVERSAL_AMPLITUDES_UM = (2.0, 5.0, 10.0, 20.0, 40.0)
+REVERSAL_AMPLITUDES_URAD = (5.0, 15.0, 50.0, 150.0, 400.0)
+
 AXIS_LETTERS = "XYZ"
 
 
@@ -139,20 +144,36 @@ def backlash(state: TwinState, axis: str) -> Candidate | None:
     d = state.direction[:, j]
     if not np.any(d):
         return None
+    unit = "urad" if rotary else "um"
+    bound = 500.0 if rotary else 60.0
     variants = []
+    lm, depth = state.lost_motion, state.lost_motion_depth
+    # Points a second pass cuts within TIED_CUT_UM of the twin's cut, with another play there: the deepest cut with
+    # the play, which is not linear in b (read near each amplitude of the grid); elsewhere the play at the twin's cut.
+    boundary = None if lm is None else np.nonzero(np.any(np.isfinite(depth[:, 1:]) & (
+        np.abs(lm[:, 1:, j, :] - lm[:, :1, j, :]).max(axis=2) > 1e-9), axis=1))[0]
+    amps = REVERSAL_AMPLITUDES_URAD if rotary else REVERSAL_AMPLITUDES_UM
     for li, lam in enumerate(BACKLASH_TRANSITIONS):
         # e = (b/2) e_hat: -(b/2) d once taken up, +(b/2) d at the turning point after a full take-up the other way,
         # a play with memory in between (``TwinState.lost_motion``).
-        if state.lost_motion is not None:
-            shape = state.lost_motion[:, j, li]
-        else:
+        label = f"transition {lam:g} {'deg' if rotary else 'mm'}"
+        if lm is None:
             s = state.reversal_travel[:, j] if state.reversal_travel is not None else np.full(len(state), np.inf)
             lam_i = math.radians(lam) if rotary else lam
             shape = -d if lam == 0.0 else d * (1.0 - 2.0 * np.tanh(s / lam_i))
-        variants.append((f"transition {lam:g} {'deg' if rotary else 'mm'}", (0.5 * shape * resp)[:, None]))
-    unit = "urad" if rotary else "um"
-    bound = 500.0 if rotary else 60.0
-    return Candidate(f"backlash_{axis.lower()}", variants[0][1], [f"lost_motion_{axis}"], [unit], [(-bound, bound)],
+            variants.append((label, (0.5 * shape * resp)[:, None]))
+            continue
+        col = 0.5 * lm[:, 0, j, li] * resp
+        if boundary.size == 0:
+            variants.append((label, col[:, None]))
+            continue
+        per_cut = 0.5 * lm[boundary][:, :, j, li] * resp[boundary, None]  # (B, C) um per um (urad) of b
+        for b in amps:
+            c = col.copy()
+            c[boundary] = np.min(depth[boundary] + b * per_cut, axis=1) / b
+            variants.append((f"{label}, near {b:g} {unit}", c[:, None]))
+    # A lost motion is positive (the axis lags its command): a fit that needs b < 0 is not a backlash.
+    return Candidate(f"backlash_{axis.lower()}", variants[0][1], [f"lost_motion_{axis}"], [unit], [(0.0, bound)],
                      f"reversal error (lost motion) of {axis}: b/2 against the direction of motion, taken up over a "
                      f"transition travel after each reversal", variants=variants)
 

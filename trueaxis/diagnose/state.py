@@ -50,8 +50,11 @@ class TwinState:
     axis_jacobian : (N, 6, n_axes) d(tip mm, unit axis)/d(q) at the cut (``ErrorTwin.axis_jacobian``).
     reversal_travel : (N, n_axes) each axis' travel since its last reversal at the cut (mm or rad; inf before the
         first reversal).
-    lost_motion : (N, n_axes, L) each axis' offset over half its lost motion at the cut, for the take-up
-        transitions ``REVERSAL_TRANSITIONS`` (``lost_motion_states``: a play with memory).
+    lost_motion : (N, C, n_axes, L) each axis' offset over half its lost motion, for the take-up transitions
+        ``REVERSAL_TRANSITIONS`` (``lost_motion_states``: a play with memory), at C = 3 cuts of each point: the
+        twin's, and its earliest and latest cuts within ``TIED_CUT_UM`` of it (a pass boundary; the same sample
+        where there is none).
+    lost_motion_depth : (N, C) the twin's depth at those cuts relative to its deepest, um (>= 0 to a rounding).
     lag_velocity : (N, n_axes, M) each axis' commanded velocity at the cut through first-order filters of unit DC
         gain with the time constants ``lag_taus_s`` (``lag_filtered_velocity``), mm/s or rad/s: a position loop of
         time constant tau_m and velocity feed-forward ff follows with the error -(1 - ff) tau_m w.
@@ -86,6 +89,7 @@ class TwinState:
     dropped: int = 0
     reversal_travel: np.ndarray | None = None
     lost_motion: np.ndarray | None = None
+    lost_motion_depth: np.ndarray | None = None
     lag_velocity: np.ndarray | None = None
     lag_deviation: np.ndarray | None = None
     lag_axis: np.ndarray | None = None
@@ -259,16 +263,42 @@ def lagged_cut(points, normals, traj, anchors, tips, axes, radius, length, move,
     return out_dev, out_axis
 
 
-def _last_tied_sample(res, points, normals, twin, machine) -> np.ndarray:
-    """(N,) the last sample whose twin tool cuts each point as deep as its deepest cut (the envelope reports the
-    first); -1 where none."""
+#: Two cuts of a point within this depth (um) of each other are both candidates for the one that made the surface
+#: once an effect moves the tool: a pass boundary, or two passes to the same depth (the deeper with the effect wins).
+TIED_CUT_UM = 3.0
+
+
+def _tied_samples(res, points, normals, twin, machine, tie_um: float = TIED_CUT_UM) -> np.ndarray:
+    """(N, 2) the earliest and the latest sample whose twin tool cuts each point within about ``tie_um`` of its
+    deepest cut; -1 where none. Each is the deepest cut of the envelope with the tool's radius grown by up to
+    ``tie_um`` towards the early (the late) end of the program, so that a cut within that much of the deepest wins
+    by its time alone."""
     from ..sim.envelope import envelope_deviation
 
     traj = res.trajectory
-    ci = np.nonzero(np.asarray(traj.motion) != 0)[0][::-1]
+    ci = np.nonzero(np.asarray(traj.motion) != 0)[0]
     tip, u = twin.actual_pose(traj.q[ci])
-    env = envelope_deviation(points, normals, tip, u, machine.tool.radius, machine.tool.flute_length)
-    return np.where(env.instance >= 0, ci[np.maximum(env.instance, 0)], -1)
+    frac = np.linspace(0.0, 1.0, ci.size) if ci.size > 1 else np.zeros(ci.size)
+    out = np.full((len(points), 2), -1, int)
+    for k, bias in enumerate((1.0 - frac, frac)):
+        env = envelope_deviation(points, normals, tip, u, machine.tool.radius + 1e-3 * tie_um * bias,
+                                 machine.tool.flute_length)
+        out[:, k] = np.where(env.instance >= 0, ci[np.maximum(env.instance, 0)], -1)
+    return out
+
+
+def _relative_depth(points, normals, cuts, twin, q, machine) -> np.ndarray:
+    """(N, C) where the twin's tool at each of the samples ``cuts`` (N, C) cuts each point along its normal,
+    relative to the first column's cut, um."""
+    from ..sim.envelope import line_tool_intersection
+
+    N, C = cuts.shape
+    tip, u = twin.actual_pose(q[cuts.ravel()])
+    s_in, _ = line_tool_intersection(np.repeat(points, C, 0), np.repeat(normals, C, 0), tip, u,
+                                     machine.tool.radius, machine.tool.flute_length)
+    s_in = s_in.reshape(N, C)
+    rel = 1e3 * (s_in - s_in[:, :1])
+    return np.where(np.isfinite(rel), rel, np.inf)
 
 
 def lost_motion_states(q: np.ndarray, transitions) -> np.ndarray:
@@ -361,8 +391,9 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
     lag_velocity = lag_filtered_velocity(traj, LAG_TAUS_S)[s]
     move = jac[:, :3] + height[:, None, None] * jac[:, 3:]  # (N, 3, n_axes) tool displacement per axis
     # The lagged cut (see ``lagged_cut``) around the twin's first and last tied cut samples.
-    last = _last_tied_sample(res, points[cut], normals[cut], twin, machine)
-    anchors = np.column_stack([s, np.where(last >= 0, last, s)])
+    tied = _tied_samples(res, points[cut], normals[cut], twin, machine)
+    tied = np.where(tied >= 0, tied, s[:, None])
+    anchors = np.column_stack([s, tied[:, 1]])
     half = int(math.ceil(LAG_WINDOW_S / traj.dt))
     ks = np.unique(np.clip(anchors.ravel()[:, None] + np.arange(-half, half + 1)[None, :], 0, len(traj) - 1))
     tips_all = np.zeros((len(traj), 3))
@@ -372,16 +403,21 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
                                    machine.tool.flute_length, move, LAG_TAUS_S, LAG_WINDOW_S)
     travel = reversal_travel(np.asarray(traj.q, float))[s]
     rotary = set(machine.rotary_axes)
+    # The play at the twin's cut and at its earliest and latest tied cuts (N, 3 cuts, n_axes, L), and the twin's
+    # depth at those cuts relative to the deepest (N, 3), mm: the backlash candidate takes the deepest with the play.
+    cuts = np.column_stack([s, tied])
     lost = np.stack([lost_motion_states(traj.q[:, [j]], [math.radians(x) if a in rotary else x
-                                                          for x in REVERSAL_TRANSITIONS])[s, 0]
-                     for j, a in enumerate(machine.axis_names)], axis=1)
+                                                          for x in REVERSAL_TRANSITIONS])[:, 0][cuts]
+                     for j, a in enumerate(machine.axis_names)], axis=2)
+    lost_rel = _relative_depth(points[cut], normals[cut], cuts, twin, traj.q, machine)
     return TwinState(
         points=points[cut], normals=normals[cut], gap_um=-res.deviations_um[cut], t_s=traj.t[s],
         t_end_s=float(traj.t[-1]), q=q, qdot=traj.qdot[s], direction=direction,
         feed_mm_min=traj.feed_mm_min[s], block_line=res.block_line[cut], tip=tip, axis=u, height_mm=height,
         force_n=res.force_n[cut], has_force=has_force, axis_jacobian=jac,
         axis_names=tuple(machine.axis_names), rotary=tuple(machine.rotary_axes), machine=machine, part=part,
-        dropped=int((~cut).sum()), reversal_travel=travel, lost_motion=lost, lag_velocity=lag_velocity,
+        dropped=int((~cut).sum()), reversal_travel=travel, lost_motion=lost, lost_motion_depth=lost_rel,
+        lag_velocity=lag_velocity,
         lag_deviation=lag_dev,
         lag_axis=lag_axis,
         lag_taus_s=tuple(LAG_TAUS_S),
