@@ -1145,13 +1145,18 @@ class _Poster:
         # cycles; every other compensated line goes through ``_write_lines``.
         fast = self._fast_lines(rows, starts, ends, target, inch_rows, split.first, arc_mode, axes_out, numbers,
                                 delta_prog, written_end, first_row_of_line)
+        ends_written = (written_end, first_row_of_line)
+        extra = 0
         if fast is not None:
             keep = ~fast["handled"]
             starts, ends = starts[keep], ends[keep]
+            # split moves and fitted arcs: the compiled writer too, where their lines are plain (fast_write.pieces)
+            fast["pieces"], taken, extra = self._fast_pieces(rows, starts, ends, is_cycle, arc_mode, split, axes_out,
+                                                             numbers, ends_written, fast)
+            starts, ends = starts[~taken], ends[~taken]
         out = list(p.lines) if fast is None else {}
-        ends_written = (written_end, first_row_of_line)
-        extra = self._write_lines(out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out,
-                                  numbers, ends_written)
+        extra += self._write_lines(out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out,
+                                   numbers, ends_written)
         self.rep.blocks_out = len(p.lines) + extra
         if fast is None:
             return "".join(out), self.rep
@@ -1367,6 +1372,98 @@ class _Poster:
                 "n_extra": n_extra[ok], "extra_val": extra_val[ok], "extra_letter": extra_letter[ok],
                 "extra_dec": extra_dec[ok], "keep_r": keep_r[ok]}
 
+    def _fast_pieces(self, rows, starts, ends, is_cycle, arc_mode, split, axes_out, numbers, ends_written, fast):
+        """The lines of split moves and fitted arcs the compiled writer takes (``fast_write.pieces``: absolute words,
+        not G93, plain lines): (their text {"line", "blob", "start", "end"}, taken per group of rows starts/ends
+        (bool), the number of blocks they add). The numbers are those ``_split_block`` writes: the pieces' ends as
+        ``_piece_words`` has them, a fitted sub-arc's centre as ``_fit_centre_words`` computes it."""
+        p = self.p
+        taken = np.zeros(starts.size, bool)
+        none = {"line": np.zeros(0, np.int64)}
+        if not split.first or starts.size == 0:
+            return none, taken, 0
+        last = ends - 1
+        keys = np.fromiter(split.first, np.int64, len(split.first))
+        grp = np.nonzero(np.isin(last, keys) & ~is_cycle[starts])[0]
+        r = rows[last[grp]]
+        grp = grp[~p.incremental[r] & ~p.inverse_time[r]]
+        if grp.size == 0:
+            return none, taken, 0
+        ks = last[grp].tolist()
+        r = rows[last[grp]]
+        pts = [split.pts[k] for k in ks]
+        counts = np.fromiter(map(len, pts), np.int64, len(pts))
+        piece_first = np.r_[0, np.cumsum(counts)].astype(np.int64)
+        flat = np.ascontiguousarray(np.vstack(pts), float)
+        modes = [arc_mode.get(k) for k in ks]
+        fit = np.array([m == "fit" for m in modes], bool)
+        own = p.motion[r].astype(np.int64)
+        first_motion = np.where(np.array([m == "lines" for m in modes], bool), FEED, own)
+        piece_code = np.repeat(np.where(first_motion == RAPID, 0, 1), counts).astype(np.int64)
+        centre = self._fit_centres_flat(r, fit, piece_first, flat, ends_written)
+        if centre is not None:
+            first_motion = np.where(fit & np.isnan(centre["first"]), FEED, first_motion)
+            piece_code = np.where(centre["fit"], np.where(centre["nan"], 1, np.repeat(own, counts)), piece_code)
+        lines = p.line_index[r].astype(np.int64)
+        cols = fast["cols"]
+        dec = fast["dec"]
+        n_flat = flat.shape[0]
+        n_centre, c_val, c_letter, c_dec = (centre["n"], centre["val"], centre["letter"], centre["dec"]) \
+            if centre is not None else (np.zeros(n_flat, np.int64), np.zeros((n_flat, 2)),
+                                        np.zeros((n_flat, 2), np.uint8), np.zeros((n_flat, 2), np.int64))
+        ok, blob, b_start, b_end = fast_write.pieces(
+            fast["src"], fast["line_start"], lines, first_motion.astype(np.int64), piece_code, piece_first, flat,
+            cols, fast["letters"], dec, np.ascontiguousarray(p.inch[r], np.bool_), n_centre, c_val, c_letter, c_dec,
+            bool(p.format_info.leading_zero), bool(p.format_info.trailing_point), fast["sep"])
+        taken[grp[ok]] = True
+        return ({"line": lines[ok], "blob": blob, "start": b_start[ok], "end": b_end[ok]}, taken,
+                int((counts[ok] - 1).sum()))
+
+    def _fit_centres_flat(self, r, fit, piece_first, flat, ends_written):
+        """The centre words of the fitted arcs' sub-arcs among the split lines of rows ``r`` (``fit``), per piece of
+        the flat pieces ``flat`` (``_fit_centre_words`` for all of them at once: the same operations on the same
+        numbers): {"n" (N,) 0 or 2, "val" (N, 2), "letter" (N, 2) uint8, "dec" (N, 2), "fit" (N,) bool (a fitted
+        arc's piece), "nan" (N,) bool (a sub-arc that did not hold: straight), "first" (lines,) the first piece's
+        centre X (NaN: straight, else not NaN)}, or None when no line is a fitted arc."""
+        if not fit.any():
+            return None
+        p = self.p
+        counts = np.diff(piece_first)
+        n_flat = flat.shape[0]
+        owner = np.repeat(np.arange(r.size), counts)
+        is_fit = fit[owner]
+        centres = np.full((n_flat, 3), np.nan)
+        for c in np.nonzero(fit)[0].tolist():
+            centres[piece_first[c] : piece_first[c + 1]] = self.arc_centres[int(r[c])]
+        first = np.full(r.size, np.nan)
+        first[fit] = centres[piece_first[:-1][fit], 0]
+        nan = np.isnan(centres[:, 0])
+        # each piece's written start: the end written before the line (first piece), else the piece before's end
+        starts = np.empty((n_flat, 6))
+        starts[1:] = flat[:-1]
+        written_end, first_row_of_line = ends_written
+        starts[piece_first[:-1]] = _written_before(p.line_index[r], written_end, first_row_of_line)
+        numbers = _Numbers(p.format_info)
+        scale = {flag: 10.0 ** np.array([numbers.decimals(a, flag) for a in "XYZ"]) for flag in (False, True)}
+        inch = p.inch[r][owner]
+        sc = np.where(inch[:, None], scale[True][None, :], scale[False][None, :])
+        written = np.round(starts[:, :3] * sc) / sc
+        value = np.where(p.arc_incremental[r][owner][:, None], centres - written, centres)
+        plane = p.arc_plane[r][owner]
+        col0 = np.where(plane == 19, 1, 0)
+        col1 = np.where(plane == 17, 1, 2)
+        k = np.arange(n_flat)
+        use = is_fit & ~nan
+        letters = np.frombuffer(b"IJK", np.uint8)
+        table = np.array([[numbers.decimals(c, flag) for flag in (False, True)] for c in "IJK"], np.int64)
+        out = {"n": np.where(use, 2, 0).astype(np.int64), "fit": is_fit, "nan": nan, "first": first,
+               "val": np.ascontiguousarray(np.stack([value[k, col0], value[k, col1]], axis=1), float),
+               "letter": np.ascontiguousarray(np.stack([letters[col0], letters[col1]], axis=1)),
+               "dec": np.ascontiguousarray(np.stack([table[col0, inch.astype(int)], table[col1, inch.astype(int)]],
+                                                    axis=1), np.int64)}
+        out["val"][~use] = 0.0
+        return out
+
     def _fast_assemble(self, fast, texts):
         """The output text: the compiled writer's lines, the Python path's ``texts`` {line index: text}, every other
         line as it was (``"".join`` of them all, line by line)."""
@@ -1386,6 +1483,12 @@ class _Poster:
             blob_end[lis] = np.cumsum(lengths)
             blob_start[lis] = blob_end[lis] - lengths
         blob = np.frombuffer(b"".join(parts), np.uint8)
+        pieces = fast.get("pieces")
+        if pieces is not None and pieces["line"].size:  # the compiled writer's split moves and fitted arcs
+            mode[pieces["line"]] = 2
+            blob_start[pieces["line"]] = blob.size + pieces["start"]
+            blob_end[pieces["line"]] = blob.size + pieces["end"]
+            blob = np.concatenate([blob, pieces["blob"]])
         out = fast_write.assemble(fast["src"], fast["line_start"], mode, cand_of_line, fast["k"], fast["motion"],
                                   fast["spans"], fast["target"], fast["cols"], fast["letters"], fast["dec"],
                                   fast["inch"], fast["n_extra"], fast["extra_val"], fast["extra_letter"],
