@@ -29,6 +29,7 @@ import functools
 import gc
 import math
 import re
+import threading
 from dataclasses import dataclass, field
 from typing import NamedTuple
 from pathlib import Path
@@ -101,6 +102,7 @@ WRITE_ROUNDING_UM, WRITE_ROUNDING_URAD = 0.03, 0.18
 ROW_CHUNK = 8_000  # moves compensated together: bounds memory (an arc samples 17 poses) at little cost in speed
 WRITE_WINDOW = 50_000  # moves whose axis words are formatted together
 FAST_WRITE = True  # the compiled writer (fast_write) for plain blocks; False: every line by the Python path
+CHUNK_THREADS = True  # chunks of moves compensated on two threads (``_compensate_chunks``); False: one after the other
 # An arc's correction is sampled at least this often (mm of arc) to decide whether it stays an arc: the error
 # tables' knots lie 10 mm or more apart, so a cubic's variation between them is followed closely.
 ARC_SAMPLE_MM = 2.0
@@ -484,6 +486,16 @@ class _PieceWords(NamedTuple):
     words: dict | None  # axis letter -> the formatted words of every piece end, in order; None: no pieces
 
 
+class _ChunkEnd(threading.Event):
+    """The written end of a chunk's last move, ``value`` (row, (6,) end) once set (None: the chunk stopped)."""
+
+    value = None
+
+
+class _ChunkAborted(Exception):
+    """A chunk whose chunk before stopped with an error (which is the one raised)."""
+
+
 class _Poster:
     def __init__(self, prog, machine, mode, tol_um, max_corr, singular_deg, conditions, rep):
         self.p = prog
@@ -511,7 +523,11 @@ class _Poster:
         self.fractions = {}  # program row -> piece boundaries (fractions of the move) of split moves
         self.fit_arcs = False  # arcs fitted to the corrected path (.arcs); set by post_text
         self.arc_centres = {}  # program row -> (n, 3) centres (program coordinates) of a fitted arc's sub-arcs
-        self._end_before_chunk = (-2, None)  # (row, written end) of the last move of the chunk before
+        self._end_before_serial = (-2, None)  # (row, written end) of the last move of the chunk before
+        # chunks compensated side by side (``_compensate_chunks``): the report's sums and maxima under the lock, a
+        # chunk's warnings and its own values (``_local``: the chunk before's end, its notes) kept in chunk order
+        self._lock = threading.RLock()
+        self._local = threading.local()
         self.tcp = None  # TCP output (.tcp.TcpFrame): positions for the control's own nominal kinematics
 
     # --- coordinates ------------------------------------------------------------------------------------------------
@@ -652,13 +668,14 @@ class _Poster:
                             f"compensation did not converge (residual {res.position_residual_um[k]:.3g} um,"
                             f" {res.axis_residual_urad[k]:.3g} urad)")
         st = self.stats
-        st["um"] = max(st["um"], float(res.position_residual_um.max(initial=0.0)))
-        if self.orientation:
-            st["urad"] = max(st["urad"], float(res.axis_residual_urad[~held].max(initial=0.0)))
-            st["urad_singular"] = max(st["urad_singular"], float(res.axis_residual_urad[held].max(initial=0.0)))
-        st["singular_points"] += int(held.sum())
-        if held.any():  # (line_no is made for the whole program each time it is read)
-            st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
+        with self._lock:
+            st["um"] = max(st["um"], float(res.position_residual_um.max(initial=0.0)))
+            if self.orientation:
+                st["urad"] = max(st["urad"], float(res.axis_residual_urad[~held].max(initial=0.0)))
+                st["urad_singular"] = max(st["urad_singular"], float(res.axis_residual_urad[held].max(initial=0.0)))
+            st["singular_points"] += int(held.sum())
+            if held.any():  # (line_no is made for the whole program each time it is read)
+                st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
         return (res.q, held, res.actual + res.nominal) if poses else (res.q, held)
 
     def check(self, q_nom, q_cmd, rows):
@@ -754,12 +771,10 @@ class _Poster:
         # A bar on long programs, on a terminal only (tqdm's disable=None).
         bar = tqdm(total=rows.size, unit="move", desc="compensating", disable=None if len(chunks) > 2 else True,
                    leave=False)
-        for sl in chunks:
-            d_prog, dq, pcs, modes = self._compensate(rows[sl])
+        for sl, (d_prog, dq, pcs, modes) in zip(chunks, self._compensate_chunks(rows, chunks)):
             delta_prog[sl] = d_prog
             pieces.update((sl.start + k, v) for k, v in pcs.items())
             arc_mode.update((sl.start + k, v) for k, v in modes.items())
-            self._end_before_chunk = (int(rows[sl.stop - 1]), p.end[rows[sl.stop - 1]] + d_prog[-1])
             sq += np.sum(dq**2, axis=0)
             mx = np.maximum(mx, np.abs(dq).max(axis=0, initial=0.0))
             bar.update(sl.stop - sl.start)
@@ -771,6 +786,85 @@ class _Poster:
 
             self.p, delta_prog, pieces = diameter_words(p, rows, delta_prog, pieces)
         return self._write(rows, delta_prog, pieces, arc_mode)
+
+    def _compensate_chunks(self, rows, chunks):
+        """``_compensate`` of each chunk of ``rows``, the results in chunk order (a generator). The first chunk here,
+        the others on two threads when the compiled kernels are the ahead-of-time ones (which release the GIL; numba's
+        parallel kernels must not be entered from two threads) and numba was not needed for the first: each chunk
+        computes what it computes alone (its own moves; the chunk before's written end, where its arcs need it, taken
+        once that chunk has solved its ends), and its warnings and split count are taken in chunk order, so the
+        output and the report are those of the chunks one after the other."""
+        from ..compiled import aot_available, numba_imported, thread_count
+
+        self._pair()  # (its warning, if any, once and first)
+        before = _ChunkEnd()
+        before.value = (-2, None)
+        before.set()
+        for i, sl in enumerate(chunks):
+            if i == 1 and CHUNK_THREADS and len(chunks) > 2 and thread_count() > 1 and self.m.kind != "lathe" \
+                    and aot_available() and not numba_imported():
+                yield from self._compensate_threaded(rows, chunks[1:], before)
+                return
+            mine = _ChunkEnd()
+            yield self._take_notes(self._chunk(rows[sl], before, mine))
+            before = mine
+
+    def _compensate_threaded(self, rows, chunks, before):
+        """``_compensate_chunks`` of ``chunks`` on two threads, the first one's chunk before ending at ``before``."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        ends = [before] + [_ChunkEnd() for _ in chunks]
+        with ThreadPoolExecutor(max_workers=2, thread_name_prefix="trueaxis-chunk") as pool:
+            futures = [pool.submit(self._chunk, rows[sl], ends[i], ends[i + 1]) for i, sl in enumerate(chunks)]
+            try:
+                for f in futures:
+                    yield self._take_notes(f.result())
+            finally:
+                for f in futures:
+                    f.cancel()
+
+    def _chunk(self, rows, before, mine):
+        """(``_compensate(rows)``, the chunk's notes): the chunk before ends at ``before`` (a ``_ChunkEnd``); this
+        one's end goes to ``mine`` once its ends are solved (None if it stopped before)."""
+        local = self._local
+        local.notes, local.end_before_from, local.publish = {"warnings": [], "moves_split": None}, before, mine
+        try:
+            return self._compensate(rows), local.notes
+        finally:
+            if not mine.is_set():
+                mine.value = None
+                mine.set()
+            local.notes = local.end_before_from = local.publish = None
+
+    def _take_notes(self, result):
+        """A chunk's result, its notes (warnings, split count) taken into the report as the chunk itself would have."""
+        out, notes = result
+        self.rep.warnings.extend(notes["warnings"])
+        if notes["moves_split"] is not None:
+            self.rep.moves_split = notes["moves_split"]
+        return out
+
+    @property
+    def _end_before_chunk(self):
+        """(row, written end) of the last move of the chunk before this one (waits for its ends' solve)."""
+        before = getattr(self._local, "end_before_from", None)
+        if before is None:
+            return self._end_before_serial
+        before.wait()
+        if before.value is None:
+            raise _ChunkAborted("the chunk before stopped")
+        return before.value
+
+    def _note_warning(self, text: str):
+        notes = getattr(self._local, "notes", None)
+        (self.rep.warnings if notes is None else notes["warnings"]).append(text)
+
+    def _note_moves_split(self, n: int):
+        notes = getattr(self._local, "notes", None)
+        if notes is None:
+            self.rep.moves_split = n
+        else:
+            notes["moves_split"] = n
 
     def _compensate(self, rows):
         """Compensate the moves ``rows`` (indices into the program's rows): (correction of each end in program units
@@ -791,6 +885,10 @@ class _Poster:
         self.check(q_end, q_cmd, rows)
         dq = q_cmd - q_end
         delta_prog = self.to_program_delta(dq if self.tcp is None else self.command_delta(q_cmd, q_end), inch, rows)
+        publish = getattr(self._local, "publish", None)
+        if publish is not None:  # the chunk after may start its arcs from here (``_end_before_chunk``)
+            publish.value = (int(rows[-1]), p.end[rows[-1]] + delta_prog[-1])
+            publish.set()
 
         pieces, arc_mode = {}, {}
         # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
@@ -895,9 +993,8 @@ class _Poster:
         else:
             still = np.unique(owner[worst_final > 1.0]) if worst_final.size else np.array([], int)
             for i in still:
-                self.rep.warnings.append(f"{self.p.source}:{int(self.p.line_no[rows[i]])}: the move was split "
-                                         f"{max_rounds} times and still leaves the nominal path by more than the "
-                                         "tolerance")
+                self._note_warning(f"{self.p.source}:{int(self.p.line_no[rows[i]])}: the move was split "
+                                   f"{max_rounds} times and still leaves the nominal path by more than the tolerance")
         return self._split_pieces(rows, I, F, C, q_start, q_end, inch)
 
     def _path_residual(self, q_start, q_end, f_all):
@@ -999,9 +1096,10 @@ class _Poster:
             dev_um, dev_urad = np.maximum(dev_um, ep * 1e3), np.maximum(dev_urad, eu * 1e6)
             worst = np.maximum(worst, np.maximum(ep * scale[0], eu * scale[-1]))
         bad = worst > 1.0
-        self.rep.max_split_deviation_um = max(self.rep.max_split_deviation_um, float(dev_um[~bad].max(initial=0)))
-        self.rep.max_split_deviation_urad = max(self.rep.max_split_deviation_urad,
-                                                float(dev_urad[~bad].max(initial=0)))
+        with self._lock:
+            self.rep.max_split_deviation_um = max(self.rep.max_split_deviation_um, float(dev_um[~bad].max(initial=0)))
+            self.rep.max_split_deviation_urad = max(self.rep.max_split_deviation_urad,
+                                                    float(dev_urad[~bad].max(initial=0)))
         return worst
 
     def _split_pieces(self, rows, I, F, C, q_start, q_end, inch):
@@ -1013,7 +1111,7 @@ class _Poster:
         I, F, C = I[order], F[order], C[order]
         counts = np.bincount(I, minlength=len(rows))
         split_rows = np.nonzero(counts > 2)[0]
-        self.rep.moves_split = int(split_rows.size)
+        self._note_moves_split(int(split_rows.size))
         if split_rows.size == 0:
             return out
         inner = np.isin(I, split_rows) & (F > 0) & (F < 1)
@@ -1060,7 +1158,8 @@ class _Poster:
         kept &= self.tcp is None  # TCP: the control turns an arc's plane with the table; straight pieces only
         for i in arc_idx[kept]:
             modes[int(i)] = "arc"
-        self.rep.arcs_kept += int(kept.sum())
+        with self._lock:
+            self.rep.arcs_kept += int(kept.sum())
         lin = arc_idx[~kept]
         if self.fit_arcs and lin.size:
             fitted, lin = fit_arcs(self, rows, lin, force, delta_prog)
@@ -1085,7 +1184,8 @@ class _Poster:
         for k, i in enumerate(lin):
             out[int(i)] = cmd6[first[k] + 1 : first[k] + counts[k] + 1]
             modes[int(i)] = "lines"
-        self.rep.arcs_linearised += int(lin.size)
+        with self._lock:
+            self.rep.arcs_linearised += int(lin.size)
         return out, modes
 
     def _solve_arc_points(self, rows, arc_idx, owner, pts6, force, ends=None):
@@ -1120,9 +1220,10 @@ class _Poster:
         """What ``solve`` records of its points (the residuals aside: recorded by the solve they come from), for points
         whose commanded poses were taken from another solve: the points and blocks in the singular cone."""
         held = self.singular_at(q)
-        self.stats["singular_points"] += int(held.sum())
-        if held.any():
-            self.stats["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
+        with self._lock:
+            self.stats["singular_points"] += int(held.sum())
+            if held.any():
+                self.stats["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
 
     # --- writing -------------------------------------------------------------------------------------------------
     def _write(self, rows, delta_prog, pieces, arc_mode):
