@@ -483,7 +483,8 @@ class _PieceWords(NamedTuple):
 
     first: dict  # k -> index of the piece's first point into ``words``
     pts: dict  # k -> (n, 6) program coordinates of its pieces' ends
-    words: dict | None  # axis letter -> the formatted words of every piece end, in order; None: no pieces
+    words: dict | None  # axis letter -> the formatted words of the piece ends the Python writer writes, in order ("" for
+    # the others, which the compiled writer writes); None: none (``_Poster._piece_texts``)
 
 
 class _ChunkEnd(threading.Event):
@@ -1203,14 +1204,25 @@ class _Poster:
 
             f, ends = arc_point_loads(self, r, pts6, f), None
         taken = np.zeros(owner.size, bool)
+        q_c = np.empty_like(q_pts)
         if ends is not None:
             last = np.nonzero(np.r_[owner[1:] != owner[:-1], True])[0]
             block = arc_idx[owner[last]]
             last = last[np.all(q_pts[last] == ends[0][block], axis=1)]
             taken[last] = True
-        q_c = np.empty_like(q_pts)
+            q_c[last] = ends[1][arc_idx[owner[last]]]
+            # an arc's first point is its start (mostly to the bit, see _arcs_points): where it is the end of the
+            # chunk's move before, under the same load, its commanded pose is that move's (the same solve again)
+            first = np.nonzero(np.r_[True, owner[1:] != owner[:-1]])[0]
+            before = arc_idx[owner[first]] - 1
+            first, before = first[before >= 0], before[before >= 0]
+            same = np.all(q_pts[first] == ends[0][before], axis=1)
+            if force is not None:
+                same &= np.all(f[first] == force[before], axis=1)
+            first, before = first[same], before[same]
+            taken[first] = True
+            q_c[first] = ends[1][before]
         if taken.any():
-            q_c[taken] = ends[1][arc_idx[owner[taken]]]
             self._record_taken(q_pts[taken], r[taken])
         if not taken.all():
             q_c[~taken], _ = self.solve(q_pts[~taken], None if f is None else f[~taken], r[~taken])
@@ -1256,6 +1268,7 @@ class _Poster:
                                                              numbers, ends_written, fast)
             starts, ends = starts[~taken], ends[~taken]
         out = list(p.lines) if fast is None else {}
+        split = self._piece_texts(split, (ends - 1).tolist(), inch_rows, axes_out, numbers)
         extra += self._write_lines(out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out,
                                    numbers, ends_written)
         self.rep.blocks_out = len(p.lines) + extra
@@ -1288,19 +1301,32 @@ class _Poster:
 
     def _piece_words(self, pieces, arc_mode, target, inch_rows, axes_out, numbers):
         """The pieces of split moves and linearised or fitted arcs (not the kept arcs), their block's own end last:
-        ``_PieceWords`` with each one's first index into the words, its (n, 6) points, and the axis words of all of
-        them, formatted in one pass per axis."""
+        ``_PieceWords`` with each one's first index into the words and its (n, 6) points (the words: ``_piece_texts``,
+        for the lines the compiled writer does not take)."""
         piece_keys = [k for k in pieces if arc_mode.get(k) != "arc"]
         piece_pts = [pieces[k] if arc_mode.get(k) in ("lines", "fit") else np.vstack([pieces[k], target[k]])
                      for k in piece_keys]
         piece_first = dict(zip(piece_keys, np.cumsum([0] + [len(x) for x in piece_pts]).tolist()))
         piece_pts_of = dict(zip(piece_keys, piece_pts))
-        piece_words = None
-        if piece_pts:
-            flat = np.vstack(piece_pts)
-            flat_inch = np.repeat(inch_rows[piece_keys], [len(x) for x in piece_pts])
-            piece_words = {a: numbers.words(a, flat[:, AXES.index(a)], flat_inch) for a in axes_out}
-        return _PieceWords(piece_first, piece_pts_of, piece_words)
+        return _PieceWords(piece_first, piece_pts_of, None)
+
+    def _piece_texts(self, split, keys, inch_rows, axes_out, numbers):
+        """``split`` with the axis words of the pieces of the moves ``keys`` (those the Python writer writes; the
+        others' words are left empty), formatted in one pass per axis."""
+        keys = [k for k in keys if k in split.first]
+        if not keys:
+            return split
+        n_all = sum(len(x) for x in split.pts.values())
+        counts = [len(split.pts[k]) for k in keys]
+        at = np.concatenate([np.arange(split.first[k], split.first[k] + n) for k, n in zip(keys, counts)])
+        flat = np.vstack([split.pts[k] for k in keys])
+        flat_inch = np.repeat(inch_rows[keys], counts)
+        words = {}
+        for a in axes_out:
+            words[a] = [""] * n_all
+            for i, text in zip(at.tolist(), numbers.words(a, flat[:, AXES.index(a)], flat_inch)):
+                words[a][i] = text
+        return split._replace(words=words)
 
     def _write_lines(self, out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out, numbers,
                      ends_written):
