@@ -487,6 +487,26 @@ class _PieceWords(NamedTuple):
     # the others, which the compiled writer writes); None: none (``_Poster._piece_texts``)
 
 
+class _WrittenEnd:
+    """``written_end[r]`` (K, 6): the end written for the program rows r (K,) (program coordinates): ``end[r] +
+    delta`` of the compensated rows ``rows`` (the same sum as in a table of them all), ``end[r]`` itself for the
+    others. Asked for the rows it is asked for, not made for every row (a copy of the program's ends, 48 MB at a
+    million rows)."""
+
+    def __init__(self, end, n_rows, rows, delta):
+        self.end, self.delta = end, delta
+        self.k = np.full(n_rows, -1, np.int64)
+        self.k[rows] = np.arange(rows.size)
+
+    def __getitem__(self, r):
+        r = np.asarray(r)
+        out = self.end[r]  # (a new array)
+        k = self.k[r]
+        has = k >= 0
+        out[has] = self.end[r[has]] + self.delta[k[has]]
+        return out
+
+
 class _ChunkEnd(threading.Event):
     """The written end of a chunk's last move, ``value`` (row, (6,) end) once set (None: the chunk stopped)."""
 
@@ -1286,15 +1306,14 @@ class _Poster:
         return axes_out
 
     def _written_ends(self, rows, delta_prog, is_cycle):
-        """(written_end (M, 6), first_row_of_line (lines,)): the end point written for every program row (program
-        coordinates) and each line's first row (-1: none).
+        """(written_end, first_row_of_line (lines,)): the end point written for every program row (program
+        coordinates; ``written_end[r]`` for rows r (K,), see ``_WrittenEnd``) and each line's first row (-1: none).
 
         Compensated moves end at their corrected ends, everything else (and canned cycles, rewritten from their hole
         and R level) as programmed. A block's incremental words and arc centres count from the end written for the
         row before it."""
         p = self.p
-        written_end = p.end.copy()
-        written_end[rows[~is_cycle]] += delta_prog[~is_cycle]
+        written_end = _WrittenEnd(p.end, len(p), rows[~is_cycle], delta_prog[~is_cycle])
         first_row_of_line = np.full(len(p.lines), -1)
         first_row_of_line[p.line_index[::-1]] = np.arange(len(p))[::-1]
         return written_end, first_row_of_line
@@ -1479,16 +1498,14 @@ class _Poster:
         arcs = np.nonzero(keep_r & ((p.words[rows[cand_k]] & _R_BIT) == 0))[0]
         if arcs.size:
             last_written = _written_before(cand_line[arcs], written_end, first_row_of_line)
-            letters, values = self._centre_values(rows[cand_k[arcs]], delta_prog[cand_k[arcs]], last_written)
+            which, values = self._centre_columns(rows[cand_k[arcs]], delta_prog[cand_k[arcs]], last_written)
             inch0 = p.inch[cand_r0[arcs]]
             n_extra[arcs] = 2
             extra_val[arcs] = values
             # (per letter and unit, not per arc: a program has hundreds of thousands of them)
             table = np.array([[numbers.decimals(c, inch) for inch in (False, True)] for c in "IJK"], np.int64)
-            for j in range(2):
-                which = np.searchsorted(np.array(list("IJK")), letters[:, j])
-                extra_letter[arcs, j] = np.frombuffer(b"IJK", np.uint8)[which]
-                extra_dec[arcs, j] = table[which, inch0.astype(np.int64)]
+            extra_letter[arcs] = np.frombuffer(b"IJK", np.uint8)[which]
+            extra_dec[arcs] = table[which, inch0.astype(np.int64)[:, None]]
         ok, spans = fast_write.scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch,
                                     n_extra, extra_val, extra_dec)
         handled = np.zeros(starts.size, bool)
@@ -1632,14 +1649,18 @@ class _Poster:
         """Kept arcs' centre words: letters (K, 2) (I J, I K or J K by plane) and values (K, 2), program units. The
         centre moves by the end's correction (constant along a kept arc); incremental from the start (G91.1, the
         default) or absolute (G90.1). r : (K,) program rows; delta_end : (K, 6); last_written : (K, 6)."""
+        which, values = self._centre_columns(r, delta_end, last_written)
+        return np.array(list("IJK"))[which], values
+
+    def _centre_columns(self, r, delta_end, last_written):
+        """``_centre_values`` with the letters as their columns (K, 2) (0, 1, 2: I, J, K)."""
         p = self.p
         value = p.arc_center[r] + delta_end[:, :3] - np.where(p.arc_incremental[r][:, None], last_written[:, :3], 0.0)
         plane = p.arc_plane[r]
         first = np.where(plane == 19, 1, 0)  # G17: I J, G18: I K, G19: J K
         second = np.where(plane == 17, 1, 2)
         k = np.arange(r.size)
-        letters = np.array(list("IJK"))[np.stack([first, second], axis=1)]
-        return letters, np.stack([value[k, first], value[k, second]], axis=1)
+        return np.stack([first, second], axis=1), np.stack([value[k, first], value[k, second]], axis=1)
 
     def _fit_centre_words(self, r, centre, start, fmt):
         """The centre words of one sub-arc of a fitted arc: ``centre`` (3,) as ``.arcs`` fitted it (program
