@@ -270,3 +270,90 @@ def test_a_five_axis_program_posts_the_same_with_and_without_the_fast_path(monke
     fast, slow, taken = _both(text, m, monkeypatch)
     assert fast == slow
     assert taken > 0.9
+
+
+# -------------------------------------------------------------------- split moves and fitted arcs (pieces) -----
+
+# Long moves that split and arcs that are fitted (or linearised) in all three planes, with line numbers, comments,
+# G91 runs, G93 and a rapid among them: the compiled writer takes the plain ones, the Python path the rest.
+SPLIT_PROGRAM = """%
+O1000 (split pieces and fitted arcs)
+N10 G21 G90 G17 G94 F500
+N20 G0 X-1500 Y-1200 Z-900
+N30 G1 X1500 Y1200 Z-100 F800
+N40 G1 X-1400 Y1100 Z-800 (a comment on a split line)
+N50 G3 X1400 Y1100 I1400 J0
+N60 G91 G1 X-300 Y-900
+N65 G3 X-100 Y100 R100
+N70 G90 G18
+N71 G2 X-1500 Z-300 I-1200 K500
+N80 G19
+N81 G3 Y-1000 Z-900 R1300
+N90 G17 G3 X1400 Y1100 R2000
+N100 g01 x-1500 y-1000 z-200 f300
+N110 G93 G1 X1500 Y1000 Z-800 F0.5
+N120 G94 G1 X-1500 Y0 Z-500 F600
+N130 G0 X1500 Y-1200 Z-100
+N140 G90.1
+N141 G3 X-1500 Y-1200 I0 J-1200
+N142 G2 X1500 Y-1200 I0 J-1200
+N150 M2
+%
+"""
+
+
+def _both_pieces(text, machine, monkeypatch, **kw):
+    """(fast output, Python output, candidates the compiled piece writer took, candidates it was given)."""
+    seen = [0, 0]
+    kernel = fast_write.pieces
+
+    def spy(*args):
+        res = kernel(*args)
+        seen[0] += int(res[0].sum())
+        seen[1] += res[0].size
+        return res
+
+    monkeypatch.setattr(fast_write, "pieces", spy)
+    monkeypatch.setattr(post_module, "FAST_WRITE", True)
+    fast = compensate(text, machine, "geometric", **kw)
+    monkeypatch.setattr(post_module, "FAST_WRITE", False)
+    slow = compensate(text, machine, "geometric", **kw)
+    return fast, slow, seen[0], seen[1]
+
+
+@pytest.mark.parametrize("arcs", [True, False])
+@pytest.mark.parametrize("variant", ["as is", "no separator", "crlf", "inch", "no leading zero"])
+def test_split_moves_and_fitted_arcs_post_the_same_with_and_without_the_compiled_writer(xh714_wide, monkeypatch,
+                                                                                        variant, arcs):
+    text = SPLIT_PROGRAM
+    if variant == "no separator":
+        text = "\n".join(re.sub(r"(?<=[0-9.]) (?=[A-Za-z])", "", ln) if "(" not in ln else ln
+                         for ln in text.split("\n"))
+    elif variant == "crlf":
+        text = text.replace("\n", "\r\n")
+    elif variant == "inch":
+        text = text.replace("G21", "G20").replace("F500", "F20").replace("F800", "F30").replace("F600", "F25")
+        text = re.sub(r"([XYZIJKRxyzijkr])(-?)(\d+)", lambda m: f"{m[1]}{m[2]}{int(m[3]) / 40:g}", text)
+    elif variant == "no leading zero":
+        text = text.replace("F0.5", "F.5").replace("X1500 Y1000", "X1500 Y1000.")
+    fast, slow, taken, given_ = _both_pieces(text, xh714_wide, monkeypatch, offsets_zero=True, tol_um=0.2,
+                                             arcs=arcs)
+    assert fast == slow
+    assert taken > 0  # the compiled writer wrote split lines ...
+    assert taken < given_ or variant == "no separator"  # ... and left the commented one to the Python path
+
+
+def test_the_piece_writer_leaves_lines_it_cannot_write_exactly():
+    src = np.frombuffer(b"N1 G1 X1 Y2 (note)\nN2 G1 X1 Y2 F100\n", np.uint8)
+    line_start = np.array([0, 19, 36], np.int64)
+    pts = np.array([[1.5, 2.5, 0, 0, 0, 0], [3.0, 4.0, 0, 0, 0, 0], [1e300, 0, 0, 0, 0, 0], [3.0, 4.0, 0, 0, 0, 0]])
+    args = (src, line_start, np.array([0, 1], np.int64), np.array([1, 1], np.int64), np.array([1, 1, 1, 1], np.int64),
+            np.array([0, 2, 4], np.int64), pts, np.array([0, 1], np.int64), np.frombuffer(b"XY", np.uint8).copy(),
+            np.array([[5, 5], [6, 6]], np.int64), np.zeros(2, np.bool_), np.zeros(4, np.int64), np.zeros((4, 2)),
+            np.zeros((4, 2), np.uint8), np.zeros((4, 2), np.int64), True, False, 32)
+    ok, blob, b_start, b_end = fast_write.pieces(*args)
+    assert ok.tolist() == [False, False]  # a comment; a number beyond 2**53 at 5 decimals
+    pts[2, 0] = -0.25
+    ok, blob, b_start, b_end = fast_write.pieces(*args)
+    assert ok.tolist() == [False, True]
+    assert blob[b_start[1] : b_end[1]].tobytes() == b"N2 G1 X-0.25 Y0 F100\nG1 X3 Y4\n"

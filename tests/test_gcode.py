@@ -276,3 +276,18 @@ def test_moves_match_rs274(path, tmp_path):
             assert np.abs(prog.arc_center[row, axes] - canon.center[row, axes]).max() <= PRINT_TOL
         sign = np.where(prog.motion[arcs] == ARC_CCW, 1, -1) * prog.arc_turns[arcs]
         np.testing.assert_array_equal(sign, canon.rotation[arcs])
+
+
+def test_the_checks_split_lines_a_window_at_a_time_as_splitlines_does():
+    # (check._lines: G93's checks read a line or two after the first F, not the whole rest of a long program)
+    import random
+
+    from trueaxis.nc.check import _lines
+
+    rng = random.Random(1)
+    pieces = ["a", "G1 X2", "\r", "\n", "\r\n", "\x0b", "\x0c", "\x1c", "\x85", "\u2028", " ", "F1.5"]
+    for _ in range(3000):
+        text = "".join(rng.choice(pieces) for _ in range(rng.randint(0, 300)))
+        a = rng.randint(0, len(text))
+        b = rng.randint(a, len(text))
+        assert list(_lines(text, a, b, rng.randint(1, 20))) == text[a:b].splitlines(keepends=True)

@@ -310,3 +310,54 @@ def test_arc_ends_taken_from_the_block_ends_solve_change_nothing(machine_name, a
     assert rep.as_dict() == rep_again.as_dict()
     if machine_name == "nmv1500dcg":
         assert rep.singular_points > 0
+
+
+# ------------------------------------------------------------- arc points taken from the block ends' solve -----
+
+
+@pytest.mark.parametrize("name, mode", [("mtc_plate_1.nc", "geometric"), ("mtc_plate_1.nc", "comprehensive")])
+def test_arc_points_taken_from_the_ends_solve_post_the_same_as_solved_again(monkeypatch, name, mode):
+    # An arc's first point (its start, where it is the end of the move before under the same load) and its last
+    # point take their commanded poses from the chunk's solve of the block ends: the same bytes as solving them again.
+    from trueaxis.postproc import post as post_module
+
+    text = (ROOT / "fixtures" / "programs" / "nist" / name).read_text(errors="replace")
+    machine_text = (ROOT / "fixtures" / "machines" / "xh714.toml").read_text()
+    for old in ("[-200.0, 200.0]", "[-150.0, 150.0]", "[-400.0, 0.0]"):
+        machine_text = machine_text.replace(old, "[-2000.0, 2000.0]")
+    from trueaxis.machine import parse_machine
+
+    machine = parse_machine(machine_text, source="xh714-wide")
+    conditions = {"ap": 1.0, "ae": 1.0, "fz": 0.05, "n": 5000.0, "d": 10.0, "z": 4}
+    original = post_module._Poster._solve_arc_points
+    taken = [0]
+
+    def counting(self, rows, arc_idx, owner, pts6, force, ends=None):
+        before = self.stats["singular_points"]
+        solves = []
+        solve = self.solve
+
+        def spy(q, *a, **k):
+            solves.append(q.shape[0])
+            return solve(q, *a, **k)
+
+        self.solve = spy
+        try:
+            out = original(self, rows, arc_idx, owner, pts6, force, ends)
+        finally:
+            del self.solve
+        taken[0] += owner.size - sum(solves)
+        assert self.stats["singular_points"] == before  # (a three-axis mill: no singular cone)
+        return out
+
+    def again(self, rows, arc_idx, owner, pts6, force, ends=None):
+        return original(self, rows, arc_idx, owner, pts6, force, None)
+
+    outs = []
+    for patch in (counting, again):
+        monkeypatch.setattr(post_module._Poster, "_solve_arc_points", patch)
+        outs.append(post_text(text, machine, mode, source=name, setup=Setup(offsets_zero=True),
+                              conditions=conditions))
+    assert outs[0][0] == outs[1][0]
+    assert outs[0][1].as_dict() == outs[1][1].as_dict()
+    assert taken[0] > 0

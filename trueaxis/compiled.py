@@ -380,7 +380,7 @@ def _called_from_python() -> set:
             "trueaxis.nc.fast_read.number_style", "trueaxis.nc.fast_read.next_check_candidate",
             "trueaxis.nc.fast_read.ijkr_after_linear",
             "trueaxis.nc.fast_interp.straight_run", "trueaxis.nc.fast_interp.run_lengths",
-            "trueaxis.nc.fast_write.scan", "trueaxis.nc.fast_write.assemble",
+            "trueaxis.nc.fast_write.scan", "trueaxis.nc.fast_write.assemble", "trueaxis.nc.fast_write.pieces",
             "trueaxis.machine.error_kernel.evaluate_packed", "trueaxis.machine.chain_kernel.pose",
             "trueaxis.machine.chain_kernel.pose_and_axis_jacobian",
             "trueaxis.inspect.kernels.cone_normal_equations", "trueaxis.inspect.kernels.csv_rows",

@@ -166,7 +166,7 @@ def _plain_blocks(text, a, b, state, source, line_map, passthrough):
     and check every arc there block by block while arc centres are absolute (G90.1)."""
     if state.arc_abs or state.feed_reset:
         offset = a
-        for line in text[a:b].splitlines(keepends=True):
+        for line in _lines(text, a, b):
             _check_block(line, state, passthrough, lambda reason, s=offset: _raise(text, s, source, line_map, reason))
             offset += len(line)
             if not (state.arc_abs or state.feed_reset):
@@ -203,6 +203,22 @@ def _plain_blocks(text, a, b, state, source, line_map, passthrough):
     gap = _LAST_MOTION.match(text, a, b)
     if gap is not None:
         state.motion = int(gap.group(1)) * 10
+
+
+def _lines(text, a, b, window=4096):
+    """The lines of text[a:b] as ``splitlines(keepends=True)`` gives them, split a window at a time: a caller that
+    stops after a few lines (G93's first F word) does not split the rest of a long program (a million-line program:
+    0.15 s and a list of every line)."""
+    while a < b:
+        end = min(b, a + window)
+        lines = text[a:end].splitlines(keepends=True)
+        if end < b:
+            if len(lines) <= 1:  # a line longer than the window
+                window *= 2
+                continue
+            lines.pop()  # it may go on past the window (or its "\r" be the first half of a "\r\n")
+        yield from lines
+        a += sum(map(len, lines))
 
 
 def _ijkr_no_use(letter):

@@ -161,12 +161,11 @@ def feed_changes(feeds, feed) -> list:
     return np.nonzero(feeds != prev)[0].tolist()
 
 
-def append_rows(run, li, state0, changed, r_start, r_end, r_line, r_motion, r_kind, r_words, r_state, kind, r_arc,
-                plane):
+def append_rows(run, li, state0, changed, r_start, r_end, r_line, r_motion, r_kind, r_words, r_state, kind,
+                r_arc_runs, plane):
     """Append a run (:func:`straight_run`, from line ``li``) to the reader's packed row arrays; ``state0``: the state
-    index before it, ``changed``: (row, state index from there on); arcs' (centre, plane, 1) go to ``r_arc`` by
-    row. Returns (position after it as a list, motion
-    mode)."""
+    index before it, ``changed``: (row, state index from there on); its arcs go to ``r_arc_runs`` as (rows (k,),
+    centres (k, 3), plane), one turn each. Returns (position after it as a list, motion mode)."""
     count, start, end, motion, words, _, _, centres = run
     r_start.frombytes(np.ascontiguousarray(start).tobytes())
     r_end.frombytes(np.ascontiguousarray(end).tobytes())
@@ -180,8 +179,7 @@ def append_rows(run, li, state0, changed, r_start, r_end, r_line, r_motion, r_ki
     arcs = np.nonzero(motion >= 2)[0]
     if arcs.size:
         first = len(r_line) - count
-        r_arc.update(zip((arcs + first).tolist(), zip(centres[arcs].tolist(), [plane] * arcs.size,
-                                                      [1] * arcs.size)))
+        r_arc_runs.append((arcs + first, centres[arcs], plane))
     return end[count - 1].tolist(), int(motion[count - 1]) * 10
 
 

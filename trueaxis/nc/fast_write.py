@@ -355,6 +355,112 @@ def assemble(src, line_start, mode, cand_of_line, cand_k, cand_motion, spans, ta
     return buf[:pos]
 
 
+@numba.njit(cache=True)
+def _put_words(buf, pos, pts, i, cols, letters, dec_row, leading_zero, trailing_point, sep):
+    """The axis words of point ``pts[i]`` (sep letter number per output axis) at ``buf[pos:]``."""
+    for a in range(cols.size):
+        if sep >= 0:
+            buf[pos] = sep
+            pos += 1
+        buf[pos] = letters[a]
+        pos = _put_number(buf, pos + 1, pts[i, cols[a]], dec_row[a], leading_zero, trailing_point)
+    return pos
+
+
+@numba.njit(cache=True)
+def _put_centre(buf, pos, i, n_centre, centre_val, centre_letter, centre_dec, leading_zero, trailing_point, sep):
+    """The centre words of piece ``i`` (none, or two: a fitted sub-arc's) at ``buf[pos:]``."""
+    for a in range(n_centre[i]):
+        if sep >= 0:
+            buf[pos] = sep
+            pos += 1
+        buf[pos] = centre_letter[i, a]
+        pos = _put_number(buf, pos + 1, centre_val[i, a], centre_dec[i, a], leading_zero, trailing_point)
+    return pos
+
+
+@numba.njit(cache=True)
+def _pieces_fit(pts, lo, hi, cols, dec_row, n_centre, centre_val, centre_dec):
+    """Every number of the pieces lo..hi-1 can be written exactly."""
+    for i in range(lo, hi):
+        for a in range(cols.size):
+            if not _fits(pts[i, cols[a]], dec_row[a]):
+                return False
+        for a in range(n_centre[i]):
+            if not _fits(centre_val[i, a], centre_dec[i, a]):
+                return False
+    return True
+
+
+@numba.njit(cache=True)
+def pieces(src, line_start, cand_line, first_motion, piece_code, piece_first, pts, cols, letters, dec, inch,
+           n_centre, centre_val, centre_letter, centre_dec, leading_zero, trailing_point, sep):
+    """The lines of split moves and fitted arcs (``post._Poster._split_block`` in absolute words, without G93), as
+    bytes: (ok (m,) bool, blob, blob_start (m,), blob_end (m,)): candidate c's text is blob[blob_start[c]:
+    blob_end[c]] when ok[c] (a plain line, see ``_scan_line``, whose numbers are all written exactly), else the
+    Python path writes it.
+
+    Candidate c is line cand_line[c]; its pieces are pts[piece_first[c]:piece_first[c + 1]] (the block's own end
+    last), at decimals dec[inch[c]] per output axis (cols, letters). The line itself goes to the first piece's end:
+    [N sep] G word (motion first_motion[c], in the line's style), the axis words, the piece's centre words, [sep F],
+    the line ending; each further piece i is ``G`` piece_code[i], its axis words and centre words, the line ending.
+    A piece's centre words (a fitted sub-arc's): n_centre[i] (0 or 2) letters centre_letter[i], values centre_val[i]
+    at decimals centre_dec[i]. ``sep``: separator byte, or -1 for none."""
+    m = cand_line.size
+    ok = np.zeros(m, np.bool_)
+    blob_start = np.zeros(m, np.int64)
+    blob_end = np.zeros(m, np.int64)
+    span = np.empty(7, np.int64)
+    buf = np.empty(64 * (pts.shape[0] + m) + 64, np.uint8)
+    pos = 0
+    for c in range(m):
+        li = cand_line[c]
+        s = line_start[li]
+        e = line_start[li + 1]
+        be = _body_end(src, s, e)
+        lo = piece_first[c]
+        hi = piece_first[c + 1]
+        row = 1 if inch[c] else 0
+        if hi <= lo or not _scan_line(src, s, be, span):
+            continue
+        if not _pieces_fit(pts, lo, hi, cols, dec[row], n_centre, centre_val, centre_dec):
+            continue
+        ok[c] = True
+        blob_start[c] = pos
+        need = (e - s) + (hi - lo) * (_WORD_MAX * (cols.size + 3) + (e - be))
+        buf = _grow(buf, pos, need)
+        if span[0] >= 0:
+            pos = _copy(buf, pos, src, span[0], span[1])
+            if sep >= 0:
+                buf[pos] = sep
+                pos += 1
+        buf[pos] = 71  # "G"
+        pos += 1
+        if span[4] == 1:
+            buf[pos] = 48
+            pos += 1
+        buf[pos] = 48 + first_motion[c]
+        pos += 1
+        pos = _put_words(buf, pos, pts, lo, cols, letters, dec[row], leading_zero, trailing_point, sep)
+        pos = _put_centre(buf, pos, lo, n_centre, centre_val, centre_letter, centre_dec, leading_zero,
+                          trailing_point, sep)
+        if span[2] >= 0:
+            if sep >= 0:
+                buf[pos] = sep
+                pos += 1
+            pos = _copy(buf, pos, src, span[2], span[3])
+        pos = _copy(buf, pos, src, be, e)
+        for i in range(lo + 1, hi):
+            buf[pos] = 71
+            buf[pos + 1] = 48 + piece_code[i]
+            pos = _put_words(buf, pos + 2, pts, i, cols, letters, dec[row], leading_zero, trailing_point, sep)
+            pos = _put_centre(buf, pos, i, n_centre, centre_val, centre_letter, centre_dec, leading_zero,
+                              trailing_point, sep)
+            pos = _copy(buf, pos, src, be, e)
+        blob_end[c] = pos
+    return ok, buf[:pos], blob_start, blob_end
+
+
 # ------------------------------------------------------------------------------------ Python entry points -----
 
 

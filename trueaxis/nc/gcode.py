@@ -746,7 +746,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             feed = self.feed
         pos, motion_mode = fast_interp.append_rows(run, li, state0, changed, self.r_start, self.r_end, self.r_line,
                                                    self.r_motion, self.r_kind, self.r_words, self.r_state,
-                                                   ROW_PROGRAMMED, self.r_arc, self.plane)
+                                                   ROW_PROGRAMMED, self.r_arc_runs, self.plane)
         if run[6]:
             self.cycle_words["il_flag"] = False
         return pos, motion_mode, feed, self.cur_state, run[0]
@@ -829,6 +829,10 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             arc_center[idx] = [v[0] for v in r_arc.values()]
             arc_plane[idx] = [v[1] for v in r_arc.values()]
             arc_turns[idx] = [v[2] for v in r_arc.values()]
+        for rows, centres, plane in self.r_arc_runs:  # (other rows than r_arc's)
+            arc_center[rows] = centres
+            arc_plane[rows] = plane
+            arc_turns[rows] = 1
         words = np.array(self.r_words, np.uint16)
         mask = int(np.bitwise_or.reduce(words)) if m else 0
         used_axes.update(c for c in AXES if mask & _WORD_BIT[c])

@@ -60,6 +60,8 @@ class InterpState:
         self.r_line, self.r_motion, self.r_kind = array("q"), array("q"), array("q")
         self.r_words, self.r_state = array("q"), array("q")
         self.r_arc = {}  # row -> (centre (3,), plane, turns)
+        # the compiled runs' arcs as arrays, not a tuple each: (rows (k,), centres (k, 3), plane), one turn each
+        self.r_arc_runs = []
         self.states = {}
         self.cur_state = 0
         self.meta_now = self.meta()

@@ -405,8 +405,9 @@ def fit_arcs(poster, rows, arc_idx, force, delta_prog):
     end_cmd = p.end[rows[idx]] + delta_prog[idx]
     fitter = ArcFitter(poster)
     fitted, failed = fitter.fit(rows, idx, start_cmd, end_cmd, force)
-    poster.rep.arcs_fitted += len(fitted)
-    poster.rep.arc_blocks_fitted += sum(len(v[0]) for v in fitted.values())
-    poster.rep.max_arc_deviation_um = max(poster.rep.max_arc_deviation_um, fitter.max_deviation_um)
-    poster.rep.sub_arcs_linearised += fitter.sub_arcs_linearised
+    with poster._lock:  # (chunks side by side: ``post._Poster._compensate_chunks``)
+        poster.rep.arcs_fitted += len(fitted)
+        poster.rep.arc_blocks_fitted += sum(len(v[0]) for v in fitted.values())
+        poster.rep.max_arc_deviation_um = max(poster.rep.max_arc_deviation_um, fitter.max_deviation_um)
+        poster.rep.sub_arcs_linearised += fitter.sub_arcs_linearised
     return fitted, np.sort(np.r_[arc_idx[~ok], failed]).astype(int)

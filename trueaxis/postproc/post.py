@@ -29,6 +29,7 @@ import functools
 import gc
 import math
 import re
+import threading
 from dataclasses import dataclass, field
 from typing import NamedTuple
 from pathlib import Path
@@ -101,6 +102,7 @@ WRITE_ROUNDING_UM, WRITE_ROUNDING_URAD = 0.03, 0.18
 ROW_CHUNK = 8_000  # moves compensated together: bounds memory (an arc samples 17 poses) at little cost in speed
 WRITE_WINDOW = 50_000  # moves whose axis words are formatted together
 FAST_WRITE = True  # the compiled writer (fast_write) for plain blocks; False: every line by the Python path
+CHUNK_THREADS = True  # chunks of moves compensated on two threads (``_compensate_chunks``); False: one after the other
 # An arc's correction is sampled at least this often (mm of arc) to decide whether it stays an arc: the error
 # tables' knots lie 10 mm or more apart, so a cubic's variation between them is followed closely.
 ARC_SAMPLE_MM = 2.0
@@ -481,7 +483,38 @@ class _PieceWords(NamedTuple):
 
     first: dict  # k -> index of the piece's first point into ``words``
     pts: dict  # k -> (n, 6) program coordinates of its pieces' ends
-    words: dict | None  # axis letter -> the formatted words of every piece end, in order; None: no pieces
+    words: dict | None  # axis letter -> the formatted words of the piece ends the Python writer writes, in order ("" for
+    # the others, which the compiled writer writes); None: none (``_Poster._piece_texts``)
+
+
+class _WrittenEnd:
+    """``written_end[r]`` (K, 6): the end written for the program rows r (K,) (program coordinates): ``end[r] +
+    delta`` of the compensated rows ``rows`` (the same sum as in a table of them all), ``end[r]`` itself for the
+    others. Asked for the rows it is asked for, not made for every row (a copy of the program's ends, 48 MB at a
+    million rows)."""
+
+    def __init__(self, end, n_rows, rows, delta):
+        self.end, self.delta = end, delta
+        self.k = np.full(n_rows, -1, np.int64)
+        self.k[rows] = np.arange(rows.size)
+
+    def __getitem__(self, r):
+        r = np.asarray(r)
+        out = self.end[r]  # (a new array)
+        k = self.k[r]
+        has = k >= 0
+        out[has] = self.end[r[has]] + self.delta[k[has]]
+        return out
+
+
+class _ChunkEnd(threading.Event):
+    """The written end of a chunk's last move, ``value`` (row, (6,) end) once set (None: the chunk stopped)."""
+
+    value = None
+
+
+class _ChunkAborted(Exception):
+    """A chunk whose chunk before stopped with an error (which is the one raised)."""
 
 
 class _Poster:
@@ -511,7 +544,11 @@ class _Poster:
         self.fractions = {}  # program row -> piece boundaries (fractions of the move) of split moves
         self.fit_arcs = False  # arcs fitted to the corrected path (.arcs); set by post_text
         self.arc_centres = {}  # program row -> (n, 3) centres (program coordinates) of a fitted arc's sub-arcs
-        self._end_before_chunk = (-2, None)  # (row, written end) of the last move of the chunk before
+        self._end_before_serial = (-2, None)  # (row, written end) of the last move of the chunk before
+        # chunks compensated side by side (``_compensate_chunks``): the report's sums and maxima under the lock, a
+        # chunk's warnings and its own values (``_local``: the chunk before's end, its notes) kept in chunk order
+        self._lock = threading.RLock()
+        self._local = threading.local()
         self.tcp = None  # TCP output (.tcp.TcpFrame): positions for the control's own nominal kinematics
 
     # --- coordinates ------------------------------------------------------------------------------------------------
@@ -652,13 +689,14 @@ class _Poster:
                             f"compensation did not converge (residual {res.position_residual_um[k]:.3g} um,"
                             f" {res.axis_residual_urad[k]:.3g} urad)")
         st = self.stats
-        st["um"] = max(st["um"], float(res.position_residual_um.max(initial=0.0)))
-        if self.orientation:
-            st["urad"] = max(st["urad"], float(res.axis_residual_urad[~held].max(initial=0.0)))
-            st["urad_singular"] = max(st["urad_singular"], float(res.axis_residual_urad[held].max(initial=0.0)))
-        st["singular_points"] += int(held.sum())
-        if held.any():  # (line_no is made for the whole program each time it is read)
-            st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
+        with self._lock:
+            st["um"] = max(st["um"], float(res.position_residual_um.max(initial=0.0)))
+            if self.orientation:
+                st["urad"] = max(st["urad"], float(res.axis_residual_urad[~held].max(initial=0.0)))
+                st["urad_singular"] = max(st["urad_singular"], float(res.axis_residual_urad[held].max(initial=0.0)))
+            st["singular_points"] += int(held.sum())
+            if held.any():  # (line_no is made for the whole program each time it is read)
+                st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
         return (res.q, held, res.actual + res.nominal) if poses else (res.q, held)
 
     def check(self, q_nom, q_cmd, rows):
@@ -754,12 +792,10 @@ class _Poster:
         # A bar on long programs, on a terminal only (tqdm's disable=None).
         bar = tqdm(total=rows.size, unit="move", desc="compensating", disable=None if len(chunks) > 2 else True,
                    leave=False)
-        for sl in chunks:
-            d_prog, dq, pcs, modes = self._compensate(rows[sl])
+        for sl, (d_prog, dq, pcs, modes) in zip(chunks, self._compensate_chunks(rows, chunks)):
             delta_prog[sl] = d_prog
             pieces.update((sl.start + k, v) for k, v in pcs.items())
             arc_mode.update((sl.start + k, v) for k, v in modes.items())
-            self._end_before_chunk = (int(rows[sl.stop - 1]), p.end[rows[sl.stop - 1]] + d_prog[-1])
             sq += np.sum(dq**2, axis=0)
             mx = np.maximum(mx, np.abs(dq).max(axis=0, initial=0.0))
             bar.update(sl.stop - sl.start)
@@ -771,6 +807,85 @@ class _Poster:
 
             self.p, delta_prog, pieces = diameter_words(p, rows, delta_prog, pieces)
         return self._write(rows, delta_prog, pieces, arc_mode)
+
+    def _compensate_chunks(self, rows, chunks):
+        """``_compensate`` of each chunk of ``rows``, the results in chunk order (a generator). The first chunk here,
+        the others on two threads when the compiled kernels are the ahead-of-time ones (which release the GIL; numba's
+        parallel kernels must not be entered from two threads) and numba was not needed for the first: each chunk
+        computes what it computes alone (its own moves; the chunk before's written end, where its arcs need it, taken
+        once that chunk has solved its ends), and its warnings and split count are taken in chunk order, so the
+        output and the report are those of the chunks one after the other."""
+        from ..compiled import aot_available, numba_imported, thread_count
+
+        self._pair()  # (its warning, if any, once and first)
+        before = _ChunkEnd()
+        before.value = (-2, None)
+        before.set()
+        for i, sl in enumerate(chunks):
+            if i == 1 and CHUNK_THREADS and len(chunks) > 2 and thread_count() > 1 and self.m.kind != "lathe" \
+                    and aot_available() and not numba_imported():
+                yield from self._compensate_threaded(rows, chunks[1:], before)
+                return
+            mine = _ChunkEnd()
+            yield self._take_notes(self._chunk(rows[sl], before, mine))
+            before = mine
+
+    def _compensate_threaded(self, rows, chunks, before):
+        """``_compensate_chunks`` of ``chunks`` on two threads, the first one's chunk before ending at ``before``."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        ends = [before] + [_ChunkEnd() for _ in chunks]
+        with ThreadPoolExecutor(max_workers=2, thread_name_prefix="trueaxis-chunk") as pool:
+            futures = [pool.submit(self._chunk, rows[sl], ends[i], ends[i + 1]) for i, sl in enumerate(chunks)]
+            try:
+                for f in futures:
+                    yield self._take_notes(f.result())
+            finally:
+                for f in futures:
+                    f.cancel()
+
+    def _chunk(self, rows, before, mine):
+        """(``_compensate(rows)``, the chunk's notes): the chunk before ends at ``before`` (a ``_ChunkEnd``); this
+        one's end goes to ``mine`` once its ends are solved (None if it stopped before)."""
+        local = self._local
+        local.notes, local.end_before_from, local.publish = {"warnings": [], "moves_split": None}, before, mine
+        try:
+            return self._compensate(rows), local.notes
+        finally:
+            if not mine.is_set():
+                mine.value = None
+                mine.set()
+            local.notes = local.end_before_from = local.publish = None
+
+    def _take_notes(self, result):
+        """A chunk's result, its notes (warnings, split count) taken into the report as the chunk itself would have."""
+        out, notes = result
+        self.rep.warnings.extend(notes["warnings"])
+        if notes["moves_split"] is not None:
+            self.rep.moves_split = notes["moves_split"]
+        return out
+
+    @property
+    def _end_before_chunk(self):
+        """(row, written end) of the last move of the chunk before this one (waits for its ends' solve)."""
+        before = getattr(self._local, "end_before_from", None)
+        if before is None:
+            return self._end_before_serial
+        before.wait()
+        if before.value is None:
+            raise _ChunkAborted("the chunk before stopped")
+        return before.value
+
+    def _note_warning(self, text: str):
+        notes = getattr(self._local, "notes", None)
+        (self.rep.warnings if notes is None else notes["warnings"]).append(text)
+
+    def _note_moves_split(self, n: int):
+        notes = getattr(self._local, "notes", None)
+        if notes is None:
+            self.rep.moves_split = n
+        else:
+            notes["moves_split"] = n
 
     def _compensate(self, rows):
         """Compensate the moves ``rows`` (indices into the program's rows): (correction of each end in program units
@@ -791,6 +906,10 @@ class _Poster:
         self.check(q_end, q_cmd, rows)
         dq = q_cmd - q_end
         delta_prog = self.to_program_delta(dq if self.tcp is None else self.command_delta(q_cmd, q_end), inch, rows)
+        publish = getattr(self._local, "publish", None)
+        if publish is not None:  # the chunk after may start its arcs from here (``_end_before_chunk``)
+            publish.value = (int(rows[-1]), p.end[rows[-1]] + delta_prog[-1])
+            publish.set()
 
         pieces, arc_mode = {}, {}
         # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
@@ -895,9 +1014,8 @@ class _Poster:
         else:
             still = np.unique(owner[worst_final > 1.0]) if worst_final.size else np.array([], int)
             for i in still:
-                self.rep.warnings.append(f"{self.p.source}:{int(self.p.line_no[rows[i]])}: the move was split "
-                                         f"{max_rounds} times and still leaves the nominal path by more than the "
-                                         "tolerance")
+                self._note_warning(f"{self.p.source}:{int(self.p.line_no[rows[i]])}: the move was split "
+                                   f"{max_rounds} times and still leaves the nominal path by more than the tolerance")
         return self._split_pieces(rows, I, F, C, q_start, q_end, inch)
 
     def _path_residual(self, q_start, q_end, f_all):
@@ -999,9 +1117,10 @@ class _Poster:
             dev_um, dev_urad = np.maximum(dev_um, ep * 1e3), np.maximum(dev_urad, eu * 1e6)
             worst = np.maximum(worst, np.maximum(ep * scale[0], eu * scale[-1]))
         bad = worst > 1.0
-        self.rep.max_split_deviation_um = max(self.rep.max_split_deviation_um, float(dev_um[~bad].max(initial=0)))
-        self.rep.max_split_deviation_urad = max(self.rep.max_split_deviation_urad,
-                                                float(dev_urad[~bad].max(initial=0)))
+        with self._lock:
+            self.rep.max_split_deviation_um = max(self.rep.max_split_deviation_um, float(dev_um[~bad].max(initial=0)))
+            self.rep.max_split_deviation_urad = max(self.rep.max_split_deviation_urad,
+                                                    float(dev_urad[~bad].max(initial=0)))
         return worst
 
     def _split_pieces(self, rows, I, F, C, q_start, q_end, inch):
@@ -1013,7 +1132,7 @@ class _Poster:
         I, F, C = I[order], F[order], C[order]
         counts = np.bincount(I, minlength=len(rows))
         split_rows = np.nonzero(counts > 2)[0]
-        self.rep.moves_split = int(split_rows.size)
+        self._note_moves_split(int(split_rows.size))
         if split_rows.size == 0:
             return out
         inner = np.isin(I, split_rows) & (F > 0) & (F < 1)
@@ -1060,7 +1179,8 @@ class _Poster:
         kept &= self.tcp is None  # TCP: the control turns an arc's plane with the table; straight pieces only
         for i in arc_idx[kept]:
             modes[int(i)] = "arc"
-        self.rep.arcs_kept += int(kept.sum())
+        with self._lock:
+            self.rep.arcs_kept += int(kept.sum())
         lin = arc_idx[~kept]
         if self.fit_arcs and lin.size:
             fitted, lin = fit_arcs(self, rows, lin, force, delta_prog)
@@ -1085,7 +1205,8 @@ class _Poster:
         for k, i in enumerate(lin):
             out[int(i)] = cmd6[first[k] + 1 : first[k] + counts[k] + 1]
             modes[int(i)] = "lines"
-        self.rep.arcs_linearised += int(lin.size)
+        with self._lock:
+            self.rep.arcs_linearised += int(lin.size)
         return out, modes
 
     def _solve_arc_points(self, rows, arc_idx, owner, pts6, force, ends=None):
@@ -1103,14 +1224,25 @@ class _Poster:
 
             f, ends = arc_point_loads(self, r, pts6, f), None
         taken = np.zeros(owner.size, bool)
+        q_c = np.empty_like(q_pts)
         if ends is not None:
             last = np.nonzero(np.r_[owner[1:] != owner[:-1], True])[0]
             block = arc_idx[owner[last]]
             last = last[np.all(q_pts[last] == ends[0][block], axis=1)]
             taken[last] = True
-        q_c = np.empty_like(q_pts)
+            q_c[last] = ends[1][arc_idx[owner[last]]]
+            # an arc's first point is its start (mostly to the bit, see _arcs_points): where it is the end of the
+            # chunk's move before, under the same load, its commanded pose is that move's (the same solve again)
+            first = np.nonzero(np.r_[True, owner[1:] != owner[:-1]])[0]
+            before = arc_idx[owner[first]] - 1
+            first, before = first[before >= 0], before[before >= 0]
+            same = np.all(q_pts[first] == ends[0][before], axis=1)
+            if force is not None:
+                same &= np.all(f[first] == force[before], axis=1)
+            first, before = first[same], before[same]
+            taken[first] = True
+            q_c[first] = ends[1][before]
         if taken.any():
-            q_c[taken] = ends[1][arc_idx[owner[taken]]]
             self._record_taken(q_pts[taken], r[taken])
         if not taken.all():
             q_c[~taken], _ = self.solve(q_pts[~taken], None if f is None else f[~taken], r[~taken])
@@ -1120,9 +1252,10 @@ class _Poster:
         """What ``solve`` records of its points (the residuals aside: recorded by the solve they come from), for points
         whose commanded poses were taken from another solve: the points and blocks in the singular cone."""
         held = self.singular_at(q)
-        self.stats["singular_points"] += int(held.sum())
-        if held.any():
-            self.stats["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
+        with self._lock:
+            self.stats["singular_points"] += int(held.sum())
+            if held.any():
+                self.stats["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
 
     # --- writing -------------------------------------------------------------------------------------------------
     def _write(self, rows, delta_prog, pieces, arc_mode):
@@ -1145,13 +1278,19 @@ class _Poster:
         # cycles; every other compensated line goes through ``_write_lines``.
         fast = self._fast_lines(rows, starts, ends, target, inch_rows, split.first, arc_mode, axes_out, numbers,
                                 delta_prog, written_end, first_row_of_line)
+        ends_written = (written_end, first_row_of_line)
+        extra = 0
         if fast is not None:
             keep = ~fast["handled"]
             starts, ends = starts[keep], ends[keep]
+            # split moves and fitted arcs: the compiled writer too, where their lines are plain (fast_write.pieces)
+            fast["pieces"], taken, extra = self._fast_pieces(rows, starts, ends, is_cycle, arc_mode, split, axes_out,
+                                                             numbers, ends_written, fast)
+            starts, ends = starts[~taken], ends[~taken]
         out = list(p.lines) if fast is None else {}
-        ends_written = (written_end, first_row_of_line)
-        extra = self._write_lines(out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out,
-                                  numbers, ends_written)
+        split = self._piece_texts(split, (ends - 1).tolist(), inch_rows, axes_out, numbers)
+        extra += self._write_lines(out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out,
+                                   numbers, ends_written)
         self.rep.blocks_out = len(p.lines) + extra
         if fast is None:
             return "".join(out), self.rep
@@ -1167,34 +1306,46 @@ class _Poster:
         return axes_out
 
     def _written_ends(self, rows, delta_prog, is_cycle):
-        """(written_end (M, 6), first_row_of_line (lines,)): the end point written for every program row (program
-        coordinates) and each line's first row (-1: none).
+        """(written_end, first_row_of_line (lines,)): the end point written for every program row (program
+        coordinates; ``written_end[r]`` for rows r (K,), see ``_WrittenEnd``) and each line's first row (-1: none).
 
         Compensated moves end at their corrected ends, everything else (and canned cycles, rewritten from their hole
         and R level) as programmed. A block's incremental words and arc centres count from the end written for the
         row before it."""
         p = self.p
-        written_end = p.end.copy()
-        written_end[rows[~is_cycle]] += delta_prog[~is_cycle]
+        written_end = _WrittenEnd(p.end, len(p), rows[~is_cycle], delta_prog[~is_cycle])
         first_row_of_line = np.full(len(p.lines), -1)
         first_row_of_line[p.line_index[::-1]] = np.arange(len(p))[::-1]
         return written_end, first_row_of_line
 
     def _piece_words(self, pieces, arc_mode, target, inch_rows, axes_out, numbers):
         """The pieces of split moves and linearised or fitted arcs (not the kept arcs), their block's own end last:
-        ``_PieceWords`` with each one's first index into the words, its (n, 6) points, and the axis words of all of
-        them, formatted in one pass per axis."""
+        ``_PieceWords`` with each one's first index into the words and its (n, 6) points (the words: ``_piece_texts``,
+        for the lines the compiled writer does not take)."""
         piece_keys = [k for k in pieces if arc_mode.get(k) != "arc"]
         piece_pts = [pieces[k] if arc_mode.get(k) in ("lines", "fit") else np.vstack([pieces[k], target[k]])
                      for k in piece_keys]
         piece_first = dict(zip(piece_keys, np.cumsum([0] + [len(x) for x in piece_pts]).tolist()))
         piece_pts_of = dict(zip(piece_keys, piece_pts))
-        piece_words = None
-        if piece_pts:
-            flat = np.vstack(piece_pts)
-            flat_inch = np.repeat(inch_rows[piece_keys], [len(x) for x in piece_pts])
-            piece_words = {a: numbers.words(a, flat[:, AXES.index(a)], flat_inch) for a in axes_out}
-        return _PieceWords(piece_first, piece_pts_of, piece_words)
+        return _PieceWords(piece_first, piece_pts_of, None)
+
+    def _piece_texts(self, split, keys, inch_rows, axes_out, numbers):
+        """``split`` with the axis words of the pieces of the moves ``keys`` (those the Python writer writes; the
+        others' words are left empty), formatted in one pass per axis."""
+        keys = [k for k in keys if k in split.first]
+        if not keys:
+            return split
+        n_all = sum(len(x) for x in split.pts.values())
+        counts = [len(split.pts[k]) for k in keys]
+        at = np.concatenate([np.arange(split.first[k], split.first[k] + n) for k, n in zip(keys, counts)])
+        flat = np.vstack([split.pts[k] for k in keys])
+        flat_inch = np.repeat(inch_rows[keys], counts)
+        words = {}
+        for a in axes_out:
+            words[a] = [""] * n_all
+            for i, text in zip(at.tolist(), numbers.words(a, flat[:, AXES.index(a)], flat_inch)):
+                words[a][i] = text
+        return split._replace(words=words)
 
     def _write_lines(self, out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out, numbers,
                      ends_written):
@@ -1347,16 +1498,14 @@ class _Poster:
         arcs = np.nonzero(keep_r & ((p.words[rows[cand_k]] & _R_BIT) == 0))[0]
         if arcs.size:
             last_written = _written_before(cand_line[arcs], written_end, first_row_of_line)
-            letters, values = self._centre_values(rows[cand_k[arcs]], delta_prog[cand_k[arcs]], last_written)
+            which, values = self._centre_columns(rows[cand_k[arcs]], delta_prog[cand_k[arcs]], last_written)
             inch0 = p.inch[cand_r0[arcs]]
             n_extra[arcs] = 2
             extra_val[arcs] = values
             # (per letter and unit, not per arc: a program has hundreds of thousands of them)
             table = np.array([[numbers.decimals(c, inch) for inch in (False, True)] for c in "IJK"], np.int64)
-            for j in range(2):
-                which = np.searchsorted(np.array(list("IJK")), letters[:, j])
-                extra_letter[arcs, j] = np.frombuffer(b"IJK", np.uint8)[which]
-                extra_dec[arcs, j] = table[which, inch0.astype(np.int64)]
+            extra_letter[arcs] = np.frombuffer(b"IJK", np.uint8)[which]
+            extra_dec[arcs] = table[which, inch0.astype(np.int64)[:, None]]
         ok, spans = fast_write.scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch,
                                     n_extra, extra_val, extra_dec)
         handled = np.zeros(starts.size, bool)
@@ -1366,6 +1515,98 @@ class _Poster:
                 "inch": inch, "sep": sep, "letters": np.frombuffer("".join(axes_out).encode("ascii"), np.uint8),
                 "n_extra": n_extra[ok], "extra_val": extra_val[ok], "extra_letter": extra_letter[ok],
                 "extra_dec": extra_dec[ok], "keep_r": keep_r[ok]}
+
+    def _fast_pieces(self, rows, starts, ends, is_cycle, arc_mode, split, axes_out, numbers, ends_written, fast):
+        """The lines of split moves and fitted arcs the compiled writer takes (``fast_write.pieces``: absolute words,
+        not G93, plain lines): (their text {"line", "blob", "start", "end"}, taken per group of rows starts/ends
+        (bool), the number of blocks they add). The numbers are those ``_split_block`` writes: the pieces' ends as
+        ``_piece_words`` has them, a fitted sub-arc's centre as ``_fit_centre_words`` computes it."""
+        p = self.p
+        taken = np.zeros(starts.size, bool)
+        none = {"line": np.zeros(0, np.int64)}
+        if not split.first or starts.size == 0:
+            return none, taken, 0
+        last = ends - 1
+        keys = np.fromiter(split.first, np.int64, len(split.first))
+        grp = np.nonzero(np.isin(last, keys) & ~is_cycle[starts])[0]
+        r = rows[last[grp]]
+        grp = grp[~p.incremental[r] & ~p.inverse_time[r]]
+        if grp.size == 0:
+            return none, taken, 0
+        ks = last[grp].tolist()
+        r = rows[last[grp]]
+        pts = [split.pts[k] for k in ks]
+        counts = np.fromiter(map(len, pts), np.int64, len(pts))
+        piece_first = np.r_[0, np.cumsum(counts)].astype(np.int64)
+        flat = np.ascontiguousarray(np.vstack(pts), float)
+        modes = [arc_mode.get(k) for k in ks]
+        fit = np.array([m == "fit" for m in modes], bool)
+        own = p.motion[r].astype(np.int64)
+        first_motion = np.where(np.array([m == "lines" for m in modes], bool), FEED, own)
+        piece_code = np.repeat(np.where(first_motion == RAPID, 0, 1), counts).astype(np.int64)
+        centre = self._fit_centres_flat(r, fit, piece_first, flat, ends_written)
+        if centre is not None:
+            first_motion = np.where(fit & np.isnan(centre["first"]), FEED, first_motion)
+            piece_code = np.where(centre["fit"], np.where(centre["nan"], 1, np.repeat(own, counts)), piece_code)
+        lines = p.line_index[r].astype(np.int64)
+        cols = fast["cols"]
+        dec = fast["dec"]
+        n_flat = flat.shape[0]
+        n_centre, c_val, c_letter, c_dec = (centre["n"], centre["val"], centre["letter"], centre["dec"]) \
+            if centre is not None else (np.zeros(n_flat, np.int64), np.zeros((n_flat, 2)),
+                                        np.zeros((n_flat, 2), np.uint8), np.zeros((n_flat, 2), np.int64))
+        ok, blob, b_start, b_end = fast_write.pieces(
+            fast["src"], fast["line_start"], lines, first_motion.astype(np.int64), piece_code, piece_first, flat,
+            cols, fast["letters"], dec, np.ascontiguousarray(p.inch[r], np.bool_), n_centre, c_val, c_letter, c_dec,
+            bool(p.format_info.leading_zero), bool(p.format_info.trailing_point), fast["sep"])
+        taken[grp[ok]] = True
+        return ({"line": lines[ok], "blob": blob, "start": b_start[ok], "end": b_end[ok]}, taken,
+                int((counts[ok] - 1).sum()))
+
+    def _fit_centres_flat(self, r, fit, piece_first, flat, ends_written):
+        """The centre words of the fitted arcs' sub-arcs among the split lines of rows ``r`` (``fit``), per piece of
+        the flat pieces ``flat`` (``_fit_centre_words`` for all of them at once: the same operations on the same
+        numbers): {"n" (N,) 0 or 2, "val" (N, 2), "letter" (N, 2) uint8, "dec" (N, 2), "fit" (N,) bool (a fitted
+        arc's piece), "nan" (N,) bool (a sub-arc that did not hold: straight), "first" (lines,) the first piece's
+        centre X (NaN: straight, else not NaN)}, or None when no line is a fitted arc."""
+        if not fit.any():
+            return None
+        p = self.p
+        counts = np.diff(piece_first)
+        n_flat = flat.shape[0]
+        owner = np.repeat(np.arange(r.size), counts)
+        is_fit = fit[owner]
+        centres = np.full((n_flat, 3), np.nan)
+        for c in np.nonzero(fit)[0].tolist():
+            centres[piece_first[c] : piece_first[c + 1]] = self.arc_centres[int(r[c])]
+        first = np.full(r.size, np.nan)
+        first[fit] = centres[piece_first[:-1][fit], 0]
+        nan = np.isnan(centres[:, 0])
+        # each piece's written start: the end written before the line (first piece), else the piece before's end
+        starts = np.empty((n_flat, 6))
+        starts[1:] = flat[:-1]
+        written_end, first_row_of_line = ends_written
+        starts[piece_first[:-1]] = _written_before(p.line_index[r], written_end, first_row_of_line)
+        numbers = _Numbers(p.format_info)
+        scale = {flag: 10.0 ** np.array([numbers.decimals(a, flag) for a in "XYZ"]) for flag in (False, True)}
+        inch = p.inch[r][owner]
+        sc = np.where(inch[:, None], scale[True][None, :], scale[False][None, :])
+        written = np.round(starts[:, :3] * sc) / sc
+        value = np.where(p.arc_incremental[r][owner][:, None], centres - written, centres)
+        plane = p.arc_plane[r][owner]
+        col0 = np.where(plane == 19, 1, 0)
+        col1 = np.where(plane == 17, 1, 2)
+        k = np.arange(n_flat)
+        use = is_fit & ~nan
+        letters = np.frombuffer(b"IJK", np.uint8)
+        table = np.array([[numbers.decimals(c, flag) for flag in (False, True)] for c in "IJK"], np.int64)
+        out = {"n": np.where(use, 2, 0).astype(np.int64), "fit": is_fit, "nan": nan, "first": first,
+               "val": np.ascontiguousarray(np.stack([value[k, col0], value[k, col1]], axis=1), float),
+               "letter": np.ascontiguousarray(np.stack([letters[col0], letters[col1]], axis=1)),
+               "dec": np.ascontiguousarray(np.stack([table[col0, inch.astype(int)], table[col1, inch.astype(int)]],
+                                                    axis=1), np.int64)}
+        out["val"][~use] = 0.0
+        return out
 
     def _fast_assemble(self, fast, texts):
         """The output text: the compiled writer's lines, the Python path's ``texts`` {line index: text}, every other
@@ -1386,6 +1627,12 @@ class _Poster:
             blob_end[lis] = np.cumsum(lengths)
             blob_start[lis] = blob_end[lis] - lengths
         blob = np.frombuffer(b"".join(parts), np.uint8)
+        pieces = fast.get("pieces")
+        if pieces is not None and pieces["line"].size:  # the compiled writer's split moves and fitted arcs
+            mode[pieces["line"]] = 2
+            blob_start[pieces["line"]] = blob.size + pieces["start"]
+            blob_end[pieces["line"]] = blob.size + pieces["end"]
+            blob = np.concatenate([blob, pieces["blob"]])
         out = fast_write.assemble(fast["src"], fast["line_start"], mode, cand_of_line, fast["k"], fast["motion"],
                                   fast["spans"], fast["target"], fast["cols"], fast["letters"], fast["dec"],
                                   fast["inch"], fast["n_extra"], fast["extra_val"], fast["extra_letter"],
@@ -1402,14 +1649,18 @@ class _Poster:
         """Kept arcs' centre words: letters (K, 2) (I J, I K or J K by plane) and values (K, 2), program units. The
         centre moves by the end's correction (constant along a kept arc); incremental from the start (G91.1, the
         default) or absolute (G90.1). r : (K,) program rows; delta_end : (K, 6); last_written : (K, 6)."""
+        which, values = self._centre_columns(r, delta_end, last_written)
+        return np.array(list("IJK"))[which], values
+
+    def _centre_columns(self, r, delta_end, last_written):
+        """``_centre_values`` with the letters as their columns (K, 2) (0, 1, 2: I, J, K)."""
         p = self.p
         value = p.arc_center[r] + delta_end[:, :3] - np.where(p.arc_incremental[r][:, None], last_written[:, :3], 0.0)
         plane = p.arc_plane[r]
         first = np.where(plane == 19, 1, 0)  # G17: I J, G18: I K, G19: J K
         second = np.where(plane == 17, 1, 2)
         k = np.arange(r.size)
-        letters = np.array(list("IJK"))[np.stack([first, second], axis=1)]
-        return letters, np.stack([value[k, first], value[k, second]], axis=1)
+        return np.stack([first, second], axis=1), np.stack([value[k, first], value[k, second]], axis=1)
 
     def _fit_centre_words(self, r, centre, start, fmt):
         """The centre words of one sub-arc of a fitted arc: ``centre`` (3,) as ``.arcs`` fitted it (program
