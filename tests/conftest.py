@@ -47,3 +47,30 @@ def random_poses(machine, n, seed=0):
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="module")
+def xh714_wide():
+    """The XH714 with travels of +-2 m: the NIST programs (and programs repeated from them) stay inside them."""
+    from trueaxis.machine import parse_machine
+
+    text = (MACHINES / "xh714.toml").read_text()
+    for old in ("[-200.0, 200.0]", "[-150.0, 150.0]", "[-400.0, 0.0]"):
+        text = text.replace(old, "[-2000.0, 2000.0]")
+    return parse_machine(text, source="xh714-wide")
+
+
+def tilted_cone_case(n_blocks: int = 3000):
+    """(machine, program text): the nmv1500dcg with every parameter that is zero drawn from N(0, 10) (seed 0), and the
+    flank program of a cone whose axis leans 10 deg, ``n_blocks`` blocks: a five-axis post with every error at work."""
+    import math
+
+    from trueaxis.machine import load_machine
+    from trueaxis.sim.programs import cone_flank_program
+
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    cone = {"axis": [math.sin(math.radians(10)), 0.0, math.cos(math.radians(10))], "half_angle_deg": 15.0,
+            "base_radius": 40.0, "height_range": [0.0, 20.0]}
+    values = m.parameter_values()
+    m = m.with_parameters(np.where(values == 0.0, np.random.default_rng(0).normal(0.0, 10.0, values.size), values))
+    return m, cone_flank_program(m, cone, n_blocks=n_blocks)

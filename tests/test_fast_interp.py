@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from conftest import MACHINES, ROOT
-from trueaxis.machine import load_machine, parse_machine
+from trueaxis.machine import load_machine
 from trueaxis.nc import fast_interp, gcode
 from trueaxis.nc.gcode import GcodeError, parse_program
 from trueaxis.postproc.post import compensate
@@ -163,14 +163,6 @@ def _posts(text, machine, mode, monkeypatch, **kw):
     monkeypatch.setattr(fast_interp, "ENABLED", False)
     slow = compensate(text, machine, mode, **kw)
     return fast, slow
-
-
-@pytest.fixture(scope="module")
-def xh714_wide():
-    text = (MACHINES / "xh714.toml").read_text()
-    for old in ("[-200.0, 200.0]", "[-150.0, 150.0]", "[-400.0, 0.0]"):
-        text = text.replace(old, "[-2000.0, 2000.0]")
-    return parse_machine(text, source="xh714-wide")
 
 
 CONDITIONS = "(trueaxis: ap=0.6 ae=7 fz=0.2 n=1200 d=10 z=4 mode=down)\n"

@@ -12,14 +12,13 @@ import pytest
 from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
-from conftest import MACHINES, ROOT
+from conftest import MACHINES, ROOT, tilted_cone_case
 from test_post import PROGRAM as POST_PROGRAM
-from trueaxis.machine import load_machine, parse_machine
+from trueaxis.machine import load_machine
 from trueaxis.nc import fast_write
 from trueaxis.postproc import post as post_module
 from trueaxis.nc.gcode import write_number
 from trueaxis.postproc.post import _PLAIN, compensate, rewrite_block
-from trueaxis.sim.programs import cone_flank_program
 
 NIST = ROOT / "fixtures" / "programs" / "nist"
 
@@ -214,14 +213,6 @@ def xh714():
     return load_machine(MACHINES / "xh714.toml")
 
 
-@pytest.fixture(scope="module")
-def xh714_wide():
-    text = (MACHINES / "xh714.toml").read_text()
-    for old in ("[-200.0, 200.0]", "[-150.0, 150.0]", "[-400.0, 0.0]"):
-        text = text.replace(old, "[-2000.0, 2000.0]")
-    return parse_machine(text, source="xh714-wide")
-
-
 @pytest.mark.parametrize("variant", ["as is", "no separator", "crlf", "trailing point", "inch"])
 def test_the_test_program_posts_the_same_with_and_without_the_fast_path(xh714, monkeypatch, variant):
     text = PROGRAM
@@ -260,13 +251,7 @@ def test_the_nist_programs_post_the_same_with_and_without_the_fast_path(xh714_wi
 
 
 def test_a_five_axis_program_posts_the_same_with_and_without_the_fast_path(monkeypatch):
-    m = load_machine(MACHINES / "nmv1500dcg.toml")
-    cone = {"axis": [math.sin(math.radians(10)), 0.0, math.cos(math.radians(10))], "half_angle_deg": 15.0,
-            "base_radius": 40.0, "height_range": [0.0, 20.0]}
-    rng = np.random.default_rng(0)
-    values = m.parameter_values()
-    m = m.with_parameters(np.where(values == 0.0, rng.normal(0.0, 10.0, values.size), values))
-    text = cone_flank_program(m, cone, n_blocks=3000)
+    m, text = tilted_cone_case(3000)
     fast, slow, taken = _both(text, m, monkeypatch)
     assert fast == slow
     assert taken > 0.9

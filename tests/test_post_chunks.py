@@ -3,35 +3,21 @@ as the chunks one after the other, whatever the chunk size; the first chunk's er
 
 from __future__ import annotations
 
-import math
-
-import numpy as np
 import pytest
 
-from conftest import MACHINES, ROOT
+from conftest import ROOT, tilted_cone_case
 from trueaxis import compiled
-from trueaxis.machine import load_machine, parse_machine
 from trueaxis.postproc import post as post_module
 from trueaxis.postproc.post import PostError, compensate
-from trueaxis.sim.programs import cone_flank_program
 from test_fast_write import SPLIT_PROGRAM
 
 NIST = ROOT / "fixtures" / "programs" / "nist"
-
 
 
 @pytest.fixture(autouse=True)
 def _ahead_of_time_kernels():
     if not compiled.aot_available():
         pytest.skip("chunks run side by side with the ahead-of-time kernels only")
-
-
-@pytest.fixture(scope="module")
-def xh714_wide():
-    text = (MACHINES / "xh714.toml").read_text()
-    for old in ("[-200.0, 200.0]", "[-150.0, 150.0]", "[-400.0, 0.0]"):
-        text = text.replace(old, "[-2000.0, 2000.0]")
-    return parse_machine(text, source="xh714-wide")
 
 
 def _both(text, machine, monkeypatch, chunk, **kw):
@@ -75,13 +61,8 @@ def test_the_nist_programs_are_the_same_on_threads(xh714_wide, monkeypatch, name
 
 
 def test_a_five_axis_program_is_the_same_on_threads(monkeypatch):
-    m = load_machine(MACHINES / "nmv1500dcg.toml")
-    cone = {"axis": [math.sin(math.radians(10)), 0.0, math.cos(math.radians(10))], "half_angle_deg": 15.0,
-            "base_radius": 40.0, "height_range": [0.0, 20.0]}
-    rng = np.random.default_rng(0)
-    values = m.parameter_values()
-    m = m.with_parameters(np.where(values == 0.0, rng.normal(0.0, 10.0, values.size), values))
-    threaded, serial, n = _both(cone_flank_program(m, cone, n_blocks=3000), m, monkeypatch, 400)
+    m, text = tilted_cone_case(3000)
+    threaded, serial, n = _both(text, m, monkeypatch, 400)
     assert threaded == serial
     assert n > 5
 

@@ -335,12 +335,8 @@ def assemble(src, line_start, mode, cand_of_line, cand_k, cand_motion, spans, ta
                 pos += 1
             buf[pos] = letters[a]
             pos = _put_number(buf, pos + 1, target[k, cols[a]], dec[row, a], leading_zero, trailing_point)
-        for a in range(n_extra[c]):
-            if sep >= 0:
-                buf[pos] = sep
-                pos += 1
-            buf[pos] = extra_letter[c, a]
-            pos = _put_number(buf, pos + 1, extra_val[c, a], extra_dec[c, a], leading_zero, trailing_point)
+        pos = _put_row_words(buf, pos, c, n_extra, extra_val, extra_letter, extra_dec, leading_zero, trailing_point,
+                             sep)
         if keep_r[c] and spans[c, 5] >= 0:
             if sep >= 0:
                 buf[pos] = sep
@@ -368,14 +364,15 @@ def _put_words(buf, pos, pts, i, cols, letters, dec_row, leading_zero, trailing_
 
 
 @numba.njit(cache=True)
-def _put_centre(buf, pos, i, n_centre, centre_val, centre_letter, centre_dec, leading_zero, trailing_point, sep):
-    """The centre words of piece ``i`` (none, or two: a fitted sub-arc's) at ``buf[pos:]``."""
-    for a in range(n_centre[i]):
+def _put_row_words(buf, pos, i, count, values, letters, decimals, leading_zero, trailing_point, sep):
+    """The first ``count[i]`` words of row ``i`` of a word table (letter, value, decimals) at ``buf[pos:]``: a kept
+    line's extra words, or a piece's centre words (none, or two: a fitted sub-arc's)."""
+    for a in range(count[i]):
         if sep >= 0:
             buf[pos] = sep
             pos += 1
-        buf[pos] = centre_letter[i, a]
-        pos = _put_number(buf, pos + 1, centre_val[i, a], centre_dec[i, a], leading_zero, trailing_point)
+        buf[pos] = letters[i, a]
+        pos = _put_number(buf, pos + 1, values[i, a], decimals[i, a], leading_zero, trailing_point)
     return pos
 
 
@@ -442,7 +439,7 @@ def pieces(src, line_start, cand_line, first_motion, piece_code, piece_first, pt
         buf[pos] = 48 + first_motion[c]
         pos += 1
         pos = _put_words(buf, pos, pts, lo, cols, letters, dec[row], leading_zero, trailing_point, sep)
-        pos = _put_centre(buf, pos, lo, n_centre, centre_val, centre_letter, centre_dec, leading_zero,
+        pos = _put_row_words(buf, pos, lo, n_centre, centre_val, centre_letter, centre_dec, leading_zero,
                           trailing_point, sep)
         if span[2] >= 0:
             if sep >= 0:
@@ -454,7 +451,7 @@ def pieces(src, line_start, cand_line, first_motion, piece_code, piece_first, pt
             buf[pos] = 71
             buf[pos + 1] = 48 + piece_code[i]
             pos = _put_words(buf, pos + 2, pts, i, cols, letters, dec[row], leading_zero, trailing_point, sep)
-            pos = _put_centre(buf, pos, i, n_centre, centre_val, centre_letter, centre_dec, leading_zero,
+            pos = _put_row_words(buf, pos, i, n_centre, centre_val, centre_letter, centre_dec, leading_zero,
                               trailing_point, sep)
             pos = _copy(buf, pos, src, be, e)
         blob_end[c] = pos
