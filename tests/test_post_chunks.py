@@ -52,6 +52,17 @@ def test_split_moves_and_fitted_arcs_across_chunks_are_the_same_on_threads(xh714
     assert serial[1]["arcs_fitted"] > 0
 
 
+def test_the_split_count_is_the_whole_programs_in_any_chunking(xh714_wide, monkeypatch):
+    # The report's moves_split sums the chunks (it was the last chunk's count: 8,000 moves a chunk, so a long
+    # program's report and terminal line understated it): one chunk, chunks of 2 on threads, one after the other.
+    monkeypatch.setattr(post_module, "ROW_CHUNK", 10**9)
+    whole = {}
+    compensate(SPLIT_PROGRAM, xh714_wide, "geometric", report=whole, offsets_zero=True, tol_um=0.2, arcs=True)
+    threaded, serial, _ = _both(SPLIT_PROGRAM, xh714_wide, monkeypatch, 2, offsets_zero=True, tol_um=0.2, arcs=True)
+    assert whole["moves_split"] >= 2
+    assert threaded[1]["moves_split"] == serial[1]["moves_split"] == whole["moves_split"]
+
+
 @pytest.mark.parametrize("name", ["mtc_cover_rev_a.nc", "mtc_plate_1.nc"])
 def test_the_nist_programs_are_the_same_on_threads(xh714_wide, monkeypatch, name):
     text = (NIST / name).read_text(errors="replace")

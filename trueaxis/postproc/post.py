@@ -848,7 +848,7 @@ class _Poster:
         """(``_compensate(rows)``, the chunk's notes): the chunk before ends at ``before`` (a ``_ChunkEnd``); this
         one's end goes to ``mine`` once its ends are solved (None if it stopped before)."""
         local = self._local
-        local.notes, local.end_before_from, local.publish = {"warnings": [], "moves_split": None}, before, mine
+        local.notes, local.end_before_from, local.publish = {"warnings": [], "moves_split": 0}, before, mine
         try:
             return self._compensate(rows), local.notes
         finally:
@@ -861,8 +861,7 @@ class _Poster:
         """A chunk's result, its notes (warnings, split count) taken into the report as the chunk itself would have."""
         out, notes = result
         self.rep.warnings.extend(notes["warnings"])
-        if notes["moves_split"] is not None:
-            self.rep.moves_split = notes["moves_split"]
+        self.rep.moves_split += notes["moves_split"]
         return out
 
     @property
@@ -881,11 +880,12 @@ class _Poster:
         (self.rep.warnings if notes is None else notes["warnings"]).append(text)
 
     def _note_moves_split(self, n: int):
+        """Count ``n`` split moves of one chunk (the report's figure is the sum over the chunks)."""
         notes = getattr(self._local, "notes", None)
         if notes is None:
-            self.rep.moves_split = n
+            self.rep.moves_split += n
         else:
-            notes["moves_split"] = n
+            notes["moves_split"] += n
 
     def _compensate(self, rows):
         """Compensate the moves ``rows`` (indices into the program's rows): (correction of each end in program units
