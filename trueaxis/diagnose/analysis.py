@@ -54,7 +54,7 @@ The rules, in order:
 
 Confidence (``confidence_of``): CONF_FLOOR + (1 - CONF_FLOOR) * sep * share, with sep the paired held-out z of the
 verdict over its best rival (another effect, or pair, not a part of the verdict) mapped linearly from ``CONF_Z0``
-to ``CONF_Z1``, and share the removed share of the gap above the noise mapped from ``CONF_SHARE0`` to
+to ``CONF_Z1``, at most the rival's deficit in gain mapped from ``CONF_GAP0`` (3 %) to ``CONF_GAP1`` (10 %), and share the removed share of the gap above the noise mapped from ``CONF_SHARE0`` to
 ``CONF_SHARE1``; at most 1 / (1 + k) with k tied candidates, and at most ``ROTARY_CONF_CAP`` for a verdict holding a
 rotary error motion (its harmonics absorb any smooth pattern around a part cut in one turn of the axis). The constants
 were set on the tuning set (README); ``benchmarks/diagnose_sets.py`` prints the share right per band of confidence.
@@ -90,6 +90,7 @@ SPLINE_MARGIN = 0.1
 CONF_FLOOR = 0.2
 CONF_Z0, CONF_Z1 = 1.0, 5.0
 CONF_SHARE0, CONF_SHARE1 = 0.6, 0.85
+CONF_GAP0, CONF_GAP1 = 1.0 - TIE, 0.10
 CLOSEST = 4
 ROTARY_CONF_CAP = 0.5
 Z_SHADOW = 2.0
@@ -584,7 +585,8 @@ def confidence_of(chosen: Fit, rival: Fit | None, g: np.ndarray, n_tied: int) ->
     """Confidence in a verdict, from two held-out measures (both on points no fit has seen):
 
     - the separation from the best rival (another candidate or pair): the paired z of its held-out deficit,
-      mapped linearly from ``CONF_Z0`` (nothing) to ``CONF_Z1`` (full);
+      mapped linearly from ``CONF_Z0`` (nothing) to ``CONF_Z1`` (full), and no more than its size, the rival's
+      deficit in gain as a share of the verdict's, mapped from ``CONF_GAP0`` to ``CONF_GAP1``;
     - how much of the gap above the noise the verdict removes: mapped linearly from ``CONF_SHARE0`` to
       ``CONF_SHARE1``.
 
@@ -592,6 +594,11 @@ def confidence_of(chosen: Fit, rival: Fit | None, g: np.ndarray, n_tied: int) ->
     the chosen ones. The mapping was set on the tuning set so that answers at >= 0.7 are right (README)."""
     z_sep = math.inf if rival is None else paired_z(g, chosen.held_out_pred_um, rival.held_out_pred_um)
     sep = 1.0 if rival is None else float(np.clip((z_sep - CONF_Z0) / (CONF_Z1 - CONF_Z0), 0.0, 1.0))
+    # Material separation: the candidates are poorer than the real effects, so a rival within a few per cent of the
+    # verdict's gain may be the truth in a poorer form, however many standard errors apart they are (a drift named a
+    # location change at z 10 with 99 % of its gain): the gap deficit mapped from CONF_GAP0 (the tie's 3 %) to CONF_GAP1.
+    gap = 1.0 if rival is None else 1.0 - rival.gain_um2 / max(chosen.gain_um2, 1e-300)
+    sep = min(sep, float(np.clip((gap - CONF_GAP0) / (CONF_GAP1 - CONF_GAP0), 0.0, 1.0)))
     share = float(np.clip((chosen.explained_share - CONF_SHARE0) / (CONF_SHARE1 - CONF_SHARE0), 0.0, 1.0))
     conf = CONF_FLOOR + (1.0 - CONF_FLOOR) * sep * share
     if n_tied:
@@ -603,6 +610,7 @@ def confidence_of(chosen: Fit, rival: Fit | None, g: np.ndarray, n_tied: int) ->
         # part off the axis tells them apart.
         conf = min(conf, ROTARY_CONF_CAP)
     return conf, {"z_over_runner_up": None if rival is None else z_sep,
+                  "runner_up_gain_deficit": None if rival is None else gap,
                   "runner_up": None if rival is None else rival.name, "n_tied": n_tied,
                   "explained_share": float(chosen.explained_share)}
 
