@@ -3,6 +3,7 @@ alone, the report's schema, and the command's refusals."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -291,6 +292,28 @@ def test_cli_refuses_bad_input_with_exit_2(tmp_path, capsys, extra, msg):
     if msg:
         assert msg in err
     assert not (tmp_path / "r").exists()
+
+
+def test_cli_refuses_a_cloud_of_another_cut_with_exit_3_and_candidates_that_do_not_apply_with_exit_2(slots, tmp_path,
+                                                                                                   capsys):
+    # A refused input (a cloud too far from the part this program cuts; too few of its points cut) is exit 3 as
+    # --help says, like a cloud outside the part's box; a --candidates list none of which applies here (no A axis on
+    # the XH714) is a bad option value, exit 2; nothing written either way.
+    from trueaxis.cli import main
+
+    m, prog, _ = slots
+    r = _cut(m, prog, {}, noise=1.0, seed=2, points=300)
+    (tmp_path / "p.ngc").write_text(prog.text)
+    far = r.measured + 0.8 * r.normals  # 800 um off the surface, inside the box's 1 mm allowance
+    write_cmm(dataclasses.replace(r, measured=far), tmp_path / "far.ply")
+    write_cmm(r, tmp_path / "cmm.ply")
+    base = ["--part", "slots", "--machine", "xh714", "--program", str(tmp_path / "p.ngc")]
+    assert main(["diagnose", "--cloud", str(tmp_path / "far.ply"), *base, "-o", str(tmp_path / "a")]) == 3
+    assert "from the part this program cuts" in capsys.readouterr().err
+    assert main(["diagnose", "--cloud", str(tmp_path / "cmm.ply"), *base, "--candidates", "backlash_a",
+                 "-o", str(tmp_path / "b")]) == 2
+    assert "none of backlash_a applies" in capsys.readouterr().err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
 def _synthetic(slots, parts, noise=1.0, seed=0):

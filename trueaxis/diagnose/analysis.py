@@ -717,7 +717,8 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
                          f"(held-out z {shadow_z:.1f}): a second part cut with a fresh tool, or the same program with "
                          f"the passes in another order, would tell them apart")
         conf_info["z_over_tool_wear_shadow"] = shadow_z
-        alternatives = [f.name for f in sig if f.name not in chosen_fit.members
+        # Almost as good: plausible fits only (one at its bounds is no explanation, however much it removes).
+        alternatives = [f.name for f in sig if f.name not in chosen_fit.members and f.plausible
                         and (f.gain_um2 >= ALMOST * chosen_fit.gain_um2 or any(f.name in t for t in tied.values()))]
         seps = [separating_measurement(m, t[0]) for m, t in tied.items() if t]
         if not seps and rival is not None and rival.gain_um2 >= ALMOST * chosen_fit.gain_um2:

@@ -23,6 +23,7 @@ import numpy as np
 
 from .analysis import Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
+from ..inspect.cloud import CloudError
 from .state import TwinState, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
@@ -80,14 +81,18 @@ def run_diagnosis(points, normals, part: str, machine, program_text: str, *, can
                        want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride, part_json=pj,
                        program_name=program_name)
     if len(state) < 20:
-        raise ValueError(f"only {len(state)} measured points were cut by the program: too few to diagnose")
+        raise CloudError(f"only {len(state)} measured points were cut by the program: too few to diagnose")
     gap_rms = float(np.sqrt(np.mean(state.gap_um ** 2)))
     if not gap_rms <= MAX_GAP_RMS_UM:
-        raise ValueError(f"the cloud lies {gap_rms:.0f} um (RMS) from the part this program cuts on this twin: not a "
+        raise CloudError(f"the cloud lies {gap_rms:.0f} um (RMS) from the part this program cuts on this twin: not a "
                          f"measurement of that cut (another part, another frame, another program?); a sim-to-real "
                          f"gap is at most a few tens of um")
     t0 = time.perf_counter()
     cands, skipped = build_all(names, state)
+    if not cands:
+        raise ValueError(f"--candidates: none of {', '.join(names)} applies to this machine and program (an axis it "
+                         f"does not have or that does not move while cutting, no force estimate, or an effect that "
+                         f"cannot move this part's surface)")
     diag = diagnose_state(state, cands, split=split, noise_um=noise_um, skipped=skipped)
     state.timings["diagnosis_s"] = time.perf_counter() - t0
     return diag, state
@@ -106,7 +111,7 @@ def check_cloud_for_part(points, part: str, part_json: dict | None = None) -> No
 
     pts = np.asarray(points, float)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 20:
-        raise ValueError(f"a cloud of at least 20 points (n, 3) is needed, got shape {pts.shape}")
+        raise CloudError(f"a cloud of at least 20 points (n, 3) is needed, got shape {pts.shape}")
     check_extent(pts, *part_bbox(load_part(part, part_json)), EXTENT_TOLERANCE_MM, part=part)
 
 

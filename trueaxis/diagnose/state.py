@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..inspect.cloud import CloudError
 from ..machine import ErrorTwin, Machine
 from ..nc.gcode import parse_program
 
@@ -375,7 +376,7 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
                    force_stride=force_stride)
     cut = np.isfinite(res.deviations_um)
     if not np.any(cut):
-        raise ValueError("none of the measured points was cut by the program on the twin: is the cloud in the part "
+        raise CloudError("none of the measured points was cut by the program on the twin: is the cloud in the part "
                          "frame, and is this the program that cut it?")
     traj = res.trajectory
     s = res.sample[cut]
