@@ -8,24 +8,10 @@ import re
 import numpy as np
 import pytest
 
+from conftest import mill_toml
 from trueaxis.cli import main
 
-PERFECT_3AX = """
-[machine]
-name = "perfect 3-axis mill (test)"
-kind = "mill"
-format = 1
-[kinematics]
-bed_to_workpiece = ["Y", "X"]
-bed_to_tool = ["Z"]
-[axes]
-X = { type = "linear", travel = [-200.0, 200.0] }
-Y = { type = "linear", travel = [-150.0, 150.0] }
-Z = { type = "linear", travel = [-400.0, 0.0] }
-[tool]
-length = 100.0
-radius = 5.0
-flutes = 4
+PERFECT_3AX = mill_toml("perfect 3-axis mill (test)", tail="""flutes = 4
 flute_length = 30.0
 [workpiece]
 origin = [0.0, 0.0, -300.0]
@@ -37,7 +23,7 @@ Kac = 400.0
 Kte = 30.0
 Kre = 45.0
 Kae = 5.0
-"""
+""")
 
 PERFECT_BC = """
 [machine]

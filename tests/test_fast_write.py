@@ -213,15 +213,21 @@ def xh714():
     return load_machine(MACHINES / "xh714.toml")
 
 
+def _layout_variant(text: str, variant: str) -> str:
+    """The program without the space between words ("no separator", comments kept) or with CRLF line ends ("crlf");
+    as it is for any other variant."""
+    if variant == "no separator":
+        return "\n".join(re.sub(r"(?<=[0-9.]) (?=[A-Za-z])", "", ln) if "(" not in ln else ln
+                         for ln in text.split("\n"))
+    if variant == "crlf":
+        return text.replace("\n", "\r\n")
+    return text
+
+
 @pytest.mark.parametrize("variant", ["as is", "no separator", "crlf", "trailing point", "inch"])
 def test_the_test_program_posts_the_same_with_and_without_the_fast_path(xh714, monkeypatch, variant):
-    text = PROGRAM
-    if variant == "no separator":
-        text = "\n".join(re.sub(r"(?<=[0-9.]) (?=[A-Za-z])", "", ln) if "(" not in ln else ln
-                         for ln in text.split("\n"))
-    elif variant == "crlf":
-        text = text.replace("\n", "\r\n")
-    elif variant == "trailing point":
+    text = _layout_variant(PROGRAM, variant)
+    if variant == "trailing point":
         text = text.replace("X150", "X150.").replace("Z-105", "Z-105.")
     elif variant == "inch":
         text = text.replace("G21", "G20")
@@ -310,13 +316,8 @@ def _both_pieces(text, machine, monkeypatch, **kw):
 @pytest.mark.parametrize("variant", ["as is", "no separator", "crlf", "inch", "no leading zero"])
 def test_split_moves_and_fitted_arcs_post_the_same_with_and_without_the_compiled_writer(xh714_wide, monkeypatch,
                                                                                         variant, arcs):
-    text = SPLIT_PROGRAM
-    if variant == "no separator":
-        text = "\n".join(re.sub(r"(?<=[0-9.]) (?=[A-Za-z])", "", ln) if "(" not in ln else ln
-                         for ln in text.split("\n"))
-    elif variant == "crlf":
-        text = text.replace("\n", "\r\n")
-    elif variant == "inch":
+    text = _layout_variant(SPLIT_PROGRAM, variant)
+    if variant == "inch":
         text = text.replace("G21", "G20").replace("F500", "F20").replace("F800", "F30").replace("F600", "F25")
         text = re.sub(r"([XYZIJKRxyzijkr])(-?)(\d+)", lambda m: f"{m[1]}{m[2]}{int(m[3]) / 40:g}", text)
     elif variant == "no leading zero":

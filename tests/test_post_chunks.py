@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from conftest import ROOT, tilted_cone_case
+from conftest import ROOT, missing, tilted_cone_case
 from trueaxis import compiled
 from trueaxis.postproc import post as post_module
 from trueaxis.postproc.post import PostError, compensate
@@ -17,7 +17,8 @@ NIST = ROOT / "fixtures" / "programs" / "nist"
 @pytest.fixture(autouse=True)
 def _ahead_of_time_kernels():
     if not compiled.aot_available():
-        pytest.skip("chunks run side by side with the ahead-of-time kernels only")
+        missing("the ahead-of-time kernels are not built (make test builds them: python -m trueaxis.warm); chunks run "
+                "side by side with them only")
 
 
 def _both(text, machine, monkeypatch, chunk, **kw):

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import MACHINES
+from conftest import MACHINES, mill_toml
 from trueaxis.machine import load_machine
 from trueaxis.postproc.post import compensate, without_header
 
@@ -285,23 +285,8 @@ def test_linuxcnc_trt_rotary_sense_reads_and_writes_rotary_words_negated(tmp_pat
         raise AssertionError("an unknown rotary_sense was accepted")
 
 
-SQUARENESS_ONLY = """[machine]
-name = "C0Y only"
-kind = "mill"
-format = 1
-[kinematics]
-bed_to_workpiece = ["Y", "X"]
-bed_to_tool = ["Z"]
-[axes]
-X = { type = "linear", travel = [-200.0, 200.0] }
-Y = { type = "linear", travel = [-150.0, 150.0] }
-Z = { type = "linear", travel = [-400.0, 100.0] }
-[tool]
-length = 100.0
-radius = 5.0
-[location]
-C0Y = 100.0
-"""
+SQUARENESS_ONLY = mill_toml("C0Y only", ((-200.0, 200.0), (-150.0, 150.0), (-400.0, 100.0)),
+                            "[location]\nC0Y = 100.0\n")
 
 
 @pytest.mark.parametrize("units, helix, down, depth", [("G21", "I75 J0 Z-7.7", "Z-2.5", -10.2),

@@ -21,7 +21,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, mill_toml
 from post_checks import distance_to_polyline, machine_rows, nominal_polyline
 from rs274_helpers import require_rs274, run_rs274_setup, var_text
 from trueaxis.machine import ErrorTwin, parse_machine
@@ -35,22 +35,7 @@ INCH_PRINT_MM = 0.5e-4 * MM_PER_INCH  # rs274's rounding of an inch coordinate, 
 # A three-axis twin whose errors grow along the travel: positioning, straightness and angular errors as linear
 # tables over +-2000 mm (so that any machine position lies inside them), squareness. Evaluated at the program
 # coordinates instead of the machine coordinates, its corrections are wrong by micrometres.
-MACHINE_TOML = """
-[machine]
-name = "position-dependent test mill"
-kind = "mill"
-format = 1
-[kinematics]
-bed_to_workpiece = ["Y", "X"]
-bed_to_tool = ["Z"]
-[axes]
-X = { type = "linear", travel = [-2000.0, 2000.0] }
-Y = { type = "linear", travel = [-2000.0, 2000.0] }
-Z = { type = "linear", travel = [-2000.0, 2000.0] }
-[tool]
-length = 100.0
-radius = 5.0
-[location]
+MACHINE_TOML = mill_toml("position-dependent test mill", ((-2000.0, 2000.0),) * 3, """[location]
 C0Y = 35.0
 B0Z = -25.0
 [component.X]
@@ -67,7 +52,7 @@ at = [-2000.0, 0.0, 2000.0]
 EZZ = [-100.0, 0.0, 100.0]
 EXZ = [80.0, 0.0, -80.0]
 EBZ = [60.0, 0.0, -60.0]
-"""
+""")
 
 # The part 3, 2, 8 inches (76.2, 50.8, 203.2 mm) from the machine origin in G54, other systems elsewhere; G58 (where
 # the Hurco programs park) at the machine zero.
