@@ -153,15 +153,15 @@ def _fake_fit(name, params, value, cov, pred, n_parameters):
 
 
 def test_lost_motion_states_agree_with_the_shop_play():
-    # The diagnosis' play (state.lost_motion_states, tanh) and the shop's (effects.Backlash) are written apart; on a
+    # The diagnosis' play (state.lost_motion_state, tanh) and the shop's (effects.Backlash) are written apart; on a
     # random walk with reversals of every size, nanometres included, they agree.
-    from trueaxis.diagnose.state import lost_motion_states
+    from trueaxis.diagnose.state import lost_motion_state
 
     rng = np.random.default_rng(5)
     steps = rng.choice([1e-6, 1e-5, 1e-3, 0.01], size=4000) * rng.choice([-1.0, 1.0], size=4000, p=[0.3, 0.7])
     x = np.cumsum(steps)
     for lam in (0.0, 0.005, 0.02, 0.2):
-        ours = lost_motion_states(x[:, None], [lam])[:, 0, 0]
+        ours = lost_motion_state(x, [lam])[:, 0]
         shop = Backlash("X", 10.0, lam if lam > 0 else 1e-300).lost_motion_state(x, lam)
         np.testing.assert_allclose(ours, shop, atol=1e-12)
         assert np.all(np.abs(ours) <= 1.0)

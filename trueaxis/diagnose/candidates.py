@@ -150,19 +150,13 @@ def backlash(state: TwinState, axis: str) -> Candidate | None:
     lm, depth = state.lost_motion, state.lost_motion_depth
     # Points a second pass cuts within TIED_CUT_UM of the twin's cut, with another play there: the deepest cut with
     # the play, which is not linear in b (read near each amplitude of the grid); elsewhere the play at the twin's cut.
-    boundary = None if lm is None else np.nonzero(np.any(np.isfinite(depth[:, 1:]) & (
+    boundary = np.nonzero(np.any(np.isfinite(depth[:, 1:]) & (
         np.abs(lm[:, 1:, j, :] - lm[:, :1, j, :]).max(axis=2) > 1e-9), axis=1))[0]
     amps = REVERSAL_AMPLITUDES_URAD if rotary else REVERSAL_AMPLITUDES_UM
     for li, lam in enumerate(BACKLASH_TRANSITIONS):
         # e = (b/2) e_hat: -(b/2) d once taken up, +(b/2) d at the turning point after a full take-up the other way,
         # a play with memory in between (``TwinState.lost_motion``).
         label = f"transition {lam:g} {'deg' if rotary else 'mm'}"
-        if lm is None:
-            s = state.reversal_travel[:, j] if state.reversal_travel is not None else np.full(len(state), np.inf)
-            lam_i = math.radians(lam) if rotary else lam
-            shape = -d if lam == 0.0 else d * (1.0 - 2.0 * np.tanh(s / lam_i))
-            variants.append((label, (0.5 * shape * resp)[:, None]))
-            continue
         col = 0.5 * lm[:, 0, j, li] * resp
         if boundary.size == 0:
             variants.append((label, col[:, None]))

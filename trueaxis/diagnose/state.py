@@ -49,10 +49,8 @@ class TwinState:
     force_n : (N, 3) cutting force on the tool estimated by the twin's simulation, part frame, N (zeros when the
         machine file has no [cutting] coefficients; ``has_force`` says which).
     axis_jacobian : (N, 6, n_axes) d(tip mm, unit axis)/d(q) at the cut (``ErrorTwin.axis_jacobian``).
-    reversal_travel : (N, n_axes) each axis' travel since its last reversal at the cut (mm or rad; inf before the
-        first reversal).
     lost_motion : (N, C, n_axes, L) each axis' offset over half its lost motion, for the take-up transitions
-        ``REVERSAL_TRANSITIONS`` (``lost_motion_states``: a play with memory), at C = 3 cuts of each point: the
+        ``REVERSAL_TRANSITIONS`` (``lost_motion_state``: a play with memory), at C = 3 cuts of each point: the
         twin's, and its earliest and latest cuts within ``TIED_CUT_UM`` of it (a pass boundary; the same sample
         where there is none).
     lost_motion_depth : (N, C) the twin's depth at those cuts relative to its deepest, um (>= 0 to a rounding).
@@ -88,7 +86,6 @@ class TwinState:
     machine: Machine
     part: str
     dropped: int = 0
-    reversal_travel: np.ndarray | None = None
     lost_motion: np.ndarray | None = None
     lost_motion_depth: np.ndarray | None = None
     lag_velocity: np.ndarray | None = None
@@ -142,16 +139,16 @@ def _last_direction(qdot_all: np.ndarray) -> np.ndarray:
     return np.where(d == 0, first_sign[None, :], d)
 
 
+#: Transitions over which a lost motion is taken up after a reversal (mm for a linear axis, deg for a rotary one; 0:
+#: a step): the backlash candidate's variants.
+REVERSAL_TRANSITIONS = (0.0, 0.005, 0.02, 0.06, 0.2)
+
 #: Time constants (s) of the servo-lag candidate's filters. A position loop's time constant 1/Kv is 6-60 ms on real
 #: machine tools (Kv 1-10 (m/min)/mm = 17-170 /s; 22-40 ms at kv 25-45 /s); three filters spaced by about 3x bracket
 #: that range: a loop with a time constant between two of them is matched by a positive mixture of the two to a few
 #: per cent of its transient. With velocity feed-forward ff the loop's error is (1 - ff) times the plain loop's, so
 #: the mixture's weights are (1 - ff) tau, the lag the drive leaves. More filters would add parameters whose columns
 #: differ only at the few points cut within ~3 tau of a velocity change.
-#: Transitions over which a lost motion is taken up after a reversal (mm for a linear axis, deg for a rotary one; 0:
-#: a step): the backlash candidate's variants.
-REVERSAL_TRANSITIONS = (0.0, 0.005, 0.02, 0.06, 0.2)
-
 LAG_TAUS_S = (0.004, 0.012, 0.035)
 #: How far from the twin's cut sample a lagged tool's cut is looked for (s): 4 tau_max.
 LAG_WINDOW_S = 4.0 * max(LAG_TAUS_S)
@@ -302,46 +299,29 @@ def _relative_depth(points, normals, cuts, twin, q, machine) -> np.ndarray:
     return np.where(np.isfinite(rel), rel, np.inf)
 
 
-def lost_motion_states(q: np.ndarray, transitions) -> np.ndarray:
-    """(T, n, L) each axis' offset from its command over half its lost motion b/2 (in [-1, 1]) along the commanded
-    axes q (T, n), for a take-up f = tanh over each transition (L,) (mm or rad; 0: a step).
+def lost_motion_state(x: np.ndarray, transitions) -> np.ndarray:
+    """(T, L) an axis' offset from its command over half its lost motion b/2 (in [-1, 1]) along its commanded
+    positions x (T,), for a take-up f = tanh over each transition (L,) (mm or rad; 0: a step).
 
     The play with memory (the diagnosis' own form of it): in each run of one direction d (the direction of the
     step that brought the axis to the sample, held through stops) the offset is d (1 - 2 tanh(s / transition + s0)),
     s the travel since the run's start and s0 = atanh((1 - d e0) / 2) from the offset e0 the run starts with: after a
     long travel the other way e0 = d, s0 = 0; after a reversal of a few nanometres the offset hardly moves. Before
-    any motion an axis is taken up in its first direction. The loop is over runs (reversals), each in closed form."""
-    q = np.asarray(q, float)
-    T, n = q.shape
-    out = np.empty((T, n, len(transitions)))
-    d_all = _last_direction(np.diff(q, axis=0, prepend=q[:1]))
-    for j in range(n):
-        d = np.where(d_all[:, j] == 0, 1.0, d_all[:, j])
-        starts = np.concatenate([[0], np.nonzero(d[1:] != d[:-1])[0] + 1, [T]])
-        for li, lam in enumerate(transitions):
-            e = out[:, j, li]
-            e[: starts[1]] = -d[0]
-            for a, z in zip(starts[1:-1], starts[2:]):
-                y0 = min(max(0.5 * (1.0 - d[a] * e[a - 1]), 0.0), 1.0 - 1e-15)
-                x = np.abs(q[a:z, j] - q[a - 1, j]) / lam if lam > 0 else np.full(z - a, np.inf)
-                e[a:z] = d[a] * (1.0 - 2.0 * np.tanh(x + np.arctanh(y0)))
+    any motion the axis is taken up in its first direction. The loop is over runs (reversals), each in closed form."""
+    x = np.asarray(x, float)
+    T = x.shape[0]
+    out = np.empty((T, len(transitions)))
+    d = _last_direction(np.diff(x, prepend=x[:1])[:, None])[:, 0]
+    d = np.where(d == 0, 1.0, d)
+    starts = np.concatenate([[0], np.nonzero(d[1:] != d[:-1])[0] + 1, [T]])
+    for li, lam in enumerate(transitions):
+        e = out[:, li]
+        e[: starts[1]] = -d[0]
+        for a, z in zip(starts[1:-1], starts[2:]):
+            y0 = min(max(0.5 * (1.0 - d[a] * e[a - 1]), 0.0), 1.0 - 1e-15)
+            s = np.abs(x[a:z] - x[a - 1]) / lam if lam > 0 else np.full(z - a, np.inf)
+            e[a:z] = d[a] * (1.0 - 2.0 * np.tanh(s + np.arctanh(y0)))
     return out
-
-
-def reversal_travel(q: np.ndarray) -> np.ndarray:
-    """(T, n) each axis' travel since its last reversal (mm or rad), inf before its first reversal.
-
-    q : (T, n) commanded axes along the trajectory. The direction at a sample is that of the step ending there (the
-    last one the axis moved in while it stands); a reversal is a change of that direction."""
-    step = np.diff(q, axis=0, prepend=q[:1])
-    T, n = q.shape
-    d = _last_direction(step)
-    idx = np.arange(T)[:, None]
-    rev = np.zeros((T, n), bool)
-    rev[1:] = d[1:] != d[:-1]
-    r = np.maximum.accumulate(np.where(rev, idx, 0), axis=0)
-    turn = np.take_along_axis(q, np.maximum(r - 1, 0), axis=0)
-    return np.where(r > 0, np.abs(q - turn), np.inf)
 
 
 def twin_state(points, normals, machine: Machine, program_text: str, part: str, *, want_force: bool = True,
@@ -385,7 +365,7 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
     tip, u = twin.actual_pose(q)
     height = np.einsum("ij,ij->i", points[cut] - tip, u)
     # The direction of the step that brought each axis to the sample (the motion a lost motion depends on, as
-    # ``reversal_travel`` and the shop's ``Backlash`` have it): ``qdot`` at a block's first sample is already the next
+    # ``lost_motion_state`` and the shop's ``Backlash`` have it): ``qdot`` at a block's first sample is already the next
     # block's, and an axis' extremum (where a surface point is cut) is where a block turns it.
     direction = _last_direction(np.diff(traj.q, axis=0, prepend=traj.q[:1]))[s]
     jac = twin.axis_jacobian(q)
@@ -402,13 +382,12 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
     tips_all[ks], axes_all[ks] = twin.actual_pose(traj.q[ks])
     lag_dev, lag_axis = lagged_cut(points[cut], normals[cut], traj, anchors, tips_all, axes_all, machine.tool.radius,
                                    machine.tool.flute_length, move, LAG_TAUS_S, LAG_WINDOW_S)
-    travel = reversal_travel(np.asarray(traj.q, float))[s]
     rotary = set(machine.rotary_axes)
     # The play at the twin's cut and at its earliest and latest tied cuts (N, 3 cuts, n_axes, L), and the twin's
     # depth at those cuts relative to the deepest (N, 3), mm: the backlash candidate takes the deepest with the play.
     cuts = np.column_stack([s, tied])
-    lost = np.stack([lost_motion_states(traj.q[:, [j]], [math.radians(x) if a in rotary else x
-                                                          for x in REVERSAL_TRANSITIONS])[:, 0][cuts]
+    lost = np.stack([lost_motion_state(traj.q[:, j], [math.radians(x) if a in rotary else x
+                                                      for x in REVERSAL_TRANSITIONS])[cuts]
                      for j, a in enumerate(machine.axis_names)], axis=2)
     lost_rel = _relative_depth(points[cut], normals[cut], cuts, twin, traj.q, machine)
     return TwinState(
@@ -417,7 +396,7 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
         feed_mm_min=traj.feed_mm_min[s], block_line=res.block_line[cut], tip=tip, axis=u, height_mm=height,
         force_n=res.force_n[cut], has_force=has_force, axis_jacobian=jac,
         axis_names=tuple(machine.axis_names), rotary=tuple(machine.rotary_axes), machine=machine, part=part,
-        dropped=int((~cut).sum()), reversal_travel=travel, lost_motion=lost, lost_motion_depth=lost_rel,
+        dropped=int((~cut).sum()), lost_motion=lost, lost_motion_depth=lost_rel,
         lag_velocity=lag_velocity,
         lag_deviation=lag_dev,
         lag_axis=lag_axis,
