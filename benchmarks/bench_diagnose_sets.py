@@ -1,5 +1,6 @@
-"""``make bench`` entry of the diagnosis benchmark (issue 14): every case set (tuning and the three held-out sets) through
-Dask, every figure of the issue's "Done when", and the diagnosis time of a cone probed as ``make demo`` probes it.
+"""``make bench`` entry of the diagnosis benchmark (issue 14): every case set (tuning and the three held-out sets)
+through Dask, every figure of the issue's "Done when", and the diagnosis time of a cone probed as ``make demo`` probes
+it.
 
 The full sets take about half an hour on two cores; by default this runs 30 cases of each set spread over its list
 (every kind of case is represented: the list interleaves the effect kinds, magnitudes, pairs, out-of-library cases

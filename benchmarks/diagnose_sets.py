@@ -54,7 +54,7 @@ and the repository's fixtures: the one trueaxis is imported from, or $TRUEAXIS_R
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout           # once the rules are frozen
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout2          # added after the 11-25 freeze
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout3          # added after the 11-27 freeze
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set all --json out.json   # tuning, heldout, heldout2
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set all --json out.json   # every set
 
 ``--cases N`` keeps N cases spread over the list (the case numbers and seeds stay those of the full list);
 ``--kinds`` keeps the cases holding one of the named effect kinds (``none`` for the controls); ``--list`` prints the
@@ -622,8 +622,8 @@ def identifiability(clean, cut, m, program_text: str, pj, expected: str, noise_u
 
     below ``Z_IDENTIFIABLE`` -- makes the case not identifiable on this part: any rule choosing among the
     candidates is a coin toss there. The diagnosis' own rules play no part in this (only its candidates and fits)."""
-    from trueaxis.diagnose.analysis import fit_candidate, make_folds, paired_z  # noqa: F401
-    from trueaxis.diagnose.candidates import build_all
+    from trueaxis.diagnose.analysis import fit_candidate, make_folds
+    from trueaxis.diagnose.candidates import LIBRARY, build_all
     from trueaxis.diagnose.report import run_diagnosis
 
     cut = np.isfinite(clean.deviations_um)
@@ -635,7 +635,7 @@ def identifiability(clean, cut, m, program_text: str, pj, expected: str, noise_u
     effects = lambda f: sorted({normalise(x) for x in f.members})  # noqa: E731
     truth = [f for f in fits if effects(f) == want]
     if not truth:
-        cands, _ = build_all([c for c in _library_names(state)], state)
+        cands, _ = build_all(LIBRARY, state)
         by = {normalise(c.name): c for c in cands if not c.name.startswith("thermal_spline_")}
         if not all(w in by for w in want):
             return {"identifiable": None, "why": "the expected candidate does not apply to this part"}
@@ -653,12 +653,6 @@ def identifiability(clean, cut, m, program_text: str, pj, expected: str, noise_u
             worst = (z, f.name)
     return {"identifiable": bool(worst[0] >= Z_IDENTIFIABLE), "z_truth_over_closest_rival": worst[0],
             "closest_rival": worst[1], "truth_plausible": bool(t.plausible)}
-
-
-def _library_names(state):
-    from trueaxis.diagnose.candidates import LIBRARY
-
-    return LIBRARY
 
 
 # ------------------------------------------------------------------------------------------------- scoring ----

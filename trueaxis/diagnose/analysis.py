@@ -54,10 +54,11 @@ The rules, in order:
 
 Confidence (``confidence_of``): CONF_FLOOR + (1 - CONF_FLOOR) * sep * share, with sep the paired held-out z of the
 verdict over its best rival (another effect, or pair, not a part of the verdict) mapped linearly from ``CONF_Z0``
-to ``CONF_Z1``, at most the rival's deficit in gain mapped from ``CONF_GAP0`` (3 %) to ``CONF_GAP1`` (10 %), and share the removed share of the gap above the noise mapped from ``CONF_SHARE0`` to
-``CONF_SHARE1``; at most 1 / (1 + k) with k tied candidates, and at most ``ROTARY_CONF_CAP`` for a verdict holding a
-rotary error motion (its harmonics absorb any smooth pattern around a part cut in one turn of the axis). The constants
-were set on the tuning set (README); ``benchmarks/diagnose_sets.py`` prints the share right per band of confidence.
+to ``CONF_Z1`` and at most the rival's deficit in gain mapped from ``CONF_GAP0`` (3 %) to ``CONF_GAP1`` (10 %), and
+share the removed share of the gap above the noise mapped from ``CONF_SHARE0`` to ``CONF_SHARE1``; at most
+1 / (1 + k) with k tied candidates, and at most ``ROTARY_CONF_CAP`` for a verdict holding a rotary error motion (its
+harmonics absorb any smooth pattern around a part cut in one turn of the axis). The constants were set on the tuning
+set (README); ``benchmarks/diagnose_sets.py`` prints the share right per band of confidence.
 """
 
 from __future__ import annotations
@@ -596,7 +597,7 @@ def confidence_of(chosen: Fit, rival: Fit | None, g: np.ndarray, n_tied: int) ->
     sep = 1.0 if rival is None else float(np.clip((z_sep - CONF_Z0) / (CONF_Z1 - CONF_Z0), 0.0, 1.0))
     # Material separation: the candidates are poorer than the real effects, so a rival within a few per cent of the
     # verdict's gain may be the truth in a poorer form, however many standard errors apart they are (a drift named a
-    # location change at z 10 with 99 % of its gain): the gap deficit mapped from CONF_GAP0 (the tie's 3 %) to CONF_GAP1.
+    # location change at z 10 with 99 % of its gain): the deficit mapped from CONF_GAP0 (the tie's 3 %) to CONF_GAP1.
     gap = 1.0 if rival is None else 1.0 - rival.gain_um2 / max(chosen.gain_um2, 1e-300)
     sep = min(sep, float(np.clip((gap - CONF_GAP0) / (CONF_GAP1 - CONF_GAP0), 0.0, 1.0)))
     share = float(np.clip((chosen.explained_share - CONF_SHARE0) / (CONF_SHARE1 - CONF_SHARE0), 0.0, 1.0))

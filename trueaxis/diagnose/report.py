@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..inspect.cloud import CloudError
 from .analysis import Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from ..inspect.cloud import CloudError
 from .state import TwinState, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
