@@ -544,9 +544,9 @@ class _Poster:
         self.fractions = {}  # program row -> piece boundaries (fractions of the move) of split moves
         self.fit_arcs = False  # arcs fitted to the corrected path (.arcs); set by post_text
         self.arc_centres = {}  # program row -> (n, 3) centres (program coordinates) of a fitted arc's sub-arcs
-        self._end_before_serial = (-2, None)  # (row, written end) of the last move of the chunk before
         # chunks compensated side by side (``_compensate_chunks``): the report's sums and maxima under the lock, a
-        # chunk's warnings and its own values (``_local``: the chunk before's end, its notes) kept in chunk order
+        # chunk's warnings and its own values (``_local``: the chunk before's end, its notes) kept in chunk order;
+        # every ``_compensate`` runs inside a ``_chunk``
         self._lock = threading.RLock()
         self._local = threading.local()
         self.tcp = None  # TCP output (.tcp.TcpFrame): positions for the control's own nominal kinematics
@@ -867,25 +867,19 @@ class _Poster:
     @property
     def _end_before_chunk(self):
         """(row, written end) of the last move of the chunk before this one (waits for its ends' solve)."""
-        before = getattr(self._local, "end_before_from", None)
-        if before is None:
-            return self._end_before_serial
+        before = self._local.end_before_from
         before.wait()
         if before.value is None:
             raise _ChunkAborted("the chunk before stopped")
         return before.value
 
     def _note_warning(self, text: str):
-        notes = getattr(self._local, "notes", None)
-        (self.rep.warnings if notes is None else notes["warnings"]).append(text)
+        """A warning of this chunk's (taken into the report in chunk order by ``_take_notes``)."""
+        self._local.notes["warnings"].append(text)
 
     def _note_moves_split(self, n: int):
-        """Count ``n`` split moves of one chunk (the report's figure is the sum over the chunks)."""
-        notes = getattr(self._local, "notes", None)
-        if notes is None:
-            self.rep.moves_split += n
-        else:
-            notes["moves_split"] += n
+        """Count ``n`` split moves of this chunk (the report's figure is the sum over the chunks)."""
+        self._local.notes["moves_split"] += n
 
     def _compensate(self, rows):
         """Compensate the moves ``rows`` (indices into the program's rows): (correction of each end in program units
@@ -906,10 +900,9 @@ class _Poster:
         self.check(q_end, q_cmd, rows)
         dq = q_cmd - q_end
         delta_prog = self.to_program_delta(dq if self.tcp is None else self.command_delta(q_cmd, q_end), inch, rows)
-        publish = getattr(self._local, "publish", None)
-        if publish is not None:  # the chunk after may start its arcs from here (``_end_before_chunk``)
-            publish.value = (int(rows[-1]), p.end[rows[-1]] + delta_prog[-1])
-            publish.set()
+        # the chunk after may start its arcs from here (``_end_before_chunk``)
+        self._local.publish.value = (int(rows[-1]), p.end[rows[-1]] + delta_prog[-1])
+        self._local.publish.set()
 
         pieces, arc_mode = {}, {}
         # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
