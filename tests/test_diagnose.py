@@ -611,3 +611,46 @@ def test_the_parts_own_description_gives_the_normals_of_a_cone_of_another_size()
     assert np.median(np.linalg.norm(default - nrm, axis=1)) > 0.04  # the default cone (15 deg) is 3 deg off
     with pytest.raises(ValueError, match="not 'nas979'"):
         part_description("nas979", slot_block_description())
+
+
+def test_a_pair_whose_second_effect_is_a_wearing_tool_is_not_a_verdict(cone):
+    # Backlash on X with a cutter wearing along the cut (the candidates' own backlash form and the wear-like
+    # shadow's, plus noise: a check of the rule alone). The wear hides in a drift along X beside the backlash;
+    # judged only against the whole pair, the shadow lost by z 25 and "backlash_x + thermal_x" stood. Backlash with
+    # the wear in place of the drift explains the held-out gap better: "none of the candidates", and the note says
+    # which member the wear replaced.
+    from trueaxis.diagnose.candidates import uniform_wear
+
+    m, prog, P, N, dev0, st = cone
+    st = st.subset(np.arange(len(st)))
+    cands, _ = build_all(CONE_CANDIDATES, st)
+    backlash = next(c for c in cands if c.name == "backlash_x")
+    wear = uniform_wear(st).variants[1][1][:, 0]  # first-order run-in, time constant 0.4 T
+    step = backlash.variants[2][1][:, 0]  # transition 0.02 mm
+    st.gap_um = np.random.default_rng(0).normal(0.0, 1.0, len(st)) + 8.0 * step + 3.0 * wear
+    diag = diagnose_state(st, cands, noise_um=1.0)
+    assert diag.verdict == "none of the candidates" and diag.chosen == []
+    assert diag.confidence_basis["z_over_tool_wear_shadow"] < -2.0
+    assert any(n.startswith("backlash_x with a uniform offset") for n in diag.notes)
+
+
+def test_a_second_backlash_that_fits_nothing_alone_is_paired():
+    # Lost motion on X (8 um) and Y (5 um), the cone cut from the default (geometric-compensated) program in the
+    # shop. Alone, backlash on Y fits with its lost motion at the bound 0 (X's reversals dominate), so it was never
+    # among the eligible candidates a pair is made of, and the verdict was backlash_x with a rotary radial error
+    # motion whose harmonics sat at their bounds. The leading candidates are now paired with every candidate.
+    from trueaxis.postproc.programs import nas979_program
+
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    prog = nas979_program(m, compensation="geometric")
+    eff = parse_effects({"backlash": {"X": {"amplitude": 8.0, "transition": 0.02},
+                                      "Y": {"amplitude": 5.0, "transition": 0.02}}}, machine=prog.machine)
+    r = simulate(prog.text, prog.machine, eff, part="nas979", points=600, noise_um=1.0, seed=1)
+    cut = np.isfinite(r.deviations_um)
+    diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text, candidates="all")
+    assert sorted(diag.chosen) == ["backlash_x", "backlash_y"]
+    f = diag.chosen_fit
+    for name, truth in (("lost_motion_X", 8.0), ("lost_motion_Y", 5.0)):
+        i = f.parameters.index(name)
+        assert abs(f.value[i] - truth) < 3 * f.std[i]
+        assert f.std[i] < 0.2 * truth

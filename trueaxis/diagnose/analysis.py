@@ -81,6 +81,7 @@ TIE = 0.97
 Z_TIE = 1.0
 Z_TIE_RATIO = 3.0
 PAIR_POOL = 10
+PAIR_LEADERS = 2
 PAIR_MIN_SHARE = 0.05
 Z_PAIR = 5.0
 Z_SIGNATURE = 4.0
@@ -578,6 +579,14 @@ def _spline_margin(fits: list, g: np.ndarray) -> None:
             f.extra["not_beyond_constrained"] = True
 
 
+def _pair_rss(a: Candidate, b: Candidate, g: np.ndarray) -> float:
+    """Residual sum of squares (um^2) of the bounded fit of two candidates' columns to the whole gap."""
+    S = np.column_stack([a.columns, b.columns])
+    bounds = [x for c in (a, b) for x in (c.plausible or [None] * c.n_parameters)]
+    theta = _solve_bounded(S, g, bounds)[0]
+    return float(np.sum((g - S @ theta) ** 2))
+
+
 def _eligible(f: Fit) -> bool:
     return f.significant and f.plausible and not f.extra.get("not_beyond_constrained")
 
@@ -649,21 +658,32 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         by_name = {c.name: c for c in candidates}
         fit_of = {f.name: f for f in fits}
         top = [f.name for f in pool[:PAIR_POOL]]
-        for i, na in enumerate(top):
-            for nb in top[i + 1:]:
-                if family(na) == family(nb) == "thermal":
-                    continue  # one drift (in two forms, or along two directions: one direction) is no pair
-                ca = by_name[na].with_variant(fit_of[na].variant) if by_name[na].variants else by_name[na]
-                cb = by_name[nb].with_variant(fit_of[nb].variant) if by_name[nb].variants else by_name[nb]
-                pair = fit_candidate([ca, cb], g, folds)
-                better = max(fit_of[na], fit_of[nb], key=lambda f: f.gain_um2)
-                extra = pair.gain_um2 - better.gain_um2
-                zz = min(paired_z(g, pair.held_out_pred_um, fit_of[m].held_out_pred_um) for m in (na, nb))
-                if zz > Z_PAIR and extra > max(MIN_GAIN_OF_NOISE * sigma**2, PAIR_MIN_SHARE * better.gain_um2) \
-                        and pair.plausible:
-                    pair.extra.update({"gain_over_better_member_um2": extra, "z_over_each_alone": zz,
-                                       "over": better.name})
-                    pairs.append(pair)
+        combos = [(na, nb) for i, na in enumerate(top) for nb in top[i + 1:]]
+        # A second effect hidden under the first may fit nothing alone: backlash on Y beside a larger one on X fits
+        # with its lost motion at the bound 0 when alone (not plausible, so never among the leading eligible ones).
+        # Each of the ``PAIR_LEADERS`` leading candidates is paired with every other candidate as well; the pair
+        # must then be plausible as a whole and beat each member alone (rule 4), which a member that explains
+        # nothing alone does not make easier to pass than the leader alone.
+        combos += [(na, f.name) for na in top[:PAIR_LEADERS] for f in fits
+                   if f.name not in top and effect_of(f.name) != effect_of(na)]
+        for na, nb in combos:
+            if family(na) == family(nb) == "thermal":
+                continue  # one drift (in two forms, or along two directions: one direction) is no pair
+            ca = by_name[na].with_variant(fit_of[na].variant) if by_name[na].variants else by_name[na]
+            cb = by_name[nb].with_variant(fit_of[nb].variant) if by_name[nb].variants else by_name[nb]
+            if nb not in top and by_name[nb].variants:
+                # A member that fits nothing alone has no variant of its own yet: the one that suits the pair.
+                cb = min((by_name[nb].with_variant(i) for i in range(len(by_name[nb].variants))),
+                         key=lambda c: _pair_rss(ca, c, g))
+            pair = fit_candidate([ca, cb], g, folds)
+            better = max(fit_of[na], fit_of[nb], key=lambda f: f.gain_um2)
+            extra = pair.gain_um2 - better.gain_um2
+            zz = min(paired_z(g, pair.held_out_pred_um, fit_of[m].held_out_pred_um) for m in (na, nb))
+            if zz > Z_PAIR and extra > max(MIN_GAIN_OF_NOISE * sigma**2, PAIR_MIN_SHARE * better.gain_um2) \
+                    and pair.plausible:
+                pair.extra.update({"gain_over_better_member_um2": extra, "z_over_each_alone": zz,
+                                   "over": better.name})
+                pairs.append(pair)
         _judge(pairs, g, sigma, ms_before)
     contenders = sorted(pool + [p for p in pairs if p.significant], key=lambda f: -f.gain_um2)
     if contenders:
@@ -695,9 +715,23 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         # necessarily the one that fits best): the shadow must beat what the library can do on this part.
         best_tied = max([chosen_fit, *tie_fits], key=lambda f: f.gain_um2)
         shadow_z = paired_z(g, best_tied.held_out_pred_um, shadow.held_out_pred_um)
+        shadow_name = "a uniform offset along the normal growing with the cut (a wearing tool, which no candidate " \
+                      "describes)"
+        # A pair's second effect may be the wear in a candidate's clothes (force deflection grows along a pass as
+        # the wear does): each member with the wear beside it is a shadow of the pair too.
+        if len(chosen_fit.members) > 1:
+            for m in chosen_fit.members:
+                other = [x for x in chosen_fit.members if x != m]
+                cands = [by_name[x].with_variant(fit_of[x].variant) if by_name[x].variants else by_name[x]
+                         for x in other]
+                half = fit_candidate([*cands, uniform_wear(state)], g, folds)
+                z_half = paired_z(g, best_tied.held_out_pred_um, half.held_out_pred_um)
+                if z_half < shadow_z:
+                    shadow_z = z_half
+                    shadow_name = (f"{' + '.join(other)} with a uniform offset along the normal growing with the cut "
+                                   f"(a wearing tool, which no candidate describes) in place of {m}")
         if shadow_z < -Z_SHADOW:
-            notes.append(f"a uniform offset along the normal growing with the cut (a wearing tool, which no "
-                         f"candidate describes) explains the gap better than {chosen_fit.name} (held-out z "
+            notes.append(f"{shadow_name} explains the gap better than {chosen_fit.name} (held-out z "
                          f"{-shadow_z:.1f}): none of the candidates is the answer")
             shadowed = chosen_fit.name
             chosen_fit, tied = None, {}
@@ -713,8 +747,7 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         confidence, conf_info = confidence_of(chosen_fit, rival, g, n_tied)
         if shadow_z < Z_TIE:
             confidence = min(confidence, 0.5)
-            notes.append(f"a uniform offset along the normal growing with the cut (a wearing tool, which no "
-                         f"candidate describes) explains the gap about as well as {chosen_fit.name} on this part "
+            notes.append(f"{shadow_name} explains the gap about as well as {chosen_fit.name} on this part "
                          f"(held-out z {shadow_z:.1f}): a second part cut with a fresh tool, or the same program with "
                          f"the passes in another order, would tell them apart")
         conf_info["z_over_tool_wear_shadow"] = shadow_z
