@@ -39,7 +39,8 @@ The rules, in order:
    while the tool stands along machine Z, which a round tool's bending cannot give).
 4. A pair (two effects) is a contender only when it beats *each of its members alone* on held-out points by paired
    z > ``Z_PAIR`` and by more than ``PAIR_MIN_SHARE`` of the better member's gain (both effects are needed); up to
-   45 pairs of the ``PAIR_POOL`` leading eligible candidates are tried. Against the other candidates it is judged
+   45 pairs of the ``PAIR_POOL`` leading eligible candidates are tried, and the ``PAIR_LEADERS`` leading ones with
+   every other candidate (a second effect under a larger one may fit nothing alone: backlash on Y beside X). Against the other candidates it is judged
    by rule 3 like any of them (the one-standard-error rule, fewest parameters among the tied), so two simple
    effects are preferred to one flexible candidate that absorbs both about as well.
 5. Explains: the verdict's held-out residual must be consistent with the noise (mean square within ``CHI_Z``
@@ -47,10 +48,14 @@ The rules, in order:
    the noise. A candidate that removes only part of it leaves structure it does not describe: then the answer is
    "none of the candidates", with the "where" ranking and the closest candidates (``Diagnosis.closest``, each with
    the reason it is not the answer).
+   Not beaten: where another fit (one the rules set aside: at its bounds, a spline no better than the drift)
+   explains the held-out gap better than the verdict by more than ``Z_MIN`` standard errors, the gap holds more
+   than a plausible candidate describes (an effect beyond the library's bounds, or outside it): "none of the
+   candidates", the note naming the better fit.
 6. A uniform offset along the normal growing with the cut (a wearing tool, outside the library) is fitted as a
-   shadow: where it explains the held-out gap better than the verdict (paired z > ``Z_SHADOW``), the answer is
-   "none of the candidates"; where about as well (within one standard error), the report says so and the
-   confidence is at most 0.5.
+   shadow, alone and, for a pair, in place of each member: where it explains the held-out gap better than the
+   verdict (paired z > ``Z_SHADOW``), the answer is "none of the candidates"; where about as well (within one
+   standard error), the report says so and the confidence is at most 0.5.
 
 Confidence (``confidence_of``): CONF_FLOOR + (1 - CONF_FLOOR) * sep * share, with sep the paired held-out z of the
 verdict over its best rival (another effect, or pair, not a part of the verdict) mapped linearly from ``CONF_Z0``
@@ -587,6 +592,26 @@ def _pair_rss(a: Candidate, b: Candidate, g: np.ndarray) -> float:
     return float(np.sum((g - S @ theta) ** 2))
 
 
+def _others(chosen: Fit, fits: list) -> list:
+    """The significant fits (single candidates or pairs) that are another explanation than ``chosen``: not ruled
+    out, and neither the same effects (the constrained and the flexible drift are one) nor a part of them."""
+    mine = sorted(effect_of(m) for m in chosen.members)
+    return [f for f in fits if f is not chosen and "ruled_out_by" not in f.extra and f.significant
+            and sorted(effect_of(m) for m in f.members) != mine and not {effect_of(m) for m in f.members} < set(mine)]
+
+
+def _beaten_by(chosen: Fit, fits: list, g: np.ndarray) -> tuple | None:
+    """(fit, z) when another explanation beats the verdict on held-out points by more than ``Z_MIN`` standard errors
+    of the paired difference (it can only be one the rules set aside: at its bounds, or a flexible drift no better
+    than the constrained one); None otherwise. Such a verdict leaves structure a better fit describes: no verdict."""
+    others = _others(chosen, fits)
+    if not others:
+        return None
+    best = max(others, key=lambda f: f.gain_um2)
+    z = paired_z(g, best.held_out_pred_um, chosen.held_out_pred_um)
+    return (best, z) if z > Z_MIN else None
+
+
 def _eligible(f: Fit) -> bool:
     return f.significant and f.plausible and not f.extra.get("not_beyond_constrained")
 
@@ -702,6 +727,16 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
                          f"{sigma:.2f} um (needed: {EXPLAIN_SHARE * 100:.0f} %, or a residual consistent with the "
                          f"noise)")
             chosen_fit, tied = None, {}
+    if chosen_fit is not None:
+        beaten = _beaten_by(chosen_fit, fits + pairs, g)
+        if beaten is not None:
+            f, zb = beaten
+            notes.append(f"{f.name} explains {(f.gain_um2 / chosen_fit.gain_um2 - 1.0) * 100:.0f} % more of the "
+                         f"gap than {chosen_fit.name} on held-out points (z {zb:.1f}) but "
+                         f"{'with values at or beyond its plausible bounds' if not f.plausible else 'as a free spline of time'}"
+                         f": the gap holds more than a plausible candidate describes (an effect larger than the "
+                         f"library allows, or one outside it): none of the candidates is the answer")
+            chosen_fit, tied = None, {}
     shadow_z, shadowed = None, None
     if chosen_fit is not None:
         # An effect outside the library: a uniform offset along the normal growing with the cut (a wearing tool).
@@ -736,10 +771,7 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
             shadowed = chosen_fit.name
             chosen_fit, tied = None, {}
     if chosen_fit is not None:
-        mine = sorted(effect_of(m) for m in chosen_fit.members)
-        others = [f for f in fits + pairs if f is not chosen_fit and "ruled_out_by" not in f.extra
-                  and f.significant and sorted(effect_of(m) for m in f.members) != mine
-                  and not {effect_of(m) for m in f.members} < set(mine)]
+        others = _others(chosen_fit, fits + pairs)
         # The best rival: another explanation of the gap (a single candidate or pair that is not the chosen one nor
         # a part of it; a part of a chosen pair was beaten by Z_PAIR already).
         rival = max(others, key=lambda f: f.gain_um2) if others else None
