@@ -672,3 +672,26 @@ def test_an_effect_beyond_the_plausible_bounds_is_no_verdict_for_a_weaker_candid
     assert diag.verdict == "none of the candidates" and diag.chosen == []
     note = next(n for n in diag.notes if n.startswith("backlash_x explains"))
     assert "plausible bounds" in note and float(note.split("(z ")[1].split(")")[0]) > Z_MIN
+
+
+def test_confidence_grows_with_the_rivals_deficit_in_gain_between_its_two_marks():
+    # A rival 20 standard errors behind (paired held-out z) is no separation while its gain is within CONF_GAP0 of
+    # the verdict's (a poorer form of the same effect may fit that much worse), full separation from CONF_GAP1, in
+    # between linear; with the whole gap above the noise removed the confidence runs from CONF_FLOOR to 1.
+    from trueaxis.diagnose.analysis import CONF_FLOOR, CONF_GAP0, CONF_GAP1, confidence_of, paired_z
+
+    rng = np.random.default_rng(4)
+    s = rng.normal(0.0, 3.0, 20_000)
+    g = s + rng.normal(0.0, 1.0, s.size)
+    chosen = _fake_fit("chosen", ["a"], [1.0], [[1.0]], s.copy(), 1)
+    chosen.explained_share = 1.0
+    chosen.gain_um2 = float(np.mean(g**2 - (g - s) ** 2))
+    for deficit, expected in ((0.5 * CONF_GAP0, CONF_FLOOR), (0.5 * (CONF_GAP0 + CONF_GAP1), 0.5 * (1 + CONF_FLOOR)),
+                              (CONF_GAP1 + 0.01, 1.0)):
+        rival = _fake_fit("rival", ["b"], [1.0], [[1.0]], s.copy(), 1)
+        rival.gain_um2 = (1.0 - deficit) * chosen.gain_um2
+        rival.held_out_pred_um = s + rng.normal(0.0, 0.6, s.size)  # far behind in the paired test
+        assert paired_z(g, chosen.held_out_pred_um, rival.held_out_pred_um) > 10.0
+        conf, basis = confidence_of(chosen, rival, g, 0)
+        assert basis["runner_up_gain_deficit"] == pytest.approx(deficit)
+        assert conf == pytest.approx(expected, abs=1e-9)
