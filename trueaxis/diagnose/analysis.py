@@ -40,9 +40,10 @@ The rules, in order:
 4. A pair (two effects) is a contender only when it beats *each of its members alone* on held-out points by paired
    z > ``Z_PAIR`` and by more than ``PAIR_MIN_SHARE`` of the better member's gain (both effects are needed); up to
    45 pairs of the ``PAIR_POOL`` leading eligible candidates are tried, and the ``PAIR_LEADERS`` leading ones with
-   every other candidate (a second effect under a larger one may fit nothing alone: backlash on Y beside X). Against the other candidates it is judged
-   by rule 3 like any of them (the one-standard-error rule, fewest parameters among the tied), so two simple
-   effects are preferred to one flexible candidate that absorbs both about as well.
+   every candidate not significant alone (a second effect under a larger one may fit nothing alone: backlash on Y
+   beside X). Against the other candidates it is judged by rule 3 like any of them (the one-standard-error rule,
+   fewest parameters among the tied), so two simple effects are preferred to one flexible candidate that absorbs
+   both about as well.
 5. Explains: the verdict's held-out residual must be consistent with the noise (mean square within ``CHI_Z``
    standard errors of sigma^2, chi-square) or the verdict must remove at least ``EXPLAIN_SHARE`` of the gap above
    the noise. A candidate that removes only part of it leaves structure it does not describe: then the answer is
@@ -745,8 +746,8 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         shadow_z = paired_z(g, best_tied.held_out_pred_um, shadow.held_out_pred_um)
         shadow_name = "a uniform offset along the normal growing with the cut (a wearing tool, which no candidate " \
                       "describes)"
-        # A pair's second effect may be the wear in a candidate's clothes (force deflection grows along a pass as
-        # the wear does): each member with the wear beside it is a shadow of the pair too.
+        # A pair's second effect may be the wear in a candidate's clothes (a drift or a force deflection grows along
+        # the cut as the wear does): each member with the wear beside it is a shadow of the pair too.
         if len(chosen_fit.members) > 1:
             for m in chosen_fit.members:
                 other = [x for x in chosen_fit.members if x != m]
