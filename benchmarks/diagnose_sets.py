@@ -492,11 +492,14 @@ def _part_kwargs(part_json: dict) -> dict:
     return {"part_json": part_json} if "part_json" in inspect.signature(run_diagnosis).parameters else {}
 
 
-def run_case(case: dict, points: int, noise_um: float = NOISE_UM) -> dict:
+def run_case(case: dict, points: int, noise_um: float = NOISE_UM, second: bool = False) -> dict:
     """Cut, measure and diagnose one case; returns a plain dict (see ``score``). A failure of the harness or the
-    shop is returned as a skipped case with its message (counted and printed), so that one case cannot stop a run."""
+    shop is returned as a skipped case with its message (counted and printed), so that one case cannot stop a run.
+    second : the same true machine cuts the cone a second time at another placement (``second_setup``) right after
+    the first, each part probed with half the points, and both are diagnosed together (the separating measurement
+    the reports ask for)."""
     try:
-        return _run_case(case, points, noise_um)
+        return _run_case(case, points, noise_um, second)
     except Exception as exc:  # noqa: BLE001
         import traceback
 
@@ -506,13 +509,38 @@ def run_case(case: dict, points: int, noise_um: float = NOISE_UM) -> dict:
                 "t_case": 0.0}
 
 
-def _run_case(case: dict, points: int, noise_um: float) -> dict:
+#: Where the second part goes (``--second-placement``): another distance from the rotary table's axis, the first
+#: machinable of these (a part off the axis goes to its centre; a centred one 50 mm off it).
+SECOND_OFF_AXIS_MM = 25.0
 
-    from trueaxis.diagnose.report import run_diagnosis
+
+def second_setup(setup: dict, points: int) -> dict:
+    """The setup of the second part: the same machine and cone at another distance from the rotary axis, the first
+    machinable placement of a fixed list (deterministic)."""
+    x, y = setup["placement_mm"]
+    if math.hypot(x, y) >= SECOND_OFF_AXIS_MM:
+        tries = [(0.0, 0.0), (x / 2.0, y / 2.0), (-x, -y)]
+    else:
+        tries = [(50.0, 0.0), (-50.0, 0.0), (0.0, 50.0), (0.0, -50.0)]
+    for p in tries:
+        s2 = {**setup, "placement_mm": p}
+        try:
+            setup_for(s2, points)
+            return s2
+        except Exception:  # noqa: BLE001 - not machinable there: the next one
+            continue
+    raise ValueError(f"no machinable second placement among {tries}")
+
+
+def _run_case(case: dict, points: int, noise_um: float, second: bool = False) -> dict:
+
+    from trueaxis.diagnose.report import MeasuredCut, run_diagnosis_cuts
     from trueaxis.sim.effects import parse_effects
     from trueaxis.sim.shop import simulate
 
     t0 = time.perf_counter()
+    if second:
+        points = points // 2  # the same number of probe points over the two parts
     m, prog, pj, base = setup_for(case["setup"], points)
     placed = prog.machine
     kinds = case["kinds"]
@@ -522,13 +550,18 @@ def _run_case(case: dict, points: int, noise_um: float) -> dict:
     out["expected"] = "+".join(sorted({EXPECTED[k] for k in kinds} - {"none"})) or "none"
     draws = {k: effect_draws(k, case["seed"], m) for k in kinds}
 
-    def run(scales, noise=0.0, seed=0):
+    def run(scales, noise=0.0, seed=0, cut_prog=None, t_start_s=0.0):
+        """The true machine cuts ``cut_prog`` (default: the case's program), starting ``t_start_s`` after the
+        first program's start (the measured thermal series runs on)."""
+        cut_prog = cut_prog or prog
         tables: dict = {}
         for k in kinds:
             _merge(tables, effect_table(k, draws[k], scales[k], m))
-        true = true_machine(placed, kinds, draws, scales)
+        if t_start_s and "thermal" in tables:
+            tables["thermal"]["time_offset_s"] += tables["thermal"]["time_scale"] * t_start_s
+        true = true_machine(cut_prog.machine, kinds, draws, scales)
         eff = parse_effects(tables, machine=true) if tables else None
-        return simulate(prog.text, true, eff, part="nas979", part_json=pj, points=points, noise_um=noise,
+        return simulate(cut_prog.text, true, eff, part="nas979", part_json=pj, points=points, noise_um=noise,
                         seed=seed, force_stride=50)
 
     def rms_of(res):
@@ -579,9 +612,19 @@ def _run_case(case: dict, points: int, noise_um: float) -> dict:
         out.update(skipped=f"scaled to {case['mag']:.0f}x it moves the surface by {out['effect_rms_um']:.1f} um rms",
                    t_case=time.perf_counter() - t0)
         return out
+    cuts = [MeasuredCut(r.measured[cut], r.normals[cut], prog.text)]
+    if second:
+        setup_b = second_setup(case["setup"], points)
+        prog_b = setup_for(setup_b, points)[1]
+        t_b = float(r.trajectory.t[-1])
+        r_b = run(scales, noise=noise_um, seed=2000 + case["n"] + case["seed"] % 1000, cut_prog=prog_b,
+                  t_start_s=t_b)
+        cut_b = np.isfinite(r_b.deviations_um)
+        cuts.append(MeasuredCut(r_b.measured[cut_b], r_b.normals[cut_b], prog_b.text))
+        out["setup"] += f" + {tuple(setup_b['placement_mm'])}"
     t1 = time.perf_counter()
     try:
-        diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text, **_part_kwargs(pj))
+        diag, _ = run_diagnosis_cuts(cuts, "nas979", m, **_part_kwargs(pj))
     except Exception as exc:  # a crash of the diagnosis is a wrong answer, reported with its message
         out.update(answer="ERROR", error=f"{type(exc).__name__}: {exc}", conf=0.0, t_sim=t1 - t0,
                    t_diag=time.perf_counter() - t1, t_case=time.perf_counter() - t0)
@@ -618,7 +661,10 @@ def _run_case(case: dict, points: int, noise_um: float) -> dict:
                              for n, u, v, sd in zip(f.parameters, f.units, f.value, f.std)]
     out["truth_checks"] = cover
     if kinds and out["expected"] != "none":
-        out["identifiable"] = identifiability(run(scales), cut, m, prog.text, pj, out["expected"], noise_um)
+        clean = [(run(scales), prog.text)]
+        if second:
+            clean.append((run(scales, cut_prog=prog_b, t_start_s=t_b), prog_b.text))
+        out["identifiable"] = identifiability(clean, m, pj, out["expected"], noise_um)
     return out
 
 
@@ -627,9 +673,9 @@ def _run_case(case: dict, points: int, noise_um: float) -> dict:
 Z_IDENTIFIABLE = 3.0
 
 
-def identifiability(clean, cut, m, program_text: str, pj, expected: str, noise_um: float) -> dict:
-    """Can this part tell the true effect from the other candidates at all? On the noise-free cut of the same
-    machine (``clean``), the candidate (or pair) of the expected answer and every other plausible candidate and pair
+def identifiability(clean, m, pj, expected: str, noise_um: float) -> dict:
+    """Can this part tell the true effect from the other candidates at all? On the noise-free cuts of the same
+    machine (``clean``: [(shop result, program text)], one per part), the candidate (or pair) of the expected answer and every other plausible candidate and pair
     are fitted (held out, as the diagnosis fits them); a rival whose noise-free held-out residual the probe noise
     cannot separate from the truth's -- expected paired z of the truth's advantage
 
@@ -639,11 +685,11 @@ def identifiability(clean, cut, m, program_text: str, pj, expected: str, noise_u
     candidates is a coin toss there. The diagnosis' own rules play no part in this (only its candidates and fits)."""
     from trueaxis.diagnose.analysis import fit_candidate, make_folds
     from trueaxis.diagnose.candidates import LIBRARY, build_all
-    from trueaxis.diagnose.report import run_diagnosis
+    from trueaxis.diagnose.report import MeasuredCut, run_diagnosis_cuts
 
-    cut = np.isfinite(clean.deviations_um)
-    diag, state = run_diagnosis(clean.measured[cut], clean.normals[cut], "nas979", m, program_text,
-                                noise_um=noise_um, **_part_kwargs(pj))
+    cuts = [MeasuredCut(c.measured[np.isfinite(c.deviations_um)], c.normals[np.isfinite(c.deviations_um)], text)
+            for c, text in clean]
+    diag, state = run_diagnosis_cuts(cuts, "nas979", m, noise_um=noise_um, **_part_kwargs(pj))
     g = state.gap_um
     want = sorted(expected.split("+"))
     fits = diag.fits + diag.pairs
@@ -814,7 +860,8 @@ def demo_timing(points: int = 8000) -> float:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--set", default="tuning", help="tuning | heldout | heldout2 | both (tuning and heldout) | all "
+    ap.add_argument("--set", default="tuning", help="tuning | heldout | heldout2 | heldout3 | heldout4 | both (tuning "
+                    "and heldout) | all "
                     "(every set), or a comma list")
     ap.add_argument("--cases", type=int, default=0, help="run this many cases per set, spread over the list (0 = all)")
     ap.add_argument("--kinds", default="", help="only cases holding one of these effect kinds (comma list; 'none' "
@@ -828,6 +875,8 @@ def main(argv=None) -> int:
     ap.add_argument("--list", action="store_true", help="print the case list and stop")
     ap.add_argument("--demo-timing", action="store_true", help="also time one diagnosis at the demo's 8000 points")
     ap.add_argument("--rescore", default=None, help="print the scores of a --json file of an earlier run and stop")
+    ap.add_argument("--second-placement", action="store_true", help="each case cuts the cone twice, the second "
+                    "time at another distance from the rotary axis (half the points on each), both diagnosed together")
     args = ap.parse_args(argv)
     if args.rescore:
         rows = json.loads(Path(args.rescore).read_text())["cases"]
@@ -862,9 +911,11 @@ def main(argv=None) -> int:
     client.upload_file(__file__)
     import diagnose_sets as mod  # this file as a module, so that workers import it by name (and keep its caches)
 
-    print(f"{len(cases)} cases ({', '.join(sets)}), {args.points} points, noise {NOISE_UM} um, "
+    two = f" over two placements ({args.points // 2} each)" if args.second_placement else ""
+    print(f"{len(cases)} cases ({', '.join(sets)}), {args.points} points{two}, noise {NOISE_UM} um, "
           f"scheduler {client.scheduler.address}", flush=True)
-    futures = [client.submit(mod.run_case, c, args.points, NOISE_UM, pure=False) for c in cases]
+    futures = [client.submit(mod.run_case, c, args.points, NOISE_UM, args.second_placement, pure=False)
+               for c in cases]
     rows = []
     for fut in as_completed(futures):
         r = fut.result()

@@ -695,3 +695,79 @@ def test_confidence_grows_with_the_rivals_deficit_in_gain_between_its_two_marks(
         conf, basis = confidence_of(chosen, rival, g, 0)
         assert basis["runner_up_gain_deficit"] == pytest.approx(deficit)
         assert conf == pytest.approx(expected, abs=1e-9)
+
+
+# ------------------------------------------------------------------ several measured parts diagnosed together ----
+@pytest.fixture(scope="module")
+def two_cones(tmp_path_factory):
+    """nmv1500dcg cutting the lean cone program twice, centred on C and 60 mm off it, with 6 um of lost motion on X;
+    each part probed at 200 points (1 um noise), the clouds and programs written as a user has them."""
+    from trueaxis.postproc.programs import nas979_program
+
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    d = tmp_path_factory.mktemp("two_cones")
+    cuts = []
+    for k, place in enumerate(((0.0, 0.0), (60.0, 0.0))):
+        prog = nas979_program(m, compensation="none", step_deg=4.0, chord_tol_um=None, placement_mm=place)
+        eff = parse_effects({"backlash": {"X": {"amplitude": 6.0, "transition": 0.02}}}, machine=prog.machine)
+        r = simulate(prog.text, prog.machine, eff, part="nas979", points=200, noise_um=1.0, seed=11 + k)
+        write_cmm(r, d / f"cmm{k}.ply")
+        (d / f"cone{k}.ngc").write_text(prog.text)
+        cuts.append((prog, r))
+    return m, cuts, d
+
+
+def test_states_of_two_cuts_combine_with_the_clock_running_on_and_each_cut_placed(two_cones):
+    # The combined state's rows are the two cuts' rows; the second cut's clock starts where the first ended; the
+    # rotary error motion's constant-component response is each cut's own (its twin placed by its program), and a
+    # drift is seen from each part's datum: the first-order shape of the running time minus its value at the set-up.
+    from trueaxis.diagnose.candidates import _component_response, thermal
+    from trueaxis.diagnose.state import combine_states
+
+    m, cuts, _ = two_cones
+    states = []
+    for prog, r in cuts:
+        cut = np.isfinite(r.deviations_um)
+        states.append(twin_state(r.points[cut], r.normals[cut], m, prog.text, "nas979", want_force=False))
+    a, b = states
+    both = combine_states(states)
+    assert len(both) == len(a) + len(b) and both.t_end_s == pytest.approx(a.t_end_s + b.t_end_s)
+    np.testing.assert_array_equal(both.piece, np.r_[np.zeros(len(a)), np.ones(len(b))])
+    np.testing.assert_allclose(both.t_s[len(a):], b.t_s + a.t_end_s)
+    np.testing.assert_allclose(both.t_datum_s, np.r_[np.zeros(len(a)), np.full(len(b), a.t_end_s)])
+    assert not np.allclose(a.machine.workpiece_origin, b.machine.workpiece_origin)
+    np.testing.assert_allclose(_component_response(both, "C"),
+                               np.vstack([_component_response(a, "C"), _component_response(b, "C")]), atol=1e-12)
+    T, tau = both.t_end_s, 0.4 * both.t_end_s  # the variant "time constant 0.4 T"
+    col = thermal(both, 0)
+    label, c = col.variants[1]
+    assert label == "time constant 0.4 T"
+    shape = lambda t: (1.0 - np.exp(-t / tau)) / (1.0 - np.exp(-T / tau))  # noqa: E731
+    proj = c[:, 0] / np.where(np.abs(shape(both.t_s) - shape(both.t_datum_s)) > 1e-12,
+                              shape(both.t_s) - shape(both.t_datum_s), np.nan)
+    label_a, c_a = thermal(a, 0).variants[-1]  # the linear drift t / T of the first cut alone
+    assert label_a == "time constant inf"
+    single = c_a[:, 0] / (a.t_s / a.t_end_s)  # the projection on the normal alone
+    np.testing.assert_allclose(proj[: len(a)][a.t_s > 0], single[a.t_s > 0], rtol=1e-9)
+    assert np.all(np.abs(c[len(a):, 0]) <= np.abs(proj[len(a):]) * (shape(both.t_end_s) - shape(a.t_end_s)) + 1e-12)
+
+
+def test_two_measured_parts_are_diagnosed_together_from_the_command_line(two_cones, capsys):
+    from trueaxis.cli import main
+
+    _, _, d = two_cones
+    args = ["diagnose", "--part", "nas979", "--machine", "nmv1500dcg", "--noise-um", "1.0",
+            "--candidates", ",".join(c for c in CONE_CANDIDATES if c != "twin_parameters")]
+    two = ["--cloud", str(d / "cmm0.ply"), "--program", str(d / "cone0.ngc"),
+           "--cloud", str(d / "cmm1.ply"), "--program", str(d / "cone1.ngc")]
+    assert main(args + two + ["-o", str(d / "rep")]) == 0
+    data = json.loads((d / "rep" / "diagnosis.json").read_text())
+    assert data["inputs"]["cloud"] == [str(d / "cmm0.ply"), str(d / "cmm1.ply")]
+    assert len(data["points_per_cut"]) == 2 and sum(data["points_per_cut"]) == data["points"]
+    assert data["chosen"][0]["effect"] == "backlash_x"
+    p = data["chosen"][0]["parameters"][0]
+    assert abs(p["value_um"] - 6.0) < 3 * p["std_um"]
+    capsys.readouterr()
+    # One program for two clouds: refused before any work, exit 2, nothing written.
+    assert main(args + two[:6] + ["-o", str(d / "bad")]) == 2
+    assert "2 clouds and 1 programs" in capsys.readouterr().err and not (d / "bad").exists()

@@ -543,10 +543,13 @@ def build_parser() -> argparse.ArgumentParser:
     fi.set_defaults(func=cmd_freecad_install)
 
     dg = sub.add_parser("diagnose", help="the sim-to-real gap: where it lies, which effect explains it, how far it shrinks")
-    dg.add_argument("--cloud", required=True, help="measured CMM cloud (PLY/CSV/XYZ, part frame, mm)")
+    dg.add_argument("--cloud", required=True, action="append",
+                    help="measured CMM cloud (PLY/CSV/XYZ, part frame, mm); repeat with --program for several parts "
+                    "cut one after another on the machine (a second placement), in the order they were cut")
     dg.add_argument("--part", required=True, choices=part_names())
     dg.add_argument("--machine", required=True, help="the twin (machine file, TOML)")
-    dg.add_argument("--program", required=True, help="the NC program that cut the part")
+    dg.add_argument("--program", required=True, action="append",
+                    help="the NC program that cut the part (one per --cloud, in the same order)")
     dg.add_argument("--part-json", default=None, help="the part's description (JSON written by `trueaxis part`; "
                     "default: the part at its default size)")
     dg.add_argument("--candidates", default="all", help="all, or a comma-separated list of candidate effects")
@@ -631,9 +634,10 @@ def _paths(args) -> tuple[list, list]:
         out = g("output")
         return [("program", g("program")), ("--machine", g("machine")), ("--effects", g("effects"))], \
             [("-o", out, False), ("the truth file", None if out is None else truth_path(out), False)]
-    if cmd == "diagnose":
-        return [("--cloud", g("cloud")), ("--machine", g("machine")), ("--program", g("program")),
-                ("--part-json", g("part_json"))], [("-o", g("output"), True)]
+    if cmd == "diagnose":  # --cloud and --program repeat (several parts cut one after another)
+        return [*(("--cloud", c) for c in g("cloud") or []), ("--machine", g("machine")),
+                *(("--program", p) for p in g("program") or []), ("--part-json", g("part_json"))], \
+            [("-o", g("output"), True)]
     if cmd == "inspect":
         out = g("output") or Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
         # the files read besides the named ones: the part JSON of --part-dir, the JSON beside --cad

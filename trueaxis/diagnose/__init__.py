@@ -1,6 +1,11 @@
 """The sim-to-real gap (DESIGN §8): where it lies, which unmodelled effect explains it, how far it shrinks.
 
     trueaxis diagnose --cloud cmm.ply --part nas979 --machine TWIN.toml --program prog.ngc -o report/
+    trueaxis diagnose --cloud a.ply --program a.ngc --cloud b.ply --program b.ngc ...   # parts cut in turn
+
+Several measured parts cut one after another on the machine (a second placement of the part, the same program
+after a warm-up) are diagnosed together: each is read against the twin on its own, then the candidates are fitted
+to all at once with one set of parameters (``report.run_diagnosis_cuts``, ``state.combine_states``).
 
 Modules: ``state`` (the twin cuts the program in the virtual shop; the gap and the machine state at every measured
 point), ``candidates`` (the library of candidate effects, sensitivities linear in their parameters), ``analysis``

@@ -250,17 +250,33 @@ def tool_deflection(state: TwinState) -> Candidate | None:
 THERMAL_TAUS_OF_T = (0.15, 0.4, 1.0, 3.0, math.inf)
 
 
+def _drift_shapes(state: TwinState, since_part_start: bool = False) -> list:
+    """[(label, (N,) shape)]: the monotone first-order responses (1 - exp(-t/tau)) / (1 - exp(-T/tau)) of the
+    running time t (tau from ``THERMAL_TAUS_OF_T`` times the duration T; infinite: t / T), seen from each row's part
+    datum (zero at the program start for one cut; for several cuts each part's drift since its own set-up), or, with
+    ``since_part_start``, of the time since each part's start alone (a fresh start of what grows with the cut)."""
+    T = max(state.t_end_s, 1e-9)
+
+    def f(t, fac):
+        return t / T if math.isinf(fac) else -np.expm1(-t / (fac * T)) / -math.expm1(-1.0 / fac)
+
+    out = []
+    for fac in THERMAL_TAUS_OF_T:
+        if since_part_start:
+            shape = f(state.since_datum_s(), fac)
+        else:
+            shape = f(state.t_s, fac) - (0.0 if state.t_datum_s is None else f(state.t_datum_s, fac))
+        out.append((f"time constant {'inf' if math.isinf(fac) else f'{fac:g} T'}", shape))
+    return out
+
+
 def thermal(state: TwinState, k: int) -> Candidate:
     """Constrained thermal drift along machine direction k: a monotone first-order response to the spindle's running
     time, d(t) = D (1 - exp(-t/tau)) / (1 - exp(-T/tau)) (D: the drift at the program's end, um), zero at the start.
     A spindle already warm when the program starts gives the same form (a later stretch of the same exponential)."""
     letter = AXIS_LETTERS[k]
-    T = max(state.t_end_s, 1e-9)
     proj = np.einsum("ij,ij->i", state.normals, _machine_direction(state, k))
-    variants = []
-    for f in THERMAL_TAUS_OF_T:
-        shape = state.t_s / T if math.isinf(f) else -np.expm1(-state.t_s / (f * T)) / -math.expm1(-1.0 / f)
-        variants.append((f"time constant {'inf' if math.isinf(f) else f'{f:g} T'}", (proj * shape)[:, None]))
+    variants = [(label, (proj * shape)[:, None]) for label, shape in _drift_shapes(state)]
     return Candidate(f"thermal_{letter.lower()}", variants[0][1], [f"drift_{letter}_at_end"], ["um"],
                      [(-200.0, 200.0)],
                      f"thermal drift along machine {letter}: monotone first-order response to the spindle's running "
@@ -272,11 +288,7 @@ def uniform_wear(state: TwinState) -> Candidate:
     (tool wear): the surface moves out along its own normal by a monotone first-order (run-in) or linear amount of
     the cut time. A verdict whose fit this form matches as well is not a verdict the part can support on its own
     (see ``analysis.diagnose_state``)."""
-    T = max(state.t_end_s, 1e-9)
-    variants = []
-    for f in THERMAL_TAUS_OF_T:
-        shape = state.t_s / T if math.isinf(f) else -np.expm1(-state.t_s / (f * T)) / -math.expm1(-1.0 / f)
-        variants.append((f"time constant {'inf' if math.isinf(f) else f'{f:g} T'}", shape[:, None]))
+    variants = [(label, shape[:, None]) for label, shape in _drift_shapes(state, since_part_start=True)]
     return Candidate("uniform normal offset growing with the cut (tool wear, outside the library)", variants[0][1],
                      ["offset_at_end"], ["um"], [(-200.0, 200.0)], "tool wear-like shadow", variants=variants)
 
@@ -288,6 +300,8 @@ def thermal_spline(state: TwinState, k: int, knots: int = 3) -> Candidate:
     # Hat functions of a linear spline through 0 at the program start: parameter m is the drift at time at[m].
     grid = np.r_[0.0, at]
     hats = np.column_stack([np.interp(state.t_s, grid, np.eye(knots + 1)[m + 1]) for m in range(knots)])
+    if state.t_datum_s is not None:  # several cuts: each part's drift since its own set-up
+        hats -= np.column_stack([np.interp(state.t_datum_s, grid, np.eye(knots + 1)[m + 1]) for m in range(knots)])
     proj = np.einsum("ij,ij->i", state.normals, _machine_direction(state, k))
     return Candidate(f"thermal_spline_{letter.lower()}", proj[:, None] * hats,
                      [f"drift_{letter}_at_{t:.0f}s" for t in at], ["um"] * knots, [(-200.0, 200.0)] * knots,
@@ -324,14 +338,14 @@ def _component_response(state: TwinState, axis: str) -> np.ndarray:
     from ..machine.error_functions import legendre_series
     from ..machine.model import ERROR_DIRECTIONS, ErrorSet
 
-    m = state.machine
     comps = {f"E{d}{axis}": legendre_series([0.0], (-1e3, 1e3)) for d in ERROR_DIRECTIONS}
-    probe = dataclasses.replace(m, errors=ErrorSet(location=dict(m.errors.location), components={axis: comps}),
-                                loaded=None, loaded_force_n=None)
-    names = probe.parameter_names()
-    Jp = ErrorTwin(probe).parameter_jacobian(state.q)
-    idx = [names.index(f"E{d}{axis}.P0") for d in ERROR_DIRECTIONS]
-    J = Jp[:, :, idx]
+    J = np.empty((len(state), 6, len(ERROR_DIRECTIONS)))
+    for rows, m in state.placements():  # each cut with its twin as placed
+        probe = dataclasses.replace(m, errors=ErrorSet(location=dict(m.errors.location), components={axis: comps}),
+                                    loaded=None, loaded_force_n=None)
+        names = probe.parameter_names()
+        idx = [names.index(f"E{d}{axis}.P0") for d in ERROR_DIRECTIONS]
+        J[rows] = ErrorTwin(probe).parameter_jacobian(state.q[rows])[:, :, idx]
     out = np.einsum("ij,ijk->ik", state.normals, J[:, :3] + 1e-3 * state.height_mm[:, None, None] * J[:, 3:])
     state.memo[key] = out
     return out
@@ -389,11 +403,12 @@ TWIN_RESOLVED = 0.1
 
 
 def twin_parameters(state: TwinState, min_norm_um: float = 1e-3) -> Candidate | None:
-    machine = state.machine
-    names = machine.location_names()
+    names = state.machine.location_names()
     if not names:
         return None
-    Jp = ErrorTwin(machine).parameter_jacobian(state.q)[:, :, : len(names)]
+    Jp = np.empty((len(state), 6, len(names)))
+    for rows, m in state.placements():  # each cut with its twin as placed; one set of location errors for all
+        Jp[rows] = ErrorTwin(m).parameter_jacobian(state.q[rows])[:, :, : len(names)]
     # Tool-axis error (urad) turns the contact at height h (mm) by h * 1e-3 um per urad.
     cols = np.einsum("ij,ijk->ik", state.normals, Jp[:, :3] + 1e-3 * state.height_mm[:, None, None] * Jp[:, 3:])
     seen = np.sqrt(np.mean(cols**2, axis=0)) > min_norm_um

@@ -17,6 +17,7 @@ import re
 import shutil
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,7 @@ import numpy as np
 from ..inspect.cloud import CloudError
 from .analysis import Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from .state import TwinState, twin_state
+from .state import TwinState, combine_states, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
 
@@ -73,20 +74,52 @@ def run_diagnosis(points, normals, part: str, machine, program_text: str, *, can
     part_json : the part's description (dict, JSON path, or ``Nas979Params`` / ``SlotBlockParams``; default: the
     part at its default size): its bounding box gates the cloud, its surfaces give missing normals, and its stock
     is what the twin's force model engages (a cone of another size must be described, else the force is wrong)."""
+    return run_diagnosis_cuts([MeasuredCut(points, normals, program_text, program_name)], part, machine,
+                              candidates=candidates, split=split, noise_um=noise_um, force_stride=force_stride,
+                              part_json=part_json)
+
+
+@dataclass
+class MeasuredCut:
+    """One measured part: its cloud (points (N, 3) mm, part frame; normals (N, 3) or None) and the program that cut
+    it (text; its setup comment places the part on the machine)."""
+
+    points: np.ndarray
+    normals: np.ndarray | None
+    program_text: str
+    program_name: str = "<program>"
+
+
+def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", split="region", noise_um=None,
+                       force_stride: int = 200, part_json=None) -> tuple[Diagnosis, TwinState]:
+    """The diagnosis of one or more measured parts (``MeasuredCut``) cut one after another on one machine, in that
+    order: each is read against the twin on its own (its gap and machine state), then all are judged together, the
+    candidates sharing their parameters (one machine). A second placement of the part, or the same part cut after
+    a warm-up, is what separates explanations one cut cannot tell apart (the report's separating measurement)."""
     names = parse_candidates(candidates) if isinstance(candidates, str) or candidates is None else list(candidates)
     pj = part_description(part, part_json)
-    check_cloud_for_part(points, part, pj)
-    normals = cloud_normals(np.asarray(points, float), normals, pj)
-    state = twin_state(points, normals, machine, program_text, part,
-                       want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride, part_json=pj,
-                       program_name=program_name)
-    if len(state) < 20:
-        raise CloudError(f"only {len(state)} measured points were cut by the program: too few to diagnose")
-    gap_rms = float(np.sqrt(np.mean(state.gap_um ** 2)))
-    if not gap_rms <= MAX_GAP_RMS_UM:
-        raise CloudError(f"the cloud lies {gap_rms:.0f} um (RMS) from the part this program cuts on this twin: not a "
-                         f"measurement of that cut (another part, another frame, another program?); a sim-to-real "
-                         f"gap is at most a few tens of um")
+    states = []
+    for k, c in enumerate(cuts):
+        which = f" (cut {k + 1} of {len(cuts)}: {c.program_name})" if len(cuts) > 1 else ""
+        try:
+            check_cloud_for_part(c.points, part, pj)
+            normals = cloud_normals(np.asarray(c.points, float), c.normals, pj)
+            st = twin_state(c.points, normals, machine, c.program_text, part,
+                            want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride,
+                            part_json=pj, program_name=c.program_name)
+            if len(st) < 20:
+                raise CloudError(f"only {len(st)} measured points were cut by the program: too few to diagnose")
+            gap_rms = float(np.sqrt(np.mean(st.gap_um ** 2)))
+            if not gap_rms <= MAX_GAP_RMS_UM:
+                raise CloudError(f"the cloud lies {gap_rms:.0f} um (RMS) from the part this program cuts on this "
+                                 f"twin: not a measurement of that cut (another part, another frame, another "
+                                 f"program?); a sim-to-real gap is at most a few tens of um")
+        except ValueError as exc:  # CloudError included; with several cuts, which one
+            if not which:
+                raise
+            raise (CloudError if isinstance(exc, CloudError) else ValueError)(f"{exc}{which}") from None
+        states.append(st)
+    state = combine_states(states)
     t0 = time.perf_counter()
     cands, skipped = build_all(names, state)
     if not cands:
@@ -145,6 +178,7 @@ def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None
         "verdict": diag.verdict,
         "confidence_in_verdict": diag.confidence,
         "points": len(state), "points_not_cut_by_twin": state.dropped,
+        "points_per_cut": [len(state)] if state.piece is None else np.bincount(state.piece).tolist(),
         "noise_sigma_um": diag.noise_um, "noise_estimated": diag.noise_estimated,
         "split": diag.split,
         "where": diag.where,
@@ -258,10 +292,12 @@ def _html(data: dict, pngs: dict) -> str:
     b, a = data["gap_um"]["before"], data["gap_um"]["after"]
     imgs = "".join(f'<h3>{e(k)}</h3><img src="data:image/png;base64,{base64.b64encode(v).decode()}">'
                    for k, v in pngs.items())
+    per_cut = data.get("points_per_cut") or []
+    cuts = f" on {len(per_cut)} parts cut in turn ({' + '.join(map(str, per_cut))})" if len(per_cut) > 1 else ""
     return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>trueaxis diagnosis</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{padding:2px 8px;border-bottom:1px solid #ddd}}</style>
 </head><body><h1>Sim-to-real gap: diagnosis</h1>
-<p>{data['points']} points ({data['points_not_cut_by_twin']} not cut by the twin's program), probe noise sigma
+<p>{data['points']} points{cuts} ({data['points_not_cut_by_twin']} not cut by the twin's program), probe noise sigma
 {data['noise_sigma_um']:.3f} um ({'estimated' if data['noise_estimated'] else 'given'}), held-out split: {e(data['split'])}.</p>
 <h2>Which</h2>{chosen}{alt}
 <h2>How far</h2><table><tr><th></th><th>RMS um</th><th>P95 um</th><th>max um</th></tr>
@@ -306,7 +342,9 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     and write the report into ``output``. Returns (the diagnosis, the report's JSON dict). Errors raise ValueError;
     nothing is written then.
 
-    cloud, machine, program, output : paths.  part : "nas979" | "slots".  candidates : "all", "NAME,NAME" or a list.
+    cloud, program : a path each, or lists of paths of one length: several parts measured and the programs that
+    cut them, in the order they were cut on the machine (diagnosed together, see ``run_diagnosis_cuts``).
+    machine, output : paths.  part : "nas979" | "slots".  candidates : "all", "NAME,NAME" or a list.
     split : "region" | "time" | "random".  noise_um : probe noise sigma (um, > 0) or None (estimated).
     part_json : the part's description (see ``run_diagnosis``)."""
     from ..inspect.cloud import read_cloud
@@ -315,19 +353,29 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     if noise_um is not None and not (np.isfinite(noise_um) and noise_um > 0):
         raise ValueError("--noise-um must be a finite number > 0")
     names = parse_candidates(candidates) if isinstance(candidates, str) or candidates is None else list(candidates)
-    program = Path(program)
-    if not program.is_file():
-        raise ValueError(f"{program}: no such program file")
+    clouds = list(cloud) if isinstance(cloud, (list, tuple)) else [cloud]
+    programs = [Path(p) for p in (program if isinstance(program, (list, tuple)) else [program])]
+    if len(clouds) != len(programs):
+        raise ValueError(f"{len(clouds)} clouds and {len(programs)} programs: give one --program per --cloud, in the "
+                         f"order the parts were cut")
+    for p in programs:
+        if not p.is_file():
+            raise ValueError(f"{p}: no such program file")
     m = load_machine(machine)
-    pts = read_cloud(cloud)
-    text = program.read_text(encoding="utf-8", errors="replace")
-    diag, state = run_diagnosis(pts.points, pts.normals, part, m, text, candidates=names, split=split,
-                                noise_um=noise_um, part_json=part_json, program_name=str(program))
-    inputs = {"cloud": str(cloud), "part": part, "machine": str(machine), "program": str(program),
+    texts = [p.read_text(encoding="utf-8", errors="replace") for p in programs]
+    cuts = []
+    for c, p, text in zip(clouds, programs, texts):
+        pts = read_cloud(c)
+        cuts.append(MeasuredCut(pts.points, pts.normals, text, str(p)))
+    diag, state = run_diagnosis_cuts(cuts, part, m, candidates=names, split=split, noise_um=noise_um,
+                                     part_json=part_json)
+    one = len(clouds) == 1
+    inputs = {"cloud": str(clouds[0]) if one else [str(c) for c in clouds], "part": part, "machine": str(machine),
+              "program": str(programs[0]) if one else [str(p) for p in programs],
               "candidates": names, "split": split, "noise_um": noise_um,
               "part_json": str(part_json) if isinstance(part_json, (str, Path)) else None}
-    warnings = input_warnings(state, m, text, program, noise_um)
-    data = write_report(diag, state, output, inputs, warnings)
+    warnings = [w for text, p in zip(texts, programs) for w in input_warnings(state, m, text, p, noise_um)]
+    data = write_report(diag, state, output, inputs, list(dict.fromkeys(warnings)))
     return diag, data
 
 

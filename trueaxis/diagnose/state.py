@@ -63,6 +63,10 @@ class TwinState:
     lag_axis : (N, n_axes, M) the deviation per ms of a further lag of one axis alone there (um/ms).
     axis_names, rotary : the machine's axis names and its rotary ones.  machine : the twin (placed as the program says).
     part : "nas979" | "slots".  dropped : number of measured points the twin's program did not cut.
+    piece : (N,) which of several cuts (parts cut one after another on one machine, ``combine_states``) each row is
+        of; None for one cut.  machines : each cut's twin as its program places it (by ``piece``; empty: ``machine``).
+    t_datum_s : (N,) program time at which the row's part was set up (its datum probed, so a drift is seen from
+        there), s; None: 0 (one cut).
     """
 
     points: np.ndarray
@@ -92,6 +96,9 @@ class TwinState:
     lag_deviation: np.ndarray | None = None
     lag_axis: np.ndarray | None = None
     lag_taus_s: tuple = ()
+    piece: np.ndarray | None = None
+    machines: tuple = ()
+    t_datum_s: np.ndarray | None = None
     timings: dict = field(default_factory=dict)
     memo: dict = field(default_factory=dict)
 
@@ -106,6 +113,53 @@ class TwinState:
             out[f.name] = v[keep] if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == len(self) else v
         out["memo"] = {}
         return TwinState(**out)
+
+
+    def placements(self) -> list:
+        """[(rows, twin)]: the rows (bool mask) of each cut with its twin as placed (one entry for one cut)."""
+        if self.piece is None or not self.machines:
+            return [(np.ones(len(self), bool), self.machine)]
+        return [(self.piece == k, m) for k, m in enumerate(self.machines) if np.any(self.piece == k)]
+
+    def since_datum_s(self, t_s: np.ndarray | None = None) -> np.ndarray:
+        """(N,) time since each row's part was set up, s (the program time for one cut)."""
+        t = self.t_s if t_s is None else t_s
+        return t if self.t_datum_s is None else t - self.t_datum_s
+
+
+def combine_states(states: list) -> TwinState:
+    """One state of several cuts measured on one machine, cut one after another (the second placement of a part, or
+    the same program again after a warm-up): the rows of all, the clock running on (cut k starts when cut k - 1 has
+    ended), each row knowing its cut (``piece``), that cut's placed twin (``machines``) and the time its part was set
+    up (``t_datum_s``: a drift is seen from each part's datum). The candidates then share their parameters over the
+    cuts: one machine, one backlash, one drift, one set of location errors."""
+    if len(states) == 1:
+        return states[0]
+    first = states[0]
+    for st in states[1:]:
+        if st.axis_names != first.axis_names or st.part != first.part or st.lag_taus_s != first.lag_taus_s:
+            raise ValueError("the cuts to diagnose together must be of one machine and one part")
+    offsets = np.cumsum([0.0] + [st.t_end_s for st in states[:-1]])
+    n = [len(st) for st in states]
+    out = {}
+    for f in dataclasses.fields(TwinState):
+        vals = [getattr(st, f.name) for st in states]
+        v0 = vals[0]
+        if f.name in ("t_s",):
+            out[f.name] = np.concatenate([v + o for v, o in zip(vals, offsets)])
+        elif isinstance(v0, np.ndarray) and v0.ndim >= 1 and v0.shape[0] == n[0]:
+            out[f.name] = np.concatenate(vals)
+        else:
+            out[f.name] = v0
+    out["t_end_s"] = float(offsets[-1] + states[-1].t_end_s)
+    out["has_force"] = all(st.has_force for st in states)
+    out["dropped"] = sum(st.dropped for st in states)
+    out["piece"] = np.repeat(np.arange(len(states)), n)
+    out["machines"] = tuple(st.machine for st in states)
+    out["t_datum_s"] = np.repeat(offsets, n)
+    out["timings"] = {k: sum(st.timings.get(k, 0.0) for st in states) for k in first.timings}
+    out["memo"] = {}
+    return TwinState(**out)
 
 
 def place_from_setup(machine: Machine, program_text: str, part: str) -> Machine:
