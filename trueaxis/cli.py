@@ -322,7 +322,8 @@ def cmd_diagnose(args) -> int:
     with single_blas_thread():
         diag, data = diagnose_files(args.cloud, args.part, str(machine_file(args.machine)), args.program, args.output,
                                     candidates=args.candidates, split=args.split, noise_um=args.noise_um,
-                                    part_json=args.part_json)
+                                    part_json=None if not args.part_json else
+                                    args.part_json[0] if len(args.part_json) == 1 else args.part_json)
     for line in summary_lines(diag, args.output, named_candidates=args.candidates not in (None, "all")):
         print(line)
     for warning in data["warnings"]:
@@ -550,8 +551,8 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--machine", required=True, help="the twin (machine file, TOML)")
     dg.add_argument("--program", required=True, action="append",
                     help="the NC program that cut the part (one per --cloud, in the same order)")
-    dg.add_argument("--part-json", default=None, help="the part's description (JSON written by `trueaxis part`; "
-                    "default: the part at its default size)")
+    dg.add_argument("--part-json", default=None, action="append", help="the part's description (JSON written by "
+                    "`trueaxis part`; default: the part at its default size); once for all clouds, or once per --cloud")
     dg.add_argument("--candidates", default="all", help="all, or a comma-separated list of candidate effects")
     dg.add_argument("--split", default="region", choices=["region", "time", "random"],
                     help="how held-out points are kept apart from the fitted ones (default region)")
@@ -636,7 +637,7 @@ def _paths(args) -> tuple[list, list]:
             [("-o", out, False), ("the truth file", None if out is None else truth_path(out), False)]
     if cmd == "diagnose":  # --cloud and --program repeat (several parts cut one after another)
         return [*(("--cloud", c) for c in g("cloud") or []), ("--machine", g("machine")),
-                *(("--program", p) for p in g("program") or []), ("--part-json", g("part_json"))], \
+                *(("--program", p) for p in g("program") or []), *(("--part-json", p) for p in g("part_json") or [])], \
             [("-o", g("output"), True)]
     if cmd == "inspect":
         out = g("output") or Path(args.cloud).with_name(Path(args.cloud).stem + "_report")

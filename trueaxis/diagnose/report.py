@@ -88,6 +88,7 @@ class MeasuredCut:
     normals: np.ndarray | None
     program_text: str
     program_name: str = "<program>"
+    part_json: object = None  # this part's description when it differs from the others' (see ``run_diagnosis``)
 
 
 def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", split="region", noise_um=None,
@@ -97,10 +98,10 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
     candidates sharing their parameters (one machine). A second placement of the part, or the same part cut after
     a warm-up, is what separates explanations one cut cannot tell apart (the report's separating measurement)."""
     names = parse_candidates(candidates) if isinstance(candidates, str) or candidates is None else list(candidates)
-    pj = part_description(part, part_json)
     states = []
     for k, c in enumerate(cuts):
         which = f" (cut {k + 1} of {len(cuts)}: {c.program_name})" if len(cuts) > 1 else ""
+        pj = part_description(part, part_json if c.part_json is None else c.part_json)
         try:
             check_cloud_for_part(c.points, part, pj)
             normals = cloud_normals(np.asarray(c.points, float), c.normals, pj)
@@ -343,7 +344,8 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     nothing is written then.
 
     cloud, program : a path each, or lists of paths of one length: several parts measured and the programs that
-    cut them, in the order they were cut on the machine (diagnosed together, see ``run_diagnosis_cuts``).
+    cut them, in the order they were cut on the machine (diagnosed together, see ``run_diagnosis_cuts``); then
+    part_json may be a list of one description per cloud too.
     machine, output : paths.  part : "nas979" | "slots".  candidates : "all", "NAME,NAME" or a list.
     split : "region" | "time" | "random".  noise_um : probe noise sigma (um, > 0) or None (estimated).
     part_json : the part's description (see ``run_diagnosis``)."""
@@ -361,19 +363,23 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     for p in programs:
         if not p.is_file():
             raise ValueError(f"{p}: no such program file")
+    each = list(part_json) if isinstance(part_json, (list, tuple)) else [part_json] * len(clouds)
+    if len(each) != len(clouds):
+        raise ValueError(f"{len(each)} part descriptions for {len(clouds)} clouds: give one for all, or one per "
+                         f"--cloud in the same order")
     m = load_machine(machine)
     texts = [p.read_text(encoding="utf-8", errors="replace") for p in programs]
     cuts = []
-    for c, p, text in zip(clouds, programs, texts):
+    for c, p, text, pj in zip(clouds, programs, texts, each):
         pts = read_cloud(c)
-        cuts.append(MeasuredCut(pts.points, pts.normals, text, str(p)))
-    diag, state = run_diagnosis_cuts(cuts, part, m, candidates=names, split=split, noise_um=noise_um,
-                                     part_json=part_json)
+        cuts.append(MeasuredCut(pts.points, pts.normals, text, str(p), pj))
+    diag, state = run_diagnosis_cuts(cuts, part, m, candidates=names, split=split, noise_um=noise_um)
     one = len(clouds) == 1
     inputs = {"cloud": str(clouds[0]) if one else [str(c) for c in clouds], "part": part, "machine": str(machine),
               "program": str(programs[0]) if one else [str(p) for p in programs],
               "candidates": names, "split": split, "noise_um": noise_um,
-              "part_json": str(part_json) if isinstance(part_json, (str, Path)) else None}
+              "part_json": [str(x) if isinstance(x, (str, Path)) else None for x in each] if not one else
+              (str(part_json) if isinstance(part_json, (str, Path)) else None)}
     warnings = [w for text, p in zip(texts, programs) for w in input_warnings(state, m, text, p, noise_um)]
     data = write_report(diag, state, output, inputs, list(dict.fromkeys(warnings)))
     return diag, data
