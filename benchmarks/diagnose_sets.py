@@ -492,12 +492,12 @@ def _part_kwargs(part_json: dict) -> dict:
     return {"part_json": part_json} if "part_json" in inspect.signature(run_diagnosis).parameters else {}
 
 
-def run_case(case: dict, points: int, noise_um: float = NOISE_UM, second: bool = False) -> dict:
+def run_case(case: dict, points: int, noise_um: float = NOISE_UM, second: str = "") -> dict:
     """Cut, measure and diagnose one case; returns a plain dict (see ``score``). A failure of the harness or the
     shop is returned as a skipped case with its message (counted and printed), so that one case cannot stop a run.
-    second : the same true machine cuts the cone a second time at another placement (``second_setup``) right after
-    the first, each part probed with half the points, and both are diagnosed together (the separating measurement
-    the reports ask for)."""
+    second : "placement": the same true machine cuts the cone a second time at another placement (``second_setup``)
+    right after the first, each part probed with half the points, and both are diagnosed together (the separating
+    measurement the reports ask for); "cone": the second cone also of a larger half-angle; "": one part."""
     try:
         return _run_case(case, points, noise_um, second)
     except Exception as exc:  # noqa: BLE001
@@ -514,10 +514,21 @@ def run_case(case: dict, points: int, noise_um: float = NOISE_UM, second: bool =
 SECOND_OFF_AXIS_MM = 25.0
 
 
-def second_setup(setup: dict, points: int) -> dict:
-    """The setup of the second part: the same machine and cone at another distance from the rotary axis, the first
-    machinable placement of a fixed list (deterministic)."""
+#: ``--second cone``: the second part's cone half-angle this much larger (deg): the normal's mix of the radial and
+#: the axial direction changes, which a radial and an axial error motion project on alike on one cone.
+SECOND_HALF_ANGLE_DEG = 6.0
+
+
+def second_setup(setup: dict, points: int, other_cone: bool = False) -> dict:
+    """The setup of the second part: the same machine and cone (``other_cone``: a half-angle ``SECOND_HALF_ANGLE_DEG``
+    larger) at another distance from the rotary axis, the first machinable placement of a fixed list
+    (deterministic)."""
     x, y = setup["placement_mm"]
+    if other_cone:
+        from trueaxis.workpiece.parts import Nas979Params
+
+        half = setup["cone"].get("half_angle_deg", Nas979Params().half_angle_deg)
+        setup = {**setup, "cone": {**setup["cone"], "half_angle_deg": half + SECOND_HALF_ANGLE_DEG}}
     if math.hypot(x, y) >= SECOND_OFF_AXIS_MM:
         tries = [(0.0, 0.0), (x / 2.0, y / 2.0), (-x, -y)]
     else:
@@ -532,7 +543,7 @@ def second_setup(setup: dict, points: int) -> dict:
     raise ValueError(f"no machinable second placement among {tries}")
 
 
-def _run_case(case: dict, points: int, noise_um: float, second: bool = False) -> dict:
+def _run_case(case: dict, points: int, noise_um: float, second: str = "") -> dict:
 
     from trueaxis.diagnose.report import MeasuredCut, run_diagnosis_cuts
     from trueaxis.sim.effects import parse_effects
@@ -550,10 +561,10 @@ def _run_case(case: dict, points: int, noise_um: float, second: bool = False) ->
     out["expected"] = "+".join(sorted({EXPECTED[k] for k in kinds} - {"none"})) or "none"
     draws = {k: effect_draws(k, case["seed"], m) for k in kinds}
 
-    def run(scales, noise=0.0, seed=0, cut_prog=None, t_start_s=0.0):
-        """The true machine cuts ``cut_prog`` (default: the case's program), starting ``t_start_s`` after the
-        first program's start (the measured thermal series runs on)."""
-        cut_prog = cut_prog or prog
+    def run(scales, noise=0.0, seed=0, cut_prog=None, t_start_s=0.0, cut_pj=None):
+        """The true machine cuts ``cut_prog`` (default: the case's program; its part ``cut_pj``), starting
+        ``t_start_s`` after the first program's start (the measured thermal series runs on)."""
+        cut_prog, cut_pj = cut_prog or prog, cut_pj or pj
         tables: dict = {}
         for k in kinds:
             _merge(tables, effect_table(k, draws[k], scales[k], m))
@@ -561,7 +572,7 @@ def _run_case(case: dict, points: int, noise_um: float, second: bool = False) ->
             tables["thermal"]["time_offset_s"] += tables["thermal"]["time_scale"] * t_start_s
         true = true_machine(cut_prog.machine, kinds, draws, scales)
         eff = parse_effects(tables, machine=true) if tables else None
-        return simulate(cut_prog.text, true, eff, part="nas979", part_json=pj, points=points, noise_um=noise,
+        return simulate(cut_prog.text, true, eff, part="nas979", part_json=cut_pj, points=points, noise_um=noise,
                         seed=seed, force_stride=50)
 
     def rms_of(res):
@@ -614,14 +625,15 @@ def _run_case(case: dict, points: int, noise_um: float, second: bool = False) ->
         return out
     cuts = [MeasuredCut(r.measured[cut], r.normals[cut], prog.text)]
     if second:
-        setup_b = second_setup(case["setup"], points)
-        prog_b = setup_for(setup_b, points)[1]
+        setup_b = second_setup(case["setup"], points, other_cone=second == "cone")
+        _, prog_b, pj_b, _ = setup_for(setup_b, points)
         t_b = float(r.trajectory.t[-1])
         r_b = run(scales, noise=noise_um, seed=2000 + case["n"] + case["seed"] % 1000, cut_prog=prog_b,
-                  t_start_s=t_b)
+                  t_start_s=t_b, cut_pj=pj_b)
         cut_b = np.isfinite(r_b.deviations_um)
-        cuts.append(MeasuredCut(r_b.measured[cut_b], r_b.normals[cut_b], prog_b.text))
-        out["setup"] += f" + {tuple(setup_b['placement_mm'])}"
+        cuts.append(MeasuredCut(r_b.measured[cut_b], r_b.normals[cut_b], prog_b.text, part_json=pj_b))
+        out["setup"] += f" + {tuple(setup_b['placement_mm'])}" + (f" cone {setup_b['cone']}" if second == "cone"
+                                                                   else "")
     t1 = time.perf_counter()
     try:
         diag, _ = run_diagnosis_cuts(cuts, "nas979", m, **_part_kwargs(pj))
@@ -661,10 +673,10 @@ def _run_case(case: dict, points: int, noise_um: float, second: bool = False) ->
                              for n, u, v, sd in zip(f.parameters, f.units, f.value, f.std)]
     out["truth_checks"] = cover
     if kinds and out["expected"] != "none":
-        clean = [(run(scales), prog.text)]
+        clean = [(run(scales), prog.text, pj)]
         if second:
-            clean.append((run(scales, cut_prog=prog_b, t_start_s=t_b), prog_b.text))
-        out["identifiable"] = identifiability(clean, m, pj, out["expected"], noise_um)
+            clean.append((run(scales, cut_prog=prog_b, t_start_s=t_b, cut_pj=pj_b), prog_b.text, pj_b))
+        out["identifiable"] = identifiability(clean, m, out["expected"], noise_um)
     return out
 
 
@@ -673,9 +685,9 @@ def _run_case(case: dict, points: int, noise_um: float, second: bool = False) ->
 Z_IDENTIFIABLE = 3.0
 
 
-def identifiability(clean, m, pj, expected: str, noise_um: float) -> dict:
+def identifiability(clean, m, expected: str, noise_um: float) -> dict:
     """Can this part tell the true effect from the other candidates at all? On the noise-free cuts of the same
-    machine (``clean``: [(shop result, program text)], one per part), the candidate (or pair) of the expected answer and every other plausible candidate and pair
+    machine (``clean``: [(shop result, program text, part description)], one per part), the candidate (or pair) of the expected answer and every other plausible candidate and pair
     are fitted (held out, as the diagnosis fits them); a rival whose noise-free held-out residual the probe noise
     cannot separate from the truth's -- expected paired z of the truth's advantage
 
@@ -687,9 +699,9 @@ def identifiability(clean, m, pj, expected: str, noise_um: float) -> dict:
     from trueaxis.diagnose.candidates import LIBRARY, build_all
     from trueaxis.diagnose.report import MeasuredCut, run_diagnosis_cuts
 
-    cuts = [MeasuredCut(c.measured[np.isfinite(c.deviations_um)], c.normals[np.isfinite(c.deviations_um)], text)
-            for c, text in clean]
-    diag, state = run_diagnosis_cuts(cuts, "nas979", m, noise_um=noise_um, **_part_kwargs(pj))
+    cuts = [MeasuredCut(c.measured[np.isfinite(c.deviations_um)], c.normals[np.isfinite(c.deviations_um)], text,
+                        part_json=pj) for c, text, pj in clean]
+    diag, state = run_diagnosis_cuts(cuts, "nas979", m, noise_um=noise_um)
     g = state.gap_um
     want = sorted(expected.split("+"))
     fits = diag.fits + diag.pairs
@@ -875,8 +887,9 @@ def main(argv=None) -> int:
     ap.add_argument("--list", action="store_true", help="print the case list and stop")
     ap.add_argument("--demo-timing", action="store_true", help="also time one diagnosis at the demo's 8000 points")
     ap.add_argument("--rescore", default=None, help="print the scores of a --json file of an earlier run and stop")
-    ap.add_argument("--second-placement", action="store_true", help="each case cuts the cone twice, the second "
-                    "time at another distance from the rotary axis (half the points on each), both diagnosed together")
+    ap.add_argument("--second", choices=["placement", "cone"], default="", help="each case cuts the cone twice, "
+                    "the second time at another distance from the rotary axis (cone: and a larger half-angle), half the "
+                    "points on each, both diagnosed together")
     args = ap.parse_args(argv)
     if args.rescore:
         rows = json.loads(Path(args.rescore).read_text())["cases"]
@@ -911,10 +924,10 @@ def main(argv=None) -> int:
     client.upload_file(__file__)
     import diagnose_sets as mod  # this file as a module, so that workers import it by name (and keep its caches)
 
-    two = f" over two placements ({args.points // 2} each)" if args.second_placement else ""
+    two = f" over two parts ({args.second}; {args.points // 2} points each)" if args.second else ""
     print(f"{len(cases)} cases ({', '.join(sets)}), {args.points} points{two}, noise {NOISE_UM} um, "
           f"scheduler {client.scheduler.address}", flush=True)
-    futures = [client.submit(mod.run_case, c, args.points, NOISE_UM, args.second_placement, pure=False)
+    futures = [client.submit(mod.run_case, c, args.points, NOISE_UM, args.second, pure=False)
                for c in cases]
     rows = []
     for fut in as_completed(futures):
