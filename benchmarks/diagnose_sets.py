@@ -54,7 +54,7 @@ and the repository's fixtures: the one trueaxis is imported from, or $TRUEAXIS_R
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout           # once the rules are frozen
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout2          # added after the 11-25 freeze
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout3          # added after the 11-27 freeze
-    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout4          # after the 11-27 evening one
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set heldout4          # after the second 11-27 freeze
     PYTHONPATH=$PWD .venv/bin/python benchmarks/diagnose_sets.py --set all --json out.json   # every set
 
 ``--cases N`` keeps N cases spread over the list (the case numbers and seeds stay those of the full list);
@@ -153,9 +153,10 @@ SETS = {
             {"machine": "bc_offset", "placement_mm": (35.0, 25.0), "cone": {"half_angle_deg": 14.0}},
         ],
     },
-    # A fourth held-out set, added on 2026-11-27 (evening) after the rules were frozen again (a pair's wear shadow,
-    # the leaders paired with every candidate, a verdict beaten by Z_MIN is none, the confidence's gain deficit
-    # mapped 2 % -> 5 %), run once: a fresh seed, new placements and cone sizes on the three held-out layouts.
+    # A fourth held-out set, added on 2026-11-27 (second session) after the rules were frozen again at 4fab255 (a
+    # pair's wear shadow, the leaders paired with the candidates not significant alone, a verdict beaten by Z_MIN is
+    # none, the confidence's gain deficit mapped 2 % -> 5 %), run once: a fresh seed, new placements and cone sizes
+    # on the three held-out layouts.
     "heldout4": {
         "seed": 88_215,
         "setups": [
