@@ -139,6 +139,10 @@ def effect_of(name: str) -> str:
 
 def separating_measurement(a: str, b: str) -> str:
     fa, fb = family(a), family(b)
+    if fa == fb == "rotary":
+        return (f"a second cone at another distance from the rotary axis and of another half-angle (the normal's "
+                f"radial and axial parts change), cut after this one and diagnosed with it (--cloud and --program "
+                f"twice), which moves {a} and {b} differently")
     if fa == fb:
         return f"a second placement or the slot block, which move {a} and {b} differently"
     return SEPARATING_MEASUREMENT.get(frozenset({fa, fb}),
