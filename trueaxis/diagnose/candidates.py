@@ -33,7 +33,9 @@ deliberately poorer, so that a fit is a test and not an identity):
   at the centre of the engaged flute) and tilts the tool.
 - ``thermal_<k>``: drift along one machine direction, D (1 - exp(-t/tau)) / (1 - exp(-T/tau)), tau from a grid
   of multiples of the program's duration T (infinite: linear); ``thermal_spline_<k>``: a linear spline of time
-  through zero at the start, knots at T/3, 2T/3 and T. The shop interpolates a measured thermal series.
+  through zero at the start, knots at T/3, 2T/3 and T. The shop interpolates a measured thermal series. With
+  several cuts (``state.combine_states``) t runs on over them, T is their total, and each part sees the drift
+  since its own set-up (the shape minus its value at the part's datum).
 - ``rotary_<motion>_<axis>``: the ISO 230-7 error motions, radial (two directions normal to the axis), axial, tilt
   (about the two directions normal to it) and angular positioning, each component E<dir><axis> as harmonics 1-4 of
   the commanded angle, zero at angle 0, plus a term linear in the angle on an axis of limited travel (only that term
