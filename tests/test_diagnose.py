@@ -753,6 +753,8 @@ def test_states_of_two_cuts_combine_with_the_clock_running_on_and_each_cut_place
 
 
 def test_two_measured_parts_are_diagnosed_together_from_the_command_line(two_cones, capsys):
+    # Two clouds with their programs: one verdict over both, the report per part; the same cloud twice and a
+    # program short are refused before anything is written.
     from trueaxis.cli import main
 
     _, _, d = two_cones
@@ -767,7 +769,31 @@ def test_two_measured_parts_are_diagnosed_together_from_the_command_line(two_con
     assert data["chosen"][0]["effect"] == "backlash_x"
     p = data["chosen"][0]["parameters"][0]
     assert abs(p["value_um"] - 6.0) < 3 * p["std_um"]
+    assert [c["cut"] for c in data["per_cut"]] == [1, 2] and data["warnings"] == []
+    assert all(c["held_out_rms_um_after"] < 1.3 < c["gap_rms_um_before"] for c in data["per_cut"])
     capsys.readouterr()
+    # The same cloud twice (its noise would pass for signal: the noise estimate fell to 0.002 um): refused, exit 3.
+    assert main(args + two[:4] + two[:4] + ["-o", str(d / "dup")]) == 3
+    assert "cloud 2 is the same measurement as cloud 1" in capsys.readouterr().err and not (d / "dup").exists()
     # One program for two clouds: refused before any work, exit 2, nothing written.
     assert main(args + two[:6] + ["-o", str(d / "bad")]) == 2
-    assert "2 clouds and 1 programs" in capsys.readouterr().err and not (d / "bad").exists()
+    assert "2 cloud(s) and 1 program(s)" in capsys.readouterr().err and not (d / "bad").exists()
+
+
+def test_a_part_the_verdict_leaves_above_the_noise_is_named_in_a_warning():
+    # Two parts, the verdict's held-out residual at the noise on the first and twice it on the second (a cloud given
+    # with another part's program left 1.6 um against 1 um in a QA pass, with a verdict at 0.50): the report's
+    # per-part figures say so and a warning names the second part only.
+    from types import SimpleNamespace
+
+    from trueaxis.diagnose.report import PER_CUT_MISFIT, per_cut_figures, per_cut_warnings
+
+    rng = np.random.default_rng(2)
+    g = rng.normal(0.0, 5.0, 2000)
+    resid = np.r_[rng.normal(0.0, 1.0, 1000), rng.normal(0.0, 2.0, 1000)]
+    state = SimpleNamespace(gap_um=g, piece=np.repeat([0, 1], 1000))
+    diag = SimpleNamespace(chosen_fit=SimpleNamespace(held_out_pred_um=g - resid), noise_um=1.0)
+    figs = per_cut_figures(diag, state)
+    assert [round(f["held_out_rms_um_after"], 1) for f in figs] == [1.0, 2.0] and PER_CUT_MISFIT < 2.0
+    warnings = per_cut_warnings(diag, state)
+    assert len(warnings) == 1 and warnings[0].startswith("part 2: the verdict leaves 2.0")

@@ -200,7 +200,10 @@ def estimate_noise_um(state: TwinState) -> float:
     # The nearest neighbour cut within a short time (same pass, same direction): a smooth effect cancels.
     dt = np.abs(state.t_s[idx[:, 1:]] - state.t_s[:, None])
     tol = max(0.01 * state.t_end_s, 0.5)
-    ok = dt < tol
+    # Not the point itself (a coincident point may come first in the query), and of the same part.
+    ok = (dt < tol) & (idx[:, 1:] != np.arange(g.size)[:, None])
+    if state.piece is not None:
+        ok &= state.piece[idx[:, 1:]] == state.piece[:, None]
     j = np.where(ok.any(axis=1), ok.argmax(axis=1), 0)
     pair = idx[np.arange(g.size), 1 + j]
     keep = ok.any(axis=1)

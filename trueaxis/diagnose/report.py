@@ -119,6 +119,10 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
             if not which:
                 raise
             raise (CloudError if isinstance(exc, CloudError) else ValueError)(f"{exc}{which}") from None
+        for j, other in enumerate(cuts[:k]):
+            if np.shape(other.points) == np.shape(c.points) and np.array_equal(other.points, c.points):
+                raise CloudError(f"cloud {k + 1} is the same measurement as cloud {j + 1}{which}: each part is "
+                                 f"measured once (a cloud given twice would count its noise as signal)")
         states.append(st)
     state = combine_states(states)
     t0 = time.perf_counter()
@@ -161,6 +165,34 @@ def _fit_dict(f) -> dict:
             "n_parameters": f.n_parameters, "effective_rank": f.rank, **f.extra}
 
 
+#: A part whose held-out residual after the verdict exceeds this many times the probe noise is named in a warning
+#: (several parts): the verdict does not describe it as it describes the others.
+PER_CUT_MISFIT = 1.3
+
+
+def per_cut_figures(diag: Diagnosis, state: TwinState) -> list[dict]:
+    """Per measured part (several cuts): points, the gap's RMS before and the held-out RMS after the verdict, um."""
+    if state.piece is None:
+        return []
+    g = state.gap_um
+    after = g - (diag.chosen_fit.held_out_pred_um if diag.chosen_fit is not None else 0.0)
+    return [{"cut": k + 1, "points": int(np.sum(state.piece == k)),
+             "gap_rms_um_before": float(np.sqrt(np.mean(g[state.piece == k] ** 2))),
+             "held_out_rms_um_after": float(np.sqrt(np.mean(after[state.piece == k] ** 2)))}
+            for k in range(int(state.piece.max()) + 1)]
+
+
+def per_cut_warnings(diag: Diagnosis, state: TwinState) -> list[str]:
+    """A warning for each part the verdict leaves well above the noise (a cloud given with another part's program,
+    or an effect the verdict does not describe on that part)."""
+    if diag.chosen_fit is None:
+        return []
+    return [f"part {c['cut']}: the verdict leaves {c['held_out_rms_um_after']:.2f} um RMS on its held-out points "
+            f"against a probe noise of {diag.noise_um:.2f} um: structure it does not describe there (is that cloud "
+            f"the one its program cut? an effect outside the library?)"
+            for c in per_cut_figures(diag, state) if c["held_out_rms_um_after"] > PER_CUT_MISFIT * diag.noise_um]
+
+
 def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None) -> dict:
     chosen = []
     if diag.chosen_fit is not None:
@@ -180,6 +212,9 @@ def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None
         "confidence_in_verdict": diag.confidence,
         "points": len(state), "points_not_cut_by_twin": state.dropped,
         "points_per_cut": [len(state)] if state.piece is None else np.bincount(state.piece).tolist(),
+        "per_cut": per_cut_figures(diag, state),
+        "clock": None if state.piece is None else "the parts were cut one right after another (no pause between "
+                 "them): the drift's time runs on from part to part",
         "noise_sigma_um": diag.noise_um, "noise_estimated": diag.noise_estimated,
         "split": diag.split,
         "where": diag.where,
@@ -295,11 +330,23 @@ def _html(data: dict, pngs: dict) -> str:
                    for k, v in pngs.items())
     per_cut = data.get("points_per_cut") or []
     cuts = f" on {len(per_cut)} parts cut in turn ({' + '.join(map(str, per_cut))})" if len(per_cut) > 1 else ""
+    if data.get("per_cut"):
+        clouds = data["inputs"].get("cloud") or []
+        programs = data["inputs"].get("program") or []
+        rows = "".join(f"<tr><td>{c['cut']}</td><td>{e(str(clouds[c['cut'] - 1]) if len(clouds) >= c['cut'] else '')}"
+                       f"</td><td>{e(str(programs[c['cut'] - 1]) if len(programs) >= c['cut'] else '')}</td>"
+                       f"<td>{c['points']}</td><td>{c['gap_rms_um_before']:.3f}</td>"
+                       f"<td>{c['held_out_rms_um_after']:.3f}</td></tr>" for c in data["per_cut"])
+        cut_table = ("<table><tr><th>part</th><th>cloud</th><th>program</th><th>points</th><th>gap RMS um</th>"
+                     f"<th>held-out RMS after um</th></tr>{rows}</table><p>{e(data.get('clock') or '')}.</p>")
+    else:
+        cut_table = ""
     return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>trueaxis diagnosis</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{padding:2px 8px;border-bottom:1px solid #ddd}}</style>
 </head><body><h1>Sim-to-real gap: diagnosis</h1>
 <p>{data['points']} points{cuts} ({data['points_not_cut_by_twin']} not cut by the twin's program), probe noise sigma
 {data['noise_sigma_um']:.3f} um ({'estimated' if data['noise_estimated'] else 'given'}), held-out split: {e(data['split'])}.</p>
+{cut_table}
 <h2>Which</h2>{chosen}{alt}
 <h2>How far</h2><table><tr><th></th><th>RMS um</th><th>P95 um</th><th>max um</th></tr>
 <tr><td>before</td><td>{b['rms']:.3f}</td><td>{b['p95']:.3f}</td><td>{b['max']:.3f}</td></tr>
@@ -358,8 +405,8 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     clouds = list(cloud) if isinstance(cloud, (list, tuple)) else [cloud]
     programs = [Path(p) for p in (program if isinstance(program, (list, tuple)) else [program])]
     if len(clouds) != len(programs):
-        raise ValueError(f"{len(clouds)} clouds and {len(programs)} programs: give one --program per --cloud, in the "
-                         f"order the parts were cut")
+        raise ValueError(f"{len(clouds)} cloud(s) and {len(programs)} program(s): give one --program per --cloud, in "
+                         f"the order the parts were cut")
     for p in programs:
         if not p.is_file():
             raise ValueError(f"{p}: no such program file")
@@ -381,6 +428,7 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
               "part_json": [str(x) if isinstance(x, (str, Path)) else None for x in each] if not one else
               (str(part_json) if isinstance(part_json, (str, Path)) else None)}
     warnings = [w for text, p in zip(texts, programs) for w in input_warnings(state, m, text, p, noise_um)]
+    warnings += per_cut_warnings(diag, state)
     data = write_report(diag, state, output, inputs, list(dict.fromkeys(warnings)))
     return diag, data
 
