@@ -803,6 +803,8 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
             mine = [n for n in chosen_fit.members if n not in rival.members] or chosen_fit.members
             seps = [separating_measurement(mine[0], odd[0])]
         sep = "; ".join(dict.fromkeys(seps)) if seps else None
+        if sep and state.piece is not None:  # several parts were given already: say they did not settle it
+            sep = f"the {int(state.piece.max()) + 1} parts given do not tell them apart; {sep}"
         after_r = g - chosen_fit.held_out_pred_um
         verdict = " + ".join(m + (f" (or {' / '.join(tied[m])}: indistinguishable on this part)" if tied.get(m) else "")
                              for m in chosen_fit.members)
