@@ -88,6 +88,14 @@ def test_program_nas979_writes_program_and_cl(tmp_path, capsys):
     assert cl.read_text().splitlines()[0] == "x,y,z,i,j,k,f"
 
 
+def test_a_placement_at_negative_x_is_read_as_the_value_it_is(tmp_path, capsys):
+    # "--placement-mm -5,5" (a placement at negative X) was read by argparse as an unknown option, exit 2.
+    out = tmp_path / "cone.ngc"
+    assert main(["program", "nas979", "-o", str(out), "--compensate", "none", "--step-deg", "4",
+                 "--chord-tol-um", "5", "--placement-mm", "-5,5"]) == 0
+    assert "placement_mm=-5.000,5.000" in out.read_text()
+
+
 def test_the_cl_csv_a_program_writes_posts_with_its_rapids_as_rapids(tmp_path, capsys):
     """`program --cl` writes f = 0 on its rapids; `post` of that file reads them as rapids (it refused the file)."""
     out, cl, posted = tmp_path / "cone.ngc", tmp_path / "cl.csv", tmp_path / "posted.ngc"

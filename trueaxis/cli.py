@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -686,6 +687,25 @@ EXIT_SIGTERM = 143
 EXIT_BROKEN_PIPE = 141  # as a shell reports a process ended by SIGPIPE
 
 
+#: Options whose value is a comma list of numbers: "--placement-mm -40,20" is their value, not an option (argparse
+#: reads a token starting with "-" that is not a plain number as an option).
+VECTOR_OPTIONS = ("--placement-mm", "--force-n")
+
+
+def _joined_vectors(argv: list) -> list:
+    """argv with each vector option and a value starting with a minus sign joined as "--option=value"."""
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a in VECTOR_OPTIONS and i + 1 < len(argv) and re.match(r"^-[\d.]", argv[i + 1]):
+            out.append(f"{a}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
 def main(argv=None) -> int:
     """Run one command. Exit status: 0 done; 2 usage (one line per problem on stderr, nothing written); 3 an input
     or a computed result refused (``file:line: reason`` where it has a line; nothing written); 1 the system refused (a file that cannot be read or written: one
@@ -694,7 +714,7 @@ def main(argv=None) -> int:
 
     from .fileio import check_outputs, raise_if_signalled
 
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(_joined_vectors(sys.argv[1:] if argv is None else list(argv)))
     if threading_main():
         signal.signal(signal.SIGTERM, _on_sigterm)
         signal.signal(signal.SIGINT, _on_sigint)
