@@ -592,6 +592,11 @@ def _spline_margin(fits: list, g: np.ndarray) -> None:
             f.extra["not_beyond_constrained"] = True
 
 
+def _as_fitted(c: Candidate, f: Fit) -> Candidate:
+    """The candidate with the variant its own fit chose (itself when it has none)."""
+    return c.with_variant(f.variant) if c.variants else c
+
+
 def _pair_rss(a: Candidate, b: Candidate, g: np.ndarray) -> float:
     """Residual sum of squares (um^2) of the bounded fit of two candidates' columns to the whole gap."""
     S = np.column_stack([a.columns, b.columns])
@@ -705,8 +710,7 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         for na, nb in combos:
             if family(na) == family(nb) == "thermal":
                 continue  # one drift (in two forms, or along two directions: one direction) is no pair
-            ca = by_name[na].with_variant(fit_of[na].variant) if by_name[na].variants else by_name[na]
-            cb = by_name[nb].with_variant(fit_of[nb].variant) if by_name[nb].variants else by_name[nb]
+            ca, cb = _as_fitted(by_name[na], fit_of[na]), _as_fitted(by_name[nb], fit_of[nb])
             if nb not in top and by_name[nb].variants:
                 # A member that fits nothing alone has no variant of its own yet: the one that suits the pair.
                 cb = min((by_name[nb].with_variant(i) for i in range(len(by_name[nb].variants))),
@@ -758,8 +762,7 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         if len(chosen_fit.members) > 1:
             for m in chosen_fit.members:
                 other = [x for x in chosen_fit.members if x != m]
-                cands = [by_name[x].with_variant(fit_of[x].variant) if by_name[x].variants else by_name[x]
-                         for x in other]
+                cands = [_as_fitted(by_name[x], fit_of[x]) for x in other]
                 half = fit_candidate([*cands, uniform_wear(state)], g, folds)
                 z_half = paired_z(g, best_tied.held_out_pred_um, half.held_out_pred_um)
                 if z_half < shadow_z:

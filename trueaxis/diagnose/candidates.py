@@ -301,9 +301,13 @@ def thermal_spline(state: TwinState, k: int, knots: int = 3) -> Candidate:
     at = T * np.arange(1, knots + 1) / knots
     # Hat functions of a linear spline through 0 at the program start: parameter m is the drift at time at[m].
     grid = np.r_[0.0, at]
-    hats = np.column_stack([np.interp(state.t_s, grid, np.eye(knots + 1)[m + 1]) for m in range(knots)])
+
+    def hats_at(t):
+        return np.column_stack([np.interp(t, grid, np.eye(knots + 1)[m + 1]) for m in range(knots)])
+
+    hats = hats_at(state.t_s)
     if state.t_datum_s is not None:  # several cuts: each part's drift since its own set-up
-        hats -= np.column_stack([np.interp(state.t_datum_s, grid, np.eye(knots + 1)[m + 1]) for m in range(knots)])
+        hats -= hats_at(state.t_datum_s)
     proj = np.einsum("ij,ij->i", state.normals, _machine_direction(state, k))
     return Candidate(f"thermal_spline_{letter.lower()}", proj[:, None] * hats,
                      [f"drift_{letter}_at_{t:.0f}s" for t in at], ["um"] * knots, [(-200.0, 200.0)] * knots,

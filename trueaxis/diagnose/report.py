@@ -101,6 +101,10 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
     states = []
     for k, c in enumerate(cuts):
         which = f" (cut {k + 1} of {len(cuts)}: {c.program_name})" if len(cuts) > 1 else ""
+        for j, other in enumerate(cuts[:k]):  # before the twin's simulation: a cheap refusal first
+            if np.shape(other.points) == np.shape(c.points) and np.array_equal(other.points, c.points):
+                raise CloudError(f"cloud {k + 1} is the same measurement as cloud {j + 1}{which}: each part is "
+                                 f"measured once (a cloud given twice would count its noise as signal)")
         pj = part_description(part, part_json if c.part_json is None else c.part_json)
         try:
             check_cloud_for_part(c.points, part, pj)
@@ -119,10 +123,6 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
             if not which:
                 raise
             raise (CloudError if isinstance(exc, CloudError) else ValueError)(f"{exc}{which}") from None
-        for j, other in enumerate(cuts[:k]):
-            if np.shape(other.points) == np.shape(c.points) and np.array_equal(other.points, c.points):
-                raise CloudError(f"cloud {k + 1} is the same measurement as cloud {j + 1}{which}: each part is "
-                                 f"measured once (a cloud given twice would count its noise as signal)")
         states.append(st)
     state = combine_states(states)
     t0 = time.perf_counter()
@@ -176,10 +176,12 @@ def per_cut_figures(diag: Diagnosis, state: TwinState) -> list[dict]:
         return []
     g = state.gap_um
     after = g - (diag.chosen_fit.held_out_pred_um if diag.chosen_fit is not None else 0.0)
-    return [{"cut": k + 1, "points": int(np.sum(state.piece == k)),
-             "gap_rms_um_before": float(np.sqrt(np.mean(g[state.piece == k] ** 2))),
-             "held_out_rms_um_after": float(np.sqrt(np.mean(after[state.piece == k] ** 2)))}
-            for k in range(int(state.piece.max()) + 1)]
+    out = []
+    for k in range(int(state.piece.max()) + 1):
+        rows = state.piece == k
+        out.append({"cut": k + 1, "points": int(rows.sum()), "gap_rms_um_before": float(np.sqrt(np.mean(g[rows] ** 2))),
+                    "held_out_rms_um_after": float(np.sqrt(np.mean(after[rows] ** 2)))})
+    return out
 
 
 def per_cut_warnings(diag: Diagnosis, state: TwinState) -> list[str]:
@@ -427,24 +429,24 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
               "candidates": names, "split": split, "noise_um": noise_um,
               "part_json": [str(x) if isinstance(x, (str, Path)) else None for x in each] if not one else
               (str(part_json) if isinstance(part_json, (str, Path)) else None)}
-    warnings = [w for text, p in zip(texts, programs) for w in input_warnings(state, m, text, p, noise_um)]
-    warnings += per_cut_warnings(diag, state)
-    data = write_report(diag, state, output, inputs, list(dict.fromkeys(warnings)))
+    warnings = input_warnings(state, m, list(zip(texts, programs)), noise_um) + per_cut_warnings(diag, state)
+    data = write_report(diag, state, output, inputs, warnings)
     return diag, data
 
 
-def input_warnings(state: TwinState, machine, program_text: str, program, noise_um: float | None) -> list[str]:
+def input_warnings(state: TwinState, machine, programs: list, noise_um: float | None) -> list[str]:
     """What in the inputs looks wrong, one line each: a program posted for another machine (its header names the
-    machine), a probe noise given far from the one the data show."""
+    machine), a probe noise given far from the one the data show. programs : [(text, path)], one per cut."""
     from .analysis import estimate_noise_um
 
     out = []
-    posted = re.search(r"^\(machine: (.*)\)\s*$", program_text[:20_000], re.MULTILINE)
     # the program's header writes the machine's name with its parentheses as brackets
     name = machine.name.replace("(", "[").replace(")", "]")
-    if posted and posted.group(1).strip() != name.strip():
-        out.append(f"{program} was written for the machine {posted.group(1).strip()!r}, the twin given is "
-                   f"{name!r}: a diagnosis against another machine's twin names that machine's differences")
+    for program_text, program in programs:
+        posted = re.search(r"^\(machine: (.*)\)\s*$", program_text[:20_000], re.MULTILINE)
+        if posted and posted.group(1).strip() != name.strip():
+            out.append(f"{program} was written for the machine {posted.group(1).strip()!r}, the twin given is "
+                       f"{name!r}: a diagnosis against another machine's twin names that machine's differences")
     if noise_um is not None:
         seen = estimate_noise_um(state)
         if not 0.5 <= noise_um / max(seen, 1e-300) <= 2.0:

@@ -114,17 +114,15 @@ class TwinState:
         out["memo"] = {}
         return TwinState(**out)
 
-
     def placements(self) -> list:
         """[(rows, twin)]: the rows (bool mask) of each cut with its twin as placed (one entry for one cut)."""
         if self.piece is None or not self.machines:
             return [(np.ones(len(self), bool), self.machine)]
         return [(self.piece == k, m) for k, m in enumerate(self.machines) if np.any(self.piece == k)]
 
-    def since_datum_s(self, t_s: np.ndarray | None = None) -> np.ndarray:
+    def since_datum_s(self) -> np.ndarray:
         """(N,) time since each row's part was set up, s (the program time for one cut)."""
-        t = self.t_s if t_s is None else t_s
-        return t if self.t_datum_s is None else t - self.t_datum_s
+        return self.t_s if self.t_datum_s is None else self.t_s - self.t_datum_s
 
 
 def combine_states(states: list) -> TwinState:
@@ -145,7 +143,7 @@ def combine_states(states: list) -> TwinState:
     for f in dataclasses.fields(TwinState):
         vals = [getattr(st, f.name) for st in states]
         v0 = vals[0]
-        if f.name in ("t_s",):
+        if f.name == "t_s":
             out[f.name] = np.concatenate([v + o for v, o in zip(vals, offsets)])
         elif isinstance(v0, np.ndarray) and v0.ndim >= 1 and v0.shape[0] == n[0]:
             out[f.name] = np.concatenate(vals)
