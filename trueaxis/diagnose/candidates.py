@@ -15,7 +15,7 @@ How they differ from the virtual shop's effects (``trueaxis.sim.effects``; DESIG
 deliberately poorer, so that a fit is a test and not an identity):
 
 - ``backlash_<axis>`` (every axis, rotary ones in urad): e = (b/2) d (1 - 2 tanh(s / lambda)) at the cut sample,
-  d the direction of motion, s the travel since the last reversal, lambda from a grid (``BACKLASH_TRANSITIONS``,
+  d the direction of motion, s the travel since the last reversal, lambda from a grid (``REVERSAL_TRANSITIONS``,
   0 = a step) chosen by the fit. The shop takes the lost motion up (tanh or exponential friction form) on the
   servo-lagged axes, and the envelope picks the deepest cut of any tool instance.
 - ``servo_lag``: per axis j a lag L_j = sum_m c_jm (ms) over first-order filters of the commanded velocity (time
@@ -131,12 +131,6 @@ def _angle_scale(state: TwinState, axis: str) -> float:
     return 1e-3 if axis in state.rotary else 1.0
 
 
-#: Transition lengths of the reversal candidate (mm for a linear axis, deg for a rotary one): a step, and the lost
-#: motion taken up over a short or a long travel after the reversal. The one that fits the training points best is
-#: used (``Candidate.variants``, chosen fold by fold).
-BACKLASH_TRANSITIONS = REVERSAL_TRANSITIONS
-
-
 def backlash(state: TwinState, axis: str) -> Candidate | None:
     if axis not in state.axis_names:
         return None
@@ -155,7 +149,9 @@ def backlash(state: TwinState, axis: str) -> Candidate | None:
     boundary = np.nonzero(np.any(np.isfinite(depth[:, 1:]) & (
         np.abs(lm[:, 1:, j, :] - lm[:, :1, j, :]).max(axis=2) > 1e-9), axis=1))[0]
     amps = REVERSAL_AMPLITUDES_URAD if rotary else REVERSAL_AMPLITUDES_UM
-    for li, lam in enumerate(BACKLASH_TRANSITIONS):
+    # The transitions are the state's (``REVERSAL_TRANSITIONS``: its lost motion is read for each): the one that fits
+    # the training points best is used (``Candidate.variants``, chosen fold by fold).
+    for li, lam in enumerate(REVERSAL_TRANSITIONS):
         # e = (b/2) e_hat: -(b/2) d once taken up, +(b/2) d at the turning point after a full take-up the other way,
         # a play with memory in between (``TwinState.lost_motion``).
         label = f"transition {lam:g} {'deg' if rotary else 'mm'}"
