@@ -797,3 +797,35 @@ def test_a_part_the_verdict_leaves_above_the_noise_is_named_in_a_warning():
     assert [round(f["held_out_rms_um_after"], 1) for f in figs] == [1.0, 2.0] and PER_CUT_MISFIT < 2.0
     warnings = per_cut_warnings(diag, state)
     assert len(warnings) == 1 and warnings[0].startswith("part 2: the verdict leaves 2.0")
+
+
+@pytest.mark.parametrize("tied", [True, False])
+def test_std_covers_the_values_of_a_variant_the_part_cannot_reject(tied):
+    # A candidate's shape (its variant) is picked by the fit. Where another variant fits the held-out points as well
+    # (here a column twice the size, so half the value), the part does not tell the forms apart: the std covers the
+    # other variant's value. A variant the held-out points reject (an unrelated column) widens nothing.
+    from trueaxis.diagnose.analysis import Z_TIE, fit_candidate, paired_z, variant_spread
+    from trueaxis.diagnose.candidates import Candidate
+
+    rng = np.random.default_rng(11)
+    n = 3000
+    s = np.sin(np.linspace(0.0, 6.0 * np.pi, n)) + 0.3 * np.cos(np.linspace(0.0, 2.0 * np.pi, n))
+    g = 3.0 * s + rng.normal(0.0, 1.0, n)
+    other = 2.0 * s if tied else rng.normal(0.0, 1.0, n)
+    cand = Candidate("effect", s[:, None], ["b"], ["um"], [(0.0, 100.0)],
+                     variants=[("form one", s[:, None]), ("form two", other[:, None])])
+    folds = np.arange(n) % 5
+    fit = fit_candidate([cand], g, folds)
+    assert fit.variant == 0 and abs(fit.value[0] - 3.0) < 0.1
+    std0 = float(fit.std[0])
+    alone = fit_candidate([dataclasses.replace(cand, columns=other[:, None], variants=[])], g, folds)
+    z = paired_z(g, fit.held_out_pred_um, alone.held_out_pred_um)
+    variant_spread(fit, {"effect": cand}, g, folds)
+    if tied:
+        assert z < Z_TIE and abs(alone.value[0] - 1.5) < 0.05
+        assert fit.std[0] >= abs(fit.value[0] - alone.value[0]) > 1.4
+        assert np.isclose(fit.std[0] ** 2, std0**2 + (fit.value[0] - alone.value[0]) ** 2)
+        assert fit.extra["variant_spread"]["tied_variants"][0]["variant"] == "form two"
+    else:
+        assert z > 20.0
+        assert fit.std[0] == std0 and "variant_spread" not in fit.extra
