@@ -637,7 +637,9 @@ def _run_case(case: dict, points: int, noise_um: float, second: str = "") -> dic
                                                                    else "")
     t1 = time.perf_counter()
     try:
-        diag, _ = run_diagnosis_cuts(cuts, "nas979", m, **_part_kwargs(pj))
+        # The second part is cut right after the first (the shop's clock: t_start_s = the first cut's end).
+        diag, _ = run_diagnosis_cuts(cuts, "nas979", m, **_part_kwargs(pj),
+                                     pauses_s=[0.0] * (len(cuts) - 1) if len(cuts) > 1 else None)
     except Exception as exc:  # a crash of the diagnosis is a wrong answer, reported with its message
         out.update(answer="ERROR", error=f"{type(exc).__name__}: {exc}", conf=0.0, t_sim=t1 - t0,
                    t_diag=time.perf_counter() - t1, t_case=time.perf_counter() - t0)
@@ -702,7 +704,8 @@ def identifiability(clean, m, expected: str, noise_um: float) -> dict:
 
     cuts = [MeasuredCut(c.measured[np.isfinite(c.deviations_um)], c.normals[np.isfinite(c.deviations_um)], text,
                         part_json=pj) for c, text, pj in clean]
-    diag, state = run_diagnosis_cuts(cuts, "nas979", m, noise_um=noise_um)
+    diag, state = run_diagnosis_cuts(cuts, "nas979", m, noise_um=noise_um,
+                                     pauses_s=[0.0] * (len(cuts) - 1) if len(cuts) > 1 else None)
     g = state.gap_um
     want = sorted(expected.split("+"))
     fits = diag.fits + diag.pairs

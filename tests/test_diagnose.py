@@ -316,6 +316,33 @@ def test_cli_refuses_a_cloud_of_another_cut_with_exit_3_and_candidates_that_do_n
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
+def test_every_cloud_is_checked_before_the_first_simulation_and_a_refusal_names_a_program_of_another_machine(
+        slots, tmp_path, monkeypatch):
+    # Several parts: a second cloud outside the part's box is refused before the first cut's twin simulation (it
+    # was found only after it). A refused run whose program was posted for another machine says so in the error
+    # (that warning came only with a finished report).
+    from trueaxis.diagnose import report
+    from trueaxis.diagnose.report import CloudError, MeasuredCut, diagnose_files, run_diagnosis_cuts
+
+    m, prog, _ = slots
+    r = _cut(m, prog, {}, noise=1.0, seed=2, points=300)
+    calls = []
+    real = report.twin_state
+    monkeypatch.setattr(report, "twin_state", lambda *a, **k: calls.append(1) or real(*a, **k))
+    good = MeasuredCut(r.measured, r.normals, prog.text, "first.ngc")
+    outside = MeasuredCut(r.measured + 5.0, r.normals, prog.text, "second.ngc")
+    with pytest.raises(CloudError, match=r"cut 2 of 2: second.ngc"):
+        run_diagnosis_cuts([good, outside], "slots", m, part_json=prog.part_json, pauses_s=0.0)
+    assert calls == []
+    (tmp_path / "p.ngc").write_text("(machine: Another Mill)\n" + prog.text)
+    write_cmm(dataclasses.replace(r, measured=r.measured + 0.8 * r.normals), tmp_path / "far.ply")
+    with pytest.raises(CloudError, match=r"from the part this program cuts.*Note: .*p.ngc was written for the "
+                                         r"machine 'Another Mill'"):
+        diagnose_files(tmp_path / "far.ply", "slots", str(MACHINES / "xh714.toml"), tmp_path / "p.ngc",
+                       tmp_path / "out", part_json=prog.part_json)
+    assert not (tmp_path / "out").exists()
+
+
 def _synthetic(slots, parts, noise=1.0, seed=0):
     """The slot block's twin state with a gap made of the candidates' own columns (name -> parameter vector) plus
     noise: a check of the judgement alone, without the shop's richer forms."""
@@ -730,7 +757,7 @@ def test_states_of_two_cuts_combine_with_the_clock_running_on_and_each_cut_place
         cut = np.isfinite(r.deviations_um)
         states.append(twin_state(r.points[cut], r.normals[cut], m, prog.text, "nas979", want_force=False))
     a, b = states
-    both = combine_states(states)
+    both = combine_states(states, [0.0])
     assert len(both) == len(a) + len(b) and both.t_end_s == pytest.approx(a.t_end_s + b.t_end_s)
     np.testing.assert_array_equal(both.piece, np.r_[np.zeros(len(a)), np.ones(len(b))])
     np.testing.assert_allclose(both.t_s[len(a):], b.t_s + a.t_end_s)
@@ -752,6 +779,51 @@ def test_states_of_two_cuts_combine_with_the_clock_running_on_and_each_cut_place
     assert np.all(np.abs(c[len(a):, 0]) <= np.abs(proj[len(a):]) * (shape(both.t_end_s) - shape(a.t_end_s)) + 1e-12)
 
 
+def test_a_pause_between_two_parts_shapes_the_drift_each_part_sees(two_cones, tmp_path):
+    # A first-order drift along X (20 um, time constant 0.4 of the whole clock) runs on through a pause between the
+    # two cuts; each part sees it from its own set-up (the shop's relative_to_start). The candidate's column with the
+    # pause given reproduces the shop's change on both parts; with the pause taken as 0 no variant does.
+    from trueaxis.diagnose.state import combine_states
+
+    m, cuts, _ = two_cones
+    states = []
+    for prog, r in cuts:
+        cut = np.isfinite(r.deviations_um)
+        states.append(twin_state(r.points[cut], r.normals[cut], m, prog.text, "nas979", want_force=False))
+    t1, t2 = states[0].t_end_s, states[1].t_end_s
+    pause = 1.5 * t1
+    total = t1 + pause + t2
+    tau, amp = 0.4 * total, 20.0
+    series = tmp_path / "drift.csv"
+    ts = np.linspace(0.0, 1.2 * total, 4000)
+    series.write_text("time_s,x_um\n" + "\n".join(f"{t:.6f},{amp * -np.expm1(-t / tau):.9f}" for t in ts) + "\n")
+    diff = []
+    for (prog, r), st, start in zip(cuts, states, (0.0, t1 + pause)):
+        eff = parse_effects({"thermal": {"file": str(series), "channels": {"X": "x_um"}, "time_offset_s": start}},
+                            machine=prog.machine)
+        cut = np.isfinite(r.deviations_um)
+        shop = simulate(prog.text, prog.machine, eff, part="nas979", probe=(st.points, st.normals))
+        base = simulate(prog.text, prog.machine, None, part="nas979", probe=(st.points, st.normals))
+        diff.append(shop.deviations_um - base.deviations_um)
+    diff = np.concatenate(diff)
+    assert np.ptp(diff) > 5.0
+    with_pause = combine_states(states, [pause])
+    assert with_pause.t_end_s == pytest.approx(total) and with_pause.pauses_s == (pause,)
+    np.testing.assert_allclose(with_pause.t_datum_s[len(states[0]):], t1 + pause)
+    label, col = build("thermal_x", with_pause).variants[1]
+    assert label == "time constant 0.4 T"
+    end = amp * -np.expm1(-total / tau)  # D: the drift at the clock's end, from the first set-up
+    rms = lambda r: float(np.sqrt(np.mean(r**2)))  # noqa: E731
+    assert rms(col[:, 0] * end - diff) < 0.02 * np.ptp(diff)
+    no_pause = build("thermal_x", combine_states(states, [0.0]))
+    best = min(rms(c @ np.linalg.lstsq(c, diff, rcond=None)[0] - diff) for _, c in no_pause.variants)
+    assert best > 5.0 * rms(col[:, 0] * end - diff)
+    with pytest.raises(ValueError, match="pause"):
+        combine_states(states, [])
+    with pytest.raises(ValueError, match="pause"):
+        combine_states(states, [-1.0])
+
+
 def test_two_measured_parts_are_diagnosed_together_from_the_command_line(two_cones, capsys):
     # Two clouds with their programs: one verdict over both, the report per part; the same cloud twice and a
     # program short are refused before anything is written.
@@ -761,7 +833,7 @@ def test_two_measured_parts_are_diagnosed_together_from_the_command_line(two_con
     args = ["diagnose", "--part", "nas979", "--machine", "nmv1500dcg", "--noise-um", "1.0",
             "--candidates", ",".join(c for c in CONE_CANDIDATES if c != "twin_parameters")]
     two = ["--cloud", str(d / "cmm0.ply"), "--program", str(d / "cone0.ngc"),
-           "--cloud", str(d / "cmm1.ply"), "--program", str(d / "cone1.ngc")]
+           "--cloud", str(d / "cmm1.ply"), "--program", str(d / "cone1.ngc"), "--pause-s", "0"]
     assert main(args + two + ["-o", str(d / "rep")]) == 0
     data = json.loads((d / "rep" / "diagnosis.json").read_text())
     assert data["inputs"]["cloud"] == [str(d / "cmm0.ply"), str(d / "cmm1.ply")]
@@ -770,14 +842,24 @@ def test_two_measured_parts_are_diagnosed_together_from_the_command_line(two_con
     p = data["chosen"][0]["parameters"][0]
     assert abs(p["value_um"] - 6.0) < 3 * p["std_um"]
     assert [c["cut"] for c in data["per_cut"]] == [1, 2] and data["warnings"] == []
+    assert data["inputs"]["pauses_s"] == [0.0] and "pause of 0 s" in data["clock"]
     assert all(c["held_out_rms_um_after"] < 1.3 < c["gap_rms_um_before"] for c in data["per_cut"])
     capsys.readouterr()
     # The same cloud twice (its noise would pass for signal: the noise estimate fell to 0.002 um): refused, exit 3.
-    assert main(args + two[:4] + two[:4] + ["-o", str(d / "dup")]) == 3
+    assert main(args + two[:4] + two[:4] + ["--pause-s", "0", "-o", str(d / "dup")]) == 3
     assert "cloud 2 is the same measurement as cloud 1" in capsys.readouterr().err and not (d / "dup").exists()
     # One program for two clouds: refused before any work, exit 2, nothing written.
-    assert main(args + two[:6] + ["-o", str(d / "bad")]) == 2
+    assert main(args + two[:6] + ["--pause-s", "0", "-o", str(d / "bad")]) == 2
     assert "2 cloud(s) and 1 program(s)" in capsys.readouterr().err and not (d / "bad").exists()
+    # Two parts and no pause given (a drift runs on through it: not assumed), a pause for one part, a negative one
+    # or two for one gap: refused, exit 2, nothing written.
+    for bad, msg in ((two[:8], "2 parts: give --pause-s"), (two[:4] + ["--pause-s", "0"], "one part given"),
+                     (two[:8] + ["--pause-s", "0,5"], "one per gap")):
+        assert main(args + bad + ["-o", str(d / "bad")]) == 2
+        assert msg in capsys.readouterr().err and not (d / "bad").exists()
+    with pytest.raises(SystemExit) as stop:  # out of range: argparse's usage error
+        main(args + two[:8] + ["--pause-s", "-5", "-o", str(d / "bad")])
+    assert stop.value.code == 2 and "'-5' must be >= 0" in capsys.readouterr().err and not (d / "bad").exists()
 
 
 def test_a_part_the_verdict_leaves_above_the_noise_is_named_in_a_warning():

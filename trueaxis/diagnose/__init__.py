@@ -1,7 +1,7 @@
 """The sim-to-real gap (DESIGN §8): where it lies, which unmodelled effect explains it, how far it shrinks.
 
     trueaxis diagnose --cloud cmm.ply --part nas979 --machine TWIN.toml --program prog.ngc -o report/
-    trueaxis diagnose --cloud a.ply --program a.ngc --cloud b.ply --program b.ngc ...   # parts cut in turn
+    trueaxis diagnose --cloud a.ply --program a.ngc --cloud b.ply --program b.ngc --pause-s S ...   # parts cut in turn
 
 Several measured parts cut one after another on the machine (a second placement of the part, the same program
 after a warm-up) are diagnosed together: each is read against the twin on its own, then the candidates are fitted

@@ -92,23 +92,57 @@ class MeasuredCut:
 
 
 def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", split="region", noise_um=None,
-                       force_stride: int = 200, part_json=None) -> tuple[Diagnosis, TwinState]:
+                       force_stride: int = 200, part_json=None, pauses_s=None) -> tuple[Diagnosis, TwinState]:
     """The diagnosis of one or more measured parts (``MeasuredCut``) cut one after another on one machine, in that
     order: each is read against the twin on its own (its gap and machine state), then all are judged together, the
     candidates sharing their parameters (one machine). A second placement of the part, or the same part cut after
-    a warm-up, is what separates explanations one cut cannot tell apart (the report's separating measurement)."""
+    a warm-up, is what separates explanations one cut cannot tell apart (the report's separating measurement).
+
+    pauses_s : with several cuts, the pause between the end of each cut and the start of the next (s, >= 0; one per
+    gap, or one number for all): a drift runs on through it, so it is not assumed (0 when one part was cut right
+    after the other). Every cut's cloud is checked before the first simulation."""
     names = parse_candidates(candidates) if isinstance(candidates, str) or candidates is None else list(candidates)
-    states = []
+    if len(cuts) > 1:
+        if pauses_s is None:
+            raise ValueError(f"{len(cuts)} parts: give the pause between one part's cut and the next (s; 0 when cut "
+                             f"right after each other): a drift runs on through it (--pause-s)")
+        pauses = np.atleast_1d(np.asarray(pauses_s, float))
+        pauses = np.full(len(cuts) - 1, pauses[0]) if pauses.size == 1 else pauses
+        if pauses.size != len(cuts) - 1 or not np.all(np.isfinite(pauses) & (pauses >= 0.0)):
+            raise ValueError(f"the pauses between {len(cuts)} parts: one number >= 0 for all, or {len(cuts) - 1} "
+                             f"(one per gap, in the order cut), s; got {np.asarray(pauses_s, float).tolist()}")
+    else:
+        pauses = np.zeros(0)
+
+    def which(k, c):
+        return f" (cut {k + 1} of {len(cuts)}: {c.program_name})" if len(cuts) > 1 else ""
+
+    def for_cut(k, c, check):
+        try:
+            return check()
+        except ValueError as exc:  # CloudError included; with several cuts, which one
+            if not which(k, c):
+                raise
+            raise (CloudError if isinstance(exc, CloudError) else ValueError)(f"{exc}{which(k, c)}") from None
+
+    # The cheap refusals of every cut before the first twin simulation (a bad second cloud is not found after the
+    # first cut's minutes): the same cloud twice, a cloud outside its part, normals.
+    checked = []
     for k, c in enumerate(cuts):
-        which = f" (cut {k + 1} of {len(cuts)}: {c.program_name})" if len(cuts) > 1 else ""
-        for j, other in enumerate(cuts[:k]):  # before the twin's simulation: a cheap refusal first
+        for j, other in enumerate(cuts[:k]):
             if np.shape(other.points) == np.shape(c.points) and np.array_equal(other.points, c.points):
-                raise CloudError(f"cloud {k + 1} is the same measurement as cloud {j + 1}{which}: each part is "
+                raise CloudError(f"cloud {k + 1} is the same measurement as cloud {j + 1}{which(k, c)}: each part is "
                                  f"measured once (a cloud given twice would count its noise as signal)")
         pj = part_description(part, part_json if c.part_json is None else c.part_json)
-        try:
+
+        def gate(c=c, pj=pj):
             check_cloud_for_part(c.points, part, pj)
-            normals = cloud_normals(np.asarray(c.points, float), c.normals, pj)
+            return cloud_normals(np.asarray(c.points, float), c.normals, pj)
+
+        checked.append((pj, for_cut(k, c, gate)))
+    states = []
+    for k, (c, (pj, normals)) in enumerate(zip(cuts, checked)):
+        def read(c=c, pj=pj, normals=normals):
             st = twin_state(c.points, normals, machine, c.program_text, part,
                             want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride,
                             part_json=pj, program_name=c.program_name)
@@ -119,12 +153,10 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
                 raise CloudError(f"the cloud lies {gap_rms:.0f} um (RMS) from the part this program cuts on this "
                                  f"twin: not a measurement of that cut (another part, another frame, another "
                                  f"program?); a sim-to-real gap is at most a few tens of um")
-        except ValueError as exc:  # CloudError included; with several cuts, which one
-            if not which:
-                raise
-            raise (CloudError if isinstance(exc, CloudError) else ValueError)(f"{exc}{which}") from None
-        states.append(st)
-    state = combine_states(states)
+            return st
+
+        states.append(for_cut(k, c, read))
+    state = combine_states(states, pauses)
     t0 = time.perf_counter()
     cands, skipped = build_all(names, state)
     if not cands:
@@ -163,6 +195,14 @@ def _fit_dict(f) -> dict:
             "explained_share_above_noise": f.explained_share, "z": f.z, "f_stat": f.f_stat, "f_p_value": f.f_p,
             "significant": f.significant, "plausible": f.plausible, "explains": f.explains,
             "n_parameters": f.n_parameters, "effective_rank": f.rank, **f.extra}
+
+
+def _clock_text(state: TwinState) -> str:
+    """How the parts' times were put together (several cuts): the pauses given between them."""
+    said = ", ".join(f"{p:g} s" for p in state.pauses_s)
+    return (f"the parts were cut one after another with {'a pause' if len(state.pauses_s) == 1 else 'pauses'} of "
+            f"{said} between them (as given): the drift's time runs on through "
+            f"{'it' if len(state.pauses_s) == 1 else 'them'}, part to part, each part's drift seen from its own set-up")
 
 
 #: A part whose held-out residual after the verdict exceeds this many times the probe noise is named in a warning
@@ -215,8 +255,7 @@ def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None
         "points": len(state), "points_not_cut_by_twin": state.dropped,
         "points_per_cut": [len(state)] if state.piece is None else np.bincount(state.piece).tolist(),
         "per_cut": per_cut_figures(diag, state),
-        "clock": None if state.piece is None else "the parts were cut one right after another (no pause between "
-                 "them): the drift's time runs on from part to part",
+        "clock": None if state.piece is None else _clock_text(state),
         "noise_sigma_um": diag.noise_um, "noise_estimated": diag.noise_estimated,
         "split": diag.split,
         "where": diag.where,
@@ -387,7 +426,7 @@ def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None
 
 
 def diagnose_files(cloud, part: str, machine, program, output, *, candidates="all", split: str = "region",
-                   noise_um: float | None = None, part_json=None) -> tuple[Diagnosis, dict]:
+                   noise_um: float | None = None, part_json=None, pauses_s=None) -> tuple[Diagnosis, dict]:
     """``trueaxis diagnose`` on files: read the cloud (PLY/CSV/XYZ), the twin (machine file) and the program, diagnose,
     and write the report into ``output``. Returns (the diagnosis, the report's JSON dict). Errors raise ValueError;
     nothing is written then.
@@ -397,7 +436,8 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     part_json may be a list of one description per cloud too.
     machine, output : paths.  part : "nas979" | "slots".  candidates : "all", "NAME,NAME" or a list.
     split : "region" | "time" | "random".  noise_um : probe noise sigma (um, > 0) or None (estimated).
-    part_json : the part's description (see ``run_diagnosis``)."""
+    part_json : the part's description (see ``run_diagnosis``).  pauses_s : several parts: the pause(s) between
+    them, s (see ``run_diagnosis_cuts``; required there)."""
     from ..inspect.cloud import read_cloud
     from ..machine import load_machine
 
@@ -422,23 +462,30 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     for c, p, text, pj in zip(clouds, programs, texts, each):
         pts = read_cloud(c)
         cuts.append(MeasuredCut(pts.points, pts.normals, text, str(p), pj))
-    diag, state = run_diagnosis_cuts(cuts, part, m, candidates=names, split=split, noise_um=noise_um)
+    posted_for = program_machine_warnings(m, list(zip(texts, programs)))
+    try:
+        diag, state = run_diagnosis_cuts(cuts, part, m, candidates=names, split=split, noise_um=noise_um,
+                                         pauses_s=pauses_s)
+    except ValueError as exc:  # a refusal says too when a program was written for another machine: the likely cause
+        if not posted_for:
+            raise
+        raise type(exc)(f"{exc}. Note: {'; '.join(posted_for)}") from None
     one = len(clouds) == 1
     inputs = {"cloud": str(clouds[0]) if one else [str(c) for c in clouds], "part": part, "machine": str(machine),
               "program": str(programs[0]) if one else [str(p) for p in programs],
               "candidates": names, "split": split, "noise_um": noise_um,
               "part_json": [str(x) if isinstance(x, (str, Path)) else None for x in each] if not one else
               (str(part_json) if isinstance(part_json, (str, Path)) else None)}
-    warnings = input_warnings(state, m, list(zip(texts, programs)), noise_um) + per_cut_warnings(diag, state)
+    if not one:
+        inputs["pauses_s"] = list(state.pauses_s)
+    warnings = posted_for + input_warnings(state, noise_um) + per_cut_warnings(diag, state)
     data = write_report(diag, state, output, inputs, warnings)
     return diag, data
 
 
-def input_warnings(state: TwinState, machine, programs: list, noise_um: float | None) -> list[str]:
-    """What in the inputs looks wrong, one line each: a program posted for another machine (its header names the
-    machine), a probe noise given far from the one the data show. programs : [(text, path)], one per cut."""
-    from .analysis import estimate_noise_um
-
+def program_machine_warnings(machine, programs: list) -> list[str]:
+    """A program posted for another machine (its header names the machine), one line each; read before any
+    simulation. programs : [(text, path)], one per cut."""
     out = []
     # the program's header writes the machine's name with its parentheses as brackets
     name = machine.name.replace("(", "[").replace(")", "]")
@@ -447,6 +494,15 @@ def input_warnings(state: TwinState, machine, programs: list, noise_um: float | 
         if posted and posted.group(1).strip() != name.strip():
             out.append(f"{program} was written for the machine {posted.group(1).strip()!r}, the twin given is "
                        f"{name!r}: a diagnosis against another machine's twin names that machine's differences")
+    return out
+
+
+def input_warnings(state: TwinState, noise_um: float | None) -> list[str]:
+    """What in the measured data looks wrong against the inputs, one line each: a probe noise given far from the
+    one the data show."""
+    from .analysis import estimate_noise_um
+
+    out = []
     if noise_um is not None:
         seen = estimate_noise_um(state)
         if not 0.5 <= noise_um / max(seen, 1e-300) <= 2.0:

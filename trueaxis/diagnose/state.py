@@ -66,7 +66,7 @@ class TwinState:
     piece : (N,) which of several cuts (parts cut one after another on one machine, ``combine_states``) each row is
         of; None for one cut.  machines : each cut's twin as its program places it (by ``piece``; empty: ``machine``).
     t_datum_s : (N,) program time at which the row's part was set up (its datum probed, so a drift is seen from
-        there), s; None: 0 (one cut).
+        there), s; None: 0 (one cut).  pauses_s : the pauses between the cuts' programs (s, as given; one cut: ()).
     """
 
     points: np.ndarray
@@ -99,6 +99,7 @@ class TwinState:
     piece: np.ndarray | None = None
     machines: tuple = ()
     t_datum_s: np.ndarray | None = None
+    pauses_s: tuple = ()
     timings: dict = field(default_factory=dict)
     memo: dict = field(default_factory=dict)
 
@@ -125,19 +126,26 @@ class TwinState:
         return self.t_s if self.t_datum_s is None else self.t_s - self.t_datum_s
 
 
-def combine_states(states: list) -> TwinState:
+def combine_states(states: list, pauses_s=()) -> TwinState:
     """One state of several cuts measured on one machine, cut one after another (the second placement of a part, or
-    the same program again after a warm-up): the rows of all, the clock running on (cut k starts when cut k - 1 has
-    ended), each row knowing its cut (``piece``), that cut's placed twin (``machines``) and the time its part was set
-    up (``t_datum_s``: a drift is seen from each part's datum). The candidates then share their parameters over the
-    cuts: one machine, one backlash, one drift, one set of location errors."""
+    the same program again after a warm-up): the rows of all, the clock running on (cut k starts ``pauses_s[k - 1]``
+    seconds after cut k - 1 has ended: the machine's clock, which a drift follows whether or not it cuts), each row
+    knowing its cut (``piece``), that cut's placed twin (``machines``) and the time its part was set up
+    (``t_datum_s``: a drift is seen from each part's datum). The candidates then share their parameters over the
+    cuts: one machine, one backlash, one drift, one set of location errors.
+
+    pauses_s : one pause per gap between cuts (len(states) - 1 values, s, >= 0)."""
+    pauses = np.asarray(pauses_s, float).reshape(-1)
+    if pauses.size != len(states) - 1 or not np.all(np.isfinite(pauses) & (pauses >= 0.0)):
+        raise ValueError(f"{len(states)} cuts need {len(states) - 1} pause(s) between them (s, >= 0), got "
+                         f"{pauses.tolist()}")
     if len(states) == 1:
         return states[0]
     first = states[0]
     for st in states[1:]:
         if st.axis_names != first.axis_names or st.part != first.part or st.lag_taus_s != first.lag_taus_s:
             raise ValueError("the cuts to diagnose together must be of one machine and one part")
-    offsets = np.cumsum([0.0] + [st.t_end_s for st in states[:-1]])
+    offsets = np.cumsum([0.0] + [st.t_end_s + w for st, w in zip(states[:-1], pauses)])
     n = [len(st) for st in states]
     out = {}
     for f in dataclasses.fields(TwinState):
@@ -155,6 +163,7 @@ def combine_states(states: list) -> TwinState:
     out["piece"] = np.repeat(np.arange(len(states)), n)
     out["machines"] = tuple(st.machine for st in states)
     out["t_datum_s"] = np.repeat(offsets, n)
+    out["pauses_s"] = tuple(float(w) for w in pauses)
     out["timings"] = {k: sum(st.timings.get(k, 0.0) for st in states) for k in first.timings}
     out["memo"] = {}
     return TwinState(**out)
