@@ -318,9 +318,9 @@ def test_cli_refuses_a_cloud_of_another_cut_with_exit_3_and_candidates_that_do_n
 
 def test_every_cloud_is_checked_before_the_first_simulation_and_a_refusal_names_a_program_of_another_machine(
         slots, tmp_path, monkeypatch):
-    # Several parts: a second cloud outside the part's box is refused before the first cut's twin simulation (it
-    # was found only after it). A refused run whose program was posted for another machine says so in the error
-    # (that warning came only with a finished report).
+    # Several parts: a second cloud outside the part's box, or a second program for the other part, is refused
+    # before the first cut's twin simulation (found only after it until then). A refused run whose program was posted
+    # for another machine says so in the error (that warning came only with a finished report).
     from trueaxis.diagnose import report
     from trueaxis.diagnose.report import CloudError, MeasuredCut, diagnose_files, run_diagnosis_cuts
 
@@ -333,6 +333,10 @@ def test_every_cloud_is_checked_before_the_first_simulation_and_a_refusal_names_
     outside = MeasuredCut(r.measured + 5.0, r.normals, prog.text, "second.ngc")
     with pytest.raises(CloudError, match=r"cut 2 of 2: second.ngc"):
         run_diagnosis_cuts([good, outside], "slots", m, part_json=prog.part_json, pauses_s=0.0)
+    other_part = MeasuredCut(r.measured + 0.01, r.normals, prog.text.replace("part=slots", "part=nas979"),
+                             "third.ngc")
+    with pytest.raises(ValueError, match=r"for part 'nas979', not 'slots' \(cut 2 of 2: third.ngc\)"):
+        run_diagnosis_cuts([good, other_part], "slots", m, part_json=prog.part_json, pauses_s=0.0)
     assert calls == []
     (tmp_path / "p.ngc").write_text("(machine: Another Mill)\n" + prog.text)
     write_cmm(dataclasses.replace(r, measured=r.measured + 0.8 * r.normals), tmp_path / "far.ply")
@@ -454,6 +458,40 @@ def cone():
 
 
 CONE_CANDIDATES = [n for n in LIBRARY if n not in ("force_deflection", "tool_deflection")]
+
+
+def test_the_noise_estimates_standard_error_matches_repeated_draws(cone):
+    # The probe noise is estimated from nearest-neighbour differences (MAD); its stated relative standard error
+    # (MAD_SE / sqrt(distinct pairs)) against the scatter of the estimate over 300 noise draws on the same points.
+    from trueaxis.diagnose.analysis import noise_estimate_rel_se
+
+    m, prog, P, N, dev0, st = cone
+    st = st.subset(np.arange(len(st)))
+    rng = np.random.default_rng(4)
+    est = []
+    for _ in range(300):
+        st.gap_um = rng.normal(0.0, 2.0, len(st))
+        est.append(estimate_noise_um(st) / 2.0)
+    said = noise_estimate_rel_se(st)
+    assert 0.04 < said < 0.15 and abs(np.mean(est) - 1.0) < 0.02
+    assert 0.8 < np.std(est) / said < 1.25
+
+
+def test_a_part_description_of_another_cone_than_the_programs_is_refused(cone):
+    # The program's title names the cone it cuts; a description of another cone (--part-json) would give the twin
+    # another surface and other normals, read as a machine error: refused before any simulation, both named.
+    from trueaxis.diagnose.report import run_diagnosis
+    from trueaxis.workpiece.parts import Nas979Params
+
+    m, prog, P, N, dev0, st = cone
+    with pytest.raises(ValueError, match=r"cuts a cone of base_diameter 80; the part's description gives "
+                                         r"base_diameter 90"):
+        run_diagnosis(P, N, "nas979", m, prog.text, part_json=Nas979Params(base_diameter=90.0))
+    from trueaxis.postproc.programs import read_cone_title
+
+    assert read_cone_title(prog.text) == {"half_angle_deg": 15.0, "axis_inclination_deg": 10.0,
+                                          "base_diameter": 80.0, "height": 20.0}
+    assert read_cone_title("G0 X0\n") is None
 
 
 def test_rotary_backlash_form_matches_the_shop(cone):

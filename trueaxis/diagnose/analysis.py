@@ -10,8 +10,13 @@ candidate's gain per point is d_i = g_i^2 - r_i^2. A candidate explains the gap 
 significant (mean / standard error > ``Z_MIN``; a paired test on held-out points, which needs no distribution of
 the fit's parameters) and material (more than ``MIN_GAIN_OF_NOISE`` sigma^2). The noise sigma is given or estimated
 from the data: the differences of the gap between nearest neighbours on the part that were cut close in time carry
-twice the noise variance and almost none of any smooth effect (robust MAD scale). An F-test of the training fit is
-reported too.
+twice the noise variance and almost none of any smooth effect (robust MAD scale; its own standard error,
+``noise_estimate_rel_se``, widens the test of a gap against the noise when the noise is estimated). An F-test of the
+training fit is reported too.
+
+Parameters' std: the larger of the least-squares and the fold jackknife's, widened by the misfit (``misfit_inflation``)
+and a form uncertainty ``FORM_REL``, and, for the verdict, by the values of the variants the held-out points cannot
+reject (``variant_spread``).
 
 Bounded fits. Every fit, the held-out ones included, keeps the parameters inside the candidates' plausible bounds
 (``lsq_linear`` when the free solution leaves them), so a candidate is judged by what it explains with physically
@@ -195,6 +200,29 @@ def estimate_noise_um(state: TwinState) -> float:
     g = state.gap_um
     if g.size < 10:
         return float(np.std(g))
+    d, _ = _neighbour_differences(state)
+    mad = np.median(np.abs(d - np.median(d)))
+    return float(1.4826 * mad / math.sqrt(2.0))
+
+
+#: The MAD's standard error as a scale estimate of Gaussian data: sd(sigma_hat) / sigma = MAD_SE / sqrt(n)
+#: (asymptotic variance 1.36 sigma^2 / n, Huber & Ronchetti, Robust Statistics, 2009, §5.3).
+MAD_SE = 1.166
+
+
+def noise_estimate_rel_se(state: TwinState) -> float:
+    """Relative standard error of ``estimate_noise_um``: ``MAD_SE`` over the square root of the number of distinct
+    neighbour pairs (a pair found from both of its points counts once); checked against repeated noise draws."""
+    if state.gap_um.size < 10:
+        return 1.0 / math.sqrt(2.0 * max(state.gap_um.size - 1, 1))
+    _, n_distinct = _neighbour_differences(state)
+    return MAD_SE / math.sqrt(max(n_distinct, 1))
+
+
+def _neighbour_differences(state: TwinState) -> tuple[np.ndarray, int]:
+    """The gap's differences between each point and its nearest neighbour cut close in time, and how many distinct
+    pairs they are."""
+    g = state.gap_um
     tree = cKDTree(state.points)
     dist, idx = tree.query(state.points, k=min(6, g.size))
     # The nearest neighbour cut within a short time (same pass, same direction): a smooth effect cancels.
@@ -207,9 +235,12 @@ def estimate_noise_um(state: TwinState) -> float:
     j = np.where(ok.any(axis=1), ok.argmax(axis=1), 0)
     pair = idx[np.arange(g.size), 1 + j]
     keep = ok.any(axis=1)
-    d = (g - g[pair])[keep] if keep.sum() >= 10 else g - g[idx[:, 1]]
-    mad = np.median(np.abs(d - np.median(d)))
-    return float(1.4826 * mad / math.sqrt(2.0))
+    if keep.sum() < 10:
+        keep, pair = np.ones(g.size, bool), idx[:, 1]
+    d = (g - g[pair])[keep]
+    i = np.flatnonzero(keep)
+    n_distinct = np.unique(np.minimum(i, pair[keep]) * g.size + np.maximum(i, pair[keep])).size
+    return d, int(n_distinct)
 
 
 # ---------------------------------------------------------------------------------------------- the fitting ----
@@ -863,7 +894,11 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         if shadowed is not None:
             # The wear-like shadow beat the best candidate on held-out points: the stronger, the surer.
             confidence = 0.5 + 0.3 * float(np.clip((-shadow_z - Z_SHADOW) / 4.0, 0.0, 1.0))
-        elif ms_before > sigma**2 * (1.0 + CHI_Z * math.sqrt(2.0 / max(g.size, 1))):
+        # (Above the noise by CHI_Z standard errors of ms / sigma^2: of the mean square's sampling, 2 / N, and, with
+        # the noise estimated from the same data, of sigma^2's estimate, 2 x its relative error: a control of 600
+        # points was "well above" by an estimate 5 % low, and "none" said at 0.60.)
+        elif ms_before > sigma**2 * (1.0 + CHI_Z * math.sqrt(2.0 / max(g.size, 1) + (
+                4.0 * noise_estimate_rel_se(state) ** 2 if estimated else 0.0))):
             # The gap is well above the noise and nothing here explains it: an effect outside the library, or one
             # the library holds in a form too poor for it. "None" is then the honest answer, but not a sure one.
             confidence = min(confidence, 0.6)

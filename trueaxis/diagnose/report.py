@@ -12,6 +12,7 @@ import base64
 import html
 import io
 import json
+import math
 import os
 import re
 import shutil
@@ -25,7 +26,7 @@ import numpy as np
 from ..inspect.cloud import CloudError
 from .analysis import Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from .state import TwinState, combine_states, twin_state
+from .state import TwinState, combine_states, place_from_setup, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
 
@@ -126,7 +127,7 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
             raise (CloudError if isinstance(exc, CloudError) else ValueError)(f"{exc}{which(k, c)}") from None
 
     # The cheap refusals of every cut before the first twin simulation (a bad second cloud is not found after the
-    # first cut's minutes): the same cloud twice, a cloud outside its part, normals.
+    # first cut's minutes): the same cloud twice, a cloud outside its part, a program for the other part, normals.
     checked = []
     for k, c in enumerate(cuts):
         for j, other in enumerate(cuts[:k]):
@@ -137,6 +138,8 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
 
         def gate(c=c, pj=pj):
             check_cloud_for_part(c.points, part, pj)
+            place_from_setup(machine, c.program_text, part)  # a program for the other part, a malformed setup
+            check_part_against_program(part, pj, c.program_text)
             return cloud_normals(np.asarray(c.points, float), c.normals, pj)
 
         checked.append((pj, for_cut(k, c, gate)))
@@ -169,6 +172,24 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
 
 
 MAX_GAP_RMS_UM = 500.0  # the post's default correction bound: a larger gap is not a machine effect but a wrong input
+
+
+def check_part_against_program(part: str, part_json: dict, program_text: str) -> None:
+    """The part's description (``--part-json``, or the default part) must be the part the program cuts: a NAS 979
+    program names its cone in its title (``read_cone_title``); another cone's description would give the twin
+    another surface to cut and other normals, read as a machine error. Silent for a program without that line."""
+    from ..postproc.programs import read_cone_title
+
+    cut = read_cone_title(program_text) if part == "nas979" else None
+    if cut is None:
+        return
+    said = part_json.get("parameters", {})
+    off = [k for k, v in cut.items() if said.get(k) is None or not math.isclose(float(said[k]), v, rel_tol=1e-5,
+                                                                                  abs_tol=1e-6)]
+    if off:
+        raise ValueError("the program cuts a cone of " + ", ".join(f"{k} {cut[k]:g}" for k in off) + "; the part's "
+                         "description gives " + ", ".join(f"{k} {said.get(k)}" for k in off) + ": give the "
+                         "description `trueaxis part` wrote for this cone (--part-json)")
 
 
 def check_cloud_for_part(points, part: str, part_json: dict | None = None) -> None:

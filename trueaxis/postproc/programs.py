@@ -282,6 +282,24 @@ def read_setup(text: str) -> dict:
     return out
 
 
+_CONE_TITLE = re.compile(r"^\(cone: half angle (\S+) deg, axis inclined (\S+) deg, base diameter (\S+) mm, "
+                         r"height (\S+) mm along the axis\)\s*$", re.MULTILINE)
+
+
+def read_cone_title(text: str) -> dict | None:
+    """The cone a NAS 979 program cuts, from its title comment (``nas979_program``): {"half_angle_deg",
+    "axis_inclination_deg", "base_diameter", "height"} (deg, mm; as written, 6 significant digits); None when the
+    program has no such line (a program from elsewhere)."""
+    m = _CONE_TITLE.search(text[:20_000])
+    if not m:
+        return None
+    try:
+        values = [float(v) for v in m.groups()]
+    except ValueError:
+        return None
+    return dict(zip(("half_angle_deg", "axis_inclination_deg", "base_diameter", "height"), values))
+
+
 def _pass_blocks(machine: Machine, cl: ClData, q: np.ndarray, sel: np.ndarray, safe_z: float) -> list[str]:
     """G-code of one pass (rows ``sel`` of the CL data): rapids at safe Z, approach, plunge, feed moves, retract."""
     names = machine.axis_names
