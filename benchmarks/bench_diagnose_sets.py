@@ -1,8 +1,8 @@
-"""``make bench`` entry of the diagnosis benchmark (issue 14): every case set (tuning and the four held-out sets)
+"""``make bench`` entry of the diagnosis benchmark (issue 14): every case set (tuning and the five held-out sets)
 through Dask, every figure of the issue's "Done when", and the diagnosis time of a cone probed as ``make demo`` probes
 it.
 
-The full sets take about forty minutes on two cores; by default this runs 30 cases of each set spread over its list
+The full sets take about forty-five minutes on two cores; by default this runs 30 cases of each set spread over its list
 (every kind of case is represented: the list interleaves the effect kinds, magnitudes, pairs, out-of-library cases
 and controls). ``TRUEAXIS_BENCH_FULL=1`` runs them all; extra arguments go to ``diagnose_sets.py`` (see there).
 Tune the diagnosis on ``diagnose_sets.py --set tuning`` only: this entry prints the held-out sets' figures too.
