@@ -550,6 +550,7 @@ class _Poster:
         self._lock = threading.RLock()
         self._local = threading.local()
         self.tcp = None  # TCP output (.tcp.TcpFrame): positions for the control's own nominal kinematics
+        self._newton_hint = {}  # solve_commanded's hint: where its Newton steps evaluate the pose before the Jacobian
 
     # --- coordinates ------------------------------------------------------------------------------------------------
     def to_machine(self, prog6, inch):
@@ -681,7 +682,7 @@ class _Poster:
             # in the program, 0, plus the setup's offset) and are not written; X Y Z alone place the tip.
             hold[:, self.rotary_columns] = True
         res = solve_commanded(self.twin, q, force, orientation=self.orientation, hold=hold,
-                              tol_um=self.solve_tol_um, tol_urad=SOLVE_TOL_URAD)
+                              tol_um=self.solve_tol_um, tol_urad=SOLVE_TOL_URAD, hint=self._newton_hint)
         bad = ~res.converged
         if np.any(bad):
             k = int(np.argmax(bad))
