@@ -25,6 +25,7 @@ direction normal to it, y = z x x. Rapids and plunges carry no force.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import gc
 import math
@@ -37,6 +38,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ..compiled import kernels_on_this_thread
 from ..machine import ErrorTwin, Machine
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
 from ..machine.kinematics import machine_to_part_rotation
@@ -837,7 +839,7 @@ class _Poster:
 
         ends = [before] + [_ChunkEnd() for _ in chunks]
         with ThreadPoolExecutor(max_workers=2, thread_name_prefix="trueaxis-chunk") as pool:
-            futures = [pool.submit(self._chunk, rows[sl], ends[i], ends[i + 1]) for i, sl in enumerate(chunks)]
+            futures = [pool.submit(self._chunk, rows[sl], ends[i], ends[i + 1], True) for i, sl in enumerate(chunks)]
             try:
                 for f in futures:
                     yield self._take_notes(f.result())
@@ -845,13 +847,16 @@ class _Poster:
                 for f in futures:
                     f.cancel()
 
-    def _chunk(self, rows, before, mine):
+    def _chunk(self, rows, before, mine, own_thread=False):
         """(``_compensate(rows)``, the chunk's notes): the chunk before ends at ``before`` (a ``_ChunkEnd``); this
-        one's end goes to ``mine`` once its ends are solved (None if it stopped before)."""
+        one's end goes to ``mine`` once its ends are solved (None if it stopped before). ``own_thread``: the chunk
+        runs beside another one, on a thread of its own: its kernels run on that thread (not shared among the
+        kernels' threads as well: the cores are busy with the chunks; the same numbers either way)."""
         local = self._local
         local.notes, local.end_before_from, local.publish = {"warnings": [], "moves_split": 0}, before, mine
         try:
-            return self._compensate(rows), local.notes
+            with kernels_on_this_thread() if own_thread else contextlib.nullcontext():
+                return self._compensate(rows), local.notes
         finally:
             if not mine.is_set():
                 mine.value = None
