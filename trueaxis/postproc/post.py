@@ -1028,18 +1028,29 @@ class _Poster:
         n6 = 6 if self.orientation else 3
         correctable = corrected_directions(self.m)
         correctable = correctable.T @ correctable
+        # A projection on axis directions (a mill's identity, a lathe's X and Z): each component of the product is one
+        # of the error's own components or zero, whatever the matrix product's order of operations -- the same
+        # numbers row by row (up to the sign of a zero, which no norm sees), taken as they are or zeroed.
+        keep = np.diag(correctable).copy()
+        axis_aligned = bool(np.all(correctable == np.diag(keep)) and np.all((keep == 0) | (keep == 1)))
+        identity = axis_aligned and bool(np.all(keep == 1))
+        span = q_end - q_start  # (the same numbers as q_end[i] - q_start[i] row by row)
 
         def poses(i_move, fr, qc):
-            q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
+            q_nom = q_start[i_move] + fr[:, None] * span[i_move]
             pn, un = self.twin.nominal_pose(q_nom)
             pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
             return pa, ua, pn, un
 
         def residual(i_move, fr, qc, known=None):
             pa, ua, pn, un = poses(i_move, fr, qc) if known is None else known
-            return np.hstack([(pa - pn) @ correctable, ua - un])[:, :n6]
+            if identity and n6 == 3:
+                return pa - pn
+            dp = pa - pn if identity else (pa - pn) * keep if axis_aligned else (pa - pn) @ correctable
+            return np.hstack([dp, ua - un])[:, :n6]
 
         residual.poses = poses
+        residual.row_wise = axis_aligned  # each row's residual computed alone: rows of several calls may be joined
         return residual
 
     def _commanded_starts(self, rows, idx, q_start, q_end, f_all, q_cmd_end, end_poses):
@@ -1096,25 +1107,27 @@ class _Poster:
         Inside the singular cone (held: either end's free axis held) the ends keep a tool-axis error: judged is what
         the chord adds to the straight blend of the ends' residuals. Elsewhere the whole deviation."""
         (ca, cb), (ra, rb) = c_ends, r_ends
-        worst = np.zeros(owner.size)
-        dev_um = np.zeros(owner.size)
-        dev_urad = np.zeros(owner.size)
-        held = held[:, None]
         fractions = (0.25, 0.5, 0.75)
         at = [a + sfrac * (b - a) for sfrac in fractions]
         c_at = [ca + sfrac * (cb - ca) if self.tcp is None else self.tcp.interpolate(ca, cb, sfrac)
                 for sfrac in fractions]
-        # the twin once for the three fractions' points (the same poses; one call, not three), judged fraction by
-        # fraction
+        # the twin once for the three fractions' points (the same poses; one call, not three); the residuals and their
+        # norms of the three at once where each row's are computed alone (``residual.row_wise``), else fraction by
+        # fraction: the same numbers either way
         k = owner.size
         known = residual.poses(np.tile(owner, 3), np.concatenate(at), np.vstack(c_at))
-        for j, sfrac in enumerate(fractions):
-            e = residual(owner, at[j], c_at[j], tuple(x[j * k : (j + 1) * k] for x in known))
-            e = e - np.where(held, (1 - sfrac) * ra + sfrac * rb, 0.0)
-            ep = np.linalg.norm(e[:, :3], axis=1)
-            eu = np.linalg.norm(e[:, 3:], axis=1) if self.orientation else np.zeros(owner.size)
-            dev_um, dev_urad = np.maximum(dev_um, ep * 1e3), np.maximum(dev_urad, eu * 1e6)
-            worst = np.maximum(worst, np.maximum(ep * scale[0], eu * scale[-1]))
+        if residual.row_wise:
+            e = residual(None, None, None, known)
+        else:
+            e = np.vstack([residual(owner, at[j], c_at[j], tuple(x[j * k : (j + 1) * k] for x in known))
+                           for j in range(3)])
+        if held.any():  # (elsewhere the blend is 0.0, and e - 0.0 is e)
+            e = e - np.where(np.tile(held, 3)[:, None], np.vstack([(1 - s) * ra + s * rb for s in fractions]), 0.0)
+        ep = np.linalg.norm(e[:, :3], axis=1).reshape(3, k)
+        eu = np.linalg.norm(e[:, 3:], axis=1).reshape(3, k) if self.orientation else np.zeros((3, k))
+        # the largest over the fractions (norms: never below the zero the maxima started from)
+        dev_um, dev_urad = (ep * 1e3).max(axis=0), (eu * 1e6).max(axis=0)
+        worst = np.maximum(ep * scale[0], eu * scale[-1]).max(axis=0)
         bad = worst > 1.0
         with self._lock:
             self.rep.max_split_deviation_um = max(self.rep.max_split_deviation_um, float(dev_um[~bad].max(initial=0)))
