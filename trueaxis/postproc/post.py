@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..compiled import kernels_on_this_thread
+from ..compiled import kernels_on_this_thread, run_twins, thread_slices
 from ..machine import ErrorTwin, Machine
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
 from ..machine.kinematics import machine_to_part_rotation
@@ -1518,8 +1518,11 @@ class _Poster:
             table = np.array([[numbers.decimals(c, inch) for inch in (False, True)] for c in "IJK"], np.int64)
             extra_letter[arcs] = np.frombuffer(b"IJK", np.uint8)[which]
             extra_dec[arcs] = table[which, inch0.astype(np.int64)[:, None]]
-        ok, spans = fast_write.scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch,
-                                    n_extra, extra_val, extra_dec)
+        # (each candidate is judged alone: the candidates shared among the kernels' threads, the results joined)
+        shares = _shared(fast_write.scan, cand.size, lambda sl: (
+            src, line_start, cand_line[sl], cand_k[sl], cand_motion[sl], target, cols, dec, inch, n_extra[sl],
+            extra_val[sl], extra_dec[sl]))
+        ok, spans = (np.concatenate(x) for x in zip(*shares))
         handled = np.zeros(starts.size, bool)
         handled[cand[ok]] = True
         return {"handled": handled, "src": src, "line_start": line_start, "line": cand_line[ok], "k": cand_k[ok],
@@ -1645,12 +1648,13 @@ class _Poster:
             blob_start[pieces["line"]] = blob.size + pieces["start"]
             blob_end[pieces["line"]] = blob.size + pieces["end"]
             blob = np.concatenate([blob, pieces["blob"]])
-        out = fast_write.assemble(fast["src"], fast["line_start"], mode, cand_of_line, fast["k"], fast["motion"],
-                                  fast["spans"], fast["target"], fast["cols"], fast["letters"], fast["dec"],
-                                  fast["inch"], fast["n_extra"], fast["extra_val"], fast["extra_letter"],
-                                  fast["extra_dec"], fast["keep_r"], bool(info.leading_zero), bool(info.trailing_point),
-                                  fast["sep"], blob, blob_start, blob_end)
-        return out.tobytes().decode("utf-8")
+        # (each line is written alone: the lines shared among the kernels' threads, their bytes joined in order)
+        shares = _shared(fast_write.assemble, n_lines, lambda sl: (
+            fast["src"], fast["line_start"][sl.start : sl.stop + 1], mode[sl], cand_of_line[sl], fast["k"],
+            fast["motion"], fast["spans"], fast["target"], fast["cols"], fast["letters"], fast["dec"], fast["inch"],
+            fast["n_extra"], fast["extra_val"], fast["extra_letter"], fast["extra_dec"], fast["keep_r"],
+            bool(info.leading_zero), bool(info.trailing_point), fast["sep"], blob, blob_start[sl], blob_end[sl]))
+        return b"".join(out.tobytes() for out in shares).decode("utf-8")
 
     def _centre_words(self, r, delta_end, last_written, fmt):
         """The centre words of one kept arc (``_centre_values``), formatted."""
@@ -1824,6 +1828,19 @@ def _rewrite_tokens(code, motion, words, arc, was_arc, sep):
         keep.insert(_after_line_number(keep), f"G{motion}")
     pos = _word_position(keep)
     return sep.join(keep[:pos] + words + keep[pos:])
+
+
+def _shared(kernel, n, args_of) -> list:
+    """``kernel(*args_of(sl))`` for contiguous shares ``sl`` of ``range(n)``, in order: on the kernels' threads where
+    ``n`` is worth sharing and the kernel's ahead-of-time twin takes every share's arguments (twins release the GIL),
+    else one call on ``slice(0, n)``. For kernels that treat each item of the range alone (the same numbers, the same
+    bytes, shared or not)."""
+    parts = thread_slices(n)
+    if parts:
+        out = run_twins(kernel, [args_of(sl) for sl in parts])
+        if out is not None:
+            return out
+    return [kernel(*args_of(slice(0, n)))]
 
 
 def _subdivide(owner, a, b, worst, bad):
