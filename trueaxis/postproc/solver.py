@@ -113,12 +113,16 @@ def solve_commanded(
             break
         p_act[todo[done]], u_act[todo[done]] = p[done], u[done]
         it += 1
-        if lean:
+        if not done.any():
+            pass  # every pose goes on (the first step, as a rule): the arrays as they are, not copied
+        elif lean:
             todo, qa, p, u, fr = todo[keep], qa[keep], p[keep], u[keep], fr[keep]
-            Ja = twin.pose_and_axis_jacobian(qa, _rows(force_n, todo, n), _rows(motion, todo, n))[2]
         else:
             todo, qa, p, u, Ja, fr = todo[keep], qa[keep], p[keep], u[keep], Ja[keep], fr[keep]
-        r = np.hstack([p - p_nom[todo], u - u_nom[todo]]) @ M.T
+        if lean:
+            Ja = twin.pose_and_axis_jacobian(qa, _rows(force_n, todo, n), _rows(motion, todo, n))[2]
+        on = slice(None) if todo.size == n else todo  # (todo is every pose in order: views, not copies)
+        r = np.hstack([p - p_nom[on], u - u_nom[on]]) @ M.T
         J = (M @ Ja) * fr[:, None, :]
         # Normal equations, batched (matmul on stacks of small matrices); held axes get a unit diagonal so their step
         # is zero.
