@@ -373,3 +373,25 @@ def test_random_programs_read_the_same_with_the_early_scan(data):
     text = data.draw(st.one_of(fz.mutated_fixture(), fz.SOUP))
     with pytest.MonkeyPatch.context() as mp:
         assert_same_with_early_scan(text, mp)
+
+
+def test_a_post_is_the_same_with_the_early_scan(monkeypatch):
+    """The writer takes the early scan's bytes and line starts (and format_info its number styles): the same output."""
+    from trueaxis.compiled import aot_available
+    from trueaxis.machine import load_machine
+    from trueaxis.nc.setup import Setup
+    from trueaxis.postproc.post import post_text
+    from trueaxis.resources import machine_file
+    from trueaxis.sim.programs import cone_flank_program
+
+    if not aot_available():
+        pytest.skip("the early scan runs with the kernels compiled ahead of time only")
+    machine = load_machine(machine_file("nmv1500dcg"))
+    cone = {"axis": [float(np.sin(np.radians(10))), 0.0, float(np.cos(np.radians(10)))], "half_angle_deg": 15.0,
+            "base_radius": 40.0, "height_range": [0.0, 20.0]}
+    text = cone_flank_program(machine, cone, n_blocks=3000)
+    outs = []
+    for threshold in (0, 1 << 62):
+        monkeypatch.setattr(gcode, "EARLY_SCAN_MIN_BYTES", threshold)
+        outs.append(post_text(text, machine, "geometric", source="t.ngc", setup=Setup(offsets_zero=True))[0])
+    assert outs[0] == outs[1]

@@ -531,6 +531,7 @@ def parse_program(
         styles = reader.early.styles() if reader.early is not None else None
         if styles is not None and len(prog.lines) == reader.early.n_lines:
             prog._number_styles = styles  # (format_info's per-block passes, made beside the checks)
+            prog._text_bytes = reader.early.pre  # (line starts, bytes) of "".join(prog.lines), for the writer
         return prog
 
     return read_flat(text, source, passthrough_unsupported, split_lines, interpret)

@@ -1478,12 +1478,16 @@ class _Poster:
         sep = fast_write.separator_code(info.separator)
         if not FAST_WRITE or sep is None or starts.size == 0:
             return None
-        text = "".join(p.lines)
-        if not text.isascii():
-            return None
-        src = np.frombuffer(text.encode("ascii"), np.uint8)
-        line_start = np.zeros(len(p.lines) + 1, np.int64)
-        np.cumsum(np.fromiter(map(len, p.lines), np.int64, len(p.lines)), out=line_start[1:])
+        early = getattr(p, "_text_bytes", None)  # the reader's (line starts, bytes) of the same ASCII text
+        if early is not None and early[0].size == len(p.lines) + 1:
+            line_start, src = early
+        else:
+            text = "".join(p.lines)
+            if not text.isascii():
+                return None
+            src = np.frombuffer(text.encode("ascii"), np.uint8)
+            line_start = np.zeros(len(p.lines) + 1, np.int64)
+            np.cumsum(np.fromiter(map(len, p.lines), np.int64, len(p.lines)), out=line_start[1:])
         last = ends - 1
         excluded = np.zeros(rows.size, bool)
         excluded[list(piece_first)] = True
