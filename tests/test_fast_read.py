@@ -325,3 +325,73 @@ def test_the_block_checks_compiled_scans_are_their_patterns(text):
 def test_the_block_checks_compiled_scans_on_the_nist_programs():
     for name in ("mtc_plate_1.nc", "mtc_cover_rev_a.nc", "d2mi_827-9999-904_op1.nc"):
         _check_scans_agree((ROOT / "fixtures" / "programs" / "nist" / name).read_text(errors="replace"))
+
+
+def assert_same_with_early_scan(text, monkeypatch, **kwargs):
+    """``parse_program`` with the early scan (the text-only passes on a thread of their own while the checks run) and
+    without: the same Program, the same format_info (its number styles from the early scan)."""
+    monkeypatch.setattr(gcode, "EARLY_SCAN_MIN_BYTES", 0)
+    a = parse(text, True, monkeypatch, **kwargs)
+    monkeypatch.setattr(gcode, "EARLY_SCAN_MIN_BYTES", 1 << 62)
+    b = parse(text, True, monkeypatch, **kwargs)
+    if isinstance(a, tuple) or isinstance(b, tuple):
+        assert a == b
+        return
+    for f in FIELDS:
+        x, y = getattr(a, f), getattr(b, f)
+        assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes(), f
+    assert (a.lines, a.units, a.axes_present, a.warnings, a.unsupported) == \
+        (b.lines, b.units, b.axes_present, b.warnings, b.unsupported)
+    assert a.format_info == b.format_info
+
+
+def test_the_early_scan_reads_the_same(monkeypatch):
+    from trueaxis.compiled import aot_available
+    from trueaxis.machine import load_machine
+    from trueaxis.resources import machine_file
+    from trueaxis.sim.programs import cone_flank_program
+
+    if not aot_available():
+        pytest.skip("the early scan runs with the kernels compiled ahead of time only")
+    cone = {"axis": [float(np.sin(np.radians(10))), 0.0, float(np.cos(np.radians(10)))], "half_angle_deg": 15.0,
+            "base_radius": 40.0, "height_range": [0.0, 20.0]}
+    texts = [cone_flank_program(load_machine(machine_file("nmv1500dcg")), cone, n_blocks=3000)]
+    texts += [p.read_text(errors="replace") for p in PROGRAMS]
+    monkeypatch.setattr(gcode, "_STYLE_BLOCK_LINES", 500)  # several number-style blocks
+    for text in texts:
+        assert_same_with_early_scan(text, monkeypatch)
+        assert_same_with_early_scan(text, monkeypatch, passthrough_unsupported=True)
+    monkeypatch.setattr(gcode, "FAST_READ_BLOCK", 7)  # blocks that runs of plain moves skip into
+    for text in texts:
+        assert_same_with_early_scan(text, monkeypatch)
+
+
+@settings(max_examples=200, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(st.data())
+def test_random_programs_read_the_same_with_the_early_scan(data):
+    text = data.draw(st.one_of(fz.mutated_fixture(), fz.SOUP))
+    with pytest.MonkeyPatch.context() as mp:
+        assert_same_with_early_scan(text, mp)
+
+
+def test_a_post_is_the_same_with_the_early_scan(monkeypatch):
+    """The writer takes the early scan's bytes and line starts (and format_info its number styles): the same output."""
+    from trueaxis.compiled import aot_available
+    from trueaxis.machine import load_machine
+    from trueaxis.nc.setup import Setup
+    from trueaxis.postproc.post import post_text
+    from trueaxis.resources import machine_file
+    from trueaxis.sim.programs import cone_flank_program
+
+    if not aot_available():
+        pytest.skip("the early scan runs with the kernels compiled ahead of time only")
+    machine = load_machine(machine_file("nmv1500dcg"))
+    cone = {"axis": [float(np.sin(np.radians(10))), 0.0, float(np.cos(np.radians(10)))], "half_angle_deg": 15.0,
+            "base_radius": 40.0, "height_range": [0.0, 20.0]}
+    text = cone_flank_program(machine, cone, n_blocks=3000)
+    outs = []
+    for threshold in (0, 1 << 62):
+        monkeypatch.setattr(gcode, "EARLY_SCAN_MIN_BYTES", threshold)
+        outs.append(post_text(text, machine, "geometric", source="t.ngc", setup=Setup(offsets_zero=True))[0])
+    assert outs[0] == outs[1]

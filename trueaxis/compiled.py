@@ -33,12 +33,13 @@ import importlib.util
 import json
 import os
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
 
 __all__ = ["numba", "Kernel", "KERNEL_MODULES", "build_aot", "aot_available", "numba_imported", "THREADS_MIN",
-           "thread_slices", "run_twins", "run_threads"]
+           "thread_slices", "run_twins", "run_threads", "kernels_on_this_thread", "kernels_shared"]
 
 KERNEL_MODULES = ("trueaxis.nc.fast_read", "trueaxis.nc.fast_interp", "trueaxis.nc.fast_write",
                   "trueaxis.machine.error_kernel", "trueaxis.machine.chain_kernel", "trueaxis.inspect.kernels")
@@ -62,11 +63,35 @@ def thread_count() -> int:
     return max(1, int(os.environ.get("NUMBA_NUM_THREADS") or 0) or os.cpu_count() or 1)
 
 
+_here = threading.local()
+
+
+class kernels_on_this_thread:
+    """Within: the kernels called from this thread run on it alone, whatever the number of poses (no share for the
+    kernels' threads, no numba parallel kernel): for work that runs on threads of its own already (the post's chunks
+    of moves side by side). Each pose is computed alone either way: the same numbers."""
+
+    def __enter__(self):
+        self._before = getattr(_here, "serial", False)
+        _here.serial = True
+        return self
+
+    def __exit__(self, *exc):
+        _here.serial = self._before
+        return False
+
+
+def kernels_shared(n: int) -> bool:
+    """Is the work on ``n`` poses worth sharing among threads (THREADS_MIN and more), and may it be shared here (not
+    inside :class:`kernels_on_this_thread`)?"""
+    return n >= THREADS_MIN and not getattr(_here, "serial", False)
+
+
 def thread_slices(n: int) -> list:
     """Contiguous slices of ``range(n)``, one per thread, when ``n`` is worth sharing (THREADS_MIN and more) and
-    there is more than one thread; else []."""
+    there is more than one thread; else [] (also inside :class:`kernels_on_this_thread`)."""
     t = thread_count()
-    if n < THREADS_MIN or t < 2:
+    if t < 2 or not kernels_shared(n):
         return []
     edges = [n * k // t for k in range(t + 1)]
     return [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]

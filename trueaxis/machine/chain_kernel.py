@@ -140,10 +140,12 @@ def _store(arr, i, x):
 
 # ----------------------------------------------------------------------------------------------- the factors ----
 @_jit
-def _located_rotary(q, a, c, eps, off, z, deriv):
-    """F = L G(q + z) L^-1 of a rotary link as (R, t), and dF/dq as (dR, dt) (zeros unless deriv).
+def _line_frame(a, c, eps, off):
+    """The parts of a rotary link's F = L G L^-1 that do not depend on its angle: RL, tL, RLi, tLi (L and L^-1) and
+    K = [a]x, K K. (Computed once per kernel call where the location errors are the same for every pose: the same
+    numbers as per pose.)
 
-    a : unit axis; c : pivot (mm); eps : tilt (rad); off : offset (mm); z : zero offset (rad).
+    a : unit axis; c : pivot (mm); eps : tilt (rad); off : offset (mm).
     """
     # L p = (I + [eps]x)(p - c) + c + off;  L^-1 = ((I - [eps]x + eps eps^T) / (1 + |eps|^2), -L^-1 tL), exact.
     RL = _madd(_EYE, 1.0, _skew(eps))
@@ -154,10 +156,54 @@ def _located_rotary(q, a, c, eps, off, z, deriv):
            (eps[1] + eps[2] * eps[0]) / s, (-eps[0] + eps[2] * eps[1]) / s, (1.0 + eps[2] * eps[2]) / s)
     tLi = _mv(RLi, tL)
     tLi = (-tLi[0], -tLi[1], -tLi[2])
-    # G(theta) by Rodrigues: R = I + sin K + (1 - cos) K K, t = c - R c, with K = [a]x.
     K = _skew(a)
+    return RL, tL, RLi, tLi, K, _mm(K, K)
+
+
+@_jit_inline
+def _store_frame(frames, link, frame):
+    """frames[link] = the 42 numbers of a ``_line_frame`` (RL, tL, RLi, tLi, K, K K)."""
+    RL, tL, RLi, tLi, K, KK = frame
+    for j in range(9):
+        frames[link, j] = RL[j]
+        frames[link, 12 + j] = RLi[j]
+        frames[link, 24 + j] = K[j]
+        frames[link, 33 + j] = KK[j]
+    for j in range(3):
+        frames[link, 9 + j] = tL[j]
+        frames[link, 21 + j] = tLi[j]
+
+
+@_jit_inline
+def _load_frame(frames, link):
+    """The ``_line_frame`` stored by ``_store_frame``."""
+    f = frames
+    RL = (f[link, 0], f[link, 1], f[link, 2], f[link, 3], f[link, 4], f[link, 5], f[link, 6], f[link, 7], f[link, 8])
+    RLi = (f[link, 12], f[link, 13], f[link, 14], f[link, 15], f[link, 16], f[link, 17], f[link, 18], f[link, 19],
+           f[link, 20])
+    K = (f[link, 24], f[link, 25], f[link, 26], f[link, 27], f[link, 28], f[link, 29], f[link, 30], f[link, 31],
+         f[link, 32])
+    KK = (f[link, 33], f[link, 34], f[link, 35], f[link, 36], f[link, 37], f[link, 38], f[link, 39], f[link, 40],
+          f[link, 41])
+    return RL, (f[link, 9], f[link, 10], f[link, 11]), RLi, (f[link, 21], f[link, 22], f[link, 23]), K, KK
+
+
+@_jit
+def _located_rotary(q, a, c, eps, off, z, deriv):
+    """F = L G(q + z) L^-1 of a rotary link as (R, t), and dF/dq as (dR, dt) (zeros unless deriv).
+
+    a : unit axis; c : pivot (mm); eps : tilt (rad); off : offset (mm); z : zero offset (rad).
+    """
+    return _turned(q, c, z, _line_frame(a, c, eps, off), deriv)
+
+
+@_jit
+def _turned(q, c, z, frame, deriv):
+    """``_located_rotary`` from the link's ``_line_frame``."""
+    RL, tL, RLi, tLi, K, KK = frame
+    # G(theta) by Rodrigues: R = I + sin K + (1 - cos) K K, t = c - R c, with K = [a]x.
     theta = q + z
-    RG = _madd(_madd(_EYE, np.sin(theta), K), 1.0 - np.cos(theta), _mm(K, K))
+    RG = _madd(_madd(_EYE, np.sin(theta), K), 1.0 - np.cos(theta), KK)
     tG = _sub(c, _mv(RG, c))
     # F = (RL RG RLi, RL (RG tLi + tG) + tL)
     R = _mm(_mm(RL, RG), RLi)
@@ -202,10 +248,26 @@ def _reference_point(q, a, c, rotary, tool):
 
 
 @_jit_inline
+def _line_frames(rotary, direction, pivot, tilt, offset):
+    """(L, 42): every rotary link's ``_line_frame`` when the location errors are the same for every pose (tilt and
+    offset with 1 for their pose dimension), for ``_build_chain``; else (0, 42): computed pose by pose."""
+    n_links = rotary.shape[0]
+    shared = tilt.shape[1] == 1 and offset.shape[1] == 1
+    frames = np.zeros((n_links if shared else 0, 42))
+    if shared:
+        for link in range(n_links):
+            if rotary[link]:
+                _store_frame(frames, link, _line_frame(_row(direction, link), _row(pivot, link),
+                                                       _vec(tilt, link, 0, 0), _vec(offset, link, 0, 0)))
+    return frames
+
+
+@_jit_inline
 def _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed,
-                 dcomp, deriv, R, t, dR, dt, col):
+                 dcomp, deriv, R, t, dR, dt, col, frames):
     """Fill the K = 2 L + 2 factors of pose i in chain order: R (K, 9), t (K, 3); with deriv their d/dq (dR, dt) and
-    the q column each depends on (col; -1: none, the bed's derivative being the caller's). Returns the bed's index."""
+    the q column each depends on (col; -1: none, the bed's derivative being the caller's). Returns the bed's index.
+    ``frames``: the rotary links' ``_line_frames`` (none: computed here)."""
     n_links = column.shape[0]
     il, ic = _at(tilt, i), _at(comp, i)
     ib = i if bed.shape[0] > 1 else 0
@@ -225,7 +287,9 @@ def _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, t
             break
         qa = q[i, column[link]]
         a, c = _row(direction, link), _row(pivot, link)
-        if rotary[link]:
+        if rotary[link] and frames.shape[0] > 0:
+            RF, tF, dRF, dtF = _turned(qa, c, zero[link, il], _load_frame(frames, link), deriv)
+        elif rotary[link]:
             RF, tF, dRF, dtF = _located_rotary(qa, a, c, _vec(tilt, link, il, 0), _vec(offset, link, il, 0),
                                                zero[link, il], deriv)
         else:
@@ -242,12 +306,13 @@ def _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, t
         kf, ke = (k + 1, k) if tool[link] else (k, k + 1)
         _store(R, kf, RF)
         _store(t, kf, tF)
-        _store(dR, kf, dRF)
-        _store(dt, kf, dtF)
         _store(R, ke, RE)
         _store(t, ke, tE)
-        _store(dR, ke, dRE)
-        _store(dt, ke, dtE)
+        if deriv:
+            _store(dR, kf, dRF)
+            _store(dt, kf, dtF)
+            _store(dR, ke, dRE)
+            _store(dt, ke, dtE)
         col[kf] = column[link]
         col[ke] = column[link]
         k += 2
@@ -255,13 +320,14 @@ def _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, t
 
 
 @_jit_inline
-def _tip_and_axis(R, t, p_after, u_after):
+def _tip_and_axis(R, t, p_after, u_after, keep):
     """Apply the factors right to left to the origin and to +z: the tip and the raw (unnormalised) tool axis.
-    p_after[k], u_after[k] get the point and the axis seen on the right of factor k."""
+    With keep, p_after[k], u_after[k] get the point and the axis seen on the right of factor k."""
     p, u = _ZERO3, _Z
     for k in range(R.shape[0] - 1, -1, -1):
-        _store(p_after, k, p)
-        _store(u_after, k, u)
+        if keep:
+            _store(p_after, k, p)
+            _store(u_after, k, u)
         Rk = _row9(R, k)
         p = _add(_mv(Rk, p), _row(t, k))
         u = _mv(Rk, u)
@@ -307,11 +373,12 @@ def _pose_rows(lo, hi, q, column, rotary, tool, direction, pivot, origin, bed_at
     R, t, dR, dt = np.empty((K, 9)), np.empty((K, 3)), np.empty((K, 9)), np.empty((K, 3))
     col = np.empty(K, np.int64)
     p_after, u_after = np.empty((K, 3)), np.empty((K, 3))
+    frames = _line_frames(rotary, direction, pivot, tilt, offset)
     for i in range(lo, hi):
         # No derivatives: comp stands in for dcomp, unread.
         _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
-                     bed, comp, False, R, t, dR, dt, col)
-        p, u_raw = _tip_and_axis(R, t, p_after, u_after)
+                     bed, comp, False, R, t, dR, dt, col, frames)
+        p, u_raw = _tip_and_axis(R, t, p_after, u_after, False)
         _store(tip, i, p)
         _store(axis, i, _unit(u_raw)[0])
 
@@ -354,11 +421,12 @@ def _jacobian_rows(lo, hi, q, column, rotary, tool, direction, pivot, origin, be
     R, t, dR, dt = np.empty((K, 9)), np.empty((K, 3)), np.empty((K, 9)), np.empty((K, 3))
     col = np.empty(K, np.int64)
     p_after, u_after = np.empty((K, 3)), np.empty((K, 3))
+    frames = _line_frames(rotary, direction, pivot, tilt, offset)
     for i in range(lo, hi):
         k_bed = _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act,
-                             comp, bed, dcomp, True, R, t, dR, dt, col)
+                             comp, bed, dcomp, True, R, t, dR, dt, col, frames)
         idb = i if dbed.shape[0] > 1 else 0
-        p, u_raw = _tip_and_axis(R, t, p_after, u_after)
+        p, u_raw = _tip_and_axis(R, t, p_after, u_after, True)
         u, norm = _unit(u_raw)
         _store(tip, i, p)
         _store(axis, i, u)

@@ -202,12 +202,13 @@ def _table_group(q, i0, i1, col, kind, periodic, grid, g0, g1, members, m0, m1, 
                 for p in range(4):
                     v = v + coef[k + 3 - p] * z
                     z *= s
-                k = d0 + 3 * j
                 dv = 0.0
-                z = 1.0
-                for p in range(3):
-                    dv = dv + coef[k + 2 - p] * z
-                    z *= s
+                if deriv:  # (the slope only where it is asked for)
+                    k = d0 + 3 * j
+                    z = 1.0
+                    for p in range(3):
+                        dv = dv + coef[k + 2 - p] * z
+                        z *= s
             val[a, i, b] = v * scale[m]
             if deriv:
                 # Outside the table the value is held: zero slope.
@@ -248,9 +249,11 @@ def _fourier_group(q, i0, i1, col, grid, g0, g1, members, m0, m1, coef, scale, d
             v = 0.0
             dv = 0.0
             for k in range(h):
-                hk = grid[g0 + k]
                 v += cs[k] * coef[c0 + 2 * k] + sn[k] * coef[c0 + 2 * k + 1]
-                dv += (-hk * sn[k]) * coef[c0 + 2 * k] + (hk * cs[k]) * coef[c0 + 2 * k + 1]
+            if deriv:  # (the slope only where it is asked for)
+                for k in range(h):
+                    hk = grid[g0 + k]
+                    dv += (-hk * sn[k]) * coef[c0 + 2 * k] + (hk * cs[k]) * coef[c0 + 2 * k + 1]
             val[a, i, b] = v * scale[m]
             if deriv:
                 dval[a, i, b] = dv * scale[m]

@@ -37,7 +37,7 @@ from functools import cached_property
 
 import numpy as np
 
-from ..compiled import THREADS_MIN, aot_available, run_threads, run_twins, thread_slices
+from ..compiled import THREADS_MIN, aot_available, kernels_shared, run_threads, run_twins, thread_slices
 from . import chain_kernel
 from .error_kernel import CompiledErrors
 from .kinematics import Z_TOOL, Link, axis_motion, chain_links, validate_poses
@@ -567,14 +567,15 @@ class ErrorTwin:
         """Tip (n,3), unit axis (n,3) and, with jacobian, the axis Jacobian (n, 6, n_axes) (else None), by the
         compiled chain: the numbers of ``_evaluate(..., cols="axes")`` up to round-off."""
         q = np.ascontiguousarray(q)
-        if errors and force_n is None and q.shape[0] >= PARALLEL_MIN:
+        # many poses: the serial kernels' ahead-of-time twins on threads, each on its share of the poses, else numba's
+        # parallel kernels (the same numbers, pose by pose); few (or on a thread of the caller's own, inside
+        # ``compiled.kernels_on_this_thread``): the serial ones (no thread start-up)
+        parallel = q.shape[0] >= PARALLEL_MIN and kernels_shared(q.shape[0])
+        if errors and force_n is None and parallel:
             out = self._threaded_unloaded(q, jacobian)
             if out is not None:
                 return out
         values = self._chain_values(q, force_n, motion, errors, jacobian)
-        # many poses: the serial kernels' ahead-of-time twins on threads, each on its share of the poses, else numba's
-        # parallel kernels (the same numbers, pose by pose); few: the serial ones (no thread start-up)
-        parallel = q.shape[0] >= PARALLEL_MIN
         if parallel:
             out = _threaded(chain_kernel.pose_and_axis_jacobian if jacobian else chain_kernel.pose, q, self._layout,
                             values)

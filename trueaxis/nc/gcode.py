@@ -325,9 +325,13 @@ class Program:
         most = np.full(26, -1, np.int64)
         trailing_point = False
         leading_zero = None  # judged on the first number below 1
-        for i in range(0, len(self.lines), _STYLE_BLOCK_LINES):
-            block = "".join(self.lines[i : i + _STYLE_BLOCK_LINES]).encode("latin-1", "replace")
-            block_decimals, block_point, leading = number_style(np.frombuffer(block, np.uint8))
+        early = getattr(self, "_number_styles", None)  # (the same passes over the same bytes, made while reading)
+        for b, i in enumerate(range(0, len(self.lines), _STYLE_BLOCK_LINES)):
+            if early is not None:
+                block_decimals, block_point, leading = early[b]
+            else:
+                block = "".join(self.lines[i : i + _STYLE_BLOCK_LINES]).encode("latin-1", "replace")
+                block_decimals, block_point, leading = number_style(np.frombuffer(block, np.uint8))
             np.maximum(most, block_decimals, out=most)
             trailing_point |= bool(block_point)
             if leading_zero is None and leading >= 0:
@@ -518,8 +522,75 @@ def parse_program(
         raise GcodeError(source, 1, "empty program: no blocks")
     from .flatten import read_flat  # parameters, expressions, O-words and M98 evaluated; rs274's block checks
 
-    return read_flat(text, source, passthrough_unsupported, split_lines, lambda t: _Interpreter(
-        t, source, passthrough_unsupported, tool_table, reference_points, setup, require_setup).run())
+    early = _EarlyScan.start_for(text)
+
+    def interpret(t):
+        reader = _Interpreter(t, source, passthrough_unsupported, tool_table, reference_points, setup, require_setup)
+        reader.early = early if t is text else None  # (a flattened program reads other text)
+        prog = reader.run()
+        styles = reader.early.styles() if reader.early is not None else None
+        if styles is not None and len(prog.lines) == reader.early.n_lines:
+            prog._number_styles = styles  # (format_info's per-block passes, made beside the checks)
+            prog._text_bytes = reader.early.pre  # (line starts, bytes) of "".join(prog.lines), for the writer
+        return prog
+
+    return read_flat(text, source, passthrough_unsupported, split_lines, interpret)
+
+
+# A long ASCII program's text-only compiled passes run on a thread of their own while the block checks run (from this
+# many bytes on, and with the kernels compiled ahead of time, which release the GIL).
+EARLY_SCAN_MIN_BYTES = 1 << 20
+
+
+class _EarlyScan:
+    """The reader's compiled passes that need the text alone, over a long ASCII program, on a thread of their own
+    while the block checks (``check``) and the splitting into lines run on the caller's: the bytes and line starts
+    (``fast_read.scan_text``), the pre-scan of every line (``fast_read.scan_lines`` over all of them: each line is read
+    alone, so any block of lines is a slice of it) and the number style of every ``_STYLE_BLOCK_LINES`` lines
+    (``fast_read.number_style``, for ``Program.format_info``). The same kernels on the same bytes as the reader's own
+    calls: the same results. Nothing here raises: a failure leaves the reader to make its own passes."""
+
+    def __init__(self, text):
+        import threading
+
+        self.text, self.pre, self.lines, self._styles, self.n_lines = text, None, None, None, -1
+        self._thread = threading.Thread(target=self._run, name="trueaxis-prescan", daemon=True)
+        self._thread.start()
+
+    @classmethod
+    def start_for(cls, text):
+        """An early scan of ``text``, or None (short, not ASCII, the pre-scan off, or no kernels compiled ahead of
+        time: numba's kernels would hold the GIL)."""
+        if not FAST_READ or len(text) < EARLY_SCAN_MIN_BYTES or not text.isascii():
+            return None
+        from ..compiled import aot_available
+
+        return cls(text) if aot_available() else None
+
+    def _run(self):
+        try:
+            from . import fast_read
+
+            pre = fast_read.scan_text(self.text)
+            if pre is None:
+                return
+            starts, buf = pre
+            n = starts.size - 1
+            lines = fast_read.scan_lines(buf, starts, 0, n)
+            styles = [fast_read.number_style(buf[starts[i] : starts[min(n, i + _STYLE_BLOCK_LINES)]])
+                      for i in range(0, n, _STYLE_BLOCK_LINES)]
+            self.pre, self.lines, self._styles, self.n_lines = pre, lines, styles, n
+        except Exception:  # noqa: BLE001 -- the reader makes its own passes
+            self.pre = self.lines = self._styles = None
+
+    def result(self):
+        """(pre, all lines' scan) once the thread is done, or None."""
+        self._thread.join()
+        return None if self.pre is None else (self.pre, self.lines)
+
+    def styles(self):
+        self._thread.join()
+        return self._styles
 
 
 class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
@@ -705,11 +776,14 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         only), and the shortest run of plain moves read in compiled code. ``scan_block`` then reads which lines are
         plain blocks, their G digit and values, exactly as the regular expression and float() read them,
         FAST_READ_BLOCK lines at a time."""
+        self.early_lines = None
         if not (FAST_READ and lines):
             return None, 0
         from . import fast_interp, fast_read  # runs of plain straight moves read in compiled code
 
-        pre = fast_read.scan_text(self.text)
+        early = self.early.result() if getattr(self, "early", None) is not None else None
+        self.early_lines = None if early is None else early[1]
+        pre = fast_read.scan_text(self.text) if early is None else early[0]
         if pre is not None and len(pre[0]) != len(lines) + 1:
             pre = None  # not split as split_lines splits (cannot happen for ASCII text): no pre-scan
         return pre, fast_interp.MIN_RUN
@@ -720,7 +794,10 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         from . import fast_interp, fast_read
 
         hi = min(n_lines, lo + FAST_READ_BLOCK)
-        b_status, b_g, b_vals = fast_read.scan_lines(pre[1], pre[0], lo, hi)
+        if self.early_lines is not None:  # (the early scan's lines lo..hi-1: each line read alone, the same values)
+            b_status, b_g, b_vals = (x[lo:hi] for x in self.early_lines)
+        else:
+            b_status, b_g, b_vals = fast_read.scan_lines(pre[1], pre[0], lo, hi)
         # code: the G digit (-1: none) for a block read here, 4: by the regex, 5: not a fast block
         code = np.where(b_status == fast_read.LINE_FAST, b_g, np.where(b_status == fast_read.LINE_SLOW, 4, 5)).tolist()
         # one flat list of floats (no list per line: fewer objects for the garbage collector)

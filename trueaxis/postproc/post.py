@@ -25,6 +25,7 @@ direction normal to it, y = z x x. Rapids and plunges carry no force.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import gc
 import math
@@ -37,6 +38,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ..compiled import kernels_on_this_thread, run_twins, thread_slices
 from ..machine import ErrorTwin, Machine
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
 from ..machine.kinematics import machine_to_part_rotation
@@ -550,6 +552,7 @@ class _Poster:
         self._lock = threading.RLock()
         self._local = threading.local()
         self.tcp = None  # TCP output (.tcp.TcpFrame): positions for the control's own nominal kinematics
+        self._newton_hint = {}  # solve_commanded's hint: where its Newton steps evaluate the pose before the Jacobian
 
     # --- coordinates ------------------------------------------------------------------------------------------------
     def to_machine(self, prog6, inch):
@@ -681,7 +684,7 @@ class _Poster:
             # in the program, 0, plus the setup's offset) and are not written; X Y Z alone place the tip.
             hold[:, self.rotary_columns] = True
         res = solve_commanded(self.twin, q, force, orientation=self.orientation, hold=hold,
-                              tol_um=self.solve_tol_um, tol_urad=SOLVE_TOL_URAD)
+                              tol_um=self.solve_tol_um, tol_urad=SOLVE_TOL_URAD, hint=self._newton_hint)
         bad = ~res.converged
         if np.any(bad):
             k = int(np.argmax(bad))
@@ -836,7 +839,7 @@ class _Poster:
 
         ends = [before] + [_ChunkEnd() for _ in chunks]
         with ThreadPoolExecutor(max_workers=2, thread_name_prefix="trueaxis-chunk") as pool:
-            futures = [pool.submit(self._chunk, rows[sl], ends[i], ends[i + 1]) for i, sl in enumerate(chunks)]
+            futures = [pool.submit(self._chunk, rows[sl], ends[i], ends[i + 1], True) for i, sl in enumerate(chunks)]
             try:
                 for f in futures:
                     yield self._take_notes(f.result())
@@ -844,13 +847,16 @@ class _Poster:
                 for f in futures:
                     f.cancel()
 
-    def _chunk(self, rows, before, mine):
+    def _chunk(self, rows, before, mine, own_thread=False):
         """(``_compensate(rows)``, the chunk's notes): the chunk before ends at ``before`` (a ``_ChunkEnd``); this
-        one's end goes to ``mine`` once its ends are solved (None if it stopped before)."""
+        one's end goes to ``mine`` once its ends are solved (None if it stopped before). ``own_thread``: the chunk
+        runs beside another one, on a thread of its own: its kernels run on that thread (not shared among the
+        kernels' threads as well: the cores are busy with the chunks; the same numbers either way)."""
         local = self._local
         local.notes, local.end_before_from, local.publish = {"warnings": [], "moves_split": 0}, before, mine
         try:
-            return self._compensate(rows), local.notes
+            with kernels_on_this_thread() if own_thread else contextlib.nullcontext():
+                return self._compensate(rows), local.notes
         finally:
             if not mine.is_set():
                 mine.value = None
@@ -1022,18 +1028,29 @@ class _Poster:
         n6 = 6 if self.orientation else 3
         correctable = corrected_directions(self.m)
         correctable = correctable.T @ correctable
+        # A projection on axis directions (a mill's identity, a lathe's X and Z): each component of the product is one
+        # of the error's own components or zero, whatever the matrix product's order of operations -- the same
+        # numbers row by row (up to the sign of a zero, which no norm sees), taken as they are or zeroed.
+        keep = np.diag(correctable).copy()
+        axis_aligned = bool(np.all(correctable == np.diag(keep)) and np.all((keep == 0) | (keep == 1)))
+        identity = axis_aligned and bool(np.all(keep == 1))
+        span = q_end - q_start  # (the same numbers as q_end[i] - q_start[i] row by row)
 
         def poses(i_move, fr, qc):
-            q_nom = q_start[i_move] + fr[:, None] * (q_end[i_move] - q_start[i_move])
+            q_nom = q_start[i_move] + fr[:, None] * span[i_move]
             pn, un = self.twin.nominal_pose(q_nom)
             pa, ua = self.twin.actual_pose(qc, None if f_all is None else f_all[i_move])
             return pa, ua, pn, un
 
         def residual(i_move, fr, qc, known=None):
             pa, ua, pn, un = poses(i_move, fr, qc) if known is None else known
-            return np.hstack([(pa - pn) @ correctable, ua - un])[:, :n6]
+            if identity and n6 == 3:
+                return pa - pn
+            dp = pa - pn if identity else (pa - pn) * keep if axis_aligned else (pa - pn) @ correctable
+            return np.hstack([dp, ua - un])[:, :n6]
 
         residual.poses = poses
+        residual.row_wise = axis_aligned  # each row's residual computed alone: rows of several calls may be joined
         return residual
 
     def _commanded_starts(self, rows, idx, q_start, q_end, f_all, q_cmd_end, end_poses):
@@ -1090,25 +1107,27 @@ class _Poster:
         Inside the singular cone (held: either end's free axis held) the ends keep a tool-axis error: judged is what
         the chord adds to the straight blend of the ends' residuals. Elsewhere the whole deviation."""
         (ca, cb), (ra, rb) = c_ends, r_ends
-        worst = np.zeros(owner.size)
-        dev_um = np.zeros(owner.size)
-        dev_urad = np.zeros(owner.size)
-        held = held[:, None]
         fractions = (0.25, 0.5, 0.75)
         at = [a + sfrac * (b - a) for sfrac in fractions]
         c_at = [ca + sfrac * (cb - ca) if self.tcp is None else self.tcp.interpolate(ca, cb, sfrac)
                 for sfrac in fractions]
-        # the twin once for the three fractions' points (the same poses; one call, not three), judged fraction by
-        # fraction
+        # the twin once for the three fractions' points (the same poses; one call, not three); the residuals and their
+        # norms of the three at once where each row's are computed alone (``residual.row_wise``), else fraction by
+        # fraction: the same numbers either way
         k = owner.size
         known = residual.poses(np.tile(owner, 3), np.concatenate(at), np.vstack(c_at))
-        for j, sfrac in enumerate(fractions):
-            e = residual(owner, at[j], c_at[j], tuple(x[j * k : (j + 1) * k] for x in known))
-            e = e - np.where(held, (1 - sfrac) * ra + sfrac * rb, 0.0)
-            ep = np.linalg.norm(e[:, :3], axis=1)
-            eu = np.linalg.norm(e[:, 3:], axis=1) if self.orientation else np.zeros(owner.size)
-            dev_um, dev_urad = np.maximum(dev_um, ep * 1e3), np.maximum(dev_urad, eu * 1e6)
-            worst = np.maximum(worst, np.maximum(ep * scale[0], eu * scale[-1]))
+        if residual.row_wise:
+            e = residual(None, None, None, known)
+        else:
+            e = np.vstack([residual(owner, at[j], c_at[j], tuple(x[j * k : (j + 1) * k] for x in known))
+                           for j in range(3)])
+        if held.any():  # (elsewhere the blend is 0.0, and e - 0.0 is e)
+            e = e - np.where(np.tile(held, 3)[:, None], np.vstack([(1 - s) * ra + s * rb for s in fractions]), 0.0)
+        ep = np.linalg.norm(e[:, :3], axis=1).reshape(3, k)
+        eu = np.linalg.norm(e[:, 3:], axis=1).reshape(3, k) if self.orientation else np.zeros((3, k))
+        # the largest over the fractions (norms: never below the zero the maxima started from)
+        dev_um, dev_urad = (ep * 1e3).max(axis=0), (eu * 1e6).max(axis=0)
+        worst = np.maximum(ep * scale[0], eu * scale[-1]).max(axis=0)
         bad = worst > 1.0
         with self._lock:
             self.rep.max_split_deviation_um = max(self.rep.max_split_deviation_um, float(dev_um[~bad].max(initial=0)))
@@ -1459,12 +1478,16 @@ class _Poster:
         sep = fast_write.separator_code(info.separator)
         if not FAST_WRITE or sep is None or starts.size == 0:
             return None
-        text = "".join(p.lines)
-        if not text.isascii():
-            return None
-        src = np.frombuffer(text.encode("ascii"), np.uint8)
-        line_start = np.zeros(len(p.lines) + 1, np.int64)
-        np.cumsum(np.fromiter(map(len, p.lines), np.int64, len(p.lines)), out=line_start[1:])
+        early = getattr(p, "_text_bytes", None)  # the reader's (line starts, bytes) of the same ASCII text
+        if early is not None and early[0].size == len(p.lines) + 1:
+            line_start, src = early
+        else:
+            text = "".join(p.lines)
+            if not text.isascii():
+                return None
+            src = np.frombuffer(text.encode("ascii"), np.uint8)
+            line_start = np.zeros(len(p.lines) + 1, np.int64)
+            np.cumsum(np.fromiter(map(len, p.lines), np.int64, len(p.lines)), out=line_start[1:])
         last = ends - 1
         excluded = np.zeros(rows.size, bool)
         excluded[list(piece_first)] = True
@@ -1499,8 +1522,11 @@ class _Poster:
             table = np.array([[numbers.decimals(c, inch) for inch in (False, True)] for c in "IJK"], np.int64)
             extra_letter[arcs] = np.frombuffer(b"IJK", np.uint8)[which]
             extra_dec[arcs] = table[which, inch0.astype(np.int64)[:, None]]
-        ok, spans = fast_write.scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch,
-                                    n_extra, extra_val, extra_dec)
+        # (each candidate is judged alone: the candidates shared among the kernels' threads, the results joined)
+        shares = _shared(fast_write.scan, cand.size, lambda sl: (
+            src, line_start, cand_line[sl], cand_k[sl], cand_motion[sl], target, cols, dec, inch, n_extra[sl],
+            extra_val[sl], extra_dec[sl]))
+        ok, spans = (np.concatenate(x) for x in zip(*shares))
         handled = np.zeros(starts.size, bool)
         handled[cand[ok]] = True
         return {"handled": handled, "src": src, "line_start": line_start, "line": cand_line[ok], "k": cand_k[ok],
@@ -1626,12 +1652,13 @@ class _Poster:
             blob_start[pieces["line"]] = blob.size + pieces["start"]
             blob_end[pieces["line"]] = blob.size + pieces["end"]
             blob = np.concatenate([blob, pieces["blob"]])
-        out = fast_write.assemble(fast["src"], fast["line_start"], mode, cand_of_line, fast["k"], fast["motion"],
-                                  fast["spans"], fast["target"], fast["cols"], fast["letters"], fast["dec"],
-                                  fast["inch"], fast["n_extra"], fast["extra_val"], fast["extra_letter"],
-                                  fast["extra_dec"], fast["keep_r"], bool(info.leading_zero), bool(info.trailing_point),
-                                  fast["sep"], blob, blob_start, blob_end)
-        return out.tobytes().decode("utf-8")
+        # (each line is written alone: the lines shared among the kernels' threads, their bytes joined in order)
+        shares = _shared(fast_write.assemble, n_lines, lambda sl: (
+            fast["src"], fast["line_start"][sl.start : sl.stop + 1], mode[sl], cand_of_line[sl], fast["k"],
+            fast["motion"], fast["spans"], fast["target"], fast["cols"], fast["letters"], fast["dec"], fast["inch"],
+            fast["n_extra"], fast["extra_val"], fast["extra_letter"], fast["extra_dec"], fast["keep_r"],
+            bool(info.leading_zero), bool(info.trailing_point), fast["sep"], blob, blob_start[sl], blob_end[sl]))
+        return b"".join(out.tobytes() for out in shares).decode("utf-8")
 
     def _centre_words(self, r, delta_end, last_written, fmt):
         """The centre words of one kept arc (``_centre_values``), formatted."""
@@ -1805,6 +1832,19 @@ def _rewrite_tokens(code, motion, words, arc, was_arc, sep):
         keep.insert(_after_line_number(keep), f"G{motion}")
     pos = _word_position(keep)
     return sep.join(keep[:pos] + words + keep[pos:])
+
+
+def _shared(kernel, n, args_of) -> list:
+    """``kernel(*args_of(sl))`` for contiguous shares ``sl`` of ``range(n)``, in order: on the kernels' threads where
+    ``n`` is worth sharing and the kernel's ahead-of-time twin takes every share's arguments (twins release the GIL),
+    else one call on ``slice(0, n)``. For kernels that treat each item of the range alone (the same numbers, the same
+    bytes, shared or not)."""
+    parts = thread_slices(n)
+    if parts:
+        out = run_twins(kernel, [args_of(sl) for sl in parts])
+        if out is not None:
+            return out
+    return [kernel(*args_of(slice(0, n)))]
 
 
 def _subdivide(owner, a, b, worst, bad):
