@@ -487,7 +487,7 @@ def test_a_part_description_of_another_cone_than_the_programs_is_refused(cone):
     with pytest.raises(ValueError, match=r"cuts a cone of base_diameter 80; the part's description gives "
                                          r"base_diameter 90"):
         run_diagnosis(P, N, "nas979", m, prog.text, part_json=Nas979Params(base_diameter=90.0))
-    from trueaxis.postproc.programs import read_cone_title
+    from trueaxis.workpiece.nas979 import read_cone_title
 
     assert read_cone_title(prog.text) == {"half_angle_deg": 15.0, "axis_inclination_deg": 10.0,
                                           "base_diameter": 80.0, "height": 20.0}

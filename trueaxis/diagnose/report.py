@@ -12,7 +12,6 @@ import base64
 import html
 import io
 import json
-import math
 import os
 import re
 import shutil
@@ -175,21 +174,14 @@ MAX_GAP_RMS_UM = 500.0  # the post's default correction bound: a larger gap is n
 
 
 def check_part_against_program(part: str, part_json: dict, program_text: str) -> None:
-    """The part's description (``--part-json``, or the default part) must be the part the program cuts: a NAS 979
-    program names its cone in its title (``read_cone_title``); another cone's description would give the twin
-    another surface to cut and other normals, read as a machine error. Silent for a program without that line."""
-    from ..postproc.programs import read_cone_title
+    """The part's description (``--part-json``, or the default part) must be the part the program cuts (a NAS 979
+    program names its cone in its title): another description would give the twin another surface to cut and other
+    normals, read as a machine error. Silent for a program that does not say."""
+    from ..workpiece.part import get_part
 
-    cut = read_cone_title(program_text) if part == "nas979" else None
-    if cut is None:
-        return
-    said = part_json.get("parameters", {})
-    off = [k for k, v in cut.items() if said.get(k) is None or not math.isclose(float(said[k]), v, rel_tol=1e-5,
-                                                                                  abs_tol=1e-6)]
-    if off:
-        raise ValueError("the program cuts a cone of " + ", ".join(f"{k} {cut[k]:g}" for k in off) + "; the part's "
-                         "description gives " + ", ".join(f"{k} {said.get(k)}" for k in off) + ": give the "
-                         "description `trueaxis part` wrote for this cone (--part-json)")
+    why = get_part(part).program_mismatch(part_json, program_text)
+    if why:
+        raise ValueError(f"{why}: give the description `trueaxis part` wrote for it (--part-json)")
 
 
 def check_cloud_for_part(points, part: str, part_json: dict | None = None) -> None:

@@ -39,6 +39,7 @@ import numpy as np
 
 from ..machine import Machine, forward_nominal
 from ..nc.cl import ClData, cl_axes, machine_linear_positions  # noqa: F401  (re-exported)
+from ..workpiece.nas979 import cone_title
 from ..workpiece.parts import COMPENSATION_MODES, Nas979Params, SlotBlockParams
 
 MODES = ("none", "geometric", "comprehensive")
@@ -282,24 +283,6 @@ def read_setup(text: str) -> dict:
     return out
 
 
-_CONE_TITLE = re.compile(r"^\(cone: half angle (\S+) deg, axis inclined (\S+) deg, base diameter (\S+) mm, "
-                         r"height (\S+) mm along the axis\)\s*$", re.MULTILINE)
-
-
-def read_cone_title(text: str) -> dict | None:
-    """The cone a NAS 979 program cuts, from its title comment (``nas979_program``): {"half_angle_deg",
-    "axis_inclination_deg", "base_diameter", "height"} (deg, mm; as written, 6 significant digits); None when the
-    program has no such line (a program from elsewhere)."""
-    m = _CONE_TITLE.search(text[:20_000])
-    if not m:
-        return None
-    try:
-        values = [float(v) for v in m.groups()]
-    except ValueError:
-        return None
-    return dict(zip(("half_angle_deg", "axis_inclination_deg", "base_diameter", "height"), values))
-
-
 def _pass_blocks(machine: Machine, cl: ClData, q: np.ndarray, sel: np.ndarray, safe_z: float) -> list[str]:
     """G-code of one pass (rows ``sel`` of the CL data): rapids at safe Z, approach, plunge, feed moves, retract."""
     names = machine.axis_names
@@ -443,8 +426,7 @@ def nas979_program(machine: Machine, params: Nas979Params | None = None, *, comp
     setup = setup_comment("nas979", placed.workpiece_origin, placement, tool_diameter, compensation,
                           twin_id(machine) if compensation != "none" else None)
     title = [f"trueaxis NAS 979 cone frustum: 5-axis flank milling, flat end mill d {tool_diameter:g} mm",
-             f"cone: half angle {p.half_angle_deg:g} deg, axis inclined {p.axis_inclination_deg:g} deg, base diameter "
-             f"{p.base_diameter:g} mm, height {p.height:g} mm along the axis",
+             cone_title(p),
              f"stock {stock_um:g} um; " + "; ".join(f"{ps['name']} pass leaves {ps['offset_mm'] * 1e3:g} um"
                                                    for ps in cl.passes),
              f"placement X{placement[0]:g} Y{placement[1]:g} mm off the C axis; part origin in M "

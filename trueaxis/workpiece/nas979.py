@@ -7,6 +7,7 @@ with the part frame and the JSON schema; this module is what makes it a ``Part``
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +31,31 @@ def cone_pattern(part: dict, n_points: int, margin_mm: float = 1.0):
     return cone_surface_points(cone, heights, per_ring)
 
 
+
+
+def cone_title(p: Nas979Params) -> str:
+    """The line a NAS 979 program's title names its cone with (``nas979_program``; read back by
+    ``read_cone_title``)."""
+    return (f"cone: half angle {p.half_angle_deg:g} deg, axis inclined {p.axis_inclination_deg:g} deg, base diameter "
+            f"{p.base_diameter:g} mm, height {p.height:g} mm along the axis")
+
+
+_CONE_TITLE = re.compile(r"^\(cone: half angle (\S+) deg, axis inclined (\S+) deg, base diameter (\S+) mm, "
+                         r"height (\S+) mm along the axis\)\s*$", re.MULTILINE)
+
+
+def read_cone_title(text: str) -> dict | None:
+    """The cone a program cuts, from its title comment (``cone_title``): {"half_angle_deg", "axis_inclination_deg",
+    "base_diameter", "height"} (deg, mm; as written, 6 significant digits); None when the program has no such line
+    (a program from elsewhere)."""
+    m = _CONE_TITLE.search(text[:20_000])
+    if not m:
+        return None
+    try:
+        values = [float(v) for v in m.groups()]
+    except ValueError:
+        return None
+    return dict(zip(("half_angle_deg", "axis_inclination_deg", "base_diameter", "height"), values))
 
 
 @dataclass(frozen=True)
@@ -60,6 +86,20 @@ class Nas979:
 
     def probe_pattern(self, description, n_points):
         return cone_pattern(description, n_points)
+
+    def program_mismatch(self, description, program_text):
+        """The cone the program's title names against the description's (``read_cone_title``); None when they agree
+        or the program does not say."""
+        cut = read_cone_title(program_text)
+        if cut is None:
+            return None
+        said = description.get("parameters", {})
+        off = [k for k, v in cut.items() if said.get(k) is None or not math.isclose(float(said[k]), v, rel_tol=1e-5,
+                                                                                      abs_tol=1e-6)]
+        if not off:
+            return None
+        return ("the program cuts a cone of " + ", ".join(f"{k} {cut[k]:g}" for k in off) + "; the part's "
+                "description gives " + ", ".join(f"{k} {said.get(k)}" for k in off))
 
     def material_mask(self, description):
         """Material between the cone's base and top planes (the first cut's engagement)."""

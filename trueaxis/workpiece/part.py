@@ -64,6 +64,10 @@ class Part(Protocol):
     def probe_pattern(self, description: dict, n_points: int) -> tuple[np.ndarray, np.ndarray]:
         """About ``n_points`` probe points (N, 3) mm and unit outward normals (N, 3) on the part, part frame."""
 
+    def program_mismatch(self, description: dict, program_text: str) -> str | None:
+        """Why a program of this part cut another geometry than ``description`` (from what the program's comments
+        say of it), or None when they agree or the program does not say."""
+
     def material_mask(self, description: dict) -> Callable[[np.ndarray], np.ndarray]:
         """Callable points (P, 3) mm -> (P,) bool: where the raw part has material (the first cut's engagement)."""
 

@@ -122,6 +122,10 @@ class SlotBlock:
     def probe_pattern(self, description, n_points):
         return slot_pattern(description, n_points)
 
+    def program_mismatch(self, description, program_text):
+        """None: a slot program's title does not name the block's dimensions (nothing to compare)."""
+        return None
+
     def material_mask(self, description):
         """The block below its top face z = 0."""
         return lambda p: p[:, 2] <= 0.0
