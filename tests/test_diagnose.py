@@ -881,23 +881,39 @@ def test_two_measured_parts_are_diagnosed_together_from_the_command_line(two_con
     assert abs(p["value_um"] - 6.0) < 3 * p["std_um"]
     assert [c["cut"] for c in data["per_cut"]] == [1, 2] and data["warnings"] == []
     assert data["inputs"]["pauses_s"] == [0.0] and "pause of 0 s" in data["clock"]
+    page = (d / "rep" / "diagnosis.html").read_text()
+    where = page[page.index("<h2>Where</h2>"):]
+    where = where[:where.index("</table>")]
+    assert "cmm0.ply" not in where and data["where"][0]["variable"] in where  # the ranking, not the parts' rows
     assert all(c["held_out_rms_um_after"] < 1.3 < c["gap_rms_um_before"] for c in data["per_cut"])
     capsys.readouterr()
     # The same cloud twice (its noise would pass for signal: the noise estimate fell to 0.002 um): refused, exit 3.
     assert main(args + two[:4] + two[:4] + ["--pause-s", "0", "-o", str(d / "dup")]) == 3
     assert "cloud 2 is the same measurement as cloud 1" in capsys.readouterr().err and not (d / "dup").exists()
+    # ... also written again at 1 nm (exported as XYZ): the same measurement.
+    from trueaxis.inspect.cloud import read_cloud
+
+    np.savetxt(d / "again.xyz", np.round(read_cloud(d / "cmm0.ply").points, 6), fmt="%.6f")
+    assert main(args + two[:4] + ["--cloud", str(d / "again.xyz"), "--program", str(d / "cone0.ngc"),
+                                  "--pause-s", "0", "-o", str(d / "dup")]) == 3
+    err = capsys.readouterr().err
+    assert "cloud 2 is the same measurement as cloud 1" in err and "again.xyz" in err and not (d / "dup").exists()
     # One program for two clouds: refused before any work, exit 2, nothing written.
     assert main(args + two[:6] + ["--pause-s", "0", "-o", str(d / "bad")]) == 2
     assert "2 cloud(s) and 1 program(s)" in capsys.readouterr().err and not (d / "bad").exists()
     # Two parts and no pause given (a drift runs on through it: not assumed), a pause for one part, a negative one
     # or two for one gap: refused, exit 2, nothing written.
     for bad, msg in ((two[:8], "2 parts: give --pause-s"), (two[:4] + ["--pause-s", "0"], "one part given"),
-                     (two[:8] + ["--pause-s", "0,5"], "one per gap")):
+                     (two[:8] + ["--pause-s", "0,5"], "2 numbers given; 2 parts take one number"),
+                     (two[:8] + ["--pause-s", "0", "--pause-s", "5"], "2 numbers given")):  # repeated: all kept
         assert main(args + bad + ["-o", str(d / "bad")]) == 2
         assert msg in capsys.readouterr().err and not (d / "bad").exists()
     with pytest.raises(SystemExit) as stop:  # out of range: argparse's usage error
         main(args + two[:8] + ["--pause-s", "-5", "-o", str(d / "bad")])
     assert stop.value.code == 2 and "'-5' must be >= 0" in capsys.readouterr().err and not (d / "bad").exists()
+    with pytest.raises(SystemExit):
+        main(args + two[:8] + ["--pause-s", "10 20", "-o", str(d / "bad")])
+    assert "separate the numbers with commas" in capsys.readouterr().err
 
 
 def test_a_part_the_verdict_leaves_above_the_noise_is_named_in_a_warning():
@@ -917,6 +933,15 @@ def test_a_part_the_verdict_leaves_above_the_noise_is_named_in_a_warning():
     assert [round(f["held_out_rms_um_after"], 1) for f in figs] == [1.0, 2.0] and PER_CUT_MISFIT < 2.0
     warnings = per_cut_warnings(diag, state)
     assert len(warnings) == 1 and warnings[0].startswith("part 2: the verdict leaves 2.0")
+    # No verdict: a part whose gap is many times the others' is named (a cloud 0.5 mm off in Z passed in silence:
+    # 141 um RMS against 3.6 um on the other part, in a QA pass).
+    from trueaxis.diagnose.report import PER_CUT_OUTLIER
+
+    g2 = np.r_[rng.normal(0.0, 3.6, 1000), rng.normal(140.0, 3.0, 1000)]
+    none = SimpleNamespace(chosen_fit=None, noise_um=1.0)
+    warnings = per_cut_warnings(none, SimpleNamespace(gap_um=g2, piece=state.piece))
+    assert len(warnings) == 1 and warnings[0].startswith("part 2: its gap is 140") and PER_CUT_OUTLIER < 140 / 3.6
+    assert per_cut_warnings(none, SimpleNamespace(gap_um=g, piece=state.piece)) == []
 
 
 @pytest.mark.parametrize("tied", [True, False])

@@ -89,7 +89,10 @@ NON_NEGATIVE = _number(low=0.0)
 
 def _non_negative_list(text: str) -> list:
     """An argparse type: comma-separated finite numbers >= 0."""
-    return [NON_NEGATIVE(t.strip()) for t in text.split(",")]
+    parts = text.split(",")
+    if len(parts) == 1 and len(text.split()) > 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: separate the numbers with commas (or repeat the option)")
+    return [NON_NEGATIVE(t.strip()) for t in parts]
 
 
 # ---------------------------------------------------------------------------------------------------- commands ----
@@ -322,12 +325,12 @@ def cmd_diagnose(args) -> int:
     if args.noise_um is not None and not args.noise_um > 0:
         raise UsageError("--noise-um must be > 0")
     n_parts = len(args.cloud)
+    gaps = "one number" if n_parts == 2 else f"one number for all gaps, or {n_parts - 1} numbers (one per gap)"
     if n_parts > 1 and args.pause_s is None:
         raise UsageError(f"{n_parts} parts: give --pause-s, the pause between one part's cut and the next (s; 0 when "
-                         f"cut right after each other; one number, or {n_parts - 1} in the order cut): a drift runs on "
-                         f"through it")
+                         f"cut right after each other; {gaps}): a drift runs on through it")
     if args.pause_s is not None and len(args.pause_s) not in (1, max(n_parts - 1, 1)):
-        raise UsageError(f"--pause-s: one number for all gaps, or {n_parts - 1} (one per gap between {n_parts} parts)")
+        raise UsageError(f"--pause-s: {len(args.pause_s)} numbers given; {n_parts} parts take {gaps}")
     if args.pause_s is not None and n_parts == 1:
         raise UsageError("--pause-s: one part given; the pause is the time between parts cut one after another")
     from .inspect.workers import single_blas_thread
@@ -569,10 +572,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the NC program that cut the part (one per --cloud, in the same order)")
     dg.add_argument("--part-json", default=None, action="append", help="the part's description (JSON written by "
                     "`trueaxis part`; default: the part at its default size); once for all clouds, or once per --cloud")
-    dg.add_argument("--pause-s", type=_non_negative_list, default=None,
+    dg.add_argument("--pause-s", type=_non_negative_list, default=None, action="extend",
                     help="several parts: the pause between the end of one part's program and the start of the next, "
-                    "s (0: cut right after each other); one number for all, or one per gap in the order cut. "
-                    "Required with several --cloud: a thermal drift runs on through it")
+                    "s (0: cut right after each other); one number for all, or one per gap in the order cut "
+                    "(comma-separated, or the option repeated). Required with several --cloud: a thermal drift "
+                    "runs on through it")
     dg.add_argument("--candidates", default="all", help="all, or a comma-separated list of candidate effects")
     dg.add_argument("--split", default="region", choices=["region", "time", "random"],
                     help="how held-out points are kept apart from the fitted ones (default region)")

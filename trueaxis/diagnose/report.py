@@ -89,6 +89,7 @@ class MeasuredCut:
     program_text: str
     program_name: str = "<program>"
     part_json: object = None  # this part's description when it differs from the others' (see ``run_diagnosis``)
+    cloud_name: str = ""
 
 
 def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", split="region", noise_um=None,
@@ -115,7 +116,8 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
         pauses = np.zeros(0)
 
     def which(k, c):
-        return f" (cut {k + 1} of {len(cuts)}: {c.program_name})" if len(cuts) > 1 else ""
+        names = ", ".join(x for x in (c.cloud_name, c.program_name) if x)
+        return f" (cut {k + 1} of {len(cuts)}: {names})" if len(cuts) > 1 else ""
 
     def for_cut(k, c, check):
         try:
@@ -130,7 +132,10 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
     checked = []
     for k, c in enumerate(cuts):
         for j, other in enumerate(cuts[:k]):
-            if np.shape(other.points) == np.shape(c.points) and np.array_equal(other.points, c.points):
+            # The same measurement, also when written again at another precision (0.1 um: far below any probe's
+            # noise, far above a re-export's rounding).
+            if np.shape(other.points) == np.shape(c.points) and np.allclose(other.points, c.points, rtol=0.0,
+                                                                            atol=1e-4):
                 raise CloudError(f"cloud {k + 1} is the same measurement as cloud {j + 1}{which(k, c)}: each part is "
                                  f"measured once (a cloud given twice would count its noise as signal)")
         pj = part_description(part, part_json if c.part_json is None else c.part_json)
@@ -221,6 +226,8 @@ def _clock_text(state: TwinState) -> str:
 #: A part whose held-out residual after the verdict exceeds this many times the probe noise is named in a warning
 #: (several parts): the verdict does not describe it as it describes the others.
 PER_CUT_MISFIT = 1.3
+#: Without a verdict, a part whose gap RMS exceeds this many times every other part's (and the noise) is named.
+PER_CUT_OUTLIER = 5.0
 
 
 def per_cut_figures(diag: Diagnosis, state: TwinState) -> list[dict]:
@@ -240,12 +247,22 @@ def per_cut_figures(diag: Diagnosis, state: TwinState) -> list[dict]:
 def per_cut_warnings(diag: Diagnosis, state: TwinState) -> list[str]:
     """A warning for each part the verdict leaves well above the noise (a cloud given with another part's program,
     or an effect the verdict does not describe on that part)."""
+    figures = per_cut_figures(diag, state)
     if diag.chosen_fit is None:
-        return []
+        # No verdict: a part whose gap is many times the others' (and the noise's) is named: a set-up, frame or
+        # program error of that part is likelier than a machine effect seen on it alone.
+        out = []
+        for c in figures:
+            others = [o["gap_rms_um_before"] for o in figures if o is not c]
+            if others and c["gap_rms_um_before"] > PER_CUT_OUTLIER * max(max(others), diag.noise_um):
+                out.append(f"part {c['cut']}: its gap is {c['gap_rms_um_before']:.2f} um RMS against "
+                           f"{max(others):.2f} um at most on the others: is that cloud in the frame its program "
+                           f"cut (datum, offsets), and the one its program cut?")
+        return out
     return [f"part {c['cut']}: the verdict leaves {c['held_out_rms_um_after']:.2f} um RMS on its held-out points "
             f"against a probe noise of {diag.noise_um:.2f} um: structure it does not describe there (is that cloud "
             f"the one its program cut? an effect outside the library?)"
-            for c in per_cut_figures(diag, state) if c["held_out_rms_um_after"] > PER_CUT_MISFIT * diag.noise_um]
+            for c in figures if c["held_out_rms_um_after"] > PER_CUT_MISFIT * diag.noise_um]
 
 
 def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None) -> dict:
@@ -387,12 +404,12 @@ def _html(data: dict, pngs: dict) -> str:
     if data.get("per_cut"):
         clouds = data["inputs"].get("cloud") or []
         programs = data["inputs"].get("program") or []
-        rows = "".join(f"<tr><td>{c['cut']}</td><td>{e(str(clouds[c['cut'] - 1]) if len(clouds) >= c['cut'] else '')}"
+        cut_rows = "".join(f"<tr><td>{c['cut']}</td><td>{e(str(clouds[c['cut'] - 1]) if len(clouds) >= c['cut'] else '')}"
                        f"</td><td>{e(str(programs[c['cut'] - 1]) if len(programs) >= c['cut'] else '')}</td>"
                        f"<td>{c['points']}</td><td>{c['gap_rms_um_before']:.3f}</td>"
                        f"<td>{c['held_out_rms_um_after']:.3f}</td></tr>" for c in data["per_cut"])
         cut_table = ("<table><tr><th>part</th><th>cloud</th><th>program</th><th>points</th><th>gap RMS um</th>"
-                     f"<th>held-out RMS after um</th></tr>{rows}</table><p>{e(data.get('clock') or '')}.</p>")
+                     f"<th>held-out RMS after um</th></tr>{cut_rows}</table><p>{e(data.get('clock') or '')}.</p>")
     else:
         cut_table = ""
     return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>trueaxis diagnosis</title>
@@ -474,7 +491,7 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     cuts = []
     for c, p, text, pj in zip(clouds, programs, texts, each):
         pts = read_cloud(c)
-        cuts.append(MeasuredCut(pts.points, pts.normals, text, str(p), pj))
+        cuts.append(MeasuredCut(pts.points, pts.normals, text, str(p), pj, cloud_name=str(c)))
     posted_for = program_machine_warnings(m, list(zip(texts, programs)))
     try:
         diag, state = run_diagnosis_cuts(cuts, part, m, candidates=names, split=split, noise_um=noise_um,
