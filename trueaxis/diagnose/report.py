@@ -404,10 +404,13 @@ def _html(data: dict, pngs: dict) -> str:
     if data.get("per_cut"):
         clouds = data["inputs"].get("cloud") or []
         programs = data["inputs"].get("program") or []
-        cut_rows = "".join(f"<tr><td>{c['cut']}</td><td>{e(str(clouds[c['cut'] - 1]) if len(clouds) >= c['cut'] else '')}"
-                       f"</td><td>{e(str(programs[c['cut'] - 1]) if len(programs) >= c['cut'] else '')}</td>"
-                       f"<td>{c['points']}</td><td>{c['gap_rms_um_before']:.3f}</td>"
-                       f"<td>{c['held_out_rms_um_after']:.3f}</td></tr>" for c in data["per_cut"])
+        def name(names, k):
+            return e(str(names[k - 1])) if len(names) >= k else ""
+
+        cut_rows = "".join(f"<tr><td>{c['cut']}</td><td>{name(clouds, c['cut'])}</td>"
+                           f"<td>{name(programs, c['cut'])}</td><td>{c['points']}</td>"
+                           f"<td>{c['gap_rms_um_before']:.3f}</td><td>{c['held_out_rms_um_after']:.3f}</td></tr>"
+                           for c in data["per_cut"])
         cut_table = ("<table><tr><th>part</th><th>cloud</th><th>program</th><th>points</th><th>gap RMS um</th>"
                      f"<th>held-out RMS after um</th></tr>{cut_rows}</table><p>{e(data.get('clock') or '')}.</p>")
     else:
