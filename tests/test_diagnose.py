@@ -821,6 +821,7 @@ def test_a_pause_between_two_parts_shapes_the_drift_each_part_sees(two_cones, tm
     # A first-order drift along X (20 um, time constant 0.4 of the whole clock) runs on through a pause between the
     # two cuts; each part sees it from its own set-up (the shop's relative_to_start). The candidate's column with the
     # pause given reproduces the shop's change on both parts; with the pause taken as 0 no variant does.
+    from trueaxis.diagnose.report import MeasuredCut, run_diagnosis_cuts
     from trueaxis.diagnose.state import combine_states
 
     m, cuts, _ = two_cones
@@ -835,14 +836,16 @@ def test_a_pause_between_two_parts_shapes_the_drift_each_part_sees(two_cones, tm
     series = tmp_path / "drift.csv"
     ts = np.linspace(0.0, 1.2 * total, 4000)
     series.write_text("time_s,x_um\n" + "\n".join(f"{t:.6f},{amp * -np.expm1(-t / tau):.9f}" for t in ts) + "\n")
-    diff = []
+    diff, measured = [], []
     for (prog, r), st, start in zip(cuts, states, (0.0, t1 + pause)):
         eff = parse_effects({"thermal": {"file": str(series), "channels": {"X": "x_um"}, "time_offset_s": start}},
                             machine=prog.machine)
         cut = np.isfinite(r.deviations_um)
-        shop = simulate(prog.text, prog.machine, eff, part="nas979", probe=(st.points, st.normals))
+        shop = simulate(prog.text, prog.machine, eff, part="nas979", probe=(st.points, st.normals), noise_um=0.5,
+                        seed=len(diff))
         base = simulate(prog.text, prog.machine, None, part="nas979", probe=(st.points, st.normals))
-        diff.append(shop.deviations_um - base.deviations_um)
+        diff.append(shop.deviations_um - base.deviations_um)  # the deviation itself (the noise is in measured)
+        measured.append(MeasuredCut(shop.measured, st.normals, prog.text, f"cone{len(diff)}.ngc"))
     diff = np.concatenate(diff)
     assert np.ptp(diff) > 5.0
     with_pause = combine_states(states, [pause])
@@ -856,6 +859,11 @@ def test_a_pause_between_two_parts_shapes_the_drift_each_part_sees(two_cones, tm
     no_pause = build("thermal_x", combine_states(states, [0.0]))
     best = min(rms(c @ np.linalg.lstsq(c, diff, rcond=None)[0] - diff) for _, c in no_pause.variants)
     assert best > 5.0 * rms(col[:, 0] * end - diff)
+    # Diagnosed: the drift, and the note that it was read on the clock the pause given makes.
+    diag, _ = run_diagnosis_cuts(measured, "nas979", m, candidates="thermal_x,backlash_x,backlash_y", noise_um=0.5,
+                                 pauses_s=pause)
+    assert diag.chosen == ["thermal_x"]
+    assert any(n.startswith(f"the drift is read on the clock the pauses given make ({pause:g} s") for n in diag.notes)
     with pytest.raises(ValueError, match="pause"):
         combine_states(states, [])
     with pytest.raises(ValueError, match="pause"):
