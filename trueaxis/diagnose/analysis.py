@@ -221,7 +221,15 @@ def noise_estimate_rel_se(state: TwinState) -> float:
 
 def _neighbour_differences(state: TwinState) -> tuple[np.ndarray, int]:
     """The gap's differences between each point and its nearest neighbour cut close in time, and how many distinct
-    pairs they are."""
+    pairs they are. The pairs depend on the points and times only: found once per state (``state.memo``)."""
+    if "neighbour_pairs" not in state.memo:
+        state.memo["neighbour_pairs"] = _neighbour_pairs(state)
+    keep, pair, n_distinct = state.memo["neighbour_pairs"]
+    return (state.gap_um - state.gap_um[pair])[keep], n_distinct
+
+
+def _neighbour_pairs(state: TwinState) -> tuple[np.ndarray, np.ndarray, int]:
+    """(keep (N,) bool, pair (N,) index, distinct pairs) for ``_neighbour_differences``."""
     g = state.gap_um
     tree = cKDTree(state.points)
     dist, idx = tree.query(state.points, k=min(6, g.size))
@@ -237,10 +245,9 @@ def _neighbour_differences(state: TwinState) -> tuple[np.ndarray, int]:
     keep = ok.any(axis=1)
     if keep.sum() < 10:
         keep, pair = np.ones(g.size, bool), idx[:, 1]
-    d = (g - g[pair])[keep]
     i = np.flatnonzero(keep)
     n_distinct = np.unique(np.minimum(i, pair[keep]) * g.size + np.maximum(i, pair[keep])).size
-    return d, int(n_distinct)
+    return keep, pair, int(n_distinct)
 
 
 # ---------------------------------------------------------------------------------------------- the fitting ----

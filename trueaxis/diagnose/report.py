@@ -25,7 +25,7 @@ import numpy as np
 from ..inspect.cloud import CloudError
 from .analysis import Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from .state import TwinState, combine_states, place_from_setup, twin_state
+from .state import TwinState, combine_states, pauses_between, place_from_setup, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
 
@@ -103,21 +103,11 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
     gap, or one number for all): a drift runs on through it, so it is not assumed (0 when one part was cut right
     after the other). Every cut's cloud is checked before the first simulation."""
     names = parse_candidates(candidates) if isinstance(candidates, str) or candidates is None else list(candidates)
-    if len(cuts) > 1:
-        if pauses_s is None:
-            raise ValueError(f"{len(cuts)} parts: give the pause between one part's cut and the next (s; 0 when cut "
-                             f"right after each other): a drift runs on through it (--pause-s)")
-        pauses = np.atleast_1d(np.asarray(pauses_s, float))
-        pauses = np.full(len(cuts) - 1, pauses[0]) if pauses.size == 1 else pauses
-        if pauses.size != len(cuts) - 1 or not np.all(np.isfinite(pauses) & (pauses >= 0.0)):
-            raise ValueError(f"the pauses between {len(cuts)} parts: one number >= 0 for all, or {len(cuts) - 1} "
-                             f"(one per gap, in the order cut), s; got {np.asarray(pauses_s, float).tolist()}")
-    else:
-        pauses = np.zeros(0)
+    pauses = pauses_between(len(cuts), pauses_s)  # refused before any simulation
 
     def which(k, c):
-        names = ", ".join(x for x in (c.cloud_name, c.program_name) if x)
-        return f" (cut {k + 1} of {len(cuts)}: {names})" if len(cuts) > 1 else ""
+        files = ", ".join(x for x in (c.cloud_name, c.program_name) if x)
+        return f" (cut {k + 1} of {len(cuts)}: {files})" if len(cuts) > 1 else ""
 
     def for_cut(k, c, check):
         try:
@@ -175,7 +165,7 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
     if len(cuts) > 1 and any(m.startswith("thermal") for m in diag.chosen):
         # The drift's shape over several parts is read on the clock the pauses make: say so with the verdict (a pause
         # of 400 s given for 40 s named a drift 4.5 times too large beside a servo lag, at 0.59, in a QA pass).
-        given = ", ".join(f"{p:g} s" for p in pauses)
+        given = ", ".join(f"{p:g} s" for p in state.pauses_s)
         diag.notes.append(f"the drift is read on the clock the pauses given make ({given} between the parts): a wrong "
                           f"pause changes the drift's size and what goes with it")
     state.timings["diagnosis_s"] = time.perf_counter() - t0
@@ -411,6 +401,7 @@ def _html(data: dict, pngs: dict) -> str:
     if data.get("per_cut"):
         clouds = data["inputs"].get("cloud") or []
         programs = data["inputs"].get("program") or []
+
         def name(names, k):
             return e(str(names[k - 1])) if len(names) >= k else ""
 

@@ -126,6 +126,22 @@ class TwinState:
         return self.t_s if self.t_datum_s is None else self.t_s - self.t_datum_s
 
 
+def pauses_between(n_cuts: int, pauses_s) -> np.ndarray:
+    """The pauses between ``n_cuts`` cuts (s, >= 0): one number for every gap, or one per gap in the order cut;
+    ValueError otherwise. None with several cuts is refused: a drift runs on through a pause, so none is assumed."""
+    if n_cuts < 2:
+        return np.zeros(0)
+    if pauses_s is None:
+        raise ValueError(f"{n_cuts} parts: give the pause between one part's cut and the next (s; 0 when cut right "
+                         f"after each other): a drift runs on through it (--pause-s)")
+    pauses = np.atleast_1d(np.asarray(pauses_s, float)).reshape(-1)
+    pauses = np.full(n_cuts - 1, pauses[0]) if pauses.size == 1 else pauses
+    if pauses.size != n_cuts - 1 or not np.all(np.isfinite(pauses) & (pauses >= 0.0)):
+        raise ValueError(f"the pauses between {n_cuts} parts: one number >= 0 for all, or {n_cuts - 1} (one per gap, "
+                         f"in the order cut), s; got {np.asarray(pauses_s, float).tolist()}")
+    return pauses
+
+
 def combine_states(states: list, pauses_s=()) -> TwinState:
     """One state of several cuts measured on one machine, cut one after another (the second placement of a part, or
     the same program again after a warm-up): the rows of all, the clock running on (cut k starts ``pauses_s[k - 1]``
@@ -134,11 +150,8 @@ def combine_states(states: list, pauses_s=()) -> TwinState:
     (``t_datum_s``: a drift is seen from each part's datum). The candidates then share their parameters over the
     cuts: one machine, one backlash, one drift, one set of location errors.
 
-    pauses_s : one pause per gap between cuts (len(states) - 1 values, s, >= 0)."""
-    pauses = np.asarray(pauses_s, float).reshape(-1)
-    if pauses.size != len(states) - 1 or not np.all(np.isfinite(pauses) & (pauses >= 0.0)):
-        raise ValueError(f"{len(states)} cuts need {len(states) - 1} pause(s) between them (s, >= 0), got "
-                         f"{pauses.tolist()}")
+    pauses_s : the pauses between the cuts (``pauses_between``)."""
+    pauses = pauses_between(len(states), pauses_s)
     if len(states) == 1:
         return states[0]
     first = states[0]
