@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
+import sys
 
 import numpy as np
 import pytest
@@ -222,7 +224,7 @@ def test_control_says_none_of_the_candidates(slots):
     assert estimate_noise_um(st) == pytest.approx(1.0, rel=0.3)
 
 
-def test_report_schema_and_cli(slots, tmp_path):
+def test_report_schema_and_cli(slots, tmp_path, capsys, monkeypatch):
     from trueaxis.cli import main
 
     m, prog, _ = slots
@@ -230,12 +232,18 @@ def test_report_schema_and_cli(slots, tmp_path):
     write_cmm(r, tmp_path / "cmm.ply")
     (tmp_path / "p.ngc").write_text(prog.text)
     out = tmp_path / "rep"
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)  # a terminal: the slow steps are told as they start
     rc = main(["diagnose", "--cloud", str(tmp_path / "cmm.ply"), "--part", "slots", "--machine", "xh714",
-               "--program", str(tmp_path / "p.ngc"), "--candidates", "backlash_x,backlash_y,thermal_x,twin_parameters",
-               "--noise-um", "1.0", "-o", str(out)])
+               "--program", str(tmp_path / "p.ngc"), "--candidates",
+               "backlash_x,backlash_y,thermal_x,twin_parameters,backlash_a", "--noise-um", "1.0", "-o", str(out)])
     assert rc == 0
+    steps = [line for line in capsys.readouterr().err.splitlines() if line.startswith("trueaxis diagnose: [")]
+    assert [re.sub(r"^trueaxis diagnose: \[ *\d+ s\] (\w+ \w+).*", r"\1", line) for line in steps] == [
+        "the twin", "fitting 4", "writing the"], steps  # backlash_a: no A axis, not fitted
     data = json.loads((out / "diagnosis.json").read_text())
-    assert (out / "diagnosis.html").read_text().count("data:image/png") >= 3
+    html = (out / "diagnosis.html").read_text()
+    assert html.count("data:image/png") >= 3
+    assert data["candidates_not_applicable"] == ["backlash_a"] and "Not applicable" in html.split("backlash_a")[0]
     assert {"where", "chosen", "candidates", "gap_um", "shrink"} <= set(data)
     assert data["where"][0]["variable"] and "held_out_r2" in data["where"][0]
     assert data["chosen"][0]["effect"] == "backlash_y" and 0 < data["chosen"][0]["confidence"] <= 1
@@ -296,7 +304,8 @@ def test_cli_refuses_bad_input_with_exit_2(tmp_path, capsys, extra, msg):
 
 def test_cli_refuses_a_cloud_of_another_cut_with_exit_3_and_candidates_that_do_not_apply_with_exit_2(slots, tmp_path,
                                                                                                    capsys):
-    # A refused input (a cloud too far from the part this program cuts; too few of its points cut) is exit 3 as
+    # A refused input (a cloud too far from the part this program cuts; too few of its points cut; a program the
+    # twin cannot cut) is exit 3 as
     # --help says, like a cloud outside the part's box; a --candidates list none of which applies here (no A axis on
     # the XH714) is a bad option value, exit 2; nothing written either way.
     from trueaxis.cli import main
@@ -313,7 +322,14 @@ def test_cli_refuses_a_cloud_of_another_cut_with_exit_3_and_candidates_that_do_n
     assert main(["diagnose", "--cloud", str(tmp_path / "cmm.ply"), *base, "--candidates", "backlash_a",
                  "-o", str(tmp_path / "b")]) == 2
     assert "none of backlash_a applies" in capsys.readouterr().err
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    # A program the twin cannot cut (an axis it does not have) or of the other part is a refused input: exit 3.
+    (tmp_path / "a.ngc").write_text(prog.text.replace("M30", "G0 A10\nM30"))
+    (tmp_path / "n.ngc").write_text(prog.text.replace("part=slots", "part=nas979"))
+    for bad, says in (("a.ngc", "moves axes A that"), ("n.ngc", "is for part 'nas979'")):
+        assert main(["diagnose", "--cloud", str(tmp_path / "cmm.ply"), *base[:4], "--program", str(tmp_path / bad),
+                     "-o", str(tmp_path / "c")]) == 3
+        assert says in capsys.readouterr().err
+    assert not any((tmp_path / d).exists() for d in "abc")
 
 
 def test_every_cloud_is_checked_before_the_first_simulation_and_a_refusal_names_a_program_of_another_machine(
@@ -323,6 +339,7 @@ def test_every_cloud_is_checked_before_the_first_simulation_and_a_refusal_names_
     # for another machine says so in the error (that warning came only with a finished report).
     from trueaxis.diagnose import report
     from trueaxis.diagnose.report import CloudError, MeasuredCut, diagnose_files, run_diagnosis_cuts
+    from trueaxis.diagnose.state import ProgramError
 
     m, prog, _ = slots
     r = _cut(m, prog, {}, noise=1.0, seed=2, points=300)
@@ -335,8 +352,13 @@ def test_every_cloud_is_checked_before_the_first_simulation_and_a_refusal_names_
         run_diagnosis_cuts([good, outside], "slots", m, part_json=prog.part_json, pauses_s=0.0)
     other_part = MeasuredCut(r.measured + 0.01, r.normals, prog.text.replace("part=slots", "part=nas979"),
                              "third.ngc")
-    with pytest.raises(ValueError, match=r"for part 'nas979', not 'slots' \(cut 2 of 2: third.ngc\)"):
+    with pytest.raises(ProgramError, match=r"for part 'nas979', not 'slots' \(cut 2 of 2: third.ngc\)"):
         run_diagnosis_cuts([good, other_part], "slots", m, part_json=prog.part_json, pauses_s=0.0)
+    # A program that moves an axis the twin does not have (posted for another machine): refused before any
+    # simulation too (it failed at the second cut's simulation, after the first one's, with the usage exit 2).
+    four_axis = MeasuredCut(r.measured - 0.01, r.normals, prog.text.replace("M30", "G0 A10\nM30"), "fourth.ngc")
+    with pytest.raises(ProgramError, match=r"moves axes A that .* does not have \(cut 2 of 2: fourth.ngc\)"):
+        run_diagnosis_cuts([good, four_axis], "slots", m, part_json=prog.part_json, pauses_s=0.0)
     assert calls == []
     (tmp_path / "p.ngc").write_text("(machine: Another Mill)\n" + prog.text)
     write_cmm(dataclasses.replace(r, measured=r.measured + 0.8 * r.normals), tmp_path / "far.ply")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -37,6 +38,17 @@ def test_a_block_before_every_axis_is_known_keeps_its_words_and_stderr_says_whic
     assert lines[1] == "G0 Z-20"  # not "G0 X0.00066 Y-0.00204 Z-19.99836": no rapid towards an invented X0 Y0
     assert lines[2].startswith("G0 X10.000") and lines[2] != "G0 X10 Y10"  # known from here: compensated
     assert json.loads(rep.read_text())["uncompensated"] == [{"line": 2, "axes": "XY"}]
+
+
+def test_the_summary_says_so_when_no_block_was_compensated(tmp_path):
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90\nG0 X10\nM2\n")  # Y and Z never known: the only move stays as written
+    r = run_cli("post", src, "-o", out, "--machine", XH714)
+    assert r.returncode == 0, r.stderr
+    assert "no block compensated" in r.stdout and "max correction" not in r.stdout, r.stdout
+    src.write_text(FIRST_MOVE_Z_ONLY)
+    r = run_cli("post", src, "-o", out, "--machine", XH714)
+    assert re.search(r"max correction at the block ends X \d+\.\d\d, Y \d+\.\d\d", r.stdout), r.stdout
 
 
 def test_incremental_moves_from_an_unknown_start_stay_as_written():

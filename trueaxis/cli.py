@@ -14,6 +14,7 @@ import json
 import os
 import re
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -205,7 +206,7 @@ def cmd_post(args) -> int:
     print(f"{'<stdout>' if args.output == '-' else args.output}: {cl}{report.blocks_in} blocks in, "
           f"{report.blocks_out} out; {report.moves_split} moves split"
           f"{f', {report.arcs_linearised} arcs as lines' if report.arcs_linearised else ''}; "
-          f"max correction at the block ends {corr} (um/urad); "
+          f"{f'max correction at the block ends {corr} (um/urad)' if corr else 'no block compensated'}; "
           f"{len(report.singular_blocks)} singular blocks", file=sys.stderr if "-" in (args.output, args.report)
           else sys.stdout)  # stdout carries the program (or the report) then
     return 0
@@ -337,12 +338,17 @@ def cmd_diagnose(args) -> int:
 
     # BLAS on one thread: the diagnosis' products are small or tall and thin, where OpenBLAS' threads only wait for
     # each other on a busy machine (the demo's case: 29 s against 1.8 s at load 2-3)
+    t0 = time.perf_counter()
+
+    def progress(line):  # on a terminal only, as the post's bar: a redirected log keeps the summary and the warnings
+        print(f"trueaxis diagnose: [{time.perf_counter() - t0:4.0f} s] {line} ...", file=sys.stderr, flush=True)
+
     with single_blas_thread():
         diag, data = diagnose_files(args.cloud, args.part, str(machine_file(args.machine)), args.program, args.output,
                                     candidates=args.candidates, split=args.split, noise_um=args.noise_um,
                                     part_json=None if not args.part_json else
                                     args.part_json[0] if len(args.part_json) == 1 else args.part_json,
-                                    pauses_s=args.pause_s)
+                                    pauses_s=args.pause_s, progress=progress if sys.stderr.isatty() else None)
     for line in summary_lines(diag, args.output, named_candidates=args.candidates not in (None, "all")):
         print(line)
     for warning in data["warnings"]:
@@ -632,10 +638,11 @@ _NAMED_FILES = ("input", "program", "cloud", "--cloud", "--program", "--cad")
 
 def _refusal_errors() -> tuple:
     """The error classes of inputs the product refuses whose messages do not carry a line (clouds, tolerances, the
-    inspection, effects files): exit status 3 like the located ones. Taken lazily, as in :func:`_located_errors`."""
+    inspection, effects files, a program the diagnosis cannot use): exit status 3 like the located ones. Taken lazily, as in :func:`_located_errors`."""
     found = []
     for module, name in (("trueaxis.inspect.cloud", "CloudError"), ("trueaxis.inspect.tolerances", "ToleranceError"),
-                         ("trueaxis.inspect.deviation", "InspectionError"), ("trueaxis.sim.effects", "EffectsFileError")):
+                         ("trueaxis.inspect.deviation", "InspectionError"), ("trueaxis.sim.effects", "EffectsFileError"),
+                         ("trueaxis.diagnose.state", "ProgramError")):
         if module in sys.modules:
             found.append(getattr(sys.modules[module], name))
     return tuple(found)

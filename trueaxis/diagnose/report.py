@@ -23,9 +23,11 @@ from pathlib import Path
 import numpy as np
 
 from ..inspect.cloud import CloudError
+from ..nc.gcode import parse_program
 from .analysis import Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from .state import TwinState, combine_states, pauses_between, place_from_setup, twin_state
+from .state import (ProgramError, TwinState, check_program_axes, combine_states, pauses_between, place_from_setup,
+                    twin_state)
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
 
@@ -93,7 +95,8 @@ class MeasuredCut:
 
 
 def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", split="region", noise_um=None,
-                       force_stride: int = 200, part_json=None, pauses_s=None) -> tuple[Diagnosis, TwinState]:
+                       force_stride: int = 200, part_json=None, pauses_s=None,
+                       progress=None) -> tuple[Diagnosis, TwinState]:
     """The diagnosis of one or more measured parts (``MeasuredCut``) cut one after another on one machine, in that
     order: each is read against the twin on its own (its gap and machine state), then all are judged together, the
     candidates sharing their parameters (one machine). A second placement of the part, or the same part cut after
@@ -101,7 +104,9 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
 
     pauses_s : with several cuts, the pause between the end of each cut and the start of the next (s, >= 0; one per
     gap, or one number for all): a drift runs on through it, so it is not assumed (0 when one part was cut right
-    after the other). Every cut's cloud is checked before the first simulation."""
+    after the other). Every cut's cloud is checked before the first simulation.
+    progress : a callable taking one line of text, told as each slow step starts (the twin's cut of each part, the
+    candidates' fits), or None."""
     names = parse_candidates(candidates) if isinstance(candidates, str) or candidates is None else list(candidates)
     pauses = pauses_between(len(cuts), pauses_s)  # refused before any simulation
 
@@ -112,10 +117,11 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
     def for_cut(k, c, check):
         try:
             return check()
-        except ValueError as exc:  # CloudError included; with several cuts, which one
+        except ValueError as exc:  # CloudError and ProgramError included; with several cuts, which one
             if not which(k, c):
                 raise
-            raise (CloudError if isinstance(exc, CloudError) else ValueError)(f"{exc}{which(k, c)}") from None
+            raise (type(exc) if type(exc) in (CloudError, ProgramError) else ValueError)(
+                f"{exc}{which(k, c)}") from None
 
     # The cheap refusals of every cut before the first twin simulation (a bad second cloud is not found after the
     # first cut's minutes): the same cloud twice, a cloud outside its part, a program for the other part, normals.
@@ -132,13 +138,18 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
 
         def gate(c=c, pj=pj):
             check_cloud_for_part(c.points, part, pj)
-            place_from_setup(machine, c.program_text, part)  # a program for the other part, a malformed setup
+            placed = place_from_setup(machine, c.program_text, part)  # a program for the other part, a bad setup
+            check_program_axes(placed, parse_program(c.program_text, c.program_name))  # posted for another machine
             check_part_against_program(part, pj, c.program_text)
             return cloud_normals(np.asarray(c.points, float), c.normals, pj)
 
         checked.append((pj, for_cut(k, c, gate)))
+    say = progress or (lambda line: None)
     states = []
     for k, (c, (pj, normals)) in enumerate(zip(cuts, checked)):
+        say(f"the twin cutting {c.program_name}{f' (part {k + 1} of {len(cuts)})' if len(cuts) > 1 else ''} at "
+            f"{len(c.points)} measured points (the virtual shop's 1 ms trajectory and the tool's envelope)")
+
         def read(c=c, pj=pj, normals=normals):
             st = twin_state(c.points, normals, machine, c.program_text, part,
                             want_force=any(n in FORCE_CANDIDATES for n in names), force_stride=force_stride,
@@ -161,6 +172,7 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
         raise ValueError(f"--candidates: none of {', '.join(names)} applies to this machine and program (an axis it "
                          f"does not have or that does not move while cutting, no force estimate, or an effect that "
                          f"cannot move this part's surface)")
+    say(f"fitting {len(cands)} candidate effects on training folds, judging them on held-out ones ({split} split)")
     diag = diagnose_state(state, cands, split=split, noise_um=noise_um, skipped=skipped)
     if len(cuts) > 1 and any(m.startswith("thermal") for m in diag.chosen):
         # The drift's shape over several parts is read on the clock the pauses make: say so with the verdict (a pause
@@ -183,7 +195,7 @@ def check_part_against_program(part: str, part_json: dict, program_text: str) ->
 
     why = get_part(part).program_mismatch(part_json, program_text)
     if why:
-        raise ValueError(f"{why}: give the description `trueaxis part` wrote for it (--part-json)")
+        raise ProgramError(f"{why}: give the description `trueaxis part` wrote for it (--part-json)")
 
 
 def check_cloud_for_part(points, part: str, part_json: dict | None = None) -> None:
@@ -413,6 +425,10 @@ def _html(data: dict, pngs: dict) -> str:
                      f"<th>held-out RMS after um</th></tr>{cut_rows}</table><p>{e(data.get('clock') or '')}.</p>")
     else:
         cut_table = ""
+    skipped = data.get("candidates_not_applicable") or []
+    not_applicable = (f"<p>Not applicable to this machine and program (an axis it does not have or that does not "
+                      f"move while cutting, no force estimate, or no effect on this part's surface): "
+                      f"{e(', '.join(skipped))}.</p>" if skipped else "")
     return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>trueaxis diagnosis</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:auto}}td,th{{padding:2px 8px;border-bottom:1px solid #ddd}}</style>
 </head><body><h1>Sim-to-real gap: diagnosis</h1>
@@ -428,6 +444,7 @@ def _html(data: dict, pngs: dict) -> str:
 <h2>Where</h2><table><tr><th>variable</th><th>held-out R2</th></tr>{rows}</table>
 <h2>Candidates</h2><table><tr><th>effect</th><th>held-out RMS after, um</th><th>gain um2</th><th>z</th>
 <th>significant</th><th>plausible</th></tr>{cands}</table>
+{not_applicable}
 {imgs}</body></html>
 """
 
@@ -457,7 +474,8 @@ def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None
 
 
 def diagnose_files(cloud, part: str, machine, program, output, *, candidates="all", split: str = "region",
-                   noise_um: float | None = None, part_json=None, pauses_s=None) -> tuple[Diagnosis, dict]:
+                   noise_um: float | None = None, part_json=None, pauses_s=None,
+                   progress=None) -> tuple[Diagnosis, dict]:
     """``trueaxis diagnose`` on files: read the cloud (PLY/CSV/XYZ), the twin (machine file) and the program, diagnose,
     and write the report into ``output``. Returns (the diagnosis, the report's JSON dict). Errors raise ValueError;
     nothing is written then.
@@ -468,7 +486,8 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     machine, output : paths.  part : "nas979" | "slots".  candidates : "all", "NAME,NAME" or a list.
     split : "region" | "time" | "random".  noise_um : probe noise sigma (um, > 0) or None (estimated).
     part_json : the part's description (see ``run_diagnosis``).  pauses_s : several parts: the pause(s) between
-    them, s (see ``run_diagnosis_cuts``; required there)."""
+    them, s (see ``run_diagnosis_cuts``; required there).  progress : a callable told each slow step in one line of
+    text (the CLI prints it on a terminal), or None."""
     from ..inspect.cloud import read_cloud
     from ..machine import load_machine
 
@@ -496,7 +515,7 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     posted_for = program_machine_warnings(m, list(zip(texts, programs)))
     try:
         diag, state = run_diagnosis_cuts(cuts, part, m, candidates=names, split=split, noise_um=noise_um,
-                                         pauses_s=pauses_s)
+                                         pauses_s=pauses_s, progress=progress)
     except ValueError as exc:  # a refusal says too when a program was written for another machine: the likely cause
         if not posted_for:
             raise
@@ -510,6 +529,8 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     if not one:
         inputs["pauses_s"] = list(state.pauses_s)
     warnings = posted_for + input_warnings(state, noise_um) + per_cut_warnings(diag, state)
+    if progress is not None:
+        progress(f"writing the report and its pictures into {output}")
     data = write_report(diag, state, output, inputs, warnings)
     return diag, data
 
