@@ -640,8 +640,21 @@ def _run_case(case: dict, points: int, noise_um: float, second: str = "") -> dic
                    t_case=time.perf_counter() - t0)
         return out
     cuts = [MeasuredCut(r.measured[cut], r.normals[cut], prog.text)]
+    if second == "planned":
+        # The product plans the second part from the first one's diagnosis (``trueaxis.diagnose.next_part``);
+        # without a plan (a confident verdict, or no placement that separates) the fixed rule's placement.
+        from trueaxis.diagnose.next_part import plan_next_part
+
+        d1, st1 = run_diagnosis_cuts(cuts, "nas979", m, **_part_kwargs(pj))
+        plan = plan_next_part(d1, st1, m, "nas979", pj, prog.text, want_force=st1.has_force)
+        out["plan"] = None if plan is None else {"placement_mm": plan.placement_mm, "z_here": plan.z_here,
+                                                 "z_next": plan.z_next}
+        setup_b = ({**case["setup"], "placement_mm": tuple(plan.placement_mm)} if plan is not None
+                   and plan.placement_mm is not None else second_setup(case["setup"], points))
+        setup_for(setup_b, points)
     if second:
-        setup_b = second_setup(case["setup"], points, other_cone=second == "cone")
+        if second != "planned":
+            setup_b = second_setup(case["setup"], points, other_cone=second == "cone")
         _, prog_b, pj_b, _ = setup_for(setup_b, points)
         t_b = float(r.trajectory.t[-1])
         r_b = run(scales, noise=noise_um, seed=2000 + case["n"] + case["seed"] % 1000, cut_prog=prog_b,
@@ -906,8 +919,9 @@ def main(argv=None) -> int:
     ap.add_argument("--list", action="store_true", help="print the case list and stop")
     ap.add_argument("--demo-timing", action="store_true", help="also time one diagnosis at the demo's 8000 points")
     ap.add_argument("--rescore", default=None, help="print the scores of a --json file of an earlier run and stop")
-    ap.add_argument("--second", choices=["placement", "cone"], default="", help="each case cuts the cone twice, "
-                    "the second time at another distance from the rotary axis (cone: and a larger half-angle), half the "
+    ap.add_argument("--second", choices=["placement", "cone", "planned"], default="", help="each case cuts the cone "
+                    "twice, the second time at another distance from the rotary axis (cone: and a larger half-angle; "
+                    "planned: where the first part's diagnosis plans it, trueaxis.diagnose.next_part), half the "
                     "points on each, both diagnosed together")
     args = ap.parse_args(argv)
     if args.rescore:

@@ -244,6 +244,7 @@ def test_report_schema_and_cli(slots, tmp_path, capsys, monkeypatch):
     html = (out / "diagnosis.html").read_text()
     assert html.count("data:image/png") >= 3
     assert data["candidates_not_applicable"] == ["backlash_a"] and "Not applicable" in html.split("backlash_a")[0]
+    assert data["next_part"] is None  # a confident verdict: no second part planned
     assert {"where", "chosen", "candidates", "gap_um", "shrink"} <= set(data)
     assert data["where"][0]["variable"] and "held_out_r2" in data["where"][0]
     assert data["chosen"][0]["effect"] == "backlash_y" and 0 < data["chosen"][0]["confidence"] <= 1
@@ -1004,3 +1005,98 @@ def test_std_covers_the_values_of_a_variant_the_part_cannot_reject(tied):
     else:
         assert z > 20.0
         assert fit.std[0] == std0 and "variant_spread" not in fit.extra
+
+
+# --- the next part (trueaxis.diagnose.next_part) ----------------------------------------------------------------------
+
+def _two_placements(slots, names, parts, noise=1.0):
+    """The slot block measured at its placement (a gap of the candidates' own columns, ``_synthetic``) joined with
+    the twin's cut of it 40 mm along -Y (the planned part): (measured state, joined state, fits on the measured one,
+    candidates built on the joined one)."""
+    from trueaxis.diagnose.analysis import fit_candidate, make_folds
+    from trueaxis.diagnose.state import combine_states
+
+    m, prog, base = slots
+    st, cands = _synthetic(slots, parts, noise=noise)
+    folds = make_folds(st)
+    fits = {c.name: fit_candidate([c], st.gap_um, folds) for c in cands if c.name in names}
+    other = slots_program(m, SlotBlockParams(slot_depth=0.6), placement_mm=(0.0, -40.0))
+    planned = twin_state(base.points, base.normals, m, other.text, "slots", want_force=False)
+    joined = combine_states([st, planned], 0.0)
+    return st, joined, fits, {c.name: c for c in build_all(names, joined)[0]}
+
+
+def test_the_next_parts_separation_is_the_rivals_least_squares_misfit_of_the_verdicts_signature(slots):
+    # Two formulations of the expected z by which two parts tell a verdict from a rival: the module's (bounded
+    # solves, every variant of the rival's shape, both directions) against numpy's plain least squares on the
+    # variants the fits chose, with the values inside their bounds (where the two agree).
+    from trueaxis.diagnose.next_part import separation_z
+
+    names = ["backlash_y", "twin_parameters"]
+    st, joined, fits, cands = _two_placements(slots, names, {"backlash_y": [6.0]})
+    here = joined.piece == 0
+    weight = np.where(here, 1.0, 2.0)  # the planned part counted twice: as if probed twice as densely
+    z_here, z_both = separation_z(here, st.gap_um, fits["backlash_y"], fits["twin_parameters"], cands, 1.0, weight)
+
+    def columns(name, fit=None):
+        c = cands[name]
+        return [v for _, v in c.variants] if c.variants and fit is None else \
+            [c.variants[fit.variant][1] if c.variants else c.columns]
+
+    def misfit(options, target, rows):  # the weighted RSS of the best of the column sets
+        w = np.sqrt(weight[rows])
+        thetas = [np.linalg.lstsq(S[rows] * w[:, None], target[rows] * w, rcond=None)[0] for S in options]
+        return min(float(np.sum((target[rows] - S[rows] @ t) ** 2 * weight[rows])) for S, t in zip(options, thetas))
+
+    expect_here, expect_both = [], []
+    for true, other in (("backlash_y", "twin_parameters"), ("twin_parameters", "backlash_y")):
+        S = columns(true, fits[true])[0]
+        signature = S @ np.linalg.lstsq(S[here], st.gap_um, rcond=None)[0]
+        expect_here.append(np.sqrt(misfit(columns(other), signature, here)))
+        expect_both.append(np.sqrt(misfit(columns(other), signature, np.ones(len(here), bool))))
+    assert z_here == pytest.approx(min(expect_here), rel=1e-6)
+    assert z_both == pytest.approx(min(expect_both), rel=1e-6)
+    assert 1.0 < z_here < z_both  # separated a little here; more rows never fit better
+
+
+def test_the_next_part_is_the_placement_that_separates_the_verdict_from_its_rival_best(slots):
+    # A verdict left uncertain beside a rival (backlash Y against the twin's location errors, confidence set low):
+    # with the noise the case has (1 um) their signatures differ on this part already (z 12): nothing to plan. With
+    # a probe five times noisier (z 2.4) each placement of the list is cut by the twin, the one with the largest
+    # expected z is suggested with the command that writes its program, and the report says it in words; the
+    # placements the post refuses (out of travel) are listed with why. A confident verdict plans nothing.
+    from trueaxis.diagnose.next_part import plan_next_part, placements_to_try
+    from trueaxis.diagnose.report import next_part_lines
+
+    m, prog, base = slots
+    st, cands = _synthetic(slots, {"backlash_y": [6.0]})
+    diag = diagnose_state(st, [c for c in cands if c.name in ("backlash_y", "twin_parameters", "thermal_x")],
+                          noise_um=1.0)
+    assert diag.chosen == ["backlash_y"]
+    assert plan_next_part(diag, st, m, "slots", prog.part_json, prog.text) is None  # confident: nothing to plan
+    unsure = dataclasses.replace(diag, confidence=0.3, alternatives=["twin_parameters"])
+    plan = plan_next_part(unsure, st, m, "slots", prog.part_json, prog.text, points=400)
+    assert plan.placement_mm is None and plan.tried == [] and plan.z_here["twin_parameters"] > 10.0
+    assert "differ already (twin_parameters z 1" in next_part_lines(plan.as_dict("slots", "xh714"))[0]
+    drifting = dataclasses.replace(unsure, alternatives=["thermal_x"])  # a drift: not planned by placement
+    (line,) = next_part_lines(plan_next_part(drifting, st, m, "slots", prog.part_json, prog.text).as_dict("s", "m"))
+    assert line == ("  next part: none planned; thermal_x: a drift, told apart by the same cut repeated at another "
+                    "time, not at another place")
+    noisy = dataclasses.replace(unsure, noise_um=5.0)
+    said = []
+    plan = plan_next_part(noisy, st, m, "slots", prog.part_json, prog.text, points=400, progress=said.append)
+    places = placements_to_try((0.0, 0.0))
+    assert len(said) == len(places) == len(plan.tried) == 4 and (0.0, 0.0) not in places
+    done = [t for t in plan.tried if "z_next" in t]
+    assert done and all("travel" in t["refused"] for t in plan.tried if "refused" in t)
+    best = max(done, key=lambda t: t["z_next"]["twin_parameters"])
+    assert plan.placement_mm == tuple(best["placement_mm"]) and plan.z_next == best["z_next"]
+    assert plan.z_next["twin_parameters"] >= 3.0 > plan.z_here["twin_parameters"] or \
+        plan.z_next["twin_parameters"] > plan.z_here["twin_parameters"] >= 3.0
+    d = plan.as_dict("slots", "xh714")
+    x, y = plan.placement_mm
+    assert d["command"] == f"trueaxis program slots --machine xh714 --placement-mm {x:g},{y:g} -o next.ngc"
+    (line,) = next_part_lines(d)
+    assert f"placement {x:g}, {y:g} mm" in line and "twin_parameters z" in line
+    none = dict(d, placement_mm=None)
+    assert "no placement tried separates backlash_y" in next_part_lines(none)[0]

@@ -348,8 +348,10 @@ def cmd_diagnose(args) -> int:
                                     candidates=args.candidates, split=args.split, noise_um=args.noise_um,
                                     part_json=None if not args.part_json else
                                     args.part_json[0] if len(args.part_json) == 1 else args.part_json,
-                                    pauses_s=args.pause_s, progress=progress if sys.stderr.isatty() else None)
-    for line in summary_lines(diag, args.output, named_candidates=args.candidates not in (None, "all")):
+                                    pauses_s=args.pause_s, plan_next=not args.no_plan,
+                                    progress=progress if sys.stderr.isatty() else None)
+    for line in summary_lines(diag, args.output, named_candidates=args.candidates not in (None, "all"),
+                              next_part=data.get("next_part")):
         print(line)
     for warning in data["warnings"]:
         print(f"trueaxis diagnose: warning: {warning}", file=sys.stderr)
@@ -587,6 +589,9 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--split", default="region", choices=["region", "time", "random"],
                     help="how held-out points are kept apart from the fitted ones (default region)")
     dg.add_argument("--noise-um", type=POSITIVE, help="probe noise sigma, um (default: estimated from the data)")
+    dg.add_argument("--no-plan", action="store_true", help="when one part leaves the verdict uncertain beside a "
+                    "rival, do not plan the placement of a second part that separates them (the plan costs a twin "
+                    "simulation per placement tried, about 5 s each)")
     dg.add_argument("-o", "--output", default="diagnosis", help="report folder (default ./diagnosis)")
     dg.set_defaults(func=cmd_diagnose)
 
@@ -638,7 +643,8 @@ _NAMED_FILES = ("input", "program", "cloud", "--cloud", "--program", "--cad")
 
 def _refusal_errors() -> tuple:
     """The error classes of inputs the product refuses whose messages do not carry a line (clouds, tolerances, the
-    inspection, effects files, a program the diagnosis cannot use): exit status 3 like the located ones. Taken lazily, as in :func:`_located_errors`."""
+    inspection, effects files, a program the diagnosis cannot use): exit status 3 like the located ones. Taken
+    lazily, as in :func:`_located_errors`."""
     found = []
     for module, name in (("trueaxis.inspect.cloud", "CloudError"), ("trueaxis.inspect.tolerances", "ToleranceError"),
                          ("trueaxis.inspect.deviation", "InspectionError"), ("trueaxis.sim.effects", "EffectsFileError"),

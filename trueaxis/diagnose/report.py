@@ -425,6 +425,7 @@ def _html(data: dict, pngs: dict) -> str:
                      f"<th>held-out RMS after um</th></tr>{cut_rows}</table><p>{e(data.get('clock') or '')}.</p>")
     else:
         cut_table = ""
+    alt += "".join(f"<p><b>{e(line.strip())}</b></p>" for line in next_part_lines(data.get("next_part")))
     skipped = data.get("candidates_not_applicable") or []
     not_applicable = (f"<p>Not applicable to this machine and program (an axis it does not have or that does not "
                       f"move while cutting, no force estimate, or no effect on this part's surface): "
@@ -450,13 +451,15 @@ def _html(data: dict, pngs: dict) -> str:
 
 
 def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None = None,
-                 warnings: list | None = None) -> dict:
+                 warnings: list | None = None, next_part: dict | None = None) -> dict:
     """Write diagnosis.json, diagnosis.html and the PNGs into ``out_dir`` together: everything is written into a
     temporary folder beside it first, then moved in with ``os.replace`` (pictures, HTML, then the JSON last), so a
-    reader never sees a JSON without its pictures. Returns the JSON dict."""
+    reader never sees a JSON without its pictures. next_part : the plan of a separating part
+    (``NextPart.as_dict``) or None. Returns the JSON dict."""
     out_dir = Path(out_dir)
     data = diagnosis_dict(diag, state, inputs)
     data["warnings"] = list(warnings or [])
+    data["next_part"] = next_part
     pngs = pictures(diag, state)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
@@ -474,7 +477,7 @@ def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None
 
 
 def diagnose_files(cloud, part: str, machine, program, output, *, candidates="all", split: str = "region",
-                   noise_um: float | None = None, part_json=None, pauses_s=None,
+                   noise_um: float | None = None, part_json=None, pauses_s=None, plan_next: bool = True,
                    progress=None) -> tuple[Diagnosis, dict]:
     """``trueaxis diagnose`` on files: read the cloud (PLY/CSV/XYZ), the twin (machine file) and the program, diagnose,
     and write the report into ``output``. Returns (the diagnosis, the report's JSON dict). Errors raise ValueError;
@@ -486,8 +489,9 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     machine, output : paths.  part : "nas979" | "slots".  candidates : "all", "NAME,NAME" or a list.
     split : "region" | "time" | "random".  noise_um : probe noise sigma (um, > 0) or None (estimated).
     part_json : the part's description (see ``run_diagnosis``).  pauses_s : several parts: the pause(s) between
-    them, s (see ``run_diagnosis_cuts``; required there).  progress : a callable told each slow step in one line of
-    text (the CLI prints it on a terminal), or None."""
+    them, s (see ``run_diagnosis_cuts``; required there).  plan_next : when one part leaves the verdict uncertain
+    beside a rival, plan the placement of a second part that separates them (``next_part``; a few twin simulations).
+    progress : a callable told each slow step in one line of text (the CLI prints it on a terminal), or None."""
     from ..inspect.cloud import read_cloud
     from ..machine import load_machine
 
@@ -529,9 +533,17 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     if not one:
         inputs["pauses_s"] = list(state.pauses_s)
     warnings = posted_for + input_warnings(state, noise_um) + per_cut_warnings(diag, state)
+    plan = None
+    if plan_next and one:
+        from .next_part import plan_next_part
+
+        members = set(diag.chosen) | set(diag.alternatives)
+        found = plan_next_part(diag, state, m, part, part_description(part, each[0]), texts[0],
+                               want_force=bool(members & set(FORCE_CANDIDATES)), progress=progress)
+        plan = None if found is None else found.as_dict(part, str(machine))
     if progress is not None:
         progress(f"writing the report and its pictures into {output}")
-    data = write_report(diag, state, output, inputs, warnings)
+    data = write_report(diag, state, output, inputs, warnings, next_part=plan)
     return diag, data
 
 
@@ -563,9 +575,10 @@ def input_warnings(state: TwinState, noise_um: float | None) -> list[str]:
     return out
 
 
-def summary_lines(diag: Diagnosis, output, named_candidates: bool = False) -> list[str]:
+def summary_lines(diag: Diagnosis, output, named_candidates: bool = False, next_part: dict | None = None) -> list[str]:
     """The command's summary on the terminal. named_candidates : the user named the candidates (then those that do
-    not apply to this machine and part are listed; of the whole library they are only in the report)."""
+    not apply to this machine and part are listed; of the whole library they are only in the report). next_part :
+    the report's plan of a separating part, or None."""
     b, a = diag.gap_before, diag.gap_after
     out = [f"{output}: {diag.verdict} (confidence {diag.confidence:.2f}); held-out gap rms {b['rms']:.2f} -> "
            f"{a['rms']:.2f} um, max {b['max']:.2f} -> {a['max']:.2f} um; shrink {diag.shrink_raw * 100:.0f} % raw, "
@@ -577,4 +590,31 @@ def summary_lines(diag: Diagnosis, output, named_candidates: bool = False) -> li
         out.append(f"  note: {note}")
     if diag.skipped and named_candidates:
         out.append(f"  not applicable here: {', '.join(str(s) for s in diag.skipped)}")
+    out += next_part_lines(next_part)
     return out
+
+
+def next_part_lines(plan: dict | None) -> list[str]:
+    """The plan of a separating second part in words (terminal and HTML); [] without a plan."""
+    if not plan:
+        return []
+    drift = ", ".join(plan.get("left_out") or [])
+    drift = (f"; {drift}: a drift, told apart by the same cut repeated at another time, not at another place"
+             if drift else "")
+    here = ", ".join(f"{k} z {v:.1f}" for k, v in plan["z_here"].items())
+    z3 = f"z {plan['separates_at_z']:g}"
+    if not plan["z_here"]:
+        return [f"  next part: none planned{drift}"]
+    if plan["placement_mm"] is None and not plan["tried"]:
+        return [f"  next part: none planned: on this part the signatures of {plan['verdict']} and its rivals differ "
+                f"already ({here}; {z3} separates), the gap fits each of them only approximately{drift}"]
+    if plan["placement_mm"] is None:
+        best = ", ".join(f"{k} z {v:.1f}" for k, v in plan["z_next"].items())
+        return [f"  next part: no placement tried separates {plan['verdict']} from its rivals (on this part {here}; "
+                f"at the best placement {best or 'none machinable'}, {z3} needed): another cone or the slot "
+                f"block{drift}"]
+    x, y = plan["placement_mm"]
+    nxt = ", ".join(f"{k} z {v:.1f}" for k, v in plan["z_next"].items())
+    return [f"  next part: cut the part again at placement {x:g}, {y:g} mm ({plan['command']}): with it "
+            f"{plan['verdict']} and its rivals differ by {nxt} (on this part alone {here}; {z3} separates); then "
+            f"diagnose both parts together (--cloud and --program twice, --pause-s){drift}"]
