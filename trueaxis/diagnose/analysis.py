@@ -221,18 +221,25 @@ def noise_estimate_rel_se(state: TwinState) -> float:
 
 def _neighbour_differences(state: TwinState) -> tuple[np.ndarray, int]:
     """The gap's differences between each point and its nearest neighbour cut close in time, and how many distinct
-    pairs they are. The pairs depend on the points and times only: found once per state (``state.memo``)."""
-    if "neighbour_pairs" not in state.memo:
-        state.memo["neighbour_pairs"] = _neighbour_pairs(state)
-    keep, pair, n_distinct = state.memo["neighbour_pairs"]
+    pairs they are. The pairs depend on the points, times and gap: found once per state and gap (``state.memo``)."""
+    found = state.memo.get("neighbour_pairs")
+    if found is None or found[0] is not state.gap_um:  # another gap set on the state: found again
+        state.memo["neighbour_pairs"] = found = (state.gap_um, *_neighbour_pairs(state))
+    _, keep, pair, n_distinct = found
     return (state.gap_um - state.gap_um[pair])[keep], n_distinct
 
 
 def _neighbour_pairs(state: TwinState) -> tuple[np.ndarray, np.ndarray, int]:
-    """(keep (N,) bool, pair (N,) index, distinct pairs) for ``_neighbour_differences``."""
+    """(keep (N,) bool, pair (N,) index, distinct pairs) for ``_neighbour_differences``.
+
+    The neighbours are found on the points with their gap along the normal taken out (where the twin cut them): on
+    the measured points, a probe grid's equally spaced neighbours are told apart by their noise along the normal,
+    and the nearest is the one with the most similar noise (a noise of 1 um was estimated 0.63 um on a regular
+    grid of the slot block)."""
     g = state.gap_um
-    tree = cKDTree(state.points)
-    dist, idx = tree.query(state.points, k=min(6, g.size))
+    where = state.points - (g / 1000.0)[:, None] * state.normals
+    tree = cKDTree(where)
+    dist, idx = tree.query(where, k=min(6, g.size))
     # The nearest neighbour cut within a short time (same pass, same direction): a smooth effect cancels.
     dt = np.abs(state.t_s[idx[:, 1:]] - state.t_s[:, None])
     tol = max(0.01 * state.t_end_s, 0.5)
