@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import sys
 
@@ -245,6 +246,16 @@ def test_report_schema_and_cli(slots, tmp_path, capsys, monkeypatch):
     assert html.count("data:image/png") >= 3
     assert data["candidates_not_applicable"] == ["backlash_a"] and "Not applicable" in html.split("backlash_a")[0]
     assert data["next_part"] is None  # a confident verdict: no second part planned
+    # The report folder is replaced whole (as inspect's): again into its own folder, yes; into a folder holding
+    # the user's files, no (exit 2 before any work, the folder as it was).
+    args = ["diagnose", "--cloud", str(tmp_path / "cmm.ply"), "--part", "slots", "--machine", "xh714", "--program",
+            str(tmp_path / "p.ngc"), "--candidates", "backlash_y", "--noise-um", "1.0", "-o"]
+    assert main(args + [str(out)]) == 0 and "candidates.png" in os.listdir(out)
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "keep.txt").write_text("mine")
+    assert main(args + [str(tmp_path / "mine")]) == 2
+    assert "holds files trueaxis did not write there (keep.txt)" in capsys.readouterr().err
+    assert os.listdir(tmp_path / "mine") == ["keep.txt"]
     assert {"where", "chosen", "candidates", "gap_um", "shrink"} <= set(data)
     assert data["where"][0]["variable"] and "held_out_r2" in data["where"][0]
     assert data["chosen"][0]["effect"] == "backlash_y" and 0 < data["chosen"][0]["confidence"] <= 1

@@ -86,3 +86,19 @@ def test_a_published_folder_replaces_only_what_trueaxis_published_there(tmp_path
     with pytest.raises(OutputPathError, match="cloud.ply"):
         check_replaceable_folder(users)
     check_replaceable_folder(tmp_path / "empty_or_missing")  # a folder that does not exist: fine
+
+
+def test_a_diagnosis_folder_written_before_the_marker_may_be_replaced_but_not_one_with_other_files(tmp_path):
+    import json
+
+    from trueaxis.fileio import DIAGNOSIS_FILES_BEFORE_MARKER, OutputPathError, check_replaceable_folder
+
+    old = tmp_path / "diagnosis"
+    old.mkdir()
+    for name in DIAGNOSIS_FILES_BEFORE_MARKER:
+        (old / name).write_text("x")
+    (old / "diagnosis.json").write_text(json.dumps({"format": 1, "verdict": "none of the candidates", "gap_um": {}}))
+    check_replaceable_folder(old)
+    (old / "notes.txt").write_text("mine")
+    with pytest.raises(OutputPathError, match=r"notes.txt"):
+        check_replaceable_folder(old)

@@ -675,7 +675,7 @@ def _paths(args) -> tuple[list, list]:
     if cmd == "diagnose":  # --cloud and --program repeat (several parts cut one after another)
         return [*(("--cloud", c) for c in g("cloud") or []), ("--machine", g("machine")),
                 *(("--program", p) for p in g("program") or []), *(("--part-json", p) for p in g("part_json") or [])], \
-            [("-o", g("output"), True)]
+            [("-o", g("output"), "replaced")]
     if cmd == "inspect":
         out = g("output") or Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
         # the files read besides the named ones: the part JSON of --part-dir, the JSON beside --cad

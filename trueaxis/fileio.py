@@ -178,8 +178,8 @@ FOLDER_MARKER = ".trueaxis-output"
 
 
 def _published_names(folder: Path) -> set | None:
-    """The names a folder trueaxis published holds (its marker's list, or the ``files`` of a trueaxis report.json
-    written before the marker), or None for a folder trueaxis did not publish."""
+    """The names a folder trueaxis published holds (its marker's list, or the ``files`` of a trueaxis report.json or
+    the fixed names of a diagnosis written before the marker), or None for a folder trueaxis did not publish."""
     marker = folder / FOLDER_MARKER
     if marker.is_file():
         lines = marker.read_text(encoding="utf-8").splitlines()
@@ -194,7 +194,22 @@ def _published_names(folder: Path) -> set | None:
             return None
         if isinstance(data, dict) and data.get("trueaxis_report") and isinstance(data.get("files"), list):
             return {str(name) for name in data["files"]}
+    diagnosis = folder / "diagnosis.json"
+    if diagnosis.is_file():  # a diagnosis report written before the marker: its fixed names
+        import json
+
+        try:
+            data = json.loads(diagnosis.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+        if isinstance(data, dict) and {"format", "verdict", "gap_um"} <= set(data):
+            return set(DIAGNOSIS_FILES_BEFORE_MARKER)
     return None
+
+
+#: The files of a diagnosis report folder written before the folders had their marker.
+DIAGNOSIS_FILES_BEFORE_MARKER = ("diagnosis.json", "diagnosis.html", "gap_map.png", "gap_vs_state.png",
+                                 "candidates.png", "before_after.png")
 
 
 def check_replaceable_folder(path: str | os.PathLike) -> None:

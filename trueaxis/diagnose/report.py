@@ -452,15 +452,18 @@ def _html(data: dict, pngs: dict) -> str:
 
 def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None = None,
                  warnings: list | None = None, next_part: dict | None = None) -> dict:
-    """Write diagnosis.json, diagnosis.html and the PNGs into ``out_dir`` together: everything is written into a
-    temporary folder beside it first, then moved in with ``os.replace`` (pictures, HTML, then the JSON last), so a
-    reader never sees a JSON without its pictures. next_part : the plan of a separating part
-    (``NextPart.as_dict``) or None. Returns the JSON dict."""
+    """Write diagnosis.json, diagnosis.html and the PNGs as the folder ``out_dir``: everything is written into a
+    temporary folder beside it first, which then replaces ``out_dir`` whole (``fileio.publish_folder``: a folder
+    holding files trueaxis did not write there is refused, and no picture of an earlier run stays beside the new
+    report). next_part : the plan of a separating part (``NextPart.as_dict``) or None. Returns the JSON dict."""
     out_dir = Path(out_dir)
     data = diagnosis_dict(diag, state, inputs)
     data["warnings"] = list(warnings or [])
     data["next_part"] = next_part
     pngs = pictures(diag, state)
+    from ..fileio import check_replaceable_folder, publish_folder
+
+    check_replaceable_folder(out_dir)  # before the pictures' seconds
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
@@ -468,9 +471,7 @@ def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None
             (tmp / k).write_bytes(v)
         (tmp / "diagnosis.html").write_text(_html(data, pngs), encoding="utf-8")
         (tmp / "diagnosis.json").write_text(json.dumps(data, indent=2), encoding="utf-8")
-        out_dir.mkdir(exist_ok=True)
-        for k in [*pngs, "diagnosis.html", "diagnosis.json"]:
-            os.replace(tmp / k, out_dir / k)
+        publish_folder(tmp, out_dir)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return data
