@@ -1096,6 +1096,9 @@ def test_the_next_part_is_the_placement_that_separates_the_verdict_from_its_riva
     assert line == ("  next part: none planned; thermal_x: a drift, told apart by the same cut repeated at another "
                     "time, not at another place")
     noisy = dataclasses.replace(unsure, noise_um=5.0)
+    quick = plan_next_part(noisy, st, m, "slots", prog.part_json, prog.text, search=False)  # the CLI's default
+    assert quick.tried == [] and not quick.searched and quick.z_here["twin_parameters"] < 3.0
+    assert "--plan-next finds the placement" in next_part_lines(quick.as_dict("slots", "xh714"))[0]
     said = []
     plan = plan_next_part(noisy, st, m, "slots", prog.part_json, prog.text, points=400, progress=said.append)
     places = placements_to_try((0.0, 0.0))

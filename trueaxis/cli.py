@@ -348,7 +348,7 @@ def cmd_diagnose(args) -> int:
                                     candidates=args.candidates, split=args.split, noise_um=args.noise_um,
                                     part_json=None if not args.part_json else
                                     args.part_json[0] if len(args.part_json) == 1 else args.part_json,
-                                    pauses_s=args.pause_s, plan_next=not args.no_plan,
+                                    pauses_s=args.pause_s, plan_next=args.plan_next,
                                     progress=progress if sys.stderr.isatty() else None)
     for line in summary_lines(diag, args.output, named_candidates=args.candidates not in (None, "all"),
                               next_part=data.get("next_part")):
@@ -589,8 +589,8 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--split", default="region", choices=["region", "time", "random"],
                     help="how held-out points are kept apart from the fitted ones (default region)")
     dg.add_argument("--noise-um", type=POSITIVE, help="probe noise sigma, um (default: estimated from the data)")
-    dg.add_argument("--no-plan", action="store_true", help="when one part leaves the verdict uncertain beside a "
-                    "rival, do not plan the placement of a second part that separates them (the plan costs a twin "
+    dg.add_argument("--plan-next", action="store_true", help="when one part leaves the verdict uncertain beside a "
+                    "rival its signatures do not separate, find the placement of a second part that does (a twin "
                     "simulation per placement tried, about 5 s each)")
     dg.add_argument("-o", "--output", default="diagnosis", help="report folder (default ./diagnosis)")
     dg.set_defaults(func=cmd_diagnose)

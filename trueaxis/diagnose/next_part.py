@@ -61,11 +61,13 @@ class NextPart:
     z_next: dict
     tried: list = field(default_factory=list)
     left_out: dict = field(default_factory=dict)
+    searched: bool = True
 
     def as_dict(self, part: str, machine_path: str) -> dict:
         out = {"verdict": self.verdict, "rivals": list(self.z_here), "z_here": self.z_here, "z_next": self.z_next,
                "separates_at_z": SEPARATES_Z, "placement_mm": None if self.placement_mm is None else
                [float(v) for v in self.placement_mm], "tried": self.tried, "left_out": self.left_out,
+               "searched": self.searched,
                "assumes": "cut right after the measured part and probed as densely"}
         if self.placement_mm is not None:
             x, y = self.placement_mm
@@ -134,14 +136,16 @@ def placements_to_try(current) -> list[tuple]:
 
 
 def plan_next_part(diag: Diagnosis, state: TwinState, machine, part: str, part_json: dict, program_text: str, *,
-                   want_force: bool = False, points: int = PLAN_POINTS, progress=None) -> NextPart | None:
+                   search: bool = True, want_force: bool = False, points: int = PLAN_POINTS,
+                   progress=None) -> NextPart | None:
     """The placement of a second part that best tells ``diag``'s verdict from its rivals (module docstring); None
     when there is nothing to separate (no verdict, no rival, confidence at least ``MAX_CONFIDENCE``), several parts
     were diagnosed already, or the program does not say where its part was placed.
 
     state : the measured part's twin state (one cut).  machine : the twin as loaded (unplaced).  part_json : the
     part's description.  program_text : the measured part's program (its setup comment gives the placement).
-    progress : a callable told each placement's simulation in one line, or None."""
+    search : False: only the separation on the measured part (no simulation; ``tried`` stays empty and
+    ``searched`` False).  progress : a callable told each placement's simulation in one line, or None."""
     from ..postproc.programs import part_program, read_setup
     from ..sim.cmm import probe_pattern
     from ..workpiece.part import get_part
@@ -168,6 +172,8 @@ def plan_next_part(diag: Diagnosis, state: TwinState, machine, part: str, part_j
                                          np.ones(len(state)))[0], 2) for r in rivals}
     if min(z_here.values()) >= SEPARATES_Z:  # their forms differ here already: another part adds no separation
         return NextPart(verdict.name, None, z_here, {}, [], left_out)
+    if not search:
+        return NextPart(verdict.name, None, z_here, {}, [], left_out, searched=False)
     params = get_part(part).params_from(part_json)
     pts, nrm = probe_pattern(part_json, points)
     best, tried = None, []

@@ -478,7 +478,7 @@ def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None
 
 
 def diagnose_files(cloud, part: str, machine, program, output, *, candidates="all", split: str = "region",
-                   noise_um: float | None = None, part_json=None, pauses_s=None, plan_next: bool = True,
+                   noise_um: float | None = None, part_json=None, pauses_s=None, plan_next: bool = False,
                    progress=None) -> tuple[Diagnosis, dict]:
     """``trueaxis diagnose`` on files: read the cloud (PLY/CSV/XYZ), the twin (machine file) and the program, diagnose,
     and write the report into ``output``. Returns (the diagnosis, the report's JSON dict). Errors raise ValueError;
@@ -491,7 +491,8 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     split : "region" | "time" | "random".  noise_um : probe noise sigma (um, > 0) or None (estimated).
     part_json : the part's description (see ``run_diagnosis``).  pauses_s : several parts: the pause(s) between
     them, s (see ``run_diagnosis_cuts``; required there).  plan_next : when one part leaves the verdict uncertain
-    beside a rival, plan the placement of a second part that separates them (``next_part``; a few twin simulations).
+    beside a rival, plan the placement of a second part that separates them (``next_part``; a few twin simulations);
+    without it, only how far the measured part separates them (no simulation).
     progress : a callable told each slow step in one line of text (the CLI prints it on a terminal), or None."""
     from ..inspect.cloud import read_cloud
     from ..machine import load_machine
@@ -535,11 +536,11 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
         inputs["pauses_s"] = list(state.pauses_s)
     warnings = posted_for + input_warnings(state, noise_um) + per_cut_warnings(diag, state)
     plan = None
-    if plan_next and one:
+    if one:
         from .next_part import plan_next_part
 
         members = set(diag.chosen) | set(diag.alternatives)
-        found = plan_next_part(diag, state, m, part, part_description(part, each[0]), texts[0],
+        found = plan_next_part(diag, state, m, part, part_description(part, each[0]), texts[0], search=plan_next,
                                want_force=bool(members & set(FORCE_CANDIDATES)), progress=progress)
         plan = None if found is None else found.as_dict(part, str(machine))
     if progress is not None:
@@ -606,6 +607,10 @@ def next_part_lines(plan: dict | None) -> list[str]:
     z3 = f"z {plan['separates_at_z']:g}"
     if not plan["z_here"]:
         return [f"  next part: none planned{drift}"]
+    if not plan.get("searched", True):
+        return [f"  next part: on this part the signatures of {plan['verdict']} and its rivals differ by {here} ({z3} "
+                f"separates): --plan-next finds the placement of a second part that separates them (a twin "
+                f"simulation per placement tried){drift}"]
     if plan["placement_mm"] is None and not plan["tried"]:
         return [f"  next part: none planned: on this part the signatures of {plan['verdict']} and its rivals differ "
                 f"already ({here}; {z3} separates), the gap fits each of them only approximately{drift}"]
