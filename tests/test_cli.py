@@ -40,7 +40,10 @@ def test_error_reads_rotary_words_in_degrees_and_forces_in_newtons():
     np.testing.assert_allclose(out["tool_axis_error_urad"], du[0], rtol=1e-12)
 
 
-@pytest.mark.parametrize("at, message", [("Q=1", "no axis Q"), ("X=abc", "is not a number"), ("X", "AXIS=VALUE")])
+@pytest.mark.parametrize("at, message", [("Q=1", "no axis Q"), ("X=abc", "is not a number"), ("X", "AXIS=VALUE"),
+                                         # not an assumed 0, a last value winning, nor an extrapolated table
+                                         ("X=50,Y=20,Z=-80", "missing: B C"), ("X=1,X=2", "X given twice"),
+                                         ("X=500,Y=20,Z=-80,B=-30,C=45", "X=500 lies outside its travel [-200, 200] mm")])
 def test_error_refuses_bad_poses_with_exit_2(at, message):
     r = run("error", "--machine", BC, "--at", at)
     assert r.returncode == 2

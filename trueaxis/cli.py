@@ -29,9 +29,12 @@ class UsageError(ValueError):
     """Bad command-line input: printed as one line, exit status 2."""
 
 
-def _parse_at(text: str, axis_names, rotary) -> np.ndarray:
-    """'X=10,Y=-5,B=30' -> (n_axes,) pose in mm and rad (rotary words in degrees); missing axes are 0."""
+def _parse_at(text: str, machine) -> np.ndarray:
+    """'X=10,Y=-5,B=30' -> (n_axes,) pose in mm and rad (rotary words in degrees). Every axis of ``machine`` once,
+    inside its travel (the error tables are not extrapolated silently); UsageError otherwise."""
+    axis_names, rotary = machine.axis_names, machine.rotary_axes
     pose = np.zeros(len(axis_names))
+    given = []
     for item in filter(None, (s.strip() for s in text.split(","))):
         if "=" not in item:
             raise UsageError(f"--at: expected AXIS=VALUE, got {item!r}")
@@ -45,7 +48,18 @@ def _parse_at(text: str, axis_names, rotary) -> np.ndarray:
             raise UsageError(f"--at: {name}={value!r} is not a number") from None
         if not np.isfinite(v):
             raise UsageError(f"--at: {name} must be finite")
+        if name in given:
+            raise UsageError(f"--at: {name} given twice")
+        given.append(name)
         pose[axis_names.index(name)] = np.radians(v) if name in rotary else v
+        axis = machine.axes[name]
+        if not axis.within_travel(pose[axis_names.index(name)]):
+            lo, hi = np.degrees(axis.travel) if name in rotary else axis.travel
+            raise UsageError(f"--at: {name}={v:g} lies outside its travel [{lo:g}, {hi:g}] "
+                             f"{'deg' if name in rotary else 'mm'} (the error tables end there)")
+    missing = [a for a in axis_names if a not in given]
+    if missing:
+        raise UsageError(f"--at: give every axis of the machine ({' '.join(axis_names)}); missing: {' '.join(missing)}")
     return pose
 
 
@@ -154,7 +168,7 @@ def cmd_error(args) -> int:
     from .resources import machine_file  # a path, or a fixture machine's short name
 
     m = load_machine(machine_file(args.machine))
-    pose = _parse_at(args.at, m.axis_names, m.rotary_axes)
+    pose = _parse_at(args.at, m)
     force = None if args.force_n is None else _parse_vector(args.force_n, "--force-n")
     # Direction of motion of every axis (+1 forward, -1 backward): it chooses among the lathe paper's response surfaces.
     motion = np.full((1, len(m.axis_names)), 1 if args.direction == "forward" else -1)
@@ -462,7 +476,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("error", help="volumetric error at one pose (um, urad; part frame)")
     e.add_argument("--machine", required=True, help="machine file (TOML)")
-    e.add_argument("--at", required=True, help="pose, e.g. X=10,Y=20,Z=-5,B=30,C=45 (mm, deg)")
+    e.add_argument("--at", required=True, help="pose: every axis of the machine once, inside its travel, e.g. "
+                   "X=10,Y=20,Z=-5,B=30,C=45 (mm, deg)")
     e.add_argument("--force-n", help="force of the workpiece on the tool, FX,FY,FZ in N (machine frame)")
     e.add_argument("--direction", choices=["forward", "backward"], default="forward",
                    help="direction of motion of the axes: chooses the response surfaces of that motion (the lathe "
