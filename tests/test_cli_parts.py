@@ -152,6 +152,25 @@ def test_simulate_perfect_machine_cuts_the_slots_exactly(slot_sim, capsys):
     assert np.sqrt(np.mean(dev**2)) < 0.3
 
 
+def test_simulate_says_the_clouds_rms_with_its_noise_beside_the_noise_free_surface(slot_sim, capsys):
+    # The summary once gave only the cut surface's deviation, which read as the cloud's (rms 0.02 um for a cloud of
+    # 50 um noise); the cloud's figure is checked against the cloud read back.
+    from trueaxis.inspect.cloud import read_cloud
+
+    d, machine, prog, part_dir = slot_sim
+    out = d / "noisy.ply"
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "slots", "--part-dir", str(part_dir),
+                 "-o", str(out), "--points", "1500", "--noise-um", "50", "--seed", "1"]) == 0
+    said = capsys.readouterr().out
+    free = float(re.search(r"\(noise-free\) mean [-+\d.]+ um, rms ([\d.]+) um", said).group(1))
+    noisy = float(re.search(r"with the probe noise \(sigma 50 um\) rms ([\d.]+) um", said).group(1))
+    truth = json.loads((d / "noisy.truth.json").read_text())["per_point"]
+    cloud = read_cloud(out).points
+    assert free < 0.3 and noisy == pytest.approx(np.sqrt(np.mean(np.square(
+        np.array(truth["deviation_um"]) + np.array(truth["noise_um"])))), abs=0.01)
+    assert 45.0 < noisy < 55.0 and len(cloud) == len(truth["deviation_um"])
+
+
 def test_simulate_reports_points_not_cut(slot_sim, capsys):
     d, machine, prog, part_dir = slot_sim
     text = prog.read_text()

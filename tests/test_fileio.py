@@ -102,3 +102,16 @@ def test_a_diagnosis_folder_written_before_the_marker_may_be_replaced_but_not_on
     (old / "notes.txt").write_text("mine")
     with pytest.raises(OutputPathError, match=r"notes.txt"):
         check_replaceable_folder(old)
+
+
+def test_json_text_is_strict_json_with_non_finite_numbers_as_null():
+    import json
+
+    import numpy as np
+
+    from trueaxis.fileio import json_text
+
+    text = json_text({"cond": float("inf"), "v": np.array([1.5, np.nan]), "n": np.int64(3), "ok": np.bool_(True)})
+    assert "Infinity" not in text and "NaN" not in text
+    assert json.loads(text, parse_constant=lambda c: pytest.fail(c)) == {"cond": None, "v": [1.5, None], "n": 3,
+                                                                         "ok": True}

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .fileio import Interrupted
+from .fileio import Interrupted, json_text
 
 EXIT_BAD_INPUT = 2  # usage: an option, a value or a path
 EXIT_REFUSED = 3  # an input or a computed result refused: nothing written
@@ -213,7 +213,7 @@ def cmd_post(args) -> int:
         return EXIT_REFUSED
     _write_or_stdout(args.output, out)
     if args.report:
-        _write_or_stdout(args.report, json.dumps(report.as_dict(), indent=2))
+        _write_or_stdout(args.report, json_text(report.as_dict()))
     corr = ", ".join(f"{a} {max(v.values()):.2f}" for a, v in report.correction.items())
     cl = (f"CL data ({report.input_format[3:]}, {report.cl_points} points, {report.cl_program_blocks} machine-axis "
           "blocks) -> " if report.input_format.startswith("cl-") else "")
@@ -322,14 +322,19 @@ def cmd_simulate(args) -> int:
     res = simulate_program_file(args.program, machine, args.part, effects_path=args.effects, part_dir=args.part_dir,
                                 points=args.points or 200_000, noise_um=args.noise_um or 0.0, seed=args.seed or 0)
     truth = write_cmm(res, args.output)
-    d = res.deviations_um[np.isfinite(res.deviations_um)]
+    cut = np.isfinite(res.deviations_um)
+    d = res.deviations_um[cut]
     not_cut = int(res.info.get("not_cut", 0))
     if not_cut:
         print(f"warning: {not_cut} of {res.info['points']} probe points were not cut by the program (left out of "
               f"{args.output}); is the program cutting the whole part?", file=sys.stderr)
-    print(f"{args.output}: {d.size} points ({not_cut} not cut), deviation mean {d.mean():+.2f} um, rms "
-          f"{np.sqrt(np.mean(d**2)):.2f} um, range {d.min():+.2f}..{d.max():+.2f} um; truth in {truth}; "
-          f"{res.timings['total_s']:.1f} s")
+    # The cut surface's deviation, then the cloud's (with the probe noise): the noise-free figure alone read as the
+    # cloud's (rms 0.02 um for a cloud of 50 um noise, in a QA pass).
+    measured = d + np.asarray(res.noise_um, float)[cut] if np.size(res.noise_um) == np.size(cut) else d
+    print(f"{args.output}: {d.size} points ({not_cut} not cut); the cut surface's deviation (noise-free) mean "
+          f"{d.mean():+.2f} um, rms {np.sqrt(np.mean(d**2)):.2f} um, range {d.min():+.2f}..{d.max():+.2f} um; the "
+          f"cloud's with the probe noise (sigma {args.noise_um or 0.0:g} um) rms {np.sqrt(np.mean(measured**2)):.2f} "
+          f"um; truth in {truth}; {res.timings['total_s']:.1f} s")
     return 0
 
 

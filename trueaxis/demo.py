@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .fileio import json_text
 from .machine import ErrorTwin, load_machine
 from .machine.workspace import volumetric_summary
 from .resources import machine_file, machine_files
@@ -107,7 +108,7 @@ def machine_summary(out: Path) -> None:
             f"{path.stem + ': ' + m.name:44.44s} {s.poses:7d} {s.position_max_um:9.2f} {s.position_rms_um:9.2f}"
             f" {s.orientation_max_urad:10.2f} {s.orientation_rms_urad:10.2f}"
         )
-    (out / "volumetric_summary.json").write_text(json.dumps(summaries, indent=2))
+    (out / "volumetric_summary.json").write_text(json_text(summaries))
     picture = plot_error_field(load_machine(machine_file(FIVE_AXIS_DEMO_MACHINE)), out / "error_field_nmv1500dcg.png")
     print(f"error field of the five-axis machine: {picture}")
 
@@ -117,7 +118,7 @@ def loop_summary(out: Path, points: int = 4000) -> None:
 
     result = closed_loop(load_machine(machine_file(FIVE_AXIS_DEMO_MACHINE)), part="nas979", points=points)
     print(result.summary())
-    (out / "closed_loop.json").write_text(json.dumps(result.as_dict(), indent=2))
+    (out / "closed_loop.json").write_text(json_text(result.as_dict()))
 
 
 def plot_error_field(machine, path: Path) -> Path:

@@ -256,3 +256,33 @@ def publish_folder(temp: Path, out: Path) -> None:
         import shutil
 
         shutil.rmtree(old, ignore_errors=True)
+
+
+def json_ready(value):
+    """A value as strict JSON can hold it: numpy scalars and arrays to Python, non-finite floats to None (JSON has
+    no Infinity or NaN: ``json.dumps`` writes them by default, and a strict reader, a browser's JSON.parse, refuses
+    the file)."""
+    import math
+
+    import numpy as np
+
+    if isinstance(value, dict):
+        return {str(k): json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_ready(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_ready(value.tolist())
+    if isinstance(value, (np.floating, float)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def json_text(value, indent: int | None = 2) -> str:
+    """Strict JSON text of ``value`` (``json_ready``)."""
+    import json
+
+    return json.dumps(json_ready(value), indent=indent, allow_nan=False)

@@ -11,7 +11,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-import json
 import os
 import re
 import shutil
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..inspect.cloud import CloudError
+from ..fileio import json_text
 from ..nc.gcode import parse_program
 from .analysis import Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
@@ -470,7 +470,7 @@ def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None
         for k, v in pngs.items():
             (tmp / k).write_bytes(v)
         (tmp / "diagnosis.html").write_text(_html(data, pngs), encoding="utf-8")
-        (tmp / "diagnosis.json").write_text(json.dumps(data, indent=2), encoding="utf-8")
+        (tmp / "diagnosis.json").write_text(json_text(data), encoding="utf-8")
         publish_folder(tmp, out_dir)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
