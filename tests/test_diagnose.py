@@ -238,7 +238,8 @@ def test_report_schema_and_cli(slots, tmp_path, capsys, monkeypatch):
                "--program", str(tmp_path / "p.ngc"), "--candidates",
                "backlash_x,backlash_y,thermal_x,twin_parameters,backlash_a", "--noise-um", "1.0", "-o", str(out)])
     assert rc == 0
-    steps = [line for line in capsys.readouterr().err.splitlines() if line.startswith("trueaxis diagnose: [")]
+    told = capsys.readouterr()
+    steps = [line for line in told.err.splitlines() if line.startswith("trueaxis diagnose: [")]
     assert [re.sub(r"^trueaxis diagnose: \[ *\d+ s\] (\w+ \w+).*", r"\1", line) for line in steps] == [
         "the twin", "fitting 4", "writing the"], steps  # backlash_a: no A axis, not fitted
     data = json.loads((out / "diagnosis.json").read_text())
@@ -246,6 +247,9 @@ def test_report_schema_and_cli(slots, tmp_path, capsys, monkeypatch):
     assert html.count("data:image/png") >= 3
     assert data["candidates_not_applicable"] == ["backlash_a"] and "Not applicable" in html.split("backlash_a")[0]
     assert data["next_part"] is None  # a confident verdict: no second part planned
+    said = re.search(r"^  parameters: lost_motion_Y = ([\d.]+) ± ([\d.]+) um$", told.out, re.M)
+    fitted = data["chosen"][0]["parameters"][0]
+    assert said and float(said.group(1)) == pytest.approx(fitted["value_um"], rel=1e-3)  # the terminal says it
     # The report folder is replaced whole (as inspect's): again into its own folder, yes; into a folder holding
     # the user's files, no (exit 2 before any work, the folder as it was).
     args = ["diagnose", "--cloud", str(tmp_path / "cmm.ply"), "--part", "slots", "--machine", "xh714", "--program",

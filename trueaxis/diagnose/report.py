@@ -274,7 +274,8 @@ def per_cut_warnings(diag: Diagnosis, state: TwinState) -> list[str]:
             for c in figures if c["held_out_rms_um_after"] > PER_CUT_MISFIT * diag.noise_um]
 
 
-def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None) -> dict:
+def _chosen_dicts(diag: Diagnosis) -> list[dict]:
+    """The verdict's JSON entries (none or one): its parameters and the derived ones, with their std and unit."""
     chosen = []
     if diag.chosen_fit is not None:
         f = diag.chosen_fit
@@ -286,6 +287,11 @@ def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None
                        "variant": f.extra.get("variant"), "confidence": diag.confidence,
                        "plausible": f.plausible, "alternatives": diag.alternatives,
                        "separating_measurement": diag.separating_measurement})
+    return chosen
+
+
+def diagnosis_dict(diag: Diagnosis, state: TwinState, inputs: dict | None = None) -> dict:
+    chosen = _chosen_dicts(diag)
     return {
         "format": 1,
         "inputs": inputs or {},
@@ -389,11 +395,8 @@ def _html(data: dict, pngs: dict) -> str:
         f"<tr><td>{e(c['effect'])}</td><td>{c['held_out_rms_after_um']:.3f}</td><td>{c['held_out_gain_um2']:.3f}</td>"
         f"<td>{c['z']:.1f}</td><td>{'yes' if c['significant'] else 'no'}</td><td>{'yes' if c['plausible'] else 'no'}"
         f"</td></tr>" for c in data["candidates"])
-    chosen = "".join(
-        f"<p><b>{e(c['effect'])}</b> (confidence {c['confidence']:.2f}): " + ", ".join(
-            f"{e(p['name'])} = {p[next(k for k in p if k.startswith('value_'))]:.4g} ± "
-            f"{p[next(k for k in p if k.startswith('std_'))]:.2g} {e(p['unit'])}" for p in c["parameters"]) + "</p>"
-        for c in data["chosen"]) or "<p><b>none of the candidates</b> explains the gap.</p>"
+    chosen = "".join(f"<p><b>{e(c['effect'])}</b> (confidence {c['confidence']:.2f}): {e(parameters_text(c))}</p>"
+                     for c in data["chosen"]) or "<p><b>none of the candidates</b> explains the gap.</p>"
     alt = ""
     if data["alternatives"]:
         alt = (f"<p>Almost as good: {e(', '.join(data['alternatives']))}. "
@@ -588,12 +591,27 @@ def summary_lines(diag: Diagnosis, output, named_candidates: bool = False, next_
     if diag.alternatives:
         out.append(f"  almost as good: {', '.join(diag.alternatives)}; to separate: "
                    f"{diag.separating_measurement or 'a second placement of the part, or the other test part'}")
+    if diag.chosen_fit is not None:
+        out.append(f"  parameters: {parameters_text(_chosen_dicts(diag)[0])}")
     for note in diag.notes:
         out.append(f"  note: {note}")
     if diag.skipped and named_candidates:
         out.append(f"  not applicable here: {', '.join(str(s) for s in diag.skipped)}")
     out += next_part_lines(next_part)
     return out
+
+
+def parameters_text(chosen: dict) -> str:
+    """A verdict's parameters in words, from its JSON entry: the derived ones first where it has them (a servo axis'
+    lag, the sum of its loop's terms, which alone read as lags), then the fitted ones."""
+    def said(p):
+        value = p[next(k for k in p if k.startswith("value_"))]
+        std = p[next(k for k in p if k.startswith("std_"))]
+        return f"{p['name']} = {value:.4g} ± {std:.2g} {p['unit']}"
+
+    fitted = ", ".join(said(p) for p in chosen["parameters"])
+    derived = ", ".join(said(p) for p in chosen.get("derived_parameters") or [])
+    return f"{derived} (the sums of the fitted terms {fitted})" if derived else fitted
 
 
 def next_part_lines(plan: dict | None) -> list[str]:
