@@ -339,3 +339,36 @@ def test_g53_moves_and_rotary_axes_the_program_never_moves_are_said_not_invented
     compensate("G21 G90\nG0 X0 Y0 Z50\nG1 X50 Y50 Z40 F100\nM30\n", load_machine(MACHINES / "nmv1500dcg.toml"),
                "geometric", report=report)
     assert any("never commands B C: the corrections take them at 0" in w for w in report["warnings"])
+
+
+def test_a_program_written_for_another_machine_is_refused_where_its_header_says_so(tmp_path):
+    # Its axis words are that machine's joints: through this machine's kinematics another tool path (a cone of the
+    # NMV 1500 DCG posted for bc_offset: the nominal tip 7.4 mm off, exit 0, in a QA pass). Exit 3, nothing written.
+    from trueaxis.postproc.programs import header_name, part_program
+    from trueaxis.resources import machine_file
+
+    nmv = load_machine(machine_file("nmv1500dcg"))
+    src, out = tmp_path / "cone.ngc", tmp_path / "out.ngc"
+    src.write_text(part_program("nas979", nmv, compensation="none").text)
+    r = run_cli("post", src, "-o", out, "--machine", "bc_offset")
+    line = next(k for k, t in enumerate(src.read_text().splitlines(), 1) if t.startswith("(machine: "))
+    assert r.returncode == 3 and not out.exists(), r.stderr
+    assert r.stderr.startswith(f"{src}:{line}: the program was written for the machine '{header_name(nmv)}'")
+    assert run_cli("post", src, "-o", out, "--machine", "nmv1500dcg").returncode == 0 and out.exists()
+
+
+def test_a_tolerance_below_what_a_written_program_holds_is_refused_and_a_travel_excess_is_said(tmp_path):
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90\nG0 X10 Y10 Z-20\nG1 X20 F100\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--tol-um=0.0001")
+    assert r.returncode == 2 and "below what a written program holds" in r.stderr and not out.exists()
+    assert run_cli("post", src, "-o", out, "--machine", XH714, "--tol-um=0.05").returncode == 0
+    # A corrected axis just past its travel: the excess is said (the 6 digits once showed 'X = 200' for 200.0003).
+    # G54 at X 100: the program's X100 is the machine's X 200, the end of its travel, which the twin moves outwards.
+    setup = tmp_path / "setup.toml"
+    setup.write_text('[setup]\nname = "edge"\nunits = "mm"\n[work_offsets]\nG54 = { X = 100.0, Y = 50.0, Z = -200.0 }\n')
+    src.write_text("G21 G90 G94 F500\nG0 X10 Y10 Z-10\nG1 X100 Y50 Z-20\nM2\n")
+    r = run_cli("post", src, "-o", tmp_path / "edge.ngc", "--machine", XH714, "--setup", setup)
+    m = re.search(r"corrected X = ([\d.]+) lies outside its travel \[-?\d+, (\d+)\] by ([\d.]+) um", r.stderr)
+    assert r.returncode == 3 and m, r.stderr
+    assert float(m.group(3)) == pytest.approx((float(m.group(1)) - float(m.group(2))) * 1e3, rel=1e-3)

@@ -497,7 +497,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "(messages stay on stderr)")
     po.add_argument("--machine", required=True, help="machine file (TOML)")
     po.add_argument("--mode", default="geometric", choices=["none", "geometric", "comprehensive"])
-    po.add_argument("--tol-um", type=_number(low=1e-4), default=1.0, help="path tolerance, um (default 1)")
+    po.add_argument("--tol-um", type=_number(low=0.0, low_open=True), default=1.0,
+                    help="path tolerance, um (default 1; at least 0.05, what a written program holds)")
     po.add_argument("--max-correction-mm", type=POSITIVE, default=0.5, help="largest correction allowed (default 0.5)")
     po.add_argument("--singular-deg", type=_number(low=0.0, high=90.0), default=1.0,
                     help="tilt below which the free rotary axis is held (default 1 deg)")

@@ -12,7 +12,6 @@ import base64
 import html
 import io
 import os
-import re
 import shutil
 import tempfile
 import time
@@ -555,13 +554,14 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
 def program_machine_warnings(machine, programs: list) -> list[str]:
     """A program posted for another machine (its header names the machine), one line each; read before any
     simulation. programs : [(text, path)], one per cut."""
+    from ..postproc.programs import header_name, written_for
+
     out = []
-    # the program's header writes the machine's name with its parentheses as brackets
-    name = machine.name.replace("(", "[").replace(")", "]")
+    name = header_name(machine)
     for program_text, program in programs:
-        posted = re.search(r"^\(machine: (.*)\)\s*$", program_text[:20_000], re.MULTILINE)
-        if posted and posted.group(1).strip() != name.strip():
-            out.append(f"{program} was written for the machine {posted.group(1).strip()!r}, the twin given is "
+        posted = written_for(program_text)
+        if posted and posted[0] != name:
+            out.append(f"{program} was written for the machine {posted[0]!r}, the twin given is "
                        f"{name!r}: a diagnosis against another machine's twin names that machine's differences")
     return out
 

@@ -101,6 +101,7 @@ _R_BIT = 1 << WORD_BITS.index("R")
 # at a 200 mm lever arm, 0.02 um): both come off the split tolerance.
 SOLVE_TOL_UM, SOLVE_TOL_URAD = 0.01, 0.02
 WRITE_ROUNDING_UM, WRITE_ROUNDING_URAD = 0.03, 0.18
+MIN_TOL_UM = 0.05  # the smallest path tolerance: the written digits' rounding and the solve's residual fit in it
 ROW_CHUNK = 8_000  # moves compensated together: bounds memory (an arc samples 17 poses) at little cost in speed
 WRITE_WINDOW = 50_000  # moves whose axis words are formatted together
 FAST_WRITE = True  # the compiled writer (fast_write) for plain blocks; False: every line by the Python path
@@ -281,10 +282,15 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     ``force``: post a program that already carries that header (it was compensated already: refused otherwise)."""
     if not force:
         _refuse_posted(text, source)
+    _refuse_other_machine(text, source, machine)
     if mode not in MODES:
         raise ValueError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
     if not (math.isfinite(tol_um) and tol_um > 0):
         raise ValueError(f"tolerance must be a finite number > 0, got {tol_um} um")
+    if tol_um < MIN_TOL_UM:  # not a promise the written program can keep (6 blocks became 33,945, in a QA pass)
+        raise ValueError(f"tolerance {tol_um:g} um is below what a written program holds: the numbers round at "
+                         f"{WRITE_ROUNDING_UM:g} um and the solve stops at {SOLVE_TOL_UM:g} um; give at least "
+                         f"{MIN_TOL_UM:g} um")
     if not (math.isfinite(max_correction_mm) and max_correction_mm > 0):  # NaN would switch the safety bound off
         raise ValueError(f"the largest correction allowed must be a finite number > 0, got {max_correction_mm} mm")
     if not (math.isfinite(singular_deg) and 0 <= singular_deg <= 90):
@@ -364,6 +370,19 @@ def _refuse_posted(text: str, source: str):
     end = text.find(")", at)
     raise PostError(source, line_no, f"the program was posted by trueaxis already ({text[at:end + 1][:160]}): "
                                      "posting it again would compensate it twice; --force to post it anyway")
+
+
+def _refuse_other_machine(text: str, source: str, machine: Machine):
+    """PostError when the program's header says it was written for another machine (``programs.written_for``): its
+    axis words are that machine's joints, which this machine's kinematics turns into another tool path (a cone for
+    the NMV 1500 DCG posted for another B-C table: its nominal tip 7.4 mm off, in a QA pass)."""
+    from .programs import header_name, written_for
+
+    posted = written_for(text)
+    if posted and posted[0] != header_name(machine):
+        raise PostError(source, posted[1], f"the program was written for the machine {posted[0]!r}, this post is "
+                                           f"for {header_name(machine)!r}: its axis words are that machine's joints; "
+                                           "post the program written for this machine (or remove this line)")
 
 
 def machine_fingerprint(machine: Machine) -> str:
@@ -729,7 +748,9 @@ class _Poster:
                     word = f" (program word {a}{v * self.word_sign[j]:.6g}, rotary_sense {self.m.rotary_sense})" \
                         if self.word_sign[j] < 0 else ""
                     raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
-                                    f"corrected {a} = {v:.6g}{word} lies outside its travel [{t[0]:g}, {t[1]:g}]")
+                                    f"corrected {a} = {v:.10g}{word} lies outside its travel [{t[0]:g}, {t[1]:g}]"
+                                    f" by {min(abs(v - t[0]), abs(v - t[1])) * (1.0 if ax.is_rotary else 1e3):.4g} "
+                                    f"{'deg' if ax.is_rotary else 'um'}")
 
     # --- the run -------------------------------------------------------------------------------------------------
     def known_positions(self):

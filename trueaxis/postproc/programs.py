@@ -262,6 +262,18 @@ def setup_comment(part: str, origin, placement, tool_d: float, compensation: str
             f"compensation={compensation}{t})")
 
 
+def written_for(text: str) -> tuple[str, int] | None:
+    """(the machine's name, 1-based line) the program's header says it was written for (``(machine: NAME)``, the
+    name's parentheses as brackets, as ``part_program`` writes it), or None when it does not say."""
+    m = re.search(r"^\(machine: (.*)\)\s*$", text[:20_000], re.MULTILINE)
+    return None if m is None else (m.group(1).strip(), text.count("\n", 0, m.start()) + 1)
+
+
+def header_name(machine: Machine) -> str:
+    """The machine's name as a program header writes it (its parentheses as brackets)."""
+    return machine.name.replace("(", "[").replace(")", "]").strip()
+
+
 def read_setup(text: str) -> dict:
     """The setup comment of a program (first one): {"part", "origin_mm" (3,), "placement_mm" (2,), ...}; {} if none.
     Raises ValueError for a malformed one."""
@@ -335,7 +347,7 @@ def _header(title: list[str], machine: Machine, setup: str, n_rpm: float) -> lis
     modes, the tool change and the spindle."""
     zero = " ".join(f"{a}0" for a in machine.axis_names)
     return (["%"] + [f"({t})" for t in title] +
-            [f"(machine: {machine.name.replace('(', '[').replace(')', ']')})", setup,
+            [f"(machine: {header_name(machine)})", setup,
              "(X Y Z: tool tip in machine coordinates, the twin's axes with the machine file's tool of length "
              f"{machine.tool.length:g} mm; rotary axes in degrees)",
              "(setup expected: work offset G54 = machine zero [set below by G10 L2 P1], no G92 shift, no tool "
