@@ -372,3 +372,20 @@ def test_a_tolerance_below_what_a_written_program_holds_is_refused_and_a_travel_
     m = re.search(r"corrected X = ([\d.]+) lies outside its travel \[-?\d+, (\d+)\] by ([\d.]+) um", r.stderr)
     assert r.returncode == 3 and m, r.stderr
     assert float(m.group(3)) == pytest.approx((float(m.group(1)) - float(m.group(2))) * 1e3, rel=1e-3)
+
+
+def test_comprehensive_mode_says_the_milling_mode_it_assumed_and_records_the_conditions_used(tmp_path):
+    # Down milling was taken silently when no mode was given; up milling turns the feed-normal force and the
+    # corrections differ (a QA pass: X 4.99 against 10.15 um). Now a warning, and each set used in the report.
+    src = tmp_path / "in.ngc"
+    src.write_text("G21 G90 G94 F500\nG0 X10 Y10 Z-10\nG1 X100 Y50 Z-20\nG1 X10 Y10\nM2\n")
+    cut = ["--machine", XH714, "--offsets-zero", "--mode", "comprehensive", "--ap", "5", "--ae", "2", "--fz", "0.05",
+           "--n", "5000"]
+    r = run_cli("post", src, "-o", tmp_path / "a.ngc", "--report", tmp_path / "a.json", *cut)
+    assert r.returncode == 0 and r.stderr.count("down milling assumed") == 1, r.stderr
+    (used,) = json.loads((tmp_path / "a.json").read_text())["cutting_conditions"]
+    assert used["assumed"] == ["mode=down"] and used["conditions"]["ap"] == "5.0" and used["first_line"] == 3
+    r = run_cli("post", src, "-o", tmp_path / "b.ngc", "--report", tmp_path / "b.json", *cut, "--cut-mode", "down")
+    assert r.returncode == 0 and "assumed" not in r.stderr
+    assert json.loads((tmp_path / "b.json").read_text())["cutting_conditions"][0]["assumed"] == []
+    assert (tmp_path / "a.ngc").read_text() == (tmp_path / "b.ngc").read_text()

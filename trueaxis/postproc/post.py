@@ -101,6 +101,7 @@ _R_BIT = 1 << WORD_BITS.index("R")
 # at a 200 mm lever arm, 0.02 um): both come off the split tolerance.
 SOLVE_TOL_UM, SOLVE_TOL_URAD = 0.01, 0.02
 WRITE_ROUNDING_UM, WRITE_ROUNDING_URAD = 0.03, 0.18
+_REPORT_LOCK = threading.Lock()  # what the chunks' threads add to a report
 MIN_TOL_UM = 0.05  # the smallest path tolerance: the written digits' rounding and the solve's residual fit in it
 ROW_CHUNK = 8_000  # moves compensated together: bounds memory (an arc samples 17 poses) at little cost in speed
 WRITE_WINDOW = 50_000  # moves whose axis words are formatted together
@@ -152,6 +153,7 @@ class PostReport:
     setup: str = "none given"
     setup_used: list = field(default_factory=list)
     uncompensated: list = field(default_factory=list)
+    cutting_conditions: list = field(default_factory=list)  # comprehensive mode: each set used, what was assumed
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -632,6 +634,7 @@ class _Poster:
                                 "n=.. d=.. z=.. mode=down) before the cut, or give them on the command line")
             groups.setdefault(c, []).append(k)
         for key, ks in groups.items():
+            self._say_conditions(dict(key), int(self.p.line_no[rows[ks[0]]]))
             cond = CuttingConditions.from_mapping(dict(key))
             f_feed = mean_force(coeffs, cond)
             ks = np.asarray(ks)
@@ -640,6 +643,20 @@ class _Poster:
             y = np.cross(z, x)
             F[ks] = f_feed[0] * x + f_feed[1] * y + f_feed[2] * z
         return F
+
+    def _say_conditions(self, used: dict, line_no: int):
+        """Record a set of cutting conditions in the report (once), with a warning for the milling mode when neither
+        the program nor the caller gave it (down milling is taken then: up milling turns the feed-normal force's
+        sign, and the corrections differed by a factor of two in a QA pass)."""
+        with _REPORT_LOCK:  # the chunks of moves run on two threads
+            if any(c["conditions"] == used for c in self.rep.cutting_conditions):
+                return
+            assumed = [] if "mode" in used else ["mode=down"]
+            self.rep.cutting_conditions.append({"conditions": used, "first_line": line_no, "assumed": assumed})
+            if assumed:
+                self.rep.warnings.append(f"{self.p.source}:{line_no}: comprehensive mode: the milling mode is not "
+                                         f"given, down milling assumed (--cut-mode up|down, or mode= in the "
+                                         f"(trueaxis: ...) conditions)")
 
     def _conditions_per_line(self):
         """line index -> hashable conditions (tuple of items) valid there, or None."""
