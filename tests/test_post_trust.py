@@ -40,9 +40,15 @@ def test_a_block_before_every_axis_is_known_keeps_its_words_and_stderr_says_whic
     assert json.loads(rep.read_text())["uncompensated"] == [{"line": 2, "axes": "XY"}]
 
 
-def test_the_summary_says_so_when_no_block_was_compensated(tmp_path):
+def test_a_program_none_of_whose_moves_can_be_compensated_is_refused_and_one_without_moves_is_said(tmp_path):
+    # Y and Z never known: the only move would stay as written under a header saying "mode geometric" (exit 0, and a
+    # later post refused the file as compensated already: a QA pass). Refused, exit 3, nothing written.
     src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
-    src.write_text("G21 G90\nG0 X10\nM2\n")  # Y and Z never known: the only move stays as written
+    src.write_text("G21 G90\nG0 X10\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714)
+    assert r.returncode == 3 and not out.exists(), r.stderr
+    assert f"{src}:2: no move can be compensated: the position of Y Z is never known" in r.stderr
+    src.write_text("G21 G90\nM3 S1000\nM2\n")  # no move at all: nothing to compensate, and the summary says so
     r = run_cli("post", src, "-o", out, "--machine", XH714)
     assert r.returncode == 0, r.stderr
     assert "no block compensated" in r.stdout and "max correction" not in r.stdout, r.stdout

@@ -813,9 +813,11 @@ class _Poster:
                 self.rep.warnings.append(f"{p.source}:{li + 1}: the position of {' '.join(axes)} is not known here "
                                          "(no absolute move of it before): block left as written, uncompensated")
             rows = rows[keep]
-            if rows.size == 0:  # nothing left to compensate: the program as it was
-                self.rep.blocks_out = len(p.lines)
-                return "".join(p.lines), self.rep
+            if rows.size == 0:  # not one move: no compensated program to write (its header would say one)
+                first = self.rep.uncompensated[0]
+                raise PostError(p.source, first["line"], f"no move can be compensated: the position of "
+                                f"{' '.join(first['axes'])} is never known (no absolute move of every axis, or a "
+                                f"program for another kind of machine); nothing written")
         self.rep.moves = int(rows.size)
         idle = [a for a in self.names if self.m.axes[a].is_rotary and a not in p.axes_present]
         if idle:
