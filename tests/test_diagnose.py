@@ -703,6 +703,22 @@ def test_a_cloud_of_another_part_or_far_from_the_cut_is_refused_before_a_verdict
         run_diagnosis(base.points - 0.8 * base.normals, base.normals, "slots", m, prog.text)
 
 
+def test_a_clouds_normals_pointing_into_the_part_are_turned_outward_and_said(slots):
+    # A CMM may export its probe's approach directions: every normal inward made the cloud read 10 mm off its part,
+    # and a third inward silently dropped a third of the points (a QA pass). Turned, counted, noted: the same answer.
+    m, prog, _ = slots
+    r = _cut(m, prog, {"backlash": {"Y": {"amplitude": 8.0}}}, noise=1.0, seed=5, points=300)
+    flip = np.where((np.arange(len(r.normals)) % 3 == 0)[:, None], -r.normals, r.normals)
+    args = dict(candidates="backlash_x,backlash_y,thermal_x", noise_um=1.0, part_json=prog.part_json)
+    straight, _ = run_diagnosis(r.measured, r.normals, "slots", m, prog.text, **args)
+    turned, _ = run_diagnosis(r.measured, flip, "slots", m, prog.text, **args)
+    assert turned.chosen == straight.chosen == ["backlash_y"]
+    np.testing.assert_allclose(turned.chosen_fit.value, straight.chosen_fit.value, rtol=1e-9)
+    n = int(np.sum(np.arange(len(r.normals)) % 3 == 0))
+    assert f"{n} of the {len(r.normals)} normals of the cloud pointed into the part" in " ".join(turned.notes)
+    assert not any("pointed into" in note for note in straight.notes)
+
+
 def test_the_parts_own_description_gives_the_normals_of_a_cone_of_another_size():
     from trueaxis.diagnose.report import cloud_normals, part_description
     from trueaxis.workpiece.parts import Nas979Params
@@ -710,8 +726,8 @@ def test_the_parts_own_description_gives_the_normals_of_a_cone_of_another_size()
 
     params = Nas979Params(base_diameter=64.0, height=16.0, half_angle_deg=18.0)
     pts, nrm = probe_pattern(part_description("nas979", params), 300)
-    own = cloud_normals(pts, None, part_description("nas979", params))
-    default = cloud_normals(pts, None, part_description("nas979"))
+    own, _ = cloud_normals(pts, None, part_description("nas979", params))
+    default, _ = cloud_normals(pts, None, part_description("nas979"))
     assert np.max(np.linalg.norm(own - nrm, axis=1)) < 0.01  # the nearest point of the part's own dense pattern
     assert np.median(np.linalg.norm(default - nrm, axis=1)) > 0.04  # the default cone (15 deg) is 3 deg off
     with pytest.raises(ValueError, match="not 'nas979'"):

@@ -53,18 +53,22 @@ def part_description(part: str, part_json=None) -> dict:
     return load_part(part, part_json)
 
 
-def cloud_normals(points: np.ndarray, normals: np.ndarray | None, part_json: dict) -> np.ndarray:
-    """The cloud's normals, or, without them, the normal of the nearest point of the part's probe pattern (the
-    part's analytic surfaces from its JSON description)."""
-    if normals is not None:
-        return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+def cloud_normals(points: np.ndarray, normals: np.ndarray | None, part_json: dict) -> tuple[np.ndarray, int]:
+    """(unit outward normals (N, 3), how many of the cloud's own were turned): the cloud's normals turned outward
+    where they point into the part (a CMM may export its probe's approach direction: with every normal inward the
+    cloud read 10 mm off its part, in a QA pass), or, without them, the normal of the nearest point of the part's
+    probe pattern (the part's analytic surfaces from its JSON description)."""
     from scipy.spatial import cKDTree
 
     from ..sim.cmm import probe_pattern
 
     pts, nrm = probe_pattern(part_json, 200_000)
     _, idx = cKDTree(pts).query(points)
-    return nrm[idx]
+    if normals is None:
+        return nrm[idx], 0
+    given = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    inward = np.einsum("ij,ij->i", given, nrm[idx]) < 0.0
+    return np.where(inward[:, None], -given, given), int(inward.sum())
 
 
 def run_diagnosis(points, normals, part: str, machine, program_text: str, *, candidates="all", split="region",
@@ -124,7 +128,7 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
 
     # The cheap refusals of every cut before the first twin simulation (a bad second cloud is not found after the
     # first cut's minutes): the same cloud twice, a cloud outside its part, a program for the other part, normals.
-    checked = []
+    checked, notes = [], []
     for k, c in enumerate(cuts):
         for j, other in enumerate(cuts[:k]):
             # The same measurement, also when written again at another precision (0.1 um: far below any probe's
@@ -140,7 +144,11 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
             placed = place_from_setup(machine, c.program_text, part)  # a program for the other part, a bad setup
             check_program_axes(placed, parse_program(c.program_text, c.program_name))  # posted for another machine
             check_part_against_program(part, pj, c.program_text)
-            return cloud_normals(np.asarray(c.points, float), c.normals, pj)
+            normals, turned = cloud_normals(np.asarray(c.points, float), c.normals, pj)
+            if turned:
+                notes.append(f"{turned} of the {len(normals)} normals of {c.cloud_name or 'the cloud'} pointed into "
+                             f"the part (a probe's approach direction?): turned outward")
+            return normals
 
         checked.append((pj, for_cut(k, c, gate)))
     say = progress or (lambda line: None)
@@ -179,6 +187,7 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
         given = ", ".join(f"{p:g} s" for p in state.pauses_s)
         diag.notes.append(f"the drift is read on the clock the pauses given make ({given} between the parts): a wrong "
                           f"pause changes the drift's size and what goes with it")
+    diag.notes.extend(notes)
     state.timings["diagnosis_s"] = time.perf_counter() - t0
     return diag, state
 
