@@ -750,6 +750,34 @@ def test_a_section_probed_over_half_its_circle_is_not_measured_and_the_cone_says
     assert any("3 characteristics not measured" in w for w in warnings)
 
 
+
+def test_a_cone_probed_on_one_ring_is_not_measured_and_never_passes(tmp_path):
+    """Twelve points on one ring (as `simulate --points 12` probes it) fit a whole family of cones: the fit made up a
+    75 deg half angle, a diameter of -75 mm and an axis that "passed" its tolerances, with a standard error of 6e-7
+    urad. The cone's characteristics are "not measured", the report says why; two rings determine it again."""
+    p, n = deformed_cone((0.004, -0.003), 0.0, 0.0, heights=[10.0], per_ring=12)
+    p = p + np.random.default_rng(5).normal(0.0, 0.001, len(p))[:, None] * n
+    write_cloud_ply(tmp_path / "ring.ply", p, n)
+    (tmp_path / "tol.toml").write_text("[default]\nroundness_um = 10.0\n[cone_angle]\nhalf_angle_urad = [-50.0, 50.0]\n"
+                                       "[diameter_ref]\ndiameter_um = [-20.0, 20.0]\n[axis_direction]\n"
+                                       "tilt_urad = 100.0\n[cone]\nform_um = 30.0\naxis_offset_um = 25.0\n")
+    r = run("inspect", str(tmp_path / "ring.ply"), "--part", "nas979", "--tolerances", str(tmp_path / "tol.toml"),
+            "-o", str(tmp_path / "rep"))
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert report["cone"] is None and report["cone_error_amplification"] > 1000
+    assert "do not determine it" in report["cone_note"] and "span 0.0" in report["cone_note"]
+    assert {row["result"] for row in report["feature_table"]} == {"not measured"}
+    cone_rows = [row for row in report["feature_table"] if row["key"] != "roundness_um"]
+    assert len(cone_rows) == 5 and all("do not determine it" in row["note"] for row in cone_rows)
+    assert "8 NOT MEASURED" in r.stdout and "half angle error" not in r.stdout
+    assert "do not determine it" in r.stderr
+    # the same ring and one more, 16 mm apart: the cone is determined, its eccentricity measured
+    p2, n2 = deformed_cone((0.004, -0.003), 0.0, 0.0, heights=[2.0, 18.0], per_ring=12)
+    two = inspect_cloud(_cloud(p2, n2), "nas979", tolerances=tmp_path / "tol.toml").report
+    assert two["cone"]["error_amplification"] < 20
+    assert math.hypot(*two["cone"]["axis_offset_um"]) == pytest.approx(5.0, abs=0.01)
+
 def test_a_slot_wall_beyond_the_gate_is_not_measured_nor_its_worst_of_characteristics():
     """A wall moved 0.6 mm (beyond the 0.5 mm gate) leaves its segment's width unmeasured: the position and
     parallelism ("largest |offset|", "worst segment") are then unknown too, not the worst of the others; the points

@@ -71,6 +71,13 @@ EXTENT_TOLERANCE_MM = 1.0   # stock, probe radius and fixture allowance around t
 EXTENT_OUTLIERS = 0.01      # flyers: up to 1 % of the points may lie outside the part's box (then beyond the gate)
 FAR_MM = 1.0                # a point this far from every surface of the part cannot be on it
 MIN_RING_POINTS = 8
+#: Largest ``form.ConeFit.error_amplification`` of a cone that is evaluated: above it a 1 um error of the points (a
+#: probe's noise, a form error) could move the fitted cone by more than 1 mm at the part's size (axis position and
+#: radius, tilt and half angle as displacements over the cloud's size): more than the 0.5 mm gate that says which
+#: points are on the cone, so the fit determines nothing a tolerance could judge. A cone probed over its height and
+#: turn gives about 10, a 2 mm band of its height about 70, a 60 deg arc about 90; one ring (every cone through that
+#: circle fits it: the fit's Jacobian is rank-deficient) 10^4 and more, with noise of 10 um still 3,500.
+MAX_CONE_AMPLIFICATION = 1000.0
 MIN_CONTOUR_POINTS = 3  # points on each wall and arc of a slot for its mean contour error
 #: Largest angular gap (deg) of a section's points about the cone's axis for its roundness to be evaluated: a
 #: roundness is the form of the whole profile (ISO 12181-1); from an arc it is underestimated (an oval probed over
@@ -172,9 +179,26 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
     if len(pts) < 12:
         out["cone"] = None
         out["roundness_um"] = []
-        out["notes"] = [f"only {len(pts)} points on the cone (within {gate_mm} mm of it): no cone evaluation"]
+        out["cone_note"] = f"only {len(pts)} points on the cone (within {gate_mm} mm of it): no cone evaluation"
+        out["notes"] = [out["cone_note"]]
         return out, figures
     fit = form.fit_cone(pts, initial_axis=a_nom, reference_plane=(c_nom, a_nom))
+    if not fit.error_amplification <= MAX_CONE_AMPLIFICATION:
+        span = float(np.ptp((pts - c_nom) @ a_nom))
+        height = float(np.ptp(cone.get("height_range", [0.0, 0.0])))
+        reason = (f"the cone's {len(pts)} points do not determine it (they span {span:.3f} mm of its {height:g} mm "
+                  f"height along the axis): an error of 1 um in them could move the fitted axis, size or half angle "
+                  f"by {_amplification_words(fit.error_amplification)} at the part's size (evaluated up to "
+                  f"{MAX_CONE_AMPLIFICATION / 1e3:g} mm); its half angle, axis tilt and position, form and diameter, "
+                  "and the sections taken along its axis, are not measured: probe it over its height")
+        out.update(cone=None, cone_note=reason, notes=[reason], warnings=[reason],
+                   cone_error_amplification=fit.error_amplification,
+                   roundness_um=[{"id": f.get("id"), "height_mm": float(f["height"]), "points": 0,
+                                  "least_squares": None, "minimum_zone": None, "diameter_ls_mm": None,
+                                  "note": "not evaluated: the cone (whose axis the section is taken along) is not "
+                                          "determined"}
+                                 for f in part["features"] if f.get("type") == "roundness"])
+        return out, figures
     # form.fit_cone's axis points from the apex into the cone (down for this cone): report it base to top
     up = -fit.axis if fit.axis @ a_nom < 0 else fit.axis
     tilt = math.acos(min(1.0, abs(float(fit.axis @ a_nom))))
@@ -197,6 +221,7 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
         "fit_rms_um": fit.rms * 1e3,
         "form_um": float(np.ptp(fit.residuals) * 1e3),
         "points": int(len(pts)),
+        "error_amplification": fit.error_amplification,
     }
     e1, e2 = form._perpendicular_basis(up)
     around = (pts - base_point) @ np.column_stack([e1, e2])
@@ -246,6 +271,11 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
                            "error_um": (measured - float(diameter["nominal_diameter"])) * 1e3,
                            "method": "from the least-squares cone at this height along its axis"}
     return out, figures
+
+
+def _amplification_words(amplification: float) -> str:
+    """``form.ConeFit.error_amplification`` as the move (in mm) a 1 um error of the points could make."""
+    return "any amount" if not math.isfinite(amplification) else f"{amplification / 1e3:.3g} mm"
 
 
 # ------------------------------------------------------------------------------------------------------ the slots
