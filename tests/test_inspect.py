@@ -263,7 +263,52 @@ def test_a_bestfit_on_the_cone_alone_says_it_takes_a_size_error_away():
     moved = float(re.search(r"moved the part ([-+0-9.]+) um", warnings[0]).group(1))
     assert abs(moved) == pytest.approx(5.0 / math.sin(ALPHA), rel=0.01)
     both = inspect_cloud(_cloud(np.vstack([p + 0.005 * n, block_faces(300)])), "nas979", align="bestfit").report
-    assert not [w for w in inspection_warnings(both) if "best fit" in w]
+    assert not [w for w in inspection_warnings(both) if "best fit saw only the cone" in w]
+
+
+def test_a_bestfit_never_passes_the_characteristics_it_takes_away(tmp_path):
+    """A cone 20 um off its axis with a size error of +5 um: with no alignment the diameter and the axis position
+    fail their tolerances; a best fit moves the part onto the cone and "passed" both (-0.001 um, 0.0 um). Under
+    --align bestfit what the part says a best fit absorbs (diameter, axis position and tilt) is "not measured", with
+    the block's faces probed too; the half angle, form and roundness are measured either way."""
+    p, n = deformed_cone((0.020, 0.0), per_ring=120)
+    (tmp_path / "tol.toml").write_text("[cone_angle]\nhalf_angle_urad = [-50.0, 50.0]\n[diameter_ref]\n"
+                                       "diameter_um = [-5.0, 5.0]\n[axis_direction]\ntilt_urad = 100.0\n[cone]\n"
+                                       "form_um = 30.0\naxis_offset_um = 10.0\n[default]\nroundness_um = 10.0\n")
+    cone = p + 0.005 * n
+    none = _rows(inspect_cloud(_cloud(cone), "nas979", tolerances=tmp_path / "tol.toml").report)
+    assert none[("diameter_ref", "diameter at h = 10 mm")]["result"] == "fail"
+    offset = none[("cone", "axis position at the base plane (distance from nominal)")]
+    assert offset["result"] == "fail" and offset["actual"] == pytest.approx(20.0, abs=0.01)
+    for cloud in (cone, np.vstack([cone, block_faces(300)])):
+        report = inspect_cloud(_cloud(cloud), "nas979", align="bestfit", tolerances=tmp_path / "tol.toml").report
+        rows = {row["key"]: row for row in report["feature_table"] if row["key"] != "roundness_um"}
+        for key in ("diameter_um", "axis_offset_um", "tilt_urad"):
+            assert rows[key]["result"] == "not measured" and rows[key]["actual"] is None
+            assert "not measured with --align bestfit" in rows[key]["note"]
+        assert rows["half_angle_urad"]["result"] == rows["form_um"]["result"] == "pass"
+        assert report["feature_summary"]["not measured"] == 3
+        assert any("takes away what a rigid move changes" in w for w in report["warnings"])
+
+
+def test_a_bestfit_on_the_slot_block_does_not_measure_slot_positions_depths_and_contours():
+    """The whole block 30 um off in Y and 20 um deep: with no alignment every slot's position is 30 um off and its
+    depth 20 um deep; a best fit moved the block back and changed them with no word. Under --align bestfit they are
+    "not measured"; the widths, straightness and parallelism (which no rigid move changes) are the same."""
+    from trueaxis.workpiece.slot_block import slot_pattern
+
+    p, _ = slot_pattern(SLOTS, 6000)
+    moved = p + [0.0, 0.030, -0.020]
+    none = inspect_cloud(_cloud(moved), "slots").report
+    assert all(s["position_um"]["max_abs"] == pytest.approx(30.0, abs=0.01) for s in none["slots"])
+    rows = inspect_cloud(_cloud(moved), "slots", align="bestfit").report["feature_table"]
+    for row in rows:
+        if row["key"] in ("position_um", "depth_um", "contour_um"):
+            assert row["result"] == "not measured" and "--align bestfit" in row["note"]
+        else:
+            twin = next(r for r in none["feature_table"]
+                        if (r["feature"], r["characteristic"]) == (row["feature"], row["characteristic"]))
+            assert row["result"] == "no tolerance" and row["actual"] == pytest.approx(twin["actual"], abs=1e-6)
 
 
 # --------------------------------------------------------------------------------------------------- slots ----

@@ -536,7 +536,14 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         },
         **features,
     }
-    report["feature_table"] = feature_table(report, part_doc, limits)
+    absorbed = None
+    if align == "bestfit":
+        absorbed = {key: f"not measured with --align bestfit: {why} (use --align datum, or none for a part probed in "
+                         "its frame)" for key, why in get_part(part).bestfit_absorbs}
+        report.setdefault("warnings", []).append(
+            "the best fit onto the CAD takes away what a rigid move changes: "
+            + ", ".join(CHARACTERISTICS[key][2] for key in absorbed) + " not measured (use --align datum, or none)")
+    report["feature_table"] = feature_table(report, part_doc, limits, not_measured=absorbed)
     report["feature_summary"] = summary(report["feature_table"])
     figures.update(points=aligned, deviation_um=d_um)
     if figure_worker is not None:
@@ -555,8 +562,8 @@ def _bestfit_warnings(motion: dv.RigidMotion, dev: dv.Deviation, surfaces: list,
     cone = next(s for s in surfaces if s["type"] == "cone")
     along = float(motion.translation @ dv._unit(cone["axis"])) * 1e3
     return [f"the best fit saw only the cone: it moved the part {along:+.1f} um along the cone's axis, which takes a "
-            f"size error away with it (the diameter and the axis position are not measured this way); probe the "
-            f"block's faces, or use --align datum or none"]
+            f"size error away with it (the diameter, the axis position and tilt are not measured this way); use "
+            f"--align datum (with the block's faces probed) or none"]
 
 
 def inspection_warnings(report: dict) -> list[str]:

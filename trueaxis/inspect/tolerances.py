@@ -150,12 +150,14 @@ def _row(feature, key, label, unit, nominal, actual, deviation, tolerance, note=
     return row
 
 
-def feature_table(report: dict, part: dict, tolerances: dict) -> list[dict]:
+def feature_table(report: dict, part: dict, tolerances: dict, not_measured: dict | None = None) -> list[dict]:
     """One row per characteristic of the inspected features, from the report's evaluated figures.
 
     Each row: feature (id), characteristic (words), key (the tolerance key), unit (of nominal and actual),
     nominal, actual, deviation and deviation_unit (um or urad; for form values the value itself), tolerance
     ({"lower", "upper"} of the deviation, or None) and result ("pass", "fail", "no tolerance", "not measured").
+    not_measured : {key: why}: characteristics the inspection could not measure whatever their figures say (those a
+    best-fit alignment takes away): their rows are "not measured", with no actual value, and say why.
     """
     rows: list[dict] = []
     label = {k: v[2] for k, v in CHARACTERISTICS.items()}
@@ -224,6 +226,9 @@ def feature_table(report: dict, part: dict, tolerances: dict) -> list[dict]:
         contour = slot.get("mean_contour_error_um")
         rows.append(_row(fid, "contour_um", label["contour_um"], "um", 0.0, contour, contour,
                          _tolerance_for(tolerances, fid, "contour_um"), slot.get("contour_note")))
+    for row in rows:
+        if row["key"] in (not_measured or {}):
+            row.update(actual=None, deviation=None, result="not measured", note=not_measured[row["key"]])
     return rows
 
 
