@@ -435,6 +435,27 @@ def test_a_fit_the_held_out_points_contradict_is_refused_and_nothing_written(sho
     assert any("held-out" in r for r in rep["verdict"]["reasons"])
 
 
+def test_a_fit_the_held_out_check_cannot_try_is_never_accepted(shop, tmp_path, capsys):
+    """Twelve points on one ring of the changed machine's cone: the fit is significant and explains them (27 um ->
+    0.6 um), but none of them lies in a held-out block of the tool path, so the held-out check never ran; the fit was
+    ACCEPTED with "heldout": {} and the twin written. Without its check it is refused: exit 3, nothing written, and
+    the report says why."""
+    from trueaxis.cli import EXIT_REFUSED
+
+    assert _cli("simulate", shop / "cone.ngc", "--machine", shop / "true.toml", "--part", "nas979", "-o",
+                tmp_path / "ring.ply", "--points", 12, "--noise-um", NOISE_UM, "--seed", 5) == 0
+    capsys.readouterr()
+    out = tmp_path / "new.toml"
+    code = _cli("inspect", tmp_path / "ring.ply", "--part", "nas979", "--identify", "--machine", TWIN_FILE,
+                "--program", shop / "cone.ngc", "--write", out, "-o", tmp_path / "rep")
+    captured = capsys.readouterr()
+    assert code == EXIT_REFUSED and not out.exists()
+    assert "REFUSED" in captured.out and "held-out check could not run" in captured.err
+    verdict = _report(tmp_path / "rep")["verdict"]
+    assert verdict["status"] == "refused" and verdict["heldout"]["confirmed"] is False
+    assert verdict["heldout"]["points"] < 10 and "held-out check could not run" in verdict["reasons"][0]
+    assert verdict["residual_after_rms_um"] < verdict["residual_before_rms_um"]  # the fit itself looked good
+
 @pytest.mark.slow
 @pytest.mark.parametrize("part, fixture, changes, compensate, program_args", [
     ("nas979", "nmv1500dcg.toml", CHANGES, "geometric", CONE_ARGS),

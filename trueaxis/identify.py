@@ -505,6 +505,9 @@ def _fit_identifiable(system: _System, chosen, typical, max_relative_std, na, no
 
 
 ALIGNMENT_TYPICAL = 1000.0  # um, urad: a best fit moves the part freely
+#: Fewest held-out points for the held-out check of a fit (as for the points used at all): with fewer the check
+#: cannot run, and an identification it cannot check is never accepted.
+MIN_HELDOUT_POINTS = 10
 
 
 def typical_magnitude(name: str, machine: Machine) -> float:
@@ -666,7 +669,7 @@ class Identification:
         out = [f"identification {head}: " + ("; ".join(self.reasons) if self.reasons else "the fit explains the part")]
         h = self.heldout
         ho = (f"; held-out points {h['before_rms_um']:.2f} -> {h['after_rms_um']:.2f} um (fit predicted "
-              f"{h['fit_before_rms_um']:.2f} -> {h['fit_after_rms_um']:.2f})" if h.get("points") else "")
+              f"{h['fit_before_rms_um']:.2f} -> {h['fit_after_rms_um']:.2f})" if "before_rms_um" in h else "")
         out.append(f"  residual RMS {self.predicted_rms_um:.2f} um with the twin as is -> {self.residual_rms_um:.2f} "
                    f"um after; deviation RMS {self.deviation_rms_um:.2f} um{ho}")
         for i in np.nonzero(self.identified)[0]:
@@ -851,7 +854,14 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     out_pt = (block[inv] % holdout_every) == holdout_every // 2
     heldout = {}
     params_chosen = chosen[chosen >= na]
-    if params_chosen.size and out_pt.any() and (~out_pt).any():
+    if params_chosen.size and (out_pt.sum() < MIN_HELDOUT_POINTS or (~out_pt).sum() <= chosen.size):
+        # no check, no acceptance: a fit that cannot be tried on points it did not see is not confirmed
+        heldout = {"points": int(out_pt.sum()), "confirmed": False,
+                   "not_run": f"the held-out check could not run: {int(out_pt.sum())} of the {idx.size} points used "
+                              f"lie in every {holdout_every}th of {holdout_blocks} blocks of the tool path (at least "
+                              f"{MIN_HELDOUT_POINTS} needed, and more than the {chosen.size} fitted columns left to "
+                              "fit): the changes are not confirmed; probe the part over more of its tool path"}
+    elif params_chosen.size:
         sys_fit = _assemble(jac, inv, w, b, omega * ~out_pt, g)
         try:
             theta_fit = _least_squares(sys_fit, _independent(sys_fit, chosen))[0]
@@ -984,7 +994,11 @@ def _verdict(n_changed: int, dev_rms: float, before: float, after: float, heldou
         reasons.append(f"residual {after:.2f} um is not below the deviation {dev_rms:.2f} um")
     if not after < before:
         reasons.append(f"residual {after:.2f} um is not below the twin's own {before:.2f} um")
-    if heldout and not heldout.get("confirmed"):
+    if not heldout:
+        reasons.append("no held-out check: the changes are not confirmed on points the fit did not see")
+    elif "not_run" in heldout:
+        reasons.append(heldout["not_run"])
+    elif not heldout.get("confirmed"):
         reasons.append(f"held-out points do not confirm the improvement ({heldout['before_rms_um']:.2f} -> "
                        f"{heldout['after_rms_um']:.2f} um where the fit predicted {heldout['fit_before_rms_um']:.2f} "
                        f"-> {heldout['fit_after_rms_um']:.2f} um)")
