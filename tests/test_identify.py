@@ -233,6 +233,29 @@ def _report(folder):
     return json.loads((folder / "report.json").read_text())["identification"]
 
 
+def _html_sections(folder):
+    """report.html cut in two: "top" (up to the first section after the summary, where the verdict box stands) and
+    "identification" (its section)."""
+    page = (folder / "report.html").read_text()
+    start = page.index("<h2>Identification")
+    return {"top": page[:page.index("<h2>", page.index("<h2>Summary") + 1)],
+            "identification": page[start:page.index("<h2>", start + 1)]}
+
+
+def _check_lists(rep, section):
+    """The page's lists: parameters estimated but not significant are listed as such, not as "not identifiable",
+    which holds only what the part cannot identify (not the held gauge values)."""
+    import re
+
+    unseen = re.search(r"Not identifiable from this part: ([^<]*)\.</p>", section).group(1).split(", ")
+    assert rep["not_significant"], "the case has parameters estimated but not significant"
+    for entry in rep["not_significant"]:
+        assert entry["name"] not in unseen
+        assert entry["name"] in re.search(r"Estimated, not significant[^<]*", section).group(0)
+    detail = {d["name"]: d["reason"] for d in rep["not_identifiable_detail"]}
+    assert unseen and all(not detail[name].startswith("held") for name in unseen)
+
+
 def _written_values(path):
     m = load_machine(path)
     return dict(zip(m.parameter_names(), m.parameter_values()))
@@ -300,6 +323,9 @@ def test_changed_machine_is_identified_within_three_std_and_written(shop, tmp_pa
     assert rep["comments_kept"]
     assert comments and all(c in text for c in comments)
     assert rep["verdict"]["residual_after_rms_um"] < 1.5 * NOISE_UM < rep["verdict"]["deviation_rms_um"]
+    page = _html_sections(tmp_path / "rep")
+    assert "Identification ACCEPTED" in page["top"] and "<h3>Identified parameters</h3>" in page["identification"]
+    _check_lists(rep, page["identification"])
     truth, written = _written_values(shop / "true.toml"), _written_values(out)
     reported = {p["name"]: p for p in rep["parameters"]}
     assert {"AOC", "YOC"} <= set(reported)
@@ -433,6 +459,13 @@ def test_a_fit_the_held_out_points_contradict_is_refused_and_nothing_written(sho
     rep = _report(tmp_path / "rep")
     assert rep["verdict"]["status"] == "refused" and rep["written"] is None
     assert any("held-out" in r for r in rep["verdict"]["reasons"])
+    # the page says it too, at the top, and never calls the refused changes identified
+    page = _html_sections(tmp_path / "rep")
+    assert "Identification REFUSED" in page["top"] and "held-out points do not confirm" in page["top"]
+    assert "Identified parameters" not in page["identification"]
+    assert "Changes the refused fit proposed (not applied)" in page["identification"]
+    _check_lists(rep, page["identification"])
+
 
 
 def test_a_fit_the_held_out_check_cannot_try_is_never_accepted(shop, tmp_path, capsys):

@@ -613,8 +613,8 @@ def test_report_json_carries_the_header_and_the_plotted_figures(tmp_path):
         assert np.ptp(ring["residual_um"]) == pytest.approx(section["least_squares"], abs=2e-4)
     assert figures["identified"]["names"] == ["XOC", "AOC"] and figures["identified"]["std"] == [0.114, 1.43]
     page = (out / "report.html").read_text()
-    assert "<td>XOC</td><td>-21.85</td><td>0.11</td><td>um</td>" in page
-    assert "<td>AOC</td><td>-38.8</td><td>1.4</td><td>urad</td>" in page
+    assert "<td>XOC</td><td>-21.85</td><td>&ndash;</td><td>0.11</td><td>um</td>" in page  # no change given
+    assert "<td>AOC</td><td>-38.8</td><td>&ndash;</td><td>1.4</td><td>urad</td>" in page
     assert "identified.png" in rep["files"] and "mean -0.0" not in page
     assert "components" not in figures  # no component-error tables identified
 

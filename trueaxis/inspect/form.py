@@ -318,7 +318,8 @@ def cone_error_amplification(normal, points_count: int, size_mm: float) -> float
     with the angular parameters (axis tilts, half angle) as the displacements they make at the cloud's size.
 
     normal : (6, 6) J^T J of the cone model in (tilt u, tilt v, axis point s, t (mm), radius (mm), half angle) at the
-    fit (``_cone_model``). points_count : n. size_mm : the cloud's size (RMS distance of the points from their centroid).
+    fit (``_cone_model``). points_count : n. size_mm : the cloud's size (RMS distance of its points from their
+    centroid).
 
     A pattern of errors of RMS e along the points' normals (noise, form) can move the fitted cone by up to
     amplification * e, its axis and half angle counted as the displacement they make over ``size_mm``: a cone probed

@@ -647,14 +647,15 @@ def _feature_figure_inputs(inspection: Inspection) -> list[dict]:
     rings = inspection.figures.get("rings") or []
     if rings:
         out.append({"kind": "roundness", "rings": rings})
-    parameters = (report.get("identification") or {}).get("parameters") if isinstance(
-        report.get("identification"), dict) else None
+    identification = report.get("identification") if isinstance(report.get("identification"), dict) else {}
+    parameters = identification.get("parameters")
     if parameters:
         names = [p["name"] for p in parameters]
         values = [next((v for k, v in p.items() if k.startswith("value_")), None) for p in parameters]
         stds = [next((v for k, v in p.items() if k.startswith("std_")), None) for p in parameters]
         units = [next((k[6:] for k in p if k.startswith("value_")), "") for p in parameters]
-        out.append({"kind": "identified", "names": names, "values": values, "stds": stds, "units": units})
+        out.append({"kind": "identified", "names": names, "values": values, "stds": stds, "units": units,
+                    "status": (identification.get("verdict") or {}).get("status", "accepted")})
         components = _component_tables(names, values, stds, units)
         if components:
             out.append({"kind": "components", "components": components})
@@ -785,10 +786,14 @@ def draw_figure(inputs: dict) -> tuple[str, bytes, str, dict]:
         ax.bar(x, [v or 0.0 for v in values], yerr=[2 * (s or 0.0) for s in stds], capsize=3, color="C2")
         ax.set_xticks(x, [f"{n}\n({u})" for n, u in zip(names, units)], fontsize=8)
         ax.axhline(0, color="k", lw=0.6)
-        ax.set_ylabel("identified value (um or urad)")
-        ax.set_title("Identified parameters, error bars +-2 std")
+        refused = inputs.get("status") == "refused"
+        ax.set_ylabel("value the refused fit proposed (um or urad)" if refused else "identified value (um or urad)")
+        ax.set_title("REFUSED: values the fit proposed, not applied; error bars +-2 std" if refused
+                     else "Identified parameters, error bars +-2 std")
         fig.subplots_adjust(left=0.12, right=0.97, bottom=0.2, top=0.9)
-        name, caption = "identified.png", "Identified twin parameters with +-2 standard deviations."
+        name, caption = "identified.png", ("Values a refused identification proposed (not applied: the twin's "
+                                           "values stand), with +-2 standard deviations." if refused else
+                                           "Identified twin parameters with +-2 standard deviations.")
         data["identified"] = {"file": name, "names": names, "values": values, "std": stds, "units": units}
     elif kind == "components":
         components = inputs["components"]
@@ -956,6 +961,8 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
                  f"surface). Characteristics: {counts.get('pass', 0)} in tolerance, {counts.get('fail', 0)} out of "
                  f"tolerance, {counts.get('no tolerance', 0)} without a tolerance, "
                  f"{counts.get('not measured', 0)} not measured.</p>")
+    if isinstance(report.get("identification"), dict):
+        parts.append(_verdict_html(report["identification"]))
     warnings = inspection_warnings(report)
     if warnings:
         parts.append("<div class='warning'><strong>Read first:</strong><ul>"
@@ -1006,21 +1013,7 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
                  f"{html.escape(str(alignment.get('rotation_note', '')))}.</p>")
     identification = report.get("identification")
     if isinstance(identification, dict):
-        parts.append("<h2>Identified parameters</h2>")
-        params = identification.get("parameters") or []
-        if params:
-            rows = []
-            for p in params:
-                unit = next((k[6:] for k in p if k.startswith("value_")), "")
-                rows.append(f"<tr><td>{html.escape(str(p.get('name')))}</td><td>{_value(p.get('value_' + unit), unit)}"
-                            f"</td><td>{_value(p.get('std_' + unit), unit)}</td><td>{html.escape(unit)}</td></tr>")
-            parts.append("<table><tr><th>parameter</th><th>value</th><th>standard deviation</th><th>unit</th></tr>"
-                         + "".join(rows) + "</table>")
-        if identification.get("not_identifiable"):
-            parts.append("<p>Not identifiable from this part: "
-                         + html.escape(", ".join(map(str, identification["not_identifiable"]))) + ".</p>")
-        parts.append(_table({k: v for k, v in identification.items()
-                             if isinstance(v, (int, float, str)) and not isinstance(v, bool)}))
+        parts.append(_identification_html(identification))
     elif identification is not None:
         parts.append("<h2>Identification</h2><p>" + html.escape(str(identification)) + "</p>")
     parts.append("<h2>Pictures</h2>")
@@ -1033,6 +1026,92 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
     parts.append(f"<p style='font-size:85%;color:#555'>Files: {html.escape(', '.join(report.get('files', [])))}. "
                  f"{html.escape(report['units'])}.</p></body></html>\n")
     return "\n".join(parts)
+
+
+#: The identification's verdict on the page: (headline, what it means for the twin, box colours).
+_VERDICT_WORDS = {
+    "accepted": ("ACCEPTED", "the identified values below replace the twin's (written where --write was given)",
+                 "#1e7b34", "#e6f4ea"),
+    "refused": ("REFUSED", "the fit does not explain the part: its changes below are not applied and nothing is "
+                "written; the twin's values stand", "#c0392b", "#fdecea"),
+    "no change": ("NO CHANGE", "nothing to change: the twin's values stand", "#555555", "#f1f1f1"),
+}
+
+
+def _verdict_html(identification: dict) -> str:
+    """The identification's verdict in a box (at the top of the page): status, what it means, its reasons, the
+    residuals and the held-out check."""
+    verdict = identification.get("verdict") or {}
+    status = verdict.get("status")
+    if status is None:  # a report without a verdict (written before there was one)
+        return ""
+    headline, meaning, edge, fill = _VERDICT_WORDS.get(status, (str(status).upper(), "", "#555555", "#f1f1f1"))
+    out = [f"<div class='verdict' id='identification-verdict' style='border:2px solid {edge};background:{fill};"
+           f"padding:4px 12px;margin:10px 0'><strong>Identification {html.escape(headline)}</strong>: "
+           f"{html.escape(meaning)}."]
+    reasons = verdict.get("reasons") or []
+    if reasons:
+        out.append("<ul>" + "".join(f"<li>{html.escape(str(r))}</li>" for r in reasons) + "</ul>")
+    figures = [f"residual RMS {_value(verdict.get('residual_before_rms_um'), 'um')} um with the twin as is, "
+               f"{_value(verdict.get('residual_after_rms_um'), 'um')} um after the fit; deviation RMS "
+               f"{_value(verdict.get('deviation_rms_um'), 'um')} um"]
+    heldout = verdict.get("heldout") or {}
+    if "before_rms_um" in heldout:
+        figures.append(f"held-out points ({heldout.get('points', 0):,}): {_value(heldout['before_rms_um'], 'um')} -> "
+                       f"{_value(heldout['after_rms_um'], 'um')} um where the fit predicted "
+                       f"{_value(heldout['fit_before_rms_um'], 'um')} -> {_value(heldout['fit_after_rms_um'], 'um')} "
+                       f"um ({'confirmed' if heldout.get('confirmed') else 'not confirmed'})")
+    elif heldout.get("not_run"):
+        figures.append("held-out check not run")
+    out.append("<p>" + html.escape("; ".join(figures)) + ".</p></div>")
+    return "".join(out)
+
+
+def _identification_html(identification: dict) -> str:
+    """The identification section: its verdict (a refused fit's changes are never shown as identified), the
+    parameters, those estimated but not significant, those the part cannot identify, and those held."""
+    verdict = identification.get("verdict") or {}
+    status = verdict.get("status")
+    out = ["<h2>Identified parameters</h2>"]
+    if status is not None:
+        headline = _VERDICT_WORDS.get(status, (str(status).upper(),))[0]
+        out = [f"<h2>Identification: {html.escape(headline)}</h2>",
+               f"<p>Verdict <strong>{html.escape(headline)}</strong>"
+               + "".join(f"; {html.escape(str(r))}" for r in verdict.get("reasons") or [])
+               + " (the box at the top).</p>"]
+    params = identification.get("parameters") or []
+    if params:
+        title = "Changes the refused fit proposed (not applied)" if status == "refused" else \
+            "Identified parameters"
+        rows = []
+        for p in params:
+            unit = next((k[6:] for k in p if k.startswith("value_")), "")
+            rows.append(f"<tr><td>{html.escape(str(p.get('name')))}</td><td>{_value(p.get('value_' + unit), unit)}"
+                        f"</td><td>{_value(p.get('change_' + unit), unit)}</td>"
+                        f"<td>{_value(p.get('std_' + unit), unit)}</td><td>{html.escape(unit)}</td></tr>")
+        out.append(f"<h3>{title}</h3><table><tr><th>parameter</th><th>value</th><th>change</th>"
+                   "<th>standard deviation</th><th>unit</th></tr>" + "".join(rows) + "</table>")
+    not_significant = identification.get("not_significant") or []
+    if not_significant:
+        def change(entry):
+            unit = next((k[7:] for k in entry if k.startswith("change_")), "")
+            return (f"{entry['name']} {_value(entry.get('change_' + unit), unit)} +- "
+                    f"{_value(entry.get('std_' + unit), unit)} {unit}")
+        out.append("<p>Estimated, not significant (kept at the twin's value): "
+                   + html.escape(", ".join(change(e) for e in not_significant)) + ".</p>")
+    # the detail sorts the rest: held (a gauge value, or not asked for) or not identifiable from this part
+    estimated = {e["name"] for e in not_significant}
+    detail = [d for d in identification.get("not_identifiable_detail") or [] if d.get("name") not in estimated]
+    held = [d["name"] for d in detail if str(d.get("reason", "")).startswith("held")]
+    unseen = [d["name"] for d in detail if not str(d.get("reason", "")).startswith("held")]
+    if unseen:
+        out.append("<p>Not identifiable from this part: " + html.escape(", ".join(map(str, unseen))) + ".</p>")
+    if held:
+        out.append("<p>Held (the reference value of an error function, or not asked for): "
+                   + html.escape(", ".join(map(str, held))) + ".</p>")
+    out.append(_table({k: v for k, v in identification.items()
+                       if isinstance(v, (int, float, str)) and not isinstance(v, bool)}))
+    return "\n".join(out)
 
 
 def _title(name: str) -> str:
