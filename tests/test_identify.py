@@ -335,6 +335,27 @@ def test_changed_machine_is_identified_within_three_std_and_written(shop, tmp_pa
         assert "ACCEPTED" in printed and name in printed
 
 
+
+def test_write_into_the_report_folder_is_refused_before_any_work(shop, tmp_path, capsys):
+    """`-o DIR` is replaced whole, so `--write DIR/x.toml` cannot stand: the identified twin was written into DIR,
+    then the report refused DIR for holding a file trueaxis did not write there (exit 2, "nothing written", with
+    x.toml written and no report). Refused at the output gate, before any work: exit 2, nothing written, an earlier
+    report in DIR left as it was."""
+    rep, out = tmp_path / "rep", tmp_path / "rep" / "x.toml"
+    args = ("inspect", shop / "changed.ply", "--part", "nas979", "--identify", "--machine", TWIN_FILE, "--program",
+            shop / "cone.ngc", "-o", rep)
+    for nested in (out, tmp_path / "rep" / "sub" / ".." / "x.toml"):
+        capsys.readouterr()
+        assert _cli(*args, "--write", nested) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "lies inside -o" in err[0] and "replaced whole" in err[0]
+        assert not rep.exists()
+    assert _cli(*args) == 0  # a report there: a second refusal leaves it as it was
+    before = sorted(p.name for p in rep.iterdir())
+    assert _cli(*args, "--write", out) == 2
+    assert sorted(p.name for p in rep.iterdir()) == before and not out.exists()
+    assert _cli(*args, "--write", tmp_path / "x.toml") == 0 and (tmp_path / "x.toml").exists()  # beside it: fine
+
 def test_aliasing_of_a_poorly_seen_parameter_is_inside_the_std(nmv):
     # XOB (20 um) alone: the cone barely sees it, and what it does to the part the identified parameters absorb.
     # Their noise-only std would call the absorbed change real (> 3 noise std from the truth, zero); the reported std
