@@ -356,6 +356,32 @@ def test_write_into_the_report_folder_is_refused_before_any_work(shop, tmp_path,
     assert sorted(p.name for p in rep.iterdir()) == before and not out.exists()
     assert _cli(*args, "--write", tmp_path / "x.toml") == 0 and (tmp_path / "x.toml").exists()  # beside it: fine
 
+
+def test_cloud_normals_pointing_into_the_part_are_flipped_and_counted(shop, tmp_path, capsys):
+    """CMM exports give normals either way round. All normals flipped: "only 0 of 3000 points lie on a surface the
+    program cut"; every third flipped: a third of the points silently dropped. The normals are turned to the part's
+    outward side (the nearest analytic surface's), the count is said, and the fit is the one of the outward cloud."""
+    from trueaxis.inspect.cloud import read_cloud, write_cloud_ply
+
+    cloud = read_cloud(shop / "changed.ply")
+    args = ("--part", "nas979", "--identify", "--machine", TWIN_FILE, "--program", shop / "cone.ngc")
+    assert _cli("inspect", shop / "changed.ply", *args, "-o", tmp_path / "rep") == 0
+    reference = _report(tmp_path / "rep")
+    for every in (1, 3):
+        flip = np.arange(len(cloud.points)) % every == 0
+        write_cloud_ply(tmp_path / f"flip{every}.ply", cloud.points, np.where(flip[:, None], -1, 1) * cloud.normals)
+        capsys.readouterr()
+        assert _cli("inspect", tmp_path / f"flip{every}.ply", *args, "-o", tmp_path / f"rep{every}") == 0
+        printed = capsys.readouterr().out
+        rep = _report(tmp_path / f"rep{every}")
+        assert rep["normals_flipped"] == int(flip.sum()) and f"{int(flip.sum())} of {len(flip)} pointed into" in printed
+        assert rep["points_used"] == reference["points_used"] and rep["verdict"]["status"] == "accepted"
+        for mine, theirs in zip(rep["parameters"], reference["parameters"]):
+            assert mine["name"] == theirs["name"]
+            assert mine.get("value_um", mine.get("value_urad")) == pytest.approx(
+                theirs.get("value_um", theirs.get("value_urad")), abs=1e-3)
+    assert reference["normals_flipped"] == 0
+
 def test_aliasing_of_a_poorly_seen_parameter_is_inside_the_std(nmv):
     # XOB (20 um) alone: the cone barely sees it, and what it does to the part the identified parameters absorb.
     # Their noise-only std would call the absorbed change real (> 3 noise std from the truth, zero); the reported std

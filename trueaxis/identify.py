@@ -583,6 +583,7 @@ class Identification:
     reasons: list = field(default_factory=list)
     heldout: dict = field(default_factory=dict)
     considered: np.ndarray | None = None
+    normals_flipped: int | None = None  # cloud normals turned outward (``outward_normals``); None: the part's normals
 
     @property
     def accepted(self) -> bool:
@@ -639,6 +640,10 @@ class Identification:
             "std_method": STD_METHOD if self.options.get("alias_prior", True) else "noise only (s^2 (A^T W A)^-1)",
             "points": self.n_points,
             "points_used": self.n_used,
+            "normals": "the part's outward normals (the cloud has none)" if self.normals_flipped is None else (
+                f"the cloud's, {self.normals_flipped} of {self.n_points} flipped to the part's outward side (they "
+                "pointed into the material)" if self.normals_flipped else "the cloud's (all outward)"),
+            "normals_flipped": self.normals_flipped,
             "tool_instances": self.n_instances,
             "alignment_mode": self.options.get("alignment", "none"),
             "parameters": params,
@@ -672,6 +677,9 @@ class Identification:
               f"{h['fit_before_rms_um']:.2f} -> {h['fit_after_rms_um']:.2f})" if "before_rms_um" in h else "")
         out.append(f"  residual RMS {self.predicted_rms_um:.2f} um with the twin as is -> {self.residual_rms_um:.2f} "
                    f"um after; deviation RMS {self.deviation_rms_um:.2f} um{ho}")
+        if self.normals_flipped:
+            out.append(f"  cloud normals: {self.normals_flipped} of {self.n_points} pointed into the part and were "
+                       "flipped to its outward side")
         for i in np.nonzero(self.identified)[0]:
             u = unit_of(self.names[i])
             out.append(f"  {self.names[i]:10s} change {self.value[i] - self.prior[i]:+9.2f} +- {self.std[i]:.2f} {u}"
@@ -1079,6 +1087,23 @@ def part_normals(points, part: dict) -> np.ndarray:
     return math.cos(alpha) * radial + math.sin(alpha) * a
 
 
+def outward_normals(points, normals, part: dict) -> tuple[np.ndarray, int]:
+    """A cloud's normals turned to the outward side of the part: each normal pointing into the material (against the
+    outward normal of its nearest analytic surface of the part JSON) is flipped. CMM software and scanners export
+    normals either way round (towards the probe, or into the part), and the model's contact search, which looks for
+    the tool along the normal, finds nothing along an inward one.
+
+    points, normals : (N, 3) part frame. part : the part JSON dict. Returns (outward normals (N, 3), how many were
+    flipped).
+    """
+    from .inspect.deviation import analytic_deviation, analytic_surfaces
+
+    normals = np.asarray(normals, dtype=np.float64)
+    cad = analytic_deviation(points, analytic_surfaces(part)).normal
+    inward = np.einsum("ij,ij->i", normals, cad) < 0
+    return np.where(inward[:, None], -normals, normals), int(inward.sum())
+
+
 # ---------------------------------------------------------------------------------------------------- the CLI ----
 def machine_for_program(machine: Machine, program_text: str, part: str | None = None) -> Machine:
     """The machine with the part placed where the program's setup comment says (``origin_mm``), as the virtual shop
@@ -1144,9 +1169,14 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
         raise ValueError(f"{program_path}: no such program file")
     text = program_path.read_text(encoding="utf-8", errors="replace")
     placed = machine_for_program(original, text, part.get("part"))
-    normals = cloud.normals if cloud.normals is not None else part_normals(cloud.points, part)
+    flipped = None
+    if cloud.normals is not None:
+        normals, flipped = outward_normals(cloud.points, cloud.normals, part)
+    else:
+        normals = part_normals(cloud.points, part)
     result = identify(cloud.points, normals, deviation_um, parse_program(text, str(program_path)), placed,
                       parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std)
+    result = dataclasses.replace(result, normals_flipped=flipped)
     report = result.as_report()
     report["machine_file"] = str(machine)
     report["program"] = str(program_path)
