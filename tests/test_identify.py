@@ -382,6 +382,19 @@ def test_cloud_normals_pointing_into_the_part_are_flipped_and_counted(shop, tmp_
                 theirs.get("value_um", theirs.get("value_urad")), abs=1e-3)
     assert reference["normals_flipped"] == 0
 
+
+def test_a_program_with_axes_the_twin_lacks_is_refused_with_exit_3(shop, tmp_path, capsys):
+    """The cone's B-C program against a three-axis twin (xh714): a program the product refuses is exit 3 (README's
+    exit table, as the diagnosis gives); it was exit 2, the usage status. One line, nothing written."""
+    from trueaxis.cli import EXIT_REFUSED
+
+    capsys.readouterr()
+    code = _cli("inspect", shop / "changed.ply", "--part", "nas979", "--identify", "--machine", MACHINES / "xh714.toml",
+                "--program", shop / "cone.ngc", "--write", tmp_path / "x.toml", "-o", tmp_path / "rep")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == EXIT_REFUSED and len(err) == 1 and "moves axes B C" in err[0]
+    assert not (tmp_path / "rep").exists() and not (tmp_path / "x.toml").exists()
+
 def test_aliasing_of_a_poorly_seen_parameter_is_inside_the_std(nmv):
     # XOB (20 um) alone: the cone barely sees it, and what it does to the part the identified parameters absorb.
     # Their noise-only std would call the absorbed change real (> 3 noise std from the truth, zero); the reported std

@@ -643,12 +643,12 @@ _NAMED_FILES = ("input", "program", "cloud", "--cloud", "--program", "--cad")
 
 def _refusal_errors() -> tuple:
     """The error classes of inputs the product refuses whose messages do not carry a line (clouds, tolerances, the
-    inspection, effects files, a program the diagnosis cannot use): exit status 3 like the located ones. Taken
-    lazily, as in :func:`_located_errors`."""
+    inspection, effects files, a program the diagnosis or the identification cannot use): exit status 3 like the
+    located ones. Taken lazily, as in :func:`_located_errors`."""
     found = []
     for module, name in (("trueaxis.inspect.cloud", "CloudError"), ("trueaxis.inspect.tolerances", "ToleranceError"),
                          ("trueaxis.inspect.deviation", "InspectionError"), ("trueaxis.sim.effects", "EffectsFileError"),
-                         ("trueaxis.diagnose.state", "ProgramError")):
+                         ("trueaxis.diagnose.state", "ProgramError"), ("trueaxis.identify", "ProgramError")):
         if module in sys.modules:
             found.append(getattr(sys.modules[module], name))
     return tuple(found)

@@ -101,6 +101,12 @@ MAX_CACHE_BYTES = 384 * 2**20
 CHUNK_POINTS = 1 << 16
 
 
+class ProgramError(ValueError):
+    """A program the identification refuses (the command's exit 3, as the diagnosis refuses it): written for another
+    part, moving axes the twin does not have, a malformed setup comment, no feed moves, or one that did not cut the
+    measured part."""
+
+
 # ------------------------------------------------------------------------------------------------- the tool path ----
 @dataclass
 class ToolPath:
@@ -136,7 +142,7 @@ def nominal_tool_path(program, machine: Machine, *, dt: float = 1e-3, spacing_mm
     traj = interpolate(prog, machine, dt)
     cut = np.nonzero(traj.motion != 0)[0]
     if cut.size == 0:
-        raise ValueError(f"{prog.source}: the program has no feed moves: nothing cut the part")
+        raise ProgramError(f"{prog.source}: the program has no feed moves: nothing cut the part")
     q = traj.q[cut]
     tip, _ = forward_nominal(machine, q)
     rot = [c for c, a in enumerate(machine.axis_names) if machine.axes[a].is_rotary]
@@ -782,7 +788,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     contacts = find_contacts(x0, n, twin_path, machine.tool.radius, machine.tool.flute_length, max_gap_mm=max_gap_mm)
     use = contacts.found & (omega0 > 0)
     if use.sum() < 10:
-        raise ValueError(f"only {int(use.sum())} of {x.shape[0]} points lie on a surface the program cut "
+        raise ProgramError(f"only {int(use.sum())} of {x.shape[0]} points lie on a surface the program cut "
                          f"(within {max_gap_mm} mm): is it the program that made this part, with this placement?")
     idx = np.nonzero(use)[0]
     uniq, inv = np.unique(contacts.sample[idx], return_inverse=True)
@@ -1112,11 +1118,11 @@ def machine_for_program(machine: Machine, program_text: str, part: str | None = 
 
     setup = read_setup(program_text)
     if part is not None and setup.get("part") and setup["part"] != part:
-        raise ValueError(f"the program is for part {setup['part']!r}, not {part!r}")
+        raise ProgramError(f"the program is for part {setup['part']!r}, not {part!r}")
     origin = setup.get("origin_mm")
     if origin is not None:
         if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-            raise ValueError("the program's setup comment origin_mm must be three numbers")
+            raise ProgramError("the program's setup comment origin_mm must be three numbers")
         machine = dataclasses.replace(machine, workpiece_origin=origin.astype(float))
     return machine
 
@@ -1174,7 +1180,12 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
         normals, flipped = outward_normals(cloud.points, cloud.normals, part)
     else:
         normals = part_normals(cloud.points, part)
-    result = identify(cloud.points, normals, deviation_um, parse_program(text, str(program_path)), placed,
+    parsed = parse_program(text, str(program_path))
+    unused = [a for a in parsed.axes_present if a not in placed.axis_names]
+    if unused:  # a program posted for another machine: refused before any work, as the diagnosis refuses it
+        raise ProgramError(f"{parsed.source}: the program moves axes {' '.join(unused)} that {placed.name} does not "
+                           "have: is it the program for this machine?")
+    result = identify(cloud.points, normals, deviation_um, parsed, placed,
                       parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std)
     result = dataclasses.replace(result, normals_flipped=flipped)
     report = result.as_report()
