@@ -869,3 +869,32 @@ def test_a_flyer_does_not_refuse_the_cloud_and_is_counted_beyond_the_gate():
     report = inspect_cloud(_cloud(np.vstack([p, [[0.0, 0.0, 40.0]]])), "nas979").report
     assert report["beyond_gate"]["points"] == 1
     assert report["cone"]["half_angle_error_urad"] == pytest.approx(0.0, abs=1e-3)
+
+
+def test_flyers_are_counted_apart_from_the_headline_figures(tmp_path):
+    """0.5 % of the points 500 mm off (flyers the product itself says belong to no feature) made the headline
+    "deviation rms 33908.67 um" and a one-bar histogram. The headline, the by-surface figures and the pictures are
+    over the points on the part (within the gate): the same as the cloud without the flyers; those are counted and
+    described apart."""
+    p, n = deformed_cone((0.010, 0.0), 0.002, per_ring=90)
+    clean = inspect_cloud(_cloud(p), "nas979").report
+    flyers = np.arange(len(p)) % 200 == 7  # 0.5 %
+    moved = np.where(flyers[:, None], p + 500.0 * n, p)
+    write_cloud_ply(tmp_path / "fly.ply", moved)
+    r = run("inspect", str(tmp_path / "fly.ply"), "--part", "nas979", "-o", str(tmp_path / "rep"))
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "rep" / "report.json").read_text())
+    for key in ("rms", "min", "max", "p95"):
+        assert report["deviation_um"][key] == pytest.approx(clean["deviation_um"][key], abs=1e-6)
+    assert report["deviation_um"]["points"] == len(p) - flyers.sum()
+    assert report["deviation_by_surface_um"]["cone"]["rms"] == pytest.approx(clean["deviation_by_surface_um"]["cone"]
+                                                                                ["rms"], abs=1e-6)
+    apart = report["beyond_gate"]
+    assert apart["points"] == flyers.sum() and apart["deviation_um"]["min"] > 100_000  # far from every surface
+    histogram = report["figures"]["histogram"]
+    assert sum(histogram["counts"]) == len(p) - flyers.sum() and histogram["bin_edges_um"][-1] < 100
+    assert f"{clean['deviation_um']['rms']:.2f} um" in r.stdout
+    assert f"({flyers.sum()} beyond the gate apart)" in r.stdout
+    page = (tmp_path / "rep" / "report.html").read_text()
+    assert f"{flyers.sum()} beyond the 0.5 mm gate" in page
+

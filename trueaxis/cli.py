@@ -412,6 +412,8 @@ def cmd_inspect(args) -> int:
     d = r["deviation_um"]
     line = (f"{out_dir}: {r['points']} points vs {args.part} ({r['alignment']['method']} alignment): deviation rms "
             f"{d['rms']:.2f} um, range {d['min']:+.2f}..{d['max']:+.2f} um")
+    if d["points"] < r["points"]:  # the points beyond the gate (on no feature) are counted apart, not in the figures
+        line += f" over {d['points']} points on the part ({r['points'] - d['points']} beyond the gate apart)"
     if r.get("cone"):
         line += f"; half angle error {r['cone']['half_angle_error_urad']:+.1f} urad"
     counts = r["feature_summary"]

@@ -477,22 +477,25 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
             f"{cloud.source}: {far.sum()} of {len(far)} points lie more than {FAR_MM:g} mm from every surface of the "
             f"{part} part (median {np.median(np.abs(dev.deviation_mm)):.3f} mm): this cloud cannot be the {part} "
             "part in its frame, in mm")
+    beyond = np.abs(dev.deviation_mm) > gate_mm  # on no feature: counted apart from the headline figures
     if figure_worker is not None:
-        for item in _deviation_figure_inputs(part, part_doc, aligned, dev.deviation_um):
+        for item in _deviation_figure_inputs(part, part_doc, aligned, dev.deviation_um, beyond):
             figure_worker.submit(item)
 
     features, figures = EVALUATIONS[get_part(part).evaluation](aligned, dev, part_doc, gate_mm)
-    beyond = np.abs(dev.deviation_mm) > gate_mm
     if align == "bestfit":
         features.setdefault("warnings", []).extend(_bestfit_warnings(motion, dev, surfaces, beyond))
     d_um = dev.deviation_um
+    # the headline figures are over the points on the part's surfaces (within the gate): a flyer 500 mm off would
+    # make them its own (0.5 % of the points gave an RMS of 33,909 um); those beyond the gate are counted apart
+    within = ~beyond if beyond.any() and not beyond.all() else np.ones(len(beyond), bool)
     per_surface = {}
     for k, sid in enumerate(dev.surface_ids):
-        sel = (dev.surface == k)
+        sel = (dev.surface == k) & within
         if sel.any():
             per_surface[sid] = deviation_stats(d_um[sel])
-    if dev.from_mesh.any():
-        per_surface["cad_mesh"] = deviation_stats(d_um[dev.from_mesh])
+    if (dev.from_mesh & within).any():
+        per_surface["cad_mesh"] = deviation_stats(d_um[dev.from_mesh & within])
     from .. import __version__
 
     if part_dir is not None:
@@ -516,10 +519,14 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         "units": "lengths in the keys' units (mm, um), angles in deg or urad; deviations + = material outside the "
                  "nominal surface",
         "alignment": motion.as_dict(),
-        "deviation_um": deviation_stats(d_um),
+        "deviation_um": deviation_stats(d_um[within]),
+        "deviation_note": "over the points within the gate of a nominal surface (those beyond it are in "
+                          "beyond_gate)" if not within.all() else "over all points" + (
+                              " (none within the gate)" if beyond.any() else " (every one within the gate)"),
         "deviation_by_surface_um": per_surface,
         "beyond_gate": {
             "gate_mm": gate_mm, "points": int(beyond.sum()), "share": float(beyond.mean()) if len(beyond) else 0.0,
+            "deviation_um": deviation_stats(d_um[beyond]),
             "note": f"points farther than {gate_mm:g} mm from every nominal surface belong to no feature: no feature "
                     "is evaluated from them (a gross error of the part, or points that are not on it)"},
         "reference": {
@@ -545,7 +552,7 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
             + ", ".join(CHARACTERISTICS[key][2] for key in absorbed) + " not measured (use --align datum, or none)")
     report["feature_table"] = feature_table(report, part_doc, limits, not_measured=absorbed)
     report["feature_summary"] = summary(report["feature_table"])
-    figures.update(points=aligned, deviation_um=d_um)
+    figures.update(points=aligned, deviation_um=d_um, beyond_gate=beyond)
     if figure_worker is not None:
         figures["sent"] = figure_worker
     return Inspection(cloud, aligned, normals, dev, part_doc, report, figures)
@@ -625,9 +632,17 @@ def _profile_for_plot(angle, residual, limit: int = 2000, bins: int = 1440):
 MAP_POINTS = 15_000  # points drawn in the deviation map (all of them are in deviations.ply and .csv)
 
 
-def _deviation_figure_inputs(part: str, part_doc: dict, points: np.ndarray, d: np.ndarray) -> list[dict]:
+def _deviation_figure_inputs(part: str, part_doc: dict, points: np.ndarray, d: np.ndarray,
+                             beyond: np.ndarray | None = None) -> list[dict]:
     """The inputs of the deviation map and the histogram (``draw_figure``): they need the deviations only, so they
-    can be drawn while the features are evaluated. points : (n, 3) mm, part frame; d : (n,) um."""
+    can be drawn while the features are evaluated. points : (n, 3) mm, part frame; d : (n,) um. beyond : (n,) bool or
+    None, the points beyond the gate (on no feature): left out of both pictures (a flyer 500 mm off would make the
+    histogram one bar and the map a dot), and counted in the caption."""
+    outliers = 0 if beyond is None else int(beyond.sum())
+    if outliers and outliers < len(points):
+        points, d = points[~beyond], d[~beyond]
+    else:
+        outliers = 0
     rng = np.random.default_rng(0)
     show = np.sort(rng.choice(len(points), size=MAP_POINTS, replace=False)) if len(points) > MAP_POINTS \
         else slice(None)
@@ -635,9 +650,10 @@ def _deviation_figure_inputs(part: str, part_doc: dict, points: np.ndarray, d: n
     slots = [(f["id"], np.asarray(f["tool_centre_path"], float)[:, :2], f.get("compensation", ""))
              for f in part_doc.get("features", []) if f.get("type") == "slot"]
     counts, edges = np.histogram(d, bins=80)
-    return [{"kind": "deviation_map", "view": get_part(part).map_view, "points": points[show], "deviation_um": d[show], "limit": limit,
-             "total": len(points), "extent": np.ptp(points, axis=0), "slots": slots},
-            {"kind": "histogram", "counts": counts, "edges": edges}]
+    return [{"kind": "deviation_map", "view": get_part(part).map_view, "points": points[show], "deviation_um": d[show],
+             "limit": limit, "total": len(points), "extent": np.ptp(points, axis=0), "slots": slots,
+             "outliers": outliers},
+            {"kind": "histogram", "counts": counts, "edges": edges, "outliers": outliers}]
 
 
 def _feature_figure_inputs(inspection: Inspection) -> list[dict]:
@@ -719,9 +735,11 @@ def draw_figure(inputs: dict) -> tuple[str, bytes, str, dict]:
         ax.set_title("Deviation from the nominal part (part frame)")
         name = "deviation_map.png"
         shown, total = len(pts), inputs["total"]
-        caption = (f"Deviation colour map on the part ({shown:,} of {total:,} points shown; colour scale "
-                   f"+-{limit:g} um, the round number at or above the 99th percentile of |deviation|; all points "
-                   "with their deviations are in deviations.ply and deviations.csv).")
+        left_out = inputs.get("outliers", 0)
+        caption = (f"Deviation colour map on the part ({shown:,} of {total:,} points shown"
+                   + (f", the {left_out:,} beyond the gate (on no feature) left out" if left_out else "")
+                   + f"; colour scale +-{limit:g} um, the round number at or above the 99th percentile of |deviation|; "
+                   "all points with their deviations are in deviations.ply and deviations.csv).")
         data["deviation_map"] = {"file": name, "colour_limit_um": limit, "points_shown": int(shown),
                                  "data": "deviations.ply"}
     elif kind == "histogram":
@@ -733,7 +751,10 @@ def draw_figure(inputs: dict) -> tuple[str, bytes, str, dict]:
         ax.set_ylabel("points")
         ax.set_title("Histogram of deviations")
         fig.subplots_adjust(left=0.11, right=0.97, bottom=0.14, top=0.9)
-        name, caption = "histogram.png", "Histogram of the signed deviations (80 bins)."
+        left_out = inputs.get("outliers", 0)
+        name, caption = "histogram.png", "Histogram of the signed deviations (80 bins)" + (
+            f" of the points on the part's features; the {left_out:,} beyond the gate are left out (counted in the "
+            "summary)." if left_out else ".")
         data["histogram"] = {"file": name, "bin_edges_um": edges, "counts": counts}
     elif kind == "roundness":
         rings = inputs["rings"]
@@ -829,7 +850,7 @@ def _figure_inputs(inspection: Inspection, worker=None) -> list[dict]:
         inputs = []
     else:
         inputs = _deviation_figure_inputs(inspection.report["part"], inspection.part, fig_data["points"],
-                                          fig_data["deviation_um"])
+                                          fig_data["deviation_um"], fig_data.get("beyond_gate"))
     return inputs + _feature_figure_inputs(inspection)
 
 
@@ -956,10 +977,14 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
              f"<style>{style}</style></head><body>",
              f"<h1>{html.escape(title)}</h1>", _header_html(header)]
     counts = report.get("feature_summary") or {}
+    gate = report.get("beyond_gate") or {}
+    apart = "" if not gate.get("points") or gate["points"] == report["points"] else (
+        f" over the {d['points']:,} points on the part's surfaces; {gate['points']:,} beyond the {gate['gate_mm']:g} "
+        f"mm gate (on no feature, up to {_value(_largest(gate.get('deviation_um')), 'um')} um) counted apart")
     parts.append(f"<h2>Summary</h2><p>{report['points']:,} points; deviation RMS {_value(d['rms'], 'um')} um, "
-                 f"range {_value(d['min'], 'um')} to {_value(d['max'], 'um')} um (+ = material outside the nominal "
-                 f"surface). Characteristics: {counts.get('pass', 0)} in tolerance, {counts.get('fail', 0)} out of "
-                 f"tolerance, {counts.get('no tolerance', 0)} without a tolerance, "
+                 f"range {_value(d['min'], 'um')} to {_value(d['max'], 'um')} um{apart} (+ = material outside the "
+                 f"nominal surface). Characteristics: {counts.get('pass', 0)} in tolerance, {counts.get('fail', 0)} out "
+                 f"of tolerance, {counts.get('no tolerance', 0)} without a tolerance, "
                  f"{counts.get('not measured', 0)} not measured.</p>")
     if isinstance(report.get("identification"), dict):
         parts.append(_verdict_html(report["identification"]))
@@ -1112,6 +1137,13 @@ def _identification_html(identification: dict) -> str:
     out.append(_table({k: v for k, v in identification.items()
                        if isinstance(v, (int, float, str)) and not isinstance(v, bool)}))
     return "\n".join(out)
+
+
+def _largest(stats: dict | None) -> float | None:
+    """The largest |deviation| of ``deviation_stats``' figures, or None."""
+    if not stats or stats.get("min") is None:
+        return None
+    return max(abs(stats["min"]), abs(stats["max"]))
 
 
 def _title(name: str) -> str:
