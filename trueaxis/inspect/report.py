@@ -983,8 +983,8 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
         f"mm gate (on no feature, up to {_value(_largest(gate.get('deviation_um')), 'um')} um) counted apart")
     parts.append(f"<h2>Summary</h2><p>{report['points']:,} points; deviation RMS {_value(d['rms'], 'um')} um, "
                  f"range {_value(d['min'], 'um')} to {_value(d['max'], 'um')} um{apart} (+ = material outside the "
-                 f"nominal surface). Characteristics: {counts.get('pass', 0)} in tolerance, {counts.get('fail', 0)} out "
-                 f"of tolerance, {counts.get('no tolerance', 0)} without a tolerance, "
+                 f"nominal surface). Characteristics: {counts.get('pass', 0)} in tolerance, {counts.get('fail', 0)} "
+                 f"out of tolerance, {counts.get('no tolerance', 0)} without a tolerance, "
                  f"{counts.get('not measured', 0)} not measured.</p>")
     if isinstance(report.get("identification"), dict):
         parts.append(_verdict_html(report["identification"]))
