@@ -210,6 +210,27 @@ def test_cone_fit_recovers_a_slight_taper_with_a_far_apex():
     assert fit.rms < 1e-10
 
 
+
+def test_points_on_one_ring_do_not_determine_a_cone_and_its_error_amplification_says_so():
+    """Every cone through a circle fits points on that circle: the fit's Jacobian is rank-deficient and its standard
+    errors (from residuals near zero) say nothing. The error amplification (the largest move of the cone per unit
+    RMS error of the points, angles as displacements at the cloud's size) tells the cases apart, and is scale-free."""
+    rng = np.random.default_rng(11)
+    apex, axis, half_angle = nas979_cone()
+    slant = np.linalg.norm(apex)
+    full = cone_points(apex, axis, half_angle, (slant - 20.0, slant), 3000, rng)
+    fit = fit_cone(full, initial_axis=axis)
+    assert 3.0 < fit.error_amplification < 30.0  # the whole height and turn: about 10
+    # ten times the part, the same shape: the same number (it measures geometry, not millimetres)
+    assert fit_cone(10.0 * full, initial_axis=axis).error_amplification == pytest.approx(fit.error_amplification,
+                                                                                         rel=1e-6)
+    band = cone_points(apex, axis, half_angle, (slant - 11.0, slant - 9.0), 1000, rng)  # a 2 mm band
+    assert 30.0 < fit_cone(band, initial_axis=axis).error_amplification < 200.0
+    ring = cone_points(apex, axis, half_angle, (slant - 10.0, slant - 10.0), 12, rng)
+    for points in (ring, ring + rng.normal(0.0, 0.001, ring.shape), ring + rng.normal(0.0, 0.01, ring.shape)):
+        # exactly on one ring, or with 1 um or 10 um of noise: above the 1000 at which inspect stops evaluating it
+        assert fit_cone(points, initial_axis=axis).error_amplification > 2000.0
+
 def cone_second_formulation(points, apex0, axis0, half_angle0):
     """Second formulation of the cone fit: the same objective (sum of squared orthogonal distances) written from the
     apex with the axis in spherical angles, solved by scipy's trust-region-reflective method with a finite-difference

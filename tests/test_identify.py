@@ -233,6 +233,29 @@ def _report(folder):
     return json.loads((folder / "report.json").read_text())["identification"]
 
 
+def _html_sections(folder):
+    """report.html cut in two: "top" (up to the first section after the summary, where the verdict box stands) and
+    "identification" (its section)."""
+    page = (folder / "report.html").read_text()
+    start = page.index("<h2>Identification")
+    return {"top": page[:page.index("<h2>", page.index("<h2>Summary") + 1)],
+            "identification": page[start:page.index("<h2>", start + 1)]}
+
+
+def _check_lists(rep, section):
+    """The page's lists: parameters estimated but not significant are listed as such, not as "not identifiable",
+    which holds only what the part cannot identify (not the held gauge values)."""
+    import re
+
+    unseen = re.search(r"Not identifiable from this part: ([^<]*)\.</p>", section).group(1).split(", ")
+    assert rep["not_significant"], "the case has parameters estimated but not significant"
+    for entry in rep["not_significant"]:
+        assert entry["name"] not in unseen
+        assert entry["name"] in re.search(r"Estimated, not significant[^<]*", section).group(0)
+    detail = {d["name"]: d["reason"] for d in rep["not_identifiable_detail"]}
+    assert unseen and all(not detail[name].startswith("held") for name in unseen)
+
+
 def _written_values(path):
     m = load_machine(path)
     return dict(zip(m.parameter_names(), m.parameter_values()))
@@ -300,6 +323,9 @@ def test_changed_machine_is_identified_within_three_std_and_written(shop, tmp_pa
     assert rep["comments_kept"]
     assert comments and all(c in text for c in comments)
     assert rep["verdict"]["residual_after_rms_um"] < 1.5 * NOISE_UM < rep["verdict"]["deviation_rms_um"]
+    page = _html_sections(tmp_path / "rep")
+    assert "Identification ACCEPTED" in page["top"] and "<h3>Identified parameters</h3>" in page["identification"]
+    _check_lists(rep, page["identification"])
     truth, written = _written_values(shop / "true.toml"), _written_values(out)
     reported = {p["name"]: p for p in rep["parameters"]}
     assert {"AOC", "YOC"} <= set(reported)
@@ -308,6 +334,66 @@ def test_changed_machine_is_identified_within_three_std_and_written(shop, tmp_pa
         assert abs(written[name] - truth[name]) <= 3 * std, (name, written[name], truth[name], std)
         assert "ACCEPTED" in printed and name in printed
 
+
+
+def test_write_into_the_report_folder_is_refused_before_any_work(shop, tmp_path, capsys):
+    """`-o DIR` is replaced whole, so `--write DIR/x.toml` cannot stand: the identified twin was written into DIR,
+    then the report refused DIR for holding a file trueaxis did not write there (exit 2, "nothing written", with
+    x.toml written and no report). Refused at the output gate, before any work: exit 2, nothing written, an earlier
+    report in DIR left as it was."""
+    rep, out = tmp_path / "rep", tmp_path / "rep" / "x.toml"
+    args = ("inspect", shop / "changed.ply", "--part", "nas979", "--identify", "--machine", TWIN_FILE, "--program",
+            shop / "cone.ngc", "-o", rep)
+    for nested in (out, tmp_path / "rep" / "sub" / ".." / "x.toml"):
+        capsys.readouterr()
+        assert _cli(*args, "--write", nested) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "lies inside -o" in err[0] and "replaced whole" in err[0]
+        assert not rep.exists()
+    assert _cli(*args) == 0  # a report there: a second refusal leaves it as it was
+    before = sorted(p.name for p in rep.iterdir())
+    assert _cli(*args, "--write", out) == 2
+    assert sorted(p.name for p in rep.iterdir()) == before and not out.exists()
+    assert _cli(*args, "--write", tmp_path / "x.toml") == 0 and (tmp_path / "x.toml").exists()  # beside it: fine
+
+
+def test_cloud_normals_pointing_into_the_part_are_flipped_and_counted(shop, tmp_path, capsys):
+    """CMM exports give normals either way round. All normals flipped: "only 0 of 3000 points lie on a surface the
+    program cut"; every third flipped: a third of the points silently dropped. The normals are turned to the part's
+    outward side (the nearest analytic surface's), the count is said, and the fit is the one of the outward cloud."""
+    from trueaxis.inspect.cloud import read_cloud, write_cloud_ply
+
+    cloud = read_cloud(shop / "changed.ply")
+    args = ("--part", "nas979", "--identify", "--machine", TWIN_FILE, "--program", shop / "cone.ngc")
+    assert _cli("inspect", shop / "changed.ply", *args, "-o", tmp_path / "rep") == 0
+    reference = _report(tmp_path / "rep")
+    for every in (1, 3):
+        flip = np.arange(len(cloud.points)) % every == 0
+        write_cloud_ply(tmp_path / f"flip{every}.ply", cloud.points, np.where(flip[:, None], -1, 1) * cloud.normals)
+        capsys.readouterr()
+        assert _cli("inspect", tmp_path / f"flip{every}.ply", *args, "-o", tmp_path / f"rep{every}") == 0
+        printed = capsys.readouterr().out
+        rep = _report(tmp_path / f"rep{every}")
+        assert rep["normals_flipped"] == int(flip.sum()) and f"{int(flip.sum())} of {len(flip)} pointed into" in printed
+        assert rep["points_used"] == reference["points_used"] and rep["verdict"]["status"] == "accepted"
+        for mine, theirs in zip(rep["parameters"], reference["parameters"]):
+            assert mine["name"] == theirs["name"]
+            assert mine.get("value_um", mine.get("value_urad")) == pytest.approx(
+                theirs.get("value_um", theirs.get("value_urad")), abs=1e-3)
+    assert reference["normals_flipped"] == 0
+
+
+def test_a_program_with_axes_the_twin_lacks_is_refused_with_exit_3(shop, tmp_path, capsys):
+    """The cone's B-C program against a three-axis twin (xh714): a program the product refuses is exit 3 (README's
+    exit table, as the diagnosis gives); it was exit 2, the usage status. One line, nothing written."""
+    from trueaxis.cli import EXIT_REFUSED
+
+    capsys.readouterr()
+    code = _cli("inspect", shop / "changed.ply", "--part", "nas979", "--identify", "--machine", MACHINES / "xh714.toml",
+                "--program", shop / "cone.ngc", "--write", tmp_path / "x.toml", "-o", tmp_path / "rep")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == EXIT_REFUSED and len(err) == 1 and "moves axes B C" in err[0]
+    assert not (tmp_path / "rep").exists() and not (tmp_path / "x.toml").exists()
 
 def test_aliasing_of_a_poorly_seen_parameter_is_inside_the_std(nmv):
     # XOB (20 um) alone: the cone barely sees it, and what it does to the part the identified parameters absorb.
@@ -433,7 +519,35 @@ def test_a_fit_the_held_out_points_contradict_is_refused_and_nothing_written(sho
     rep = _report(tmp_path / "rep")
     assert rep["verdict"]["status"] == "refused" and rep["written"] is None
     assert any("held-out" in r for r in rep["verdict"]["reasons"])
+    # the page says it too, at the top, and never calls the refused changes identified
+    page = _html_sections(tmp_path / "rep")
+    assert "Identification REFUSED" in page["top"] and "held-out points do not confirm" in page["top"]
+    assert "Identified parameters" not in page["identification"]
+    assert "Changes the refused fit proposed (not applied)" in page["identification"]
+    _check_lists(rep, page["identification"])
 
+
+
+def test_a_fit_the_held_out_check_cannot_try_is_never_accepted(shop, tmp_path, capsys):
+    """Twelve points on one ring of the changed machine's cone: the fit is significant and explains them (27 um ->
+    0.6 um), but none of them lies in a held-out block of the tool path, so the held-out check never ran; the fit was
+    ACCEPTED with "heldout": {} and the twin written. Without its check it is refused: exit 3, nothing written, and
+    the report says why."""
+    from trueaxis.cli import EXIT_REFUSED
+
+    assert _cli("simulate", shop / "cone.ngc", "--machine", shop / "true.toml", "--part", "nas979", "-o",
+                tmp_path / "ring.ply", "--points", 12, "--noise-um", NOISE_UM, "--seed", 5) == 0
+    capsys.readouterr()
+    out = tmp_path / "new.toml"
+    code = _cli("inspect", tmp_path / "ring.ply", "--part", "nas979", "--identify", "--machine", TWIN_FILE,
+                "--program", shop / "cone.ngc", "--write", out, "-o", tmp_path / "rep")
+    captured = capsys.readouterr()
+    assert code == EXIT_REFUSED and not out.exists()
+    assert "REFUSED" in captured.out and "held-out check could not run" in captured.err
+    verdict = _report(tmp_path / "rep")["verdict"]
+    assert verdict["status"] == "refused" and verdict["heldout"]["confirmed"] is False
+    assert verdict["heldout"]["points"] < 10 and "held-out check could not run" in verdict["reasons"][0]
+    assert verdict["residual_after_rms_um"] < verdict["residual_before_rms_um"]  # the fit itself looked good
 
 @pytest.mark.slow
 @pytest.mark.parametrize("part, fixture, changes, compensate, program_args", [

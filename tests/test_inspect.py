@@ -263,7 +263,52 @@ def test_a_bestfit_on_the_cone_alone_says_it_takes_a_size_error_away():
     moved = float(re.search(r"moved the part ([-+0-9.]+) um", warnings[0]).group(1))
     assert abs(moved) == pytest.approx(5.0 / math.sin(ALPHA), rel=0.01)
     both = inspect_cloud(_cloud(np.vstack([p + 0.005 * n, block_faces(300)])), "nas979", align="bestfit").report
-    assert not [w for w in inspection_warnings(both) if "best fit" in w]
+    assert not [w for w in inspection_warnings(both) if "best fit saw only the cone" in w]
+
+
+def test_a_bestfit_never_passes_the_characteristics_it_takes_away(tmp_path):
+    """A cone 20 um off its axis with a size error of +5 um: with no alignment the diameter and the axis position
+    fail their tolerances; a best fit moves the part onto the cone and "passed" both (-0.001 um, 0.0 um). Under
+    --align bestfit what the part says a best fit absorbs (diameter, axis position and tilt) is "not measured", with
+    the block's faces probed too; the half angle, form and roundness are measured either way."""
+    p, n = deformed_cone((0.020, 0.0), per_ring=120)
+    (tmp_path / "tol.toml").write_text("[cone_angle]\nhalf_angle_urad = [-50.0, 50.0]\n[diameter_ref]\n"
+                                       "diameter_um = [-5.0, 5.0]\n[axis_direction]\ntilt_urad = 100.0\n[cone]\n"
+                                       "form_um = 30.0\naxis_offset_um = 10.0\n[default]\nroundness_um = 10.0\n")
+    cone = p + 0.005 * n
+    none = _rows(inspect_cloud(_cloud(cone), "nas979", tolerances=tmp_path / "tol.toml").report)
+    assert none[("diameter_ref", "diameter at h = 10 mm")]["result"] == "fail"
+    offset = none[("cone", "axis position at the base plane (distance from nominal)")]
+    assert offset["result"] == "fail" and offset["actual"] == pytest.approx(20.0, abs=0.01)
+    for cloud in (cone, np.vstack([cone, block_faces(300)])):
+        report = inspect_cloud(_cloud(cloud), "nas979", align="bestfit", tolerances=tmp_path / "tol.toml").report
+        rows = {row["key"]: row for row in report["feature_table"] if row["key"] != "roundness_um"}
+        for key in ("diameter_um", "axis_offset_um", "tilt_urad"):
+            assert rows[key]["result"] == "not measured" and rows[key]["actual"] is None
+            assert "not measured with --align bestfit" in rows[key]["note"]
+        assert rows["half_angle_urad"]["result"] == rows["form_um"]["result"] == "pass"
+        assert report["feature_summary"]["not measured"] == 3
+        assert any("takes away what a rigid move changes" in w for w in report["warnings"])
+
+
+def test_a_bestfit_on_the_slot_block_does_not_measure_slot_positions_depths_and_contours():
+    """The whole block 30 um off in Y and 20 um deep: with no alignment every slot's position is 30 um off and its
+    depth 20 um deep; a best fit moved the block back and changed them with no word. Under --align bestfit they are
+    "not measured"; the widths, straightness and parallelism (which no rigid move changes) are the same."""
+    from trueaxis.workpiece.slot_block import slot_pattern
+
+    p, _ = slot_pattern(SLOTS, 6000)
+    moved = p + [0.0, 0.030, -0.020]
+    none = inspect_cloud(_cloud(moved), "slots").report
+    assert all(s["position_um"]["max_abs"] == pytest.approx(30.0, abs=0.01) for s in none["slots"])
+    rows = inspect_cloud(_cloud(moved), "slots", align="bestfit").report["feature_table"]
+    for row in rows:
+        if row["key"] in ("position_um", "depth_um", "contour_um"):
+            assert row["result"] == "not measured" and "--align bestfit" in row["note"]
+        else:
+            twin = next(r for r in none["feature_table"]
+                        if (r["feature"], r["characteristic"]) == (row["feature"], row["characteristic"]))
+            assert row["result"] == "no tolerance" and row["actual"] == pytest.approx(twin["actual"], abs=1e-6)
 
 
 # --------------------------------------------------------------------------------------------------- slots ----
@@ -568,8 +613,8 @@ def test_report_json_carries_the_header_and_the_plotted_figures(tmp_path):
         assert np.ptp(ring["residual_um"]) == pytest.approx(section["least_squares"], abs=2e-4)
     assert figures["identified"]["names"] == ["XOC", "AOC"] and figures["identified"]["std"] == [0.114, 1.43]
     page = (out / "report.html").read_text()
-    assert "<td>XOC</td><td>-21.85</td><td>0.11</td><td>um</td>" in page
-    assert "<td>AOC</td><td>-38.8</td><td>1.4</td><td>urad</td>" in page
+    assert "<td>XOC</td><td>-21.85</td><td>&ndash;</td><td>0.11</td><td>um</td>" in page  # no change given
+    assert "<td>AOC</td><td>-38.8</td><td>&ndash;</td><td>1.4</td><td>urad</td>" in page
     assert "identified.png" in rep["files"] and "mean -0.0" not in page
     assert "components" not in figures  # no component-error tables identified
 
@@ -750,6 +795,34 @@ def test_a_section_probed_over_half_its_circle_is_not_measured_and_the_cone_says
     assert any("3 characteristics not measured" in w for w in warnings)
 
 
+
+def test_a_cone_probed_on_one_ring_is_not_measured_and_never_passes(tmp_path):
+    """Twelve points on one ring (as `simulate --points 12` probes it) fit a whole family of cones: the fit made up a
+    75 deg half angle, a diameter of -75 mm and an axis that "passed" its tolerances, with a standard error of 6e-7
+    urad. The cone's characteristics are "not measured", the report says why; two rings determine it again."""
+    p, n = deformed_cone((0.004, -0.003), 0.0, 0.0, heights=[10.0], per_ring=12)
+    p = p + np.random.default_rng(5).normal(0.0, 0.001, len(p))[:, None] * n
+    write_cloud_ply(tmp_path / "ring.ply", p, n)
+    (tmp_path / "tol.toml").write_text("[default]\nroundness_um = 10.0\n[cone_angle]\nhalf_angle_urad = [-50.0, 50.0]\n"
+                                       "[diameter_ref]\ndiameter_um = [-20.0, 20.0]\n[axis_direction]\n"
+                                       "tilt_urad = 100.0\n[cone]\nform_um = 30.0\naxis_offset_um = 25.0\n")
+    r = run("inspect", str(tmp_path / "ring.ply"), "--part", "nas979", "--tolerances", str(tmp_path / "tol.toml"),
+            "-o", str(tmp_path / "rep"))
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert report["cone"] is None and report["cone_error_amplification"] > 1000
+    assert "do not determine it" in report["cone_note"] and "span 0.0" in report["cone_note"]
+    assert {row["result"] for row in report["feature_table"]} == {"not measured"}
+    cone_rows = [row for row in report["feature_table"] if row["key"] != "roundness_um"]
+    assert len(cone_rows) == 5 and all("do not determine it" in row["note"] for row in cone_rows)
+    assert "8 NOT MEASURED" in r.stdout and "half angle error" not in r.stdout
+    assert "do not determine it" in r.stderr
+    # the same ring and one more, 16 mm apart: the cone is determined, its eccentricity measured
+    p2, n2 = deformed_cone((0.004, -0.003), 0.0, 0.0, heights=[2.0, 18.0], per_ring=12)
+    two = inspect_cloud(_cloud(p2, n2), "nas979", tolerances=tmp_path / "tol.toml").report
+    assert two["cone"]["error_amplification"] < 20
+    assert math.hypot(*two["cone"]["axis_offset_um"]) == pytest.approx(5.0, abs=0.01)
+
 def test_a_slot_wall_beyond_the_gate_is_not_measured_nor_its_worst_of_characteristics():
     """A wall moved 0.6 mm (beyond the 0.5 mm gate) leaves its segment's width unmeasured: the position and
     parallelism ("largest |offset|", "worst segment") are then unknown too, not the worst of the others; the points
@@ -796,3 +869,32 @@ def test_a_flyer_does_not_refuse_the_cloud_and_is_counted_beyond_the_gate():
     report = inspect_cloud(_cloud(np.vstack([p, [[0.0, 0.0, 40.0]]])), "nas979").report
     assert report["beyond_gate"]["points"] == 1
     assert report["cone"]["half_angle_error_urad"] == pytest.approx(0.0, abs=1e-3)
+
+
+def test_flyers_are_counted_apart_from_the_headline_figures(tmp_path):
+    """0.5 % of the points 500 mm off (flyers the product itself says belong to no feature) made the headline
+    "deviation rms 33908.67 um" and a one-bar histogram. The headline, the by-surface figures and the pictures are
+    over the points on the part (within the gate): the same as the cloud without the flyers; those are counted and
+    described apart."""
+    p, n = deformed_cone((0.010, 0.0), 0.002, per_ring=90)
+    clean = inspect_cloud(_cloud(p), "nas979").report
+    flyers = np.arange(len(p)) % 200 == 7  # 0.5 %
+    moved = np.where(flyers[:, None], p + 500.0 * n, p)
+    write_cloud_ply(tmp_path / "fly.ply", moved)
+    r = run("inspect", str(tmp_path / "fly.ply"), "--part", "nas979", "-o", str(tmp_path / "rep"))
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "rep" / "report.json").read_text())
+    for key in ("rms", "min", "max", "p95"):
+        assert report["deviation_um"][key] == pytest.approx(clean["deviation_um"][key], abs=1e-6)
+    assert report["deviation_um"]["points"] == len(p) - flyers.sum()
+    assert report["deviation_by_surface_um"]["cone"]["rms"] == pytest.approx(clean["deviation_by_surface_um"]["cone"]
+                                                                                ["rms"], abs=1e-6)
+    apart = report["beyond_gate"]
+    assert apart["points"] == flyers.sum() and apart["deviation_um"]["min"] > 100_000  # far from every surface
+    histogram = report["figures"]["histogram"]
+    assert sum(histogram["counts"]) == len(p) - flyers.sum() and histogram["bin_edges_um"][-1] < 100
+    assert f"{clean['deviation_um']['rms']:.2f} um" in r.stdout
+    assert f"({flyers.sum()} beyond the gate apart)" in r.stdout
+    page = (tmp_path / "rep" / "report.html").read_text()
+    assert f"{flyers.sum()} beyond the 0.5 mm gate" in page
+

@@ -431,6 +431,8 @@ def cmd_inspect(args) -> int:
     d = r["deviation_um"]
     line = (f"{out_dir}: {r['points']} points vs {args.part} ({r['alignment']['method']} alignment): deviation rms "
             f"{d['rms']:.2f} um, range {d['min']:+.2f}..{d['max']:+.2f} um")
+    if d["points"] < r["points"]:  # the points beyond the gate (on no feature) are counted apart, not in the figures
+        line += f" over {d['points']} points on the part ({r['points'] - d['points']} beyond the gate apart)"
     if r.get("cone"):
         line += f"; half angle error {r['cone']['half_angle_error_urad']:+.1f} urad"
     counts = r["feature_summary"]
@@ -664,12 +666,13 @@ _NAMED_FILES = ("input", "program", "cloud", "--cloud", "--program", "--cad")
 
 def _refusal_errors() -> tuple:
     """The error classes of inputs the product refuses whose messages do not carry a line (clouds, tolerances, the
-    inspection, effects files, a program the diagnosis cannot use): exit status 3 like the located ones. Taken
-    lazily, as in :func:`_located_errors`."""
+    inspection, effects files, a program the diagnosis or the identification cannot use): exit status 3 like the
+    located ones. Taken lazily, as in :func:`_located_errors`."""
     found = []
     for module, name in (("trueaxis.inspect.cloud", "CloudError"), ("trueaxis.inspect.tolerances", "ToleranceError"),
                          ("trueaxis.inspect.deviation", "InspectionError"), ("trueaxis.sim.effects", "EffectsFileError"),
-                         ("trueaxis.diagnose.state", "ProgramError")):
+                         ("trueaxis.diagnose.state", "ProgramError"),
+                         ("trueaxis.identify", "ProgramError")):
         if module in sys.modules:
             found.append(getattr(sys.modules[module], name))
     return tuple(found)

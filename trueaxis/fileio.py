@@ -127,6 +127,14 @@ def check_outputs(inputs: Iterable[tuple[str, str | os.PathLike | None]],
         for name_b, b, _ in outs[i + 1:]:
             if _same(a, b):
                 raise OutputPathError(f"{name_a} and {name_b} name the same file {a}; name two outputs")
+    # a folder replaced whole holds only what its writer publishes there: another output inside it would be lost
+    # with the old folder, or (written first) refuse the folder's replacement after all the work
+    for name_a, a, folder in outs:
+        for name_b, b, _ in outs:
+            if folder == "replaced" and b is not a and \
+                    Path(os.path.realpath(b)).is_relative_to(Path(os.path.realpath(a))):
+                raise OutputPathError(f"{name_b} {b} lies inside {name_a} {a}, a folder replaced whole; name a "
+                                      f"{name_b} outside it")
 
 
 @contextmanager

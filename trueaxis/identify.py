@@ -101,6 +101,12 @@ MAX_CACHE_BYTES = 384 * 2**20
 CHUNK_POINTS = 1 << 16
 
 
+class ProgramError(ValueError):
+    """A program the identification refuses (the command's exit 3, as the diagnosis refuses it): written for another
+    part, moving axes the twin does not have, a malformed setup comment, no feed moves, or one that did not cut the
+    measured part."""
+
+
 # ------------------------------------------------------------------------------------------------- the tool path ----
 @dataclass
 class ToolPath:
@@ -136,7 +142,7 @@ def nominal_tool_path(program, machine: Machine, *, dt: float = 1e-3, spacing_mm
     traj = interpolate(prog, machine, dt)
     cut = np.nonzero(traj.motion != 0)[0]
     if cut.size == 0:
-        raise ValueError(f"{prog.source}: the program has no feed moves: nothing cut the part")
+        raise ProgramError(f"{prog.source}: the program has no feed moves: nothing cut the part")
     q = traj.q[cut]
     tip, _ = forward_nominal(machine, q)
     rot = [c for c, a in enumerate(machine.axis_names) if machine.axes[a].is_rotary]
@@ -505,6 +511,9 @@ def _fit_identifiable(system: _System, chosen, typical, max_relative_std, na, no
 
 
 ALIGNMENT_TYPICAL = 1000.0  # um, urad: a best fit moves the part freely
+#: Fewest held-out points for the held-out check of a fit (as for the points used at all): with fewer the check
+#: cannot run, and an identification it cannot check is never accepted.
+MIN_HELDOUT_POINTS = 10
 
 
 def typical_magnitude(name: str, machine: Machine) -> float:
@@ -580,6 +589,7 @@ class Identification:
     reasons: list = field(default_factory=list)
     heldout: dict = field(default_factory=dict)
     considered: np.ndarray | None = None
+    normals_flipped: int | None = None  # cloud normals turned outward (``outward_normals``); None: the part's normals
 
     @property
     def accepted(self) -> bool:
@@ -636,6 +646,10 @@ class Identification:
             "std_method": STD_METHOD if self.options.get("alias_prior", True) else "noise only (s^2 (A^T W A)^-1)",
             "points": self.n_points,
             "points_used": self.n_used,
+            "normals": "the part's outward normals (the cloud has none)" if self.normals_flipped is None else (
+                f"the cloud's, {self.normals_flipped} of {self.n_points} flipped to the part's outward side (they "
+                "pointed into the material)" if self.normals_flipped else "the cloud's (all outward)"),
+            "normals_flipped": self.normals_flipped,
             "tool_instances": self.n_instances,
             "alignment_mode": self.options.get("alignment", "none"),
             "parameters": params,
@@ -666,9 +680,12 @@ class Identification:
         out = [f"identification {head}: " + ("; ".join(self.reasons) if self.reasons else "the fit explains the part")]
         h = self.heldout
         ho = (f"; held-out points {h['before_rms_um']:.2f} -> {h['after_rms_um']:.2f} um (fit predicted "
-              f"{h['fit_before_rms_um']:.2f} -> {h['fit_after_rms_um']:.2f})" if h.get("points") else "")
+              f"{h['fit_before_rms_um']:.2f} -> {h['fit_after_rms_um']:.2f})" if "before_rms_um" in h else "")
         out.append(f"  residual RMS {self.predicted_rms_um:.2f} um with the twin as is -> {self.residual_rms_um:.2f} "
                    f"um after; deviation RMS {self.deviation_rms_um:.2f} um{ho}")
+        if self.normals_flipped:
+            out.append(f"  cloud normals: {self.normals_flipped} of {self.n_points} pointed into the part and were "
+                       "flipped to its outward side")
         for i in np.nonzero(self.identified)[0]:
             u = unit_of(self.names[i])
             out.append(f"  {self.names[i]:10s} change {self.value[i] - self.prior[i]:+9.2f} +- {self.std[i]:.2f} {u}"
@@ -771,7 +788,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     contacts = find_contacts(x0, n, twin_path, machine.tool.radius, machine.tool.flute_length, max_gap_mm=max_gap_mm)
     use = contacts.found & (omega0 > 0)
     if use.sum() < 10:
-        raise ValueError(f"only {int(use.sum())} of {x.shape[0]} points lie on a surface the program cut "
+        raise ProgramError(f"only {int(use.sum())} of {x.shape[0]} points lie on a surface the program cut "
                          f"(within {max_gap_mm} mm): is it the program that made this part, with this placement?")
     idx = np.nonzero(use)[0]
     uniq, inv = np.unique(contacts.sample[idx], return_inverse=True)
@@ -851,7 +868,14 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     out_pt = (block[inv] % holdout_every) == holdout_every // 2
     heldout = {}
     params_chosen = chosen[chosen >= na]
-    if params_chosen.size and out_pt.any() and (~out_pt).any():
+    if params_chosen.size and (out_pt.sum() < MIN_HELDOUT_POINTS or (~out_pt).sum() <= chosen.size):
+        # no check, no acceptance: a fit that cannot be tried on points it did not see is not confirmed
+        heldout = {"points": int(out_pt.sum()), "confirmed": False,
+                   "not_run": f"the held-out check could not run: {int(out_pt.sum())} of the {idx.size} points used "
+                              f"lie in every {holdout_every}th of {holdout_blocks} blocks of the tool path (at least "
+                              f"{MIN_HELDOUT_POINTS} needed, and more than the {chosen.size} fitted columns left to "
+                              "fit): the changes are not confirmed; probe the part over more of its tool path"}
+    elif params_chosen.size:
         sys_fit = _assemble(jac, inv, w, b, omega * ~out_pt, g)
         try:
             theta_fit = _least_squares(sys_fit, _independent(sys_fit, chosen))[0]
@@ -984,7 +1008,11 @@ def _verdict(n_changed: int, dev_rms: float, before: float, after: float, heldou
         reasons.append(f"residual {after:.2f} um is not below the deviation {dev_rms:.2f} um")
     if not after < before:
         reasons.append(f"residual {after:.2f} um is not below the twin's own {before:.2f} um")
-    if heldout and not heldout.get("confirmed"):
+    if not heldout:
+        reasons.append("no held-out check: the changes are not confirmed on points the fit did not see")
+    elif "not_run" in heldout:
+        reasons.append(heldout["not_run"])
+    elif not heldout.get("confirmed"):
         reasons.append(f"held-out points do not confirm the improvement ({heldout['before_rms_um']:.2f} -> "
                        f"{heldout['after_rms_um']:.2f} um where the fit predicted {heldout['fit_before_rms_um']:.2f} "
                        f"-> {heldout['fit_after_rms_um']:.2f} um)")
@@ -1065,6 +1093,23 @@ def part_normals(points, part: dict) -> np.ndarray:
     return math.cos(alpha) * radial + math.sin(alpha) * a
 
 
+def outward_normals(points, normals, part: dict) -> tuple[np.ndarray, int]:
+    """A cloud's normals turned to the outward side of the part: each normal pointing into the material (against the
+    outward normal of its nearest analytic surface of the part JSON) is flipped. CMM software and scanners export
+    normals either way round (towards the probe, or into the part), and the model's contact search, which looks for
+    the tool along the normal, finds nothing along an inward one.
+
+    points, normals : (N, 3) part frame. part : the part JSON dict. Returns (outward normals (N, 3), how many were
+    flipped).
+    """
+    from .inspect.deviation import analytic_deviation, analytic_surfaces
+
+    normals = np.asarray(normals, dtype=np.float64)
+    cad = analytic_deviation(points, analytic_surfaces(part)).normal
+    inward = np.einsum("ij,ij->i", normals, cad) < 0
+    return np.where(inward[:, None], -normals, normals), int(inward.sum())
+
+
 # ---------------------------------------------------------------------------------------------------- the CLI ----
 def machine_for_program(machine: Machine, program_text: str, part: str | None = None) -> Machine:
     """The machine with the part placed where the program's setup comment says (``origin_mm``), as the virtual shop
@@ -1073,11 +1118,11 @@ def machine_for_program(machine: Machine, program_text: str, part: str | None = 
 
     setup = read_setup(program_text)
     if part is not None and setup.get("part") and setup["part"] != part:
-        raise ValueError(f"the program is for part {setup['part']!r}, not {part!r}")
+        raise ProgramError(f"the program is for part {setup['part']!r}, not {part!r}")
     origin = setup.get("origin_mm")
     if origin is not None:
         if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-            raise ValueError("the program's setup comment origin_mm must be three numbers")
+            raise ProgramError("the program's setup comment origin_mm must be three numbers")
         machine = dataclasses.replace(machine, workpiece_origin=origin.astype(float))
     return machine
 
@@ -1130,9 +1175,19 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
         raise ValueError(f"{program_path}: no such program file")
     text = program_path.read_text(encoding="utf-8", errors="replace")
     placed = machine_for_program(original, text, part.get("part"))
-    normals = cloud.normals if cloud.normals is not None else part_normals(cloud.points, part)
-    result = identify(cloud.points, normals, deviation_um, parse_program(text, str(program_path)), placed,
+    flipped = None
+    if cloud.normals is not None:
+        normals, flipped = outward_normals(cloud.points, cloud.normals, part)
+    else:
+        normals = part_normals(cloud.points, part)
+    parsed = parse_program(text, str(program_path))
+    unused = [a for a in parsed.axes_present if a not in placed.axis_names]
+    if unused:  # a program posted for another machine: refused before any work, as the diagnosis refuses it
+        raise ProgramError(f"{parsed.source}: the program moves axes {' '.join(unused)} that {placed.name} does not "
+                           "have: is it the program for this machine?")
+    result = identify(cloud.points, normals, deviation_um, parsed, placed,
                       parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std)
+    result = dataclasses.replace(result, normals_flipped=flipped)
     report = result.as_report()
     report["machine_file"] = str(machine)
     report["program"] = str(program_path)

@@ -12,6 +12,7 @@ plane normals and line directions are unit vectors, oriented so that their large
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +22,7 @@ from .kernels import cone_normal_equations
 __all__ = [
     "CircleFit", "ZoneCircle", "ConeFit", "PlaneFit", "LineFit",
     "fit_circle_least_squares", "minimum_zone_circle", "roundness",
-    "fit_cone", "section_ring", "fit_plane", "fit_line", "straightness", "parallelism",
+    "fit_cone", "cone_error_amplification", "section_ring", "fit_plane", "fit_line", "straightness", "parallelism",
     "SphereFit", "ZoneSphere", "fit_sphere", "minimum_zone_sphere", "ZonePlane", "minimum_zone_plane",
     "CylinderFit", "ZoneCylinder", "fit_cylinder", "minimum_zone_cylinder", "Circle3DFit", "fit_circle_3d",
 ]
@@ -293,6 +294,10 @@ class ConeFit:
     half_angle_std_rad : float, standard error of the half angle (from the Jacobian and the residual variance)
     axis_std_rad : float, standard error of the axis direction (root sum of the two tilt variances)
     axis_point_std_mm : float, standard error of the axis position in the reference plane (root sum of two variances)
+    error_amplification : float, how far the points determine the cone (:func:`cone_error_amplification`): the
+        largest move of the cone's six parameters, as displacements at the cloud's size, per unit RMS change of the
+        points' distances; inf when the points do not determine it at all (one ring: every cone through that circle
+        fits it)
     """
 
     apex: np.ndarray
@@ -305,6 +310,32 @@ class ConeFit:
     half_angle_std_rad: float
     axis_std_rad: float
     axis_point_std_mm: float
+    error_amplification: float = 1.0
+
+
+def cone_error_amplification(normal, points_count: int, size_mm: float) -> float:
+    """How far a set of points determines a cone: 1 / (the least singular value of the fit's Jacobian J / sqrt(n)),
+    with the angular parameters (axis tilts, half angle) as the displacements they make at the cloud's size.
+
+    normal : (6, 6) J^T J of the cone model in (tilt u, tilt v, axis point s, t (mm), radius (mm), half angle) at the
+    fit (``_cone_model``). points_count : n. size_mm : the cloud's size (RMS distance of its points from their
+    centroid).
+
+    A pattern of errors of RMS e along the points' normals (noise, form) can move the fitted cone by up to
+    amplification * e, its axis and half angle counted as the displacement they make over ``size_mm``: a cone probed
+    over its whole height and turn gives about 10, over a 2 mm band of its 20 mm height about 70, over a 60 deg arc
+    about 90; points on one ring (every cone through that circle fits them: the Jacobian is rank-deficient) give
+    10^4 and more (inf when exactly singular). Scale-free: the same for a part and its copy ten times the size.
+    """
+    scale = np.array([size_mm, size_mm, 1.0, 1.0, 1.0, size_mm])
+    scaled = np.asarray(normal, dtype=np.float64) / np.outer(scale, scale) / max(points_count, 1)
+    if not np.isfinite(scaled).all():
+        return math.inf
+    least = float(np.linalg.eigvalsh(scaled)[0])
+    # eigenvalues below the rounding of the largest are zero: the points leave a direction of the cone undetermined
+    if least <= 1e-14 * float(np.abs(np.diag(scaled)).max() or 1.0):
+        return math.inf
+    return 1.0 / math.sqrt(least)
 
 
 def _cone_distance(points, base, axis, radius, half_angle):
@@ -490,7 +521,9 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
     ConeFit, with the axis pointing from the apex into the cone and a positive half angle.
 
     Standard errors are sigma * sqrt(diag((J^T J)^-1)) with sigma^2 = sum(residuals^2) / (n - 6), the usual linearised
-    estimate: meaningful for independent noise, not for systematic form error.
+    estimate: meaningful for independent noise, not for systematic form error. They say nothing when the points do not
+    determine the cone (points on one ring fit a family of cones exactly: residuals and standard errors near zero);
+    ``error_amplification`` says that (:func:`cone_error_amplification`).
     """
     points = _points(points, (3,), 6)
     centroid = points.mean(axis=0)
@@ -538,11 +571,13 @@ def fit_cone(points, initial_axis=None, initial_apex=None, reference_plane=None)
         std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     except np.linalg.LinAlgError:
         std = np.full(6, np.nan)
+    size = float(np.sqrt(((points - centroid) ** 2).sum(axis=1).mean()))
     return ConeFit(apex=apex, axis=axis, half_angle_rad=float(alpha), axis_point=axis_point,
                    radius_at_axis_point=float(radius_at_point), residuals=residuals,
                    rms=float(np.sqrt(np.mean(residuals ** 2))), half_angle_std_rad=float(std[5]),
                    axis_std_rad=float(np.hypot(std[0], std[1]) / norm),
-                   axis_point_std_mm=float(np.hypot(std[2], std[3])))
+                   axis_point_std_mm=float(np.hypot(std[2], std[3])),
+                   error_amplification=cone_error_amplification(normal, n, size))
 
 
 def section_ring(points, axis_point, axis_dir, height: float, tolerance: float, half_angle_rad: float | None = None,

@@ -71,6 +71,13 @@ EXTENT_TOLERANCE_MM = 1.0   # stock, probe radius and fixture allowance around t
 EXTENT_OUTLIERS = 0.01      # flyers: up to 1 % of the points may lie outside the part's box (then beyond the gate)
 FAR_MM = 1.0                # a point this far from every surface of the part cannot be on it
 MIN_RING_POINTS = 8
+#: Largest ``form.ConeFit.error_amplification`` of a cone that is evaluated: above it a 1 um error of the points (a
+#: probe's noise, a form error) could move the fitted cone by more than 1 mm at the part's size (axis position and
+#: radius, tilt and half angle as displacements over the cloud's size): more than the 0.5 mm gate that says which
+#: points are on the cone, so the fit determines nothing a tolerance could judge. A cone probed over its height and
+#: turn gives about 10, a 2 mm band of its height about 70, a 60 deg arc about 90; one ring (every cone through that
+#: circle fits it: the fit's Jacobian is rank-deficient) 10^4 and more, with noise of 10 um still 3,500.
+MAX_CONE_AMPLIFICATION = 1000.0
 MIN_CONTOUR_POINTS = 3  # points on each wall and arc of a slot for its mean contour error
 #: Largest angular gap (deg) of a section's points about the cone's axis for its roundness to be evaluated: a
 #: roundness is the form of the whole profile (ISO 12181-1); from an arc it is underestimated (an oval probed over
@@ -172,9 +179,26 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
     if len(pts) < 12:
         out["cone"] = None
         out["roundness_um"] = []
-        out["notes"] = [f"only {len(pts)} points on the cone (within {gate_mm} mm of it): no cone evaluation"]
+        out["cone_note"] = f"only {len(pts)} points on the cone (within {gate_mm} mm of it): no cone evaluation"
+        out["notes"] = [out["cone_note"]]
         return out, figures
     fit = form.fit_cone(pts, initial_axis=a_nom, reference_plane=(c_nom, a_nom))
+    if not fit.error_amplification <= MAX_CONE_AMPLIFICATION:
+        span = float(np.ptp((pts - c_nom) @ a_nom))
+        height = float(np.ptp(cone.get("height_range", [0.0, 0.0])))
+        reason = (f"the cone's {len(pts)} points do not determine it (they span {span:.3f} mm of its {height:g} mm "
+                  f"height along the axis): an error of 1 um in them could move the fitted axis, size or half angle "
+                  f"by {_amplification_words(fit.error_amplification)} at the part's size (evaluated up to "
+                  f"{MAX_CONE_AMPLIFICATION / 1e3:g} mm); its half angle, axis tilt and position, form and diameter, "
+                  "and the sections taken along its axis, are not measured: probe it over its height")
+        out.update(cone=None, cone_note=reason, notes=[reason], warnings=[reason],
+                   cone_error_amplification=fit.error_amplification,
+                   roundness_um=[{"id": f.get("id"), "height_mm": float(f["height"]), "points": 0,
+                                  "least_squares": None, "minimum_zone": None, "diameter_ls_mm": None,
+                                  "note": "not evaluated: the cone (whose axis the section is taken along) is not "
+                                          "determined"}
+                                 for f in part["features"] if f.get("type") == "roundness"])
+        return out, figures
     # form.fit_cone's axis points from the apex into the cone (down for this cone): report it base to top
     up = -fit.axis if fit.axis @ a_nom < 0 else fit.axis
     tilt = math.acos(min(1.0, abs(float(fit.axis @ a_nom))))
@@ -197,6 +221,7 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
         "fit_rms_um": fit.rms * 1e3,
         "form_um": float(np.ptp(fit.residuals) * 1e3),
         "points": int(len(pts)),
+        "error_amplification": fit.error_amplification,
     }
     e1, e2 = form._perpendicular_basis(up)
     around = (pts - base_point) @ np.column_stack([e1, e2])
@@ -246,6 +271,11 @@ def evaluate_nas979(points, dev: dv.Deviation, part: dict, gate_mm: float = 0.5,
                            "error_um": (measured - float(diameter["nominal_diameter"])) * 1e3,
                            "method": "from the least-squares cone at this height along its axis"}
     return out, figures
+
+
+def _amplification_words(amplification: float) -> str:
+    """``form.ConeFit.error_amplification`` as the move (in mm) a 1 um error of the points could make."""
+    return "any amount" if not math.isfinite(amplification) else f"{amplification / 1e3:.3g} mm"
 
 
 # ------------------------------------------------------------------------------------------------------ the slots
@@ -447,22 +477,25 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
             f"{cloud.source}: {far.sum()} of {len(far)} points lie more than {FAR_MM:g} mm from every surface of the "
             f"{part} part (median {np.median(np.abs(dev.deviation_mm)):.3f} mm): this cloud cannot be the {part} "
             "part in its frame, in mm")
+    beyond = np.abs(dev.deviation_mm) > gate_mm  # on no feature: counted apart from the headline figures
     if figure_worker is not None:
-        for item in _deviation_figure_inputs(part, part_doc, aligned, dev.deviation_um):
+        for item in _deviation_figure_inputs(part, part_doc, aligned, dev.deviation_um, beyond):
             figure_worker.submit(item)
 
     features, figures = EVALUATIONS[get_part(part).evaluation](aligned, dev, part_doc, gate_mm)
-    beyond = np.abs(dev.deviation_mm) > gate_mm
     if align == "bestfit":
         features.setdefault("warnings", []).extend(_bestfit_warnings(motion, dev, surfaces, beyond))
     d_um = dev.deviation_um
+    # the headline figures are over the points on the part's surfaces (within the gate): a flyer 500 mm off would
+    # make them its own (0.5 % of the points gave an RMS of 33,909 um); those beyond the gate are counted apart
+    within = ~beyond if beyond.any() and not beyond.all() else np.ones(len(beyond), bool)
     per_surface = {}
     for k, sid in enumerate(dev.surface_ids):
-        sel = (dev.surface == k)
+        sel = (dev.surface == k) & within
         if sel.any():
             per_surface[sid] = deviation_stats(d_um[sel])
-    if dev.from_mesh.any():
-        per_surface["cad_mesh"] = deviation_stats(d_um[dev.from_mesh])
+    if (dev.from_mesh & within).any():
+        per_surface["cad_mesh"] = deviation_stats(d_um[dev.from_mesh & within])
     from .. import __version__
 
     if part_dir is not None:
@@ -486,10 +519,14 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         "units": "lengths in the keys' units (mm, um), angles in deg or urad; deviations + = material outside the "
                  "nominal surface",
         "alignment": motion.as_dict(),
-        "deviation_um": deviation_stats(d_um),
+        "deviation_um": deviation_stats(d_um[within]),
+        "deviation_note": "over the points within the gate of a nominal surface (those beyond it are in "
+                          "beyond_gate)" if not within.all() else "over all points" + (
+                              " (none within the gate)" if beyond.any() else " (every one within the gate)"),
         "deviation_by_surface_um": per_surface,
         "beyond_gate": {
             "gate_mm": gate_mm, "points": int(beyond.sum()), "share": float(beyond.mean()) if len(beyond) else 0.0,
+            "deviation_um": deviation_stats(d_um[beyond]),
             "note": f"points farther than {gate_mm:g} mm from every nominal surface belong to no feature: no feature "
                     "is evaluated from them (a gross error of the part, or points that are not on it)"},
         "reference": {
@@ -506,9 +543,16 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         },
         **features,
     }
-    report["feature_table"] = feature_table(report, part_doc, limits)
+    absorbed = None
+    if align == "bestfit":
+        absorbed = {key: f"not measured with --align bestfit: {why} (use --align datum, or none for a part probed in "
+                         "its frame)" for key, why in get_part(part).bestfit_absorbs}
+        report.setdefault("warnings", []).append(
+            "the best fit onto the CAD takes away what a rigid move changes: "
+            + ", ".join(CHARACTERISTICS[key][2] for key in absorbed) + " not measured (use --align datum, or none)")
+    report["feature_table"] = feature_table(report, part_doc, limits, not_measured=absorbed)
     report["feature_summary"] = summary(report["feature_table"])
-    figures.update(points=aligned, deviation_um=d_um)
+    figures.update(points=aligned, deviation_um=d_um, beyond_gate=beyond)
     if figure_worker is not None:
         figures["sent"] = figure_worker
     return Inspection(cloud, aligned, normals, dev, part_doc, report, figures)
@@ -525,8 +569,8 @@ def _bestfit_warnings(motion: dv.RigidMotion, dev: dv.Deviation, surfaces: list,
     cone = next(s for s in surfaces if s["type"] == "cone")
     along = float(motion.translation @ dv._unit(cone["axis"])) * 1e3
     return [f"the best fit saw only the cone: it moved the part {along:+.1f} um along the cone's axis, which takes a "
-            f"size error away with it (the diameter and the axis position are not measured this way); probe the "
-            f"block's faces, or use --align datum or none"]
+            f"size error away with it (the diameter, the axis position and tilt are not measured this way); use "
+            f"--align datum (with the block's faces probed) or none"]
 
 
 def inspection_warnings(report: dict) -> list[str]:
@@ -588,9 +632,17 @@ def _profile_for_plot(angle, residual, limit: int = 2000, bins: int = 1440):
 MAP_POINTS = 15_000  # points drawn in the deviation map (all of them are in deviations.ply and .csv)
 
 
-def _deviation_figure_inputs(part: str, part_doc: dict, points: np.ndarray, d: np.ndarray) -> list[dict]:
+def _deviation_figure_inputs(part: str, part_doc: dict, points: np.ndarray, d: np.ndarray,
+                             beyond: np.ndarray | None = None) -> list[dict]:
     """The inputs of the deviation map and the histogram (``draw_figure``): they need the deviations only, so they
-    can be drawn while the features are evaluated. points : (n, 3) mm, part frame; d : (n,) um."""
+    can be drawn while the features are evaluated. points : (n, 3) mm, part frame; d : (n,) um. beyond : (n,) bool or
+    None, the points beyond the gate (on no feature): left out of both pictures (a flyer 500 mm off would make the
+    histogram one bar and the map a dot), and counted in the caption."""
+    outliers = 0 if beyond is None else int(beyond.sum())
+    if outliers and outliers < len(points):
+        points, d = points[~beyond], d[~beyond]
+    else:
+        outliers = 0
     rng = np.random.default_rng(0)
     show = np.sort(rng.choice(len(points), size=MAP_POINTS, replace=False)) if len(points) > MAP_POINTS \
         else slice(None)
@@ -598,9 +650,10 @@ def _deviation_figure_inputs(part: str, part_doc: dict, points: np.ndarray, d: n
     slots = [(f["id"], np.asarray(f["tool_centre_path"], float)[:, :2], f.get("compensation", ""))
              for f in part_doc.get("features", []) if f.get("type") == "slot"]
     counts, edges = np.histogram(d, bins=80)
-    return [{"kind": "deviation_map", "view": get_part(part).map_view, "points": points[show], "deviation_um": d[show], "limit": limit,
-             "total": len(points), "extent": np.ptp(points, axis=0), "slots": slots},
-            {"kind": "histogram", "counts": counts, "edges": edges}]
+    return [{"kind": "deviation_map", "view": get_part(part).map_view, "points": points[show], "deviation_um": d[show],
+             "limit": limit, "total": len(points), "extent": np.ptp(points, axis=0), "slots": slots,
+             "outliers": outliers},
+            {"kind": "histogram", "counts": counts, "edges": edges, "outliers": outliers}]
 
 
 def _feature_figure_inputs(inspection: Inspection) -> list[dict]:
@@ -610,14 +663,15 @@ def _feature_figure_inputs(inspection: Inspection) -> list[dict]:
     rings = inspection.figures.get("rings") or []
     if rings:
         out.append({"kind": "roundness", "rings": rings})
-    parameters = (report.get("identification") or {}).get("parameters") if isinstance(
-        report.get("identification"), dict) else None
+    identification = report.get("identification") if isinstance(report.get("identification"), dict) else {}
+    parameters = identification.get("parameters")
     if parameters:
         names = [p["name"] for p in parameters]
         values = [next((v for k, v in p.items() if k.startswith("value_")), None) for p in parameters]
         stds = [next((v for k, v in p.items() if k.startswith("std_")), None) for p in parameters]
         units = [next((k[6:] for k in p if k.startswith("value_")), "") for p in parameters]
-        out.append({"kind": "identified", "names": names, "values": values, "stds": stds, "units": units})
+        out.append({"kind": "identified", "names": names, "values": values, "stds": stds, "units": units,
+                    "status": (identification.get("verdict") or {}).get("status", "accepted")})
         components = _component_tables(names, values, stds, units)
         if components:
             out.append({"kind": "components", "components": components})
@@ -681,9 +735,11 @@ def draw_figure(inputs: dict) -> tuple[str, bytes, str, dict]:
         ax.set_title("Deviation from the nominal part (part frame)")
         name = "deviation_map.png"
         shown, total = len(pts), inputs["total"]
-        caption = (f"Deviation colour map on the part ({shown:,} of {total:,} points shown; colour scale "
-                   f"+-{limit:g} um, the round number at or above the 99th percentile of |deviation|; all points "
-                   "with their deviations are in deviations.ply and deviations.csv).")
+        left_out = inputs.get("outliers", 0)
+        caption = (f"Deviation colour map on the part ({shown:,} of {total:,} points shown"
+                   + (f", the {left_out:,} beyond the gate (on no feature) left out" if left_out else "")
+                   + f"; colour scale +-{limit:g} um, the round number at or above the 99th percentile of |deviation|; "
+                   "all points with their deviations are in deviations.ply and deviations.csv).")
         data["deviation_map"] = {"file": name, "colour_limit_um": limit, "points_shown": int(shown),
                                  "data": "deviations.ply"}
     elif kind == "histogram":
@@ -695,7 +751,10 @@ def draw_figure(inputs: dict) -> tuple[str, bytes, str, dict]:
         ax.set_ylabel("points")
         ax.set_title("Histogram of deviations")
         fig.subplots_adjust(left=0.11, right=0.97, bottom=0.14, top=0.9)
-        name, caption = "histogram.png", "Histogram of the signed deviations (80 bins)."
+        left_out = inputs.get("outliers", 0)
+        name, caption = "histogram.png", "Histogram of the signed deviations (80 bins)" + (
+            f" of the points on the part's features; the {left_out:,} beyond the gate are left out (counted in the "
+            "summary)." if left_out else ".")
         data["histogram"] = {"file": name, "bin_edges_um": edges, "counts": counts}
     elif kind == "roundness":
         rings = inputs["rings"]
@@ -748,10 +807,14 @@ def draw_figure(inputs: dict) -> tuple[str, bytes, str, dict]:
         ax.bar(x, [v or 0.0 for v in values], yerr=[2 * (s or 0.0) for s in stds], capsize=3, color="C2")
         ax.set_xticks(x, [f"{n}\n({u})" for n, u in zip(names, units)], fontsize=8)
         ax.axhline(0, color="k", lw=0.6)
-        ax.set_ylabel("identified value (um or urad)")
-        ax.set_title("Identified parameters, error bars +-2 std")
+        refused = inputs.get("status") == "refused"
+        ax.set_ylabel("value the refused fit proposed (um or urad)" if refused else "identified value (um or urad)")
+        ax.set_title("REFUSED: values the fit proposed, not applied; error bars +-2 std" if refused
+                     else "Identified parameters, error bars +-2 std")
         fig.subplots_adjust(left=0.12, right=0.97, bottom=0.2, top=0.9)
-        name, caption = "identified.png", "Identified twin parameters with +-2 standard deviations."
+        name, caption = "identified.png", ("Values a refused identification proposed (not applied: the twin's "
+                                           "values stand), with +-2 standard deviations." if refused else
+                                           "Identified twin parameters with +-2 standard deviations.")
         data["identified"] = {"file": name, "names": names, "values": values, "std": stds, "units": units}
     elif kind == "components":
         components = inputs["components"]
@@ -787,7 +850,7 @@ def _figure_inputs(inspection: Inspection, worker=None) -> list[dict]:
         inputs = []
     else:
         inputs = _deviation_figure_inputs(inspection.report["part"], inspection.part, fig_data["points"],
-                                          fig_data["deviation_um"])
+                                          fig_data["deviation_um"], fig_data.get("beyond_gate"))
     return inputs + _feature_figure_inputs(inspection)
 
 
@@ -914,11 +977,17 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
              f"<style>{style}</style></head><body>",
              f"<h1>{html.escape(title)}</h1>", _header_html(header)]
     counts = report.get("feature_summary") or {}
+    gate = report.get("beyond_gate") or {}
+    apart = "" if not gate.get("points") or gate["points"] == report["points"] else (
+        f" over the {d['points']:,} points on the part's surfaces; {gate['points']:,} beyond the {gate['gate_mm']:g} "
+        f"mm gate (on no feature, up to {_value(_largest(gate.get('deviation_um')), 'um')} um) counted apart")
     parts.append(f"<h2>Summary</h2><p>{report['points']:,} points; deviation RMS {_value(d['rms'], 'um')} um, "
-                 f"range {_value(d['min'], 'um')} to {_value(d['max'], 'um')} um (+ = material outside the nominal "
-                 f"surface). Characteristics: {counts.get('pass', 0)} in tolerance, {counts.get('fail', 0)} out of "
-                 f"tolerance, {counts.get('no tolerance', 0)} without a tolerance, "
+                 f"range {_value(d['min'], 'um')} to {_value(d['max'], 'um')} um{apart} (+ = material outside the "
+                 f"nominal surface). Characteristics: {counts.get('pass', 0)} in tolerance, {counts.get('fail', 0)} "
+                 f"out of tolerance, {counts.get('no tolerance', 0)} without a tolerance, "
                  f"{counts.get('not measured', 0)} not measured.</p>")
+    if isinstance(report.get("identification"), dict):
+        parts.append(_verdict_html(report["identification"]))
     warnings = inspection_warnings(report)
     if warnings:
         parts.append("<div class='warning'><strong>Read first:</strong><ul>"
@@ -969,21 +1038,7 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
                  f"{html.escape(str(alignment.get('rotation_note', '')))}.</p>")
     identification = report.get("identification")
     if isinstance(identification, dict):
-        parts.append("<h2>Identified parameters</h2>")
-        params = identification.get("parameters") or []
-        if params:
-            rows = []
-            for p in params:
-                unit = next((k[6:] for k in p if k.startswith("value_")), "")
-                rows.append(f"<tr><td>{html.escape(str(p.get('name')))}</td><td>{_value(p.get('value_' + unit), unit)}"
-                            f"</td><td>{_value(p.get('std_' + unit), unit)}</td><td>{html.escape(unit)}</td></tr>")
-            parts.append("<table><tr><th>parameter</th><th>value</th><th>standard deviation</th><th>unit</th></tr>"
-                         + "".join(rows) + "</table>")
-        if identification.get("not_identifiable"):
-            parts.append("<p>Not identifiable from this part: "
-                         + html.escape(", ".join(map(str, identification["not_identifiable"]))) + ".</p>")
-        parts.append(_table({k: v for k, v in identification.items()
-                             if isinstance(v, (int, float, str)) and not isinstance(v, bool)}))
+        parts.append(_identification_html(identification))
     elif identification is not None:
         parts.append("<h2>Identification</h2><p>" + html.escape(str(identification)) + "</p>")
     parts.append("<h2>Pictures</h2>")
@@ -996,6 +1051,99 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
     parts.append(f"<p style='font-size:85%;color:#555'>Files: {html.escape(', '.join(report.get('files', [])))}. "
                  f"{html.escape(report['units'])}.</p></body></html>\n")
     return "\n".join(parts)
+
+
+#: The identification's verdict on the page: (headline, what it means for the twin, box colours).
+_VERDICT_WORDS = {
+    "accepted": ("ACCEPTED", "the identified values below replace the twin's (written where --write was given)",
+                 "#1e7b34", "#e6f4ea"),
+    "refused": ("REFUSED", "the fit does not explain the part: its changes below are not applied and nothing is "
+                "written; the twin's values stand", "#c0392b", "#fdecea"),
+    "no change": ("NO CHANGE", "nothing to change: the twin's values stand", "#555555", "#f1f1f1"),
+}
+
+
+def _verdict_html(identification: dict) -> str:
+    """The identification's verdict in a box (at the top of the page): status, what it means, its reasons, the
+    residuals and the held-out check."""
+    verdict = identification.get("verdict") or {}
+    status = verdict.get("status")
+    if status is None:  # a report without a verdict (written before there was one)
+        return ""
+    headline, meaning, edge, fill = _VERDICT_WORDS.get(status, (str(status).upper(), "", "#555555", "#f1f1f1"))
+    out = [f"<div class='verdict' id='identification-verdict' style='border:2px solid {edge};background:{fill};"
+           f"padding:4px 12px;margin:10px 0'><strong>Identification {html.escape(headline)}</strong>: "
+           f"{html.escape(meaning)}."]
+    reasons = verdict.get("reasons") or []
+    if reasons:
+        out.append("<ul>" + "".join(f"<li>{html.escape(str(r))}</li>" for r in reasons) + "</ul>")
+    figures = [f"residual RMS {_value(verdict.get('residual_before_rms_um'), 'um')} um with the twin as is, "
+               f"{_value(verdict.get('residual_after_rms_um'), 'um')} um after the fit; deviation RMS "
+               f"{_value(verdict.get('deviation_rms_um'), 'um')} um"]
+    heldout = verdict.get("heldout") or {}
+    if "before_rms_um" in heldout:
+        figures.append(f"held-out points ({heldout.get('points', 0):,}): {_value(heldout['before_rms_um'], 'um')} -> "
+                       f"{_value(heldout['after_rms_um'], 'um')} um where the fit predicted "
+                       f"{_value(heldout['fit_before_rms_um'], 'um')} -> {_value(heldout['fit_after_rms_um'], 'um')} "
+                       f"um ({'confirmed' if heldout.get('confirmed') else 'not confirmed'})")
+    elif heldout.get("not_run"):
+        figures.append("held-out check not run")
+    out.append("<p>" + html.escape("; ".join(figures)) + ".</p></div>")
+    return "".join(out)
+
+
+def _identification_html(identification: dict) -> str:
+    """The identification section: its verdict (a refused fit's changes are never shown as identified), the
+    parameters, those estimated but not significant, those the part cannot identify, and those held."""
+    verdict = identification.get("verdict") or {}
+    status = verdict.get("status")
+    out = ["<h2>Identified parameters</h2>"]
+    if status is not None:
+        headline = _VERDICT_WORDS.get(status, (str(status).upper(),))[0]
+        out = [f"<h2>Identification: {html.escape(headline)}</h2>",
+               f"<p>Verdict <strong>{html.escape(headline)}</strong>"
+               + "".join(f"; {html.escape(str(r))}" for r in verdict.get("reasons") or [])
+               + " (the box at the top).</p>"]
+    params = identification.get("parameters") or []
+    if params:
+        title = "Changes the refused fit proposed (not applied)" if status == "refused" else \
+            "Identified parameters"
+        rows = []
+        for p in params:
+            unit = next((k[6:] for k in p if k.startswith("value_")), "")
+            rows.append(f"<tr><td>{html.escape(str(p.get('name')))}</td><td>{_value(p.get('value_' + unit), unit)}"
+                        f"</td><td>{_value(p.get('change_' + unit), unit)}</td>"
+                        f"<td>{_value(p.get('std_' + unit), unit)}</td><td>{html.escape(unit)}</td></tr>")
+        out.append(f"<h3>{title}</h3><table><tr><th>parameter</th><th>value</th><th>change</th>"
+                   "<th>standard deviation</th><th>unit</th></tr>" + "".join(rows) + "</table>")
+    not_significant = identification.get("not_significant") or []
+    if not_significant:
+        def change(entry):
+            unit = next((k[7:] for k in entry if k.startswith("change_")), "")
+            return (f"{entry['name']} {_value(entry.get('change_' + unit), unit)} +- "
+                    f"{_value(entry.get('std_' + unit), unit)} {unit}")
+        out.append("<p>Estimated, not significant (kept at the twin's value): "
+                   + html.escape(", ".join(change(e) for e in not_significant)) + ".</p>")
+    # the detail sorts the rest: held (a gauge value, or not asked for) or not identifiable from this part
+    estimated = {e["name"] for e in not_significant}
+    detail = [d for d in identification.get("not_identifiable_detail") or [] if d.get("name") not in estimated]
+    held = [d["name"] for d in detail if str(d.get("reason", "")).startswith("held")]
+    unseen = [d["name"] for d in detail if not str(d.get("reason", "")).startswith("held")]
+    if unseen:
+        out.append("<p>Not identifiable from this part: " + html.escape(", ".join(map(str, unseen))) + ".</p>")
+    if held:
+        out.append("<p>Held (the reference value of an error function, or not asked for): "
+                   + html.escape(", ".join(map(str, held))) + ".</p>")
+    out.append(_table({k: v for k, v in identification.items()
+                       if isinstance(v, (int, float, str)) and not isinstance(v, bool)}))
+    return "\n".join(out)
+
+
+def _largest(stats: dict | None) -> float | None:
+    """The largest |deviation| of ``deviation_stats``' figures, or None."""
+    if not stats or stats.get("min") is None:
+        return None
+    return max(abs(stats["min"]), abs(stats["max"]))
 
 
 def _title(name: str) -> str:

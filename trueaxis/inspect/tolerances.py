@@ -150,18 +150,21 @@ def _row(feature, key, label, unit, nominal, actual, deviation, tolerance, note=
     return row
 
 
-def feature_table(report: dict, part: dict, tolerances: dict) -> list[dict]:
+def feature_table(report: dict, part: dict, tolerances: dict, not_measured: dict | None = None) -> list[dict]:
     """One row per characteristic of the inspected features, from the report's evaluated figures.
 
     Each row: feature (id), characteristic (words), key (the tolerance key), unit (of nominal and actual),
     nominal, actual, deviation and deviation_unit (um or urad; for form values the value itself), tolerance
     ({"lower", "upper"} of the deviation, or None) and result ("pass", "fail", "no tolerance", "not measured").
+    not_measured : {key: why}: characteristics the inspection could not measure whatever their figures say (those a
+    best-fit alignment takes away): their rows are "not measured", with no actual value, and say why.
     """
     rows: list[dict] = []
     label = {k: v[2] for k, v in CHARACTERISTICS.items()}
     cone = report.get("cone")
     features = {f.get("id"): f for f in part.get("features", [])}
     if "cone_points" in report:
+        why = None if cone is not None else report.get("cone_note")  # why the cone was not evaluated
         for fid, feature in features.items():
             kind = feature.get("type")
             if kind == "cone_angle":
@@ -169,18 +172,18 @@ def feature_table(report: dict, part: dict, tolerances: dict) -> list[dict]:
                 rows.append(_row(fid, "half_angle_urad", label["half_angle_urad"], "deg",
                                  feature.get("nominal_half_angle_deg"), actual,
                                  None if cone is None else cone["half_angle_error_urad"],
-                                 _tolerance_for(tolerances, fid, "half_angle_urad")))
+                                 _tolerance_for(tolerances, fid, "half_angle_urad"), why))
             elif kind == "axis_direction":
                 tilt = None if cone is None else cone["axis_tilt_urad"]
                 rows.append(_row(fid, "tilt_urad", label["tilt_urad"], "urad", 0.0, tilt, tilt,
-                                 _tolerance_for(tolerances, fid, "tilt_urad")))
+                                 _tolerance_for(tolerances, fid, "tilt_urad"), why))
             elif kind == "diameter":
                 d = report.get("diameter")
                 rows.append(_row(fid, "diameter_um", f"{label['diameter_um']} at h = {feature['height']:g} mm", "mm",
                                  feature.get("nominal_diameter"),
                                  None if d is None or cone is None else d["measured_mm"],
                                  None if d is None or cone is None else d["error_um"],
-                                 _tolerance_for(tolerances, fid, "diameter_um")))
+                                 _tolerance_for(tolerances, fid, "diameter_um"), why))
             elif kind == "roundness":
                 ring = next((r for r in report.get("roundness_um", []) if r.get("id") == fid), None)
                 value = None if ring is None else ring.get("minimum_zone")
@@ -189,10 +192,10 @@ def feature_table(report: dict, part: dict, tolerances: dict) -> list[dict]:
                                  None if ring is None or value is not None else ring.get("note")))
         form_value = None if cone is None else cone.get("form_um")
         rows.append(_row("cone", "form_um", label["form_um"], "um", 0.0, form_value, form_value,
-                         _tolerance_for(tolerances, "cone", "form_um")))
+                         _tolerance_for(tolerances, "cone", "form_um"), why))
         offset = None if cone is None else math.hypot(*cone["axis_offset_um"])
         rows.append(_row("cone", "axis_offset_um", label["axis_offset_um"], "um", 0.0, offset, offset,
-                         _tolerance_for(tolerances, "cone", "axis_offset_um")))
+                         _tolerance_for(tolerances, "cone", "axis_offset_um"), why))
     for slot in report.get("slots", []):
         fid = slot["id"]
         for segment in slot["width"]["segments"]:
@@ -223,6 +226,9 @@ def feature_table(report: dict, part: dict, tolerances: dict) -> list[dict]:
         contour = slot.get("mean_contour_error_um")
         rows.append(_row(fid, "contour_um", label["contour_um"], "um", 0.0, contour, contour,
                          _tolerance_for(tolerances, fid, "contour_um"), slot.get("contour_note")))
+    for row in rows:
+        if row["key"] in (not_measured or {}):
+            row.update(actual=None, deviation=None, result="not measured", note=not_measured[row["key"]])
     return rows
 
 

@@ -71,6 +71,12 @@ class Nas979:
     # A = block bottom, B = a block side normal to X (xneg or xpos), C = a block side normal to Y (yneg or ypos)
     datums: tuple = (("A", ("block_bottom",), 3), ("B", ("block_side_xneg", "block_side_xpos"), 2),
                      ("C", ("block_side_yneg", "block_side_ypos"), 1))
+    # a best fit moves the part onto the cone: along its axis (which changes the diameter at a height from the base
+    # plane, a uniform size error vanishing with it), across it, and turns it onto the axis
+    bestfit_absorbs: tuple = (
+        ("diameter_um", "a move along the cone's axis changes its diameter at every height"),
+        ("axis_offset_um", "the fit moves the part onto the cone's axis"),
+        ("tilt_urad", "the fit turns the part onto the cone's axis"))
 
     def build(self, params=None):
         return build_nas979(params)

@@ -40,6 +40,11 @@ class Part(Protocol):
     map_view : how the inspection draws its deviation map: ``"3d"`` (a scatter in space) or ``"plan"`` (XY, with the
     slots' tool-centre paths when the JSON has slot features).
     datums : its datum reference frame, primary first: ((label, candidate surface ids, minimum points), ...).
+    bestfit_absorbs : the characteristics (tolerance keys of ``trueaxis.inspect.tolerances.CHARACTERISTICS``) that a
+    best-fit alignment takes away, each with why: ((key, reason), ...). A best fit moves and turns the cloud onto the
+    CAD where its deviations are least, so what it can move is no longer measured against the part's datums (a
+    location, an orientation, a size that a move changes); the inspection reports them "not measured" under
+    ``--align bestfit``.
     """
 
     name: str
@@ -49,6 +54,7 @@ class Part(Protocol):
     evaluation: str
     map_view: str
     datums: tuple
+    bestfit_absorbs: tuple
 
     def build(self, params=None) -> Any:
         """CAD: a ``cadquery.Workplane`` holding one solid, part frame, mm."""

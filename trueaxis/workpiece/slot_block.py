@@ -105,6 +105,12 @@ class SlotBlock:
     # A = block top, B = front side (y = 0, or back y = W), C = left end (x = 0, or right end x = L)
     datums: tuple = (("A", ("block_top",), 3), ("B", ("block_side_yneg", "block_side_ypos"), 2),
                      ("C", ("block_side_xneg", "block_side_xpos"), 1))
+    # a best fit moves the block onto its slots: the slots' common offset from their nominal paths, their common depth
+    # error and the share of the contour error a rigid move explains are taken away
+    bestfit_absorbs: tuple = (
+        ("position_um", "the fit moves the block onto the slots' midlines"),
+        ("depth_um", "the fit moves the block onto the slots' floors"),
+        ("contour_um", "the fit moves the block onto the slots' walls, taking the common part of their error away"))
 
     def build(self, params=None):
         return build_slot_block(params)
