@@ -355,7 +355,7 @@ def test_every_cloud_is_checked_before_the_first_simulation_and_a_refusal_names_
     # for another machine says so in the error (that warning came only with a finished report).
     from trueaxis.diagnose import report
     from trueaxis.diagnose.report import CloudError, MeasuredCut, diagnose_files, run_diagnosis_cuts
-    from trueaxis.diagnose.state import ProgramError
+    from trueaxis.postproc.programs import ProgramError
 
     m, prog, _ = slots
     r = _cut(m, prog, {}, noise=1.0, seed=2, points=300)
@@ -373,7 +373,8 @@ def test_every_cloud_is_checked_before_the_first_simulation_and_a_refusal_names_
     # A program that moves an axis the twin does not have (posted for another machine): refused before any
     # simulation too (it failed at the second cut's simulation, after the first one's, with the usage exit 2).
     four_axis = MeasuredCut(r.measured - 0.01, r.normals, prog.text.replace("M30", "G0 A10\nM30"), "fourth.ngc")
-    with pytest.raises(ProgramError, match=r"moves axes A that .* does not have \(cut 2 of 2: fourth.ngc\)"):
+    with pytest.raises(ProgramError, match=r"moves axes A that .* does not have: is it the program for this "
+                                           r"machine\? \(cut 2 of 2: fourth.ngc\)"):
         run_diagnosis_cuts([good, four_axis], "slots", m, part_json=prog.part_json, pauses_s=0.0)
     assert calls == []
     (tmp_path / "p.ngc").write_text("(machine: Another Mill)\n" + prog.text)

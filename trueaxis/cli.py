@@ -671,8 +671,7 @@ def _refusal_errors() -> tuple:
     found = []
     for module, name in (("trueaxis.inspect.cloud", "CloudError"), ("trueaxis.inspect.tolerances", "ToleranceError"),
                          ("trueaxis.inspect.deviation", "InspectionError"), ("trueaxis.sim.effects", "EffectsFileError"),
-                         ("trueaxis.diagnose.state", "ProgramError"),
-                         ("trueaxis.identify", "ProgramError")):
+                         ("trueaxis.postproc.programs", "ProgramError")):
         if module in sys.modules:
             found.append(getattr(sys.modules[module], name))
     return tuple(found)

@@ -91,20 +91,16 @@ from scipy.spatial import cKDTree
 
 from .machine import ErrorTwin, Machine, forward_nominal, load_machine
 from .machine.model import ROTATION_LETTER, SQUARENESS, unit_of
+from .inspect.deviation import outward_normals  # noqa: F401 (the identification's normals, re-exported)
 from .nc.gcode import Program, parse_program
 from .nc.trajectory import AXES, MM_PER_INCH, interpolate
+from .postproc.programs import ProgramError, check_axes
 
 UM_PER_MM = 1e3
 LEVER = 1e-3  # um of contact displacement per (urad of tool-axis error x mm of lever)
 ALIGNMENT_NAMES = ("TX", "TY", "TZ", "RX", "RY", "RZ")  # rigid motion of the part: um, um, um, urad, urad, urad
 MAX_CACHE_BYTES = 384 * 2**20
 CHUNK_POINTS = 1 << 16
-
-
-class ProgramError(ValueError):
-    """A program the identification refuses (the command's exit 3, as the diagnosis refuses it): written for another
-    part, moving axes the twin does not have, a malformed setup comment, no feed moves, or one that did not cut the
-    measured part."""
 
 
 # ------------------------------------------------------------------------------------------------- the tool path ----
@@ -1093,38 +1089,12 @@ def part_normals(points, part: dict) -> np.ndarray:
     return math.cos(alpha) * radial + math.sin(alpha) * a
 
 
-def outward_normals(points, normals, part: dict) -> tuple[np.ndarray, int]:
-    """A cloud's normals turned to the outward side of the part: each normal pointing into the material (against the
-    outward normal of its nearest analytic surface of the part JSON) is flipped. CMM software and scanners export
-    normals either way round (towards the probe, or into the part), and the model's contact search, which looks for
-    the tool along the normal, finds nothing along an inward one.
-
-    points, normals : (N, 3) part frame. part : the part JSON dict. Returns (outward normals (N, 3), how many were
-    flipped).
-    """
-    from .inspect.deviation import analytic_deviation, analytic_surfaces
-
-    normals = np.asarray(normals, dtype=np.float64)
-    cad = analytic_deviation(points, analytic_surfaces(part)).normal
-    inward = np.einsum("ij,ij->i", normals, cad) < 0
-    return np.where(inward[:, None], -normals, normals), int(inward.sum())
-
-
 # ---------------------------------------------------------------------------------------------------- the CLI ----
 def machine_for_program(machine: Machine, program_text: str, part: str | None = None) -> Machine:
-    """The machine with the part placed where the program's setup comment says (``origin_mm``), as the virtual shop
-    and the shop floor do; refuses a program written for another part."""
-    from .postproc.programs import read_setup
+    """The machine with the part placed where the program's setup comment says (``programs.placed_for``)."""
+    from .postproc.programs import placed_for
 
-    setup = read_setup(program_text)
-    if part is not None and setup.get("part") and setup["part"] != part:
-        raise ProgramError(f"the program is for part {setup['part']!r}, not {part!r}")
-    origin = setup.get("origin_mm")
-    if origin is not None:
-        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-            raise ProgramError("the program's setup comment origin_mm must be three numbers")
-        machine = dataclasses.replace(machine, workpiece_origin=origin.astype(float))
-    return machine
+    return placed_for(machine, program_text, part)
 
 
 def program_compensation(program_text: str, twin: Machine) -> dict:
@@ -1181,10 +1151,7 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     else:
         normals = part_normals(cloud.points, part)
     parsed = parse_program(text, str(program_path))
-    unused = [a for a in parsed.axes_present if a not in placed.axis_names]
-    if unused:  # a program posted for another machine: refused before any work, as the diagnosis refuses it
-        raise ProgramError(f"{parsed.source}: the program moves axes {' '.join(unused)} that {placed.name} does not "
-                           "have: is it the program for this machine?")
+    check_axes(placed, parsed)  # a program posted for another machine: refused before any work, as the diagnosis
     result = identify(cloud.points, normals, deviation_um, parsed, placed,
                       parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std)
     result = dataclasses.replace(result, normals_flipped=flipped)

@@ -25,8 +25,8 @@ from ..fileio import json_text
 from ..nc.gcode import parse_program
 from .analysis import Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from .state import (ProgramError, TwinState, check_program_axes, combine_states, pauses_between, place_from_setup,
-                    twin_state)
+from ..postproc.programs import ProgramError, check_axes
+from .state import TwinState, combine_states, pauses_between, place_from_setup, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
 
@@ -58,17 +58,17 @@ def cloud_normals(points: np.ndarray, normals: np.ndarray | None, part_json: dic
     where they point into the part (a CMM may export its probe's approach direction: with every normal inward the
     cloud read 10 mm off its part, in a QA pass), or, without them, the normal of the nearest point of the part's
     probe pattern (the part's analytic surfaces from its JSON description)."""
+    if normals is not None:
+        from ..inspect.deviation import outward_normals
+
+        return outward_normals(points, normals / np.linalg.norm(normals, axis=1, keepdims=True), part_json)
     from scipy.spatial import cKDTree
 
     from ..sim.cmm import probe_pattern
 
     pts, nrm = probe_pattern(part_json, 200_000)
     _, idx = cKDTree(pts).query(points)
-    if normals is None:
-        return nrm[idx], 0
-    given = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-    inward = np.einsum("ij,ij->i", given, nrm[idx]) < 0.0
-    return np.where(inward[:, None], -given, given), int(inward.sum())
+    return nrm[idx], 0
 
 
 def run_diagnosis(points, normals, part: str, machine, program_text: str, *, candidates="all", split="region",
@@ -142,7 +142,7 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
         def gate(c=c, pj=pj):
             check_cloud_for_part(c.points, part, pj)
             placed = place_from_setup(machine, c.program_text, part)  # a program for the other part, a bad setup
-            check_program_axes(placed, parse_program(c.program_text, c.program_name))  # posted for another machine
+            check_axes(placed, parse_program(c.program_text, c.program_name))  # posted for another machine
             check_part_against_program(part, pj, c.program_text)
             normals, turned = cloud_normals(np.asarray(c.points, float), c.normals, pj)
             if turned:

@@ -31,6 +31,7 @@ import numpy as np
 from ..inspect.cloud import CloudError
 from ..machine import ErrorTwin, Machine
 from ..nc.gcode import parse_program
+from ..postproc.programs import check_axes
 
 
 @dataclass
@@ -182,36 +183,12 @@ def combine_states(states: list, pauses_s=()) -> TwinState:
     return TwinState(**out)
 
 
-class ProgramError(ValueError):
-    """A program the diagnosis refuses as input (exit 3, like a cloud): it cuts another part, another cone than the
-    part's description, moves axes the twin does not have, or its setup comment is malformed."""
-
-
 def place_from_setup(machine: Machine, program_text: str, part: str) -> Machine:
-    """The twin placed as the program's setup comment says (``(trueaxis-setup: part=.. origin_mm=..)``).
+    """The twin placed as the program's setup comment says (``programs.placed_for``; ProgramError for a program of
+    the other part or a malformed origin)."""
+    from ..postproc.programs import placed_for
 
-    Raises ProgramError when the program is for the other part or its origin is malformed."""
-    from ..postproc.programs import read_setup
-
-    setup = read_setup(program_text)
-    if setup.get("part") and setup["part"] != part:
-        raise ProgramError(f"the program is for part {setup['part']!r}, not {part!r}")
-    if "origin_mm" in setup:
-        origin = np.asarray(setup["origin_mm"], float)
-        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-            raise ProgramError("the program's setup comment origin_mm must be three numbers")
-        if not np.allclose(origin, machine.workpiece_origin, atol=1e-9):
-            machine = dataclasses.replace(machine, workpiece_origin=origin)
-    return machine
-
-
-def check_program_axes(machine: Machine, program) -> None:
-    """ProgramError when ``program`` (a parsed ``Program``) moves axes the twin does not have (a program posted for
-    another machine: the twin cannot cut it)."""
-    unused = [a for a in program.axes_present if a not in machine.axis_names]
-    if unused:
-        raise ProgramError(f"{program.source}: the program moves axes {' '.join(unused)} that {machine.name} does "
-                           f"not have")
+    return placed_for(machine, program_text, part)
 
 
 def _last_direction(qdot_all: np.ndarray) -> np.ndarray:
@@ -437,7 +414,7 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
     t0 = time.perf_counter()
     machine = place_from_setup(machine, program_text, part)
     prog = parse_program(program_text, program_name)
-    check_program_axes(machine, prog)
+    check_axes(machine, prog)
     has_force = bool(want_force and machine.cutting is not None)
     # A zero extra compliance: the shop then estimates the force (real engagement) without moving the tool.
     effects = Effects(force=ForceDeflection(np.zeros((3, 3)))) if has_force else Effects()

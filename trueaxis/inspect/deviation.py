@@ -782,3 +782,18 @@ def align_datum(points, part: dict, surfaces: list[dict], gate_mm: float = 1.0) 
             "datum_A_flatness_um": float(np.ptp(plane_a.residuals) * 1e3),
             "note": "3-2-1: A = least-squares plane, B = least-squares plane normal to A, C = least-squares offset"}
     return RigidMotion(rotation, translation, "datum", [], info)
+
+
+def outward_normals(points, normals, part: dict) -> tuple[np.ndarray, int]:
+    """A cloud's normals turned to the outward side of the part: each normal pointing into the material (against the
+    outward normal of its nearest analytic surface of the part JSON) is flipped. CMM software and scanners export
+    normals either way round (towards the probe, or into the part), and the model's contact search, which looks for
+    the tool along the normal, finds nothing along an inward one.
+
+    points, normals : (N, 3) part frame. part : the part JSON dict. Returns (outward normals (N, 3), how many were
+    flipped).
+    """
+    normals = np.asarray(normals, dtype=np.float64)
+    cad = analytic_deviation(points, analytic_surfaces(part)).normal
+    inward = np.einsum("ij,ij->i", normals, cad) < 0
+    return np.where(inward[:, None], -normals, normals), int(inward.sum())

@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fileio import OutputPathError, publish_folder, resolve_output
+from ..fileio import OutputPathError, json_ready as _clean, publish_folder, resolve_output
 from . import deviation as dv
 from .cloud import Cloud, CloudError, check_extent, read_cloud, write_deviation_csv, write_deviation_ply
 from .tolerances import CHARACTERISTICS, feature_table, load_tolerances, summary
@@ -1176,21 +1176,6 @@ def _feature_table_html(rows: list[dict]) -> str:
     return ("<h2>Feature table</h2><table class='features'><tr><th>feature</th><th>characteristic</th>"
             "<th>nominal</th><th>actual</th><th>deviation</th><th>tolerance</th><th>result</th></tr>" + body
             + "</table>")
-
-
-def _clean(value):
-    """JSON-ready: numpy scalars and arrays to Python, non-finite floats to None."""
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _clean(value.tolist())
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 def _write_point_files(inspection: Inspection, folder: Path) -> None:

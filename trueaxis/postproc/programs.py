@@ -262,6 +262,37 @@ def setup_comment(part: str, origin, placement, tool_d: float, compensation: str
             f"compensation={compensation}{t})")
 
 
+class ProgramError(ValueError):
+    """A program refused as the input of a command that needs it to fit a twin and a part (exit 3, as a refused
+    cloud): written for another part, moving axes the twin does not have, a malformed setup comment, or (the
+    identification, the diagnosis) one that did not cut the measured part."""
+
+
+def placed_for(machine: Machine, program_text: str, part: str | None = None) -> Machine:
+    """The machine with the part placed where the program's setup comment says (``origin_mm``), as the virtual shop
+    and the shop floor do. Raises ProgramError for a program of another part (``part`` given) or a malformed
+    origin."""
+    setup = read_setup(program_text)
+    if part is not None and setup.get("part") and setup["part"] != part:
+        raise ProgramError(f"the program is for part {setup['part']!r}, not {part!r}")
+    origin = setup.get("origin_mm")
+    if origin is not None:
+        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+            raise ProgramError("the program's setup comment origin_mm must be three numbers")
+        if not np.allclose(origin, machine.workpiece_origin, atol=1e-9):
+            machine = dataclasses.replace(machine, workpiece_origin=origin.astype(float))
+    return machine
+
+
+def check_axes(machine: Machine, program) -> None:
+    """ProgramError when ``program`` (a parsed ``Program``) moves axes ``machine`` does not have (a program posted
+    for another machine: the twin cannot cut it)."""
+    unused = [a for a in program.axes_present if a not in machine.axis_names]
+    if unused:
+        raise ProgramError(f"{program.source}: the program moves axes {' '.join(unused)} that {machine.name} does "
+                           f"not have: is it the program for this machine?")
+
+
 def written_for(text: str) -> tuple[str, int] | None:
     """(the machine's name, 1-based line) the program's header says it was written for (``(machine: NAME)``, the
     name's parentheses as brackets, as ``part_program`` writes it), or None when it does not say."""
