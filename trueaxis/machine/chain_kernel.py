@@ -301,16 +301,26 @@ def pose_and_axis_jacobian_parallel(q, column, rotary, tool, direction, pivot, o
 
 
 @_jit
+def _applied(R, t, p, u):
+    """The factor (R, t) applied to the point p and to the direction u: (R p + t, R u)."""
+    return _add(_mv(R, p), t), _mv(R, u)
+
+
+@_jit
 def _chain_rows(lo, hi, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
                 bed, dcomp, dbed, deriv, tip, axis, J):
     """Poses lo..hi-1 (a workspace of their own): the tip and unit axis into ``tip`` and ``axis``; with ``deriv`` the
     axis Jacobian into J (zeros there; ``dcomp`` and ``dbed`` read only then).
 
-    Per pose: the K = 2 L + 2 factors of the chain in chain order, R (K, 9), t (K, 3), with deriv their d/dq (dR, dt)
-    and the q column each depends on (col; -1: none, the bed's derivative being dbed's); then applied right to left
-    to the origin and to +z. The arrays are indexed where they are, not handed to helpers inside the loop: an array
-    handed to an inlined helper is reference-counted at each call (numba's NRT_incref / NRT_decref, two thirds of the
-    loop's time when the factors were built by helpers taking the arrays); the helpers here take and return tuples."""
+    Per pose: the K = 2 L + 2 factors of the chain (P^-1, then the links, workpiece: F E, tool: E F, the bed before
+    link bed_at) made from the tool end, each applied to the point and to the axis as soon as it is made (right to
+    left: the origin and +z to the tip and the raw axis). With deriv they are kept in chain order, R (K, 9), t (K, 3),
+    their d/dq (dR, dt) and the q column each depends on (col; -1: none, the bed's derivative being dbed's), with the
+    point and the axis seen on the right of each (p_after, u_after), for the Jacobian's pass from the left.
+
+    The arrays are indexed where they are, not handed to helpers inside the loop: an array handed to an inlined
+    helper is reference-counted at each call (numba's NRT_incref / NRT_decref, two thirds of the loop's time when the
+    factors were built by helpers taking the arrays); the helpers here take and return tuples."""
     n_links = column.shape[0]
     n_axes = q.shape[1]
     K = 2 * n_links + 2
@@ -324,82 +334,85 @@ def _chain_rows(lo, hi, q, column, rotary, tool, direction, pivot, origin, bed_a
         il = i if tilt.shape[1] > 1 else 0
         ic = i if comp.shape[1] > 1 else 0
         ib = i if bed.shape[0] > 1 else 0
-        # --- the factors: P^-1, then the links (workpiece: F E; tool: E F), the bed before link bed_at
-        for j in range(9):
-            R[0, j] = _EYE[j]
-        t[0, 0], t[0, 1], t[0, 2] = -origin[0], -origin[1], -origin[2]
-        col[0] = -1
-        k = 1
-        k_bed = -1
-        for link in range(n_links + 1):
-            if link == bed_at:
-                for j in range(9):
-                    R[k, j] = _EYE[j]
-                t[k, 0], t[k, 1], t[k, 2] = bed[ib, 0], bed[ib, 1], bed[ib, 2]
-                col[k] = -1
-                k_bed = k
-                k += 1
-            if link == n_links:
-                break
-            qa = q[i, column[link]]
-            a = (direction[link, 0], direction[link, 1], direction[link, 2])
-            c = (pivot[link, 0], pivot[link, 1], pivot[link, 2])
-            if rotary[link] and shared_frames:
-                frame = ((frames[link, 0], frames[link, 1], frames[link, 2], frames[link, 3], frames[link, 4],
-                          frames[link, 5], frames[link, 6], frames[link, 7], frames[link, 8]),
-                         (frames[link, 9], frames[link, 10], frames[link, 11]),
-                         (frames[link, 12], frames[link, 13], frames[link, 14], frames[link, 15], frames[link, 16],
-                          frames[link, 17], frames[link, 18], frames[link, 19], frames[link, 20]),
-                         (frames[link, 21], frames[link, 22], frames[link, 23]),
-                         (frames[link, 24], frames[link, 25], frames[link, 26], frames[link, 27], frames[link, 28],
-                          frames[link, 29], frames[link, 30], frames[link, 31], frames[link, 32]),
-                         (frames[link, 33], frames[link, 34], frames[link, 35], frames[link, 36], frames[link, 37],
-                          frames[link, 38], frames[link, 39], frames[link, 40], frames[link, 41]))
-                RF, tF, dRF, dtF = _turned(qa, c, zero[link, il], frame, deriv)
-            elif rotary[link]:
-                RF, tF, dRF, dtF = _located_rotary(qa, a, c, (tilt[link, il, 0], tilt[link, il, 1], tilt[link, il, 2]),
-                                                   (offset[link, il, 0], offset[link, il, 1], offset[link, il, 2]),
-                                                   zero[link, il], deriv)
-            else:
-                d = (d_act[link, il, 0], d_act[link, il, 1], d_act[link, il, 2])
-                RF, tF, dRF, dtF = _EYE, (qa * d[0], qa * d[1], qa * d[2]), _ZERO9, d
-            r, dr = _reference_point(qa, a, c, rotary[link], tool[link])
-            delta = (comp[link, ic, 0], comp[link, ic, 1], comp[link, ic, 2])
-            e = (comp[link, ic, 3], comp[link, ic, 4], comp[link, ic, 5])
-            if deriv:
-                RE, tE, dRE, dtE = _component(delta, e, r, (dcomp[link, ic, 0], dcomp[link, ic, 1], dcomp[link, ic, 2]),
-                                              (dcomp[link, ic, 3], dcomp[link, ic, 4], dcomp[link, ic, 5]), dr, True)
-            else:
-                RE, tE, dRE, dtE = _component(delta, e, r, _ZERO3, _ZERO3, _ZERO3, False)
-            # Tool branch: E then F; workpiece branch: F then E.
-            kf, ke = (k + 1, k) if tool[link] else (k, k + 1)
-            for j in range(9):
-                R[kf, j] = RF[j]
-                R[ke, j] = RE[j]
-            for j in range(3):
-                t[kf, j] = tF[j]
-                t[ke, j] = tE[j]
-            if deriv:
-                for j in range(9):
-                    dR[kf, j] = dRF[j]
-                    dR[ke, j] = dRE[j]
-                for j in range(3):
-                    dt[kf, j] = dtF[j]
-                    dt[ke, j] = dtE[j]
-            col[kf] = column[link]
-            col[ke] = column[link]
-            k += 2
-        # --- the factors applied right to left to the origin and to +z (with deriv, the point and the axis seen on
-        # the right of each factor kept)
         p, u_raw = _ZERO3, _Z
-        for k in range(K - 1, -1, -1):
-            if deriv:
-                for j in range(3):
-                    p_after[k, j] = p[j]
-                    u_after[k, j] = u_raw[j]
-            Rk = (R[k, 0], R[k, 1], R[k, 2], R[k, 3], R[k, 4], R[k, 5], R[k, 6], R[k, 7], R[k, 8])
-            p = _add(_mv(Rk, p), (t[k, 0], t[k, 1], t[k, 2]))
-            u_raw = _mv(Rk, u_raw)
+        k = K  # the next factor made is factor k - 1 in chain order
+        k_bed = -1
+        for link in range(n_links, -1, -1):
+            if link < n_links:
+                qa = q[i, column[link]]
+                a = (direction[link, 0], direction[link, 1], direction[link, 2])
+                c = (pivot[link, 0], pivot[link, 1], pivot[link, 2])
+                if rotary[link] and shared_frames:
+                    frame = ((frames[link, 0], frames[link, 1], frames[link, 2], frames[link, 3], frames[link, 4],
+                              frames[link, 5], frames[link, 6], frames[link, 7], frames[link, 8]),
+                             (frames[link, 9], frames[link, 10], frames[link, 11]),
+                             (frames[link, 12], frames[link, 13], frames[link, 14], frames[link, 15], frames[link, 16],
+                              frames[link, 17], frames[link, 18], frames[link, 19], frames[link, 20]),
+                             (frames[link, 21], frames[link, 22], frames[link, 23]),
+                             (frames[link, 24], frames[link, 25], frames[link, 26], frames[link, 27], frames[link, 28],
+                              frames[link, 29], frames[link, 30], frames[link, 31], frames[link, 32]),
+                             (frames[link, 33], frames[link, 34], frames[link, 35], frames[link, 36], frames[link, 37],
+                              frames[link, 38], frames[link, 39], frames[link, 40], frames[link, 41]))
+                    RF, tF, dRF, dtF = _turned(qa, c, zero[link, il], frame, deriv)
+                elif rotary[link]:
+                    RF, tF, dRF, dtF = _located_rotary(qa, a, c, (tilt[link, il, 0], tilt[link, il, 1],
+                                                                  tilt[link, il, 2]),
+                                                       (offset[link, il, 0], offset[link, il, 1], offset[link, il, 2]),
+                                                       zero[link, il], deriv)
+                else:
+                    d = (d_act[link, il, 0], d_act[link, il, 1], d_act[link, il, 2])
+                    RF, tF, dRF, dtF = _EYE, (qa * d[0], qa * d[1], qa * d[2]), _ZERO9, d
+                r, dr = _reference_point(qa, a, c, rotary[link], tool[link])
+                delta = (comp[link, ic, 0], comp[link, ic, 1], comp[link, ic, 2])
+                e = (comp[link, ic, 3], comp[link, ic, 4], comp[link, ic, 5])
+                if deriv:
+                    RE, tE, dRE, dtE = _component(delta, e, r, (dcomp[link, ic, 0], dcomp[link, ic, 1],
+                                                                 dcomp[link, ic, 2]),
+                                                  (dcomp[link, ic, 3], dcomp[link, ic, 4], dcomp[link, ic, 5]), dr,
+                                                  True)
+                else:
+                    RE, tE, dRE, dtE = _component(delta, e, r, _ZERO3, _ZERO3, _ZERO3, False)
+                # the link's two factors, the later one in chain order first (tool branch: E F; workpiece: F E)
+                for which in range(2):
+                    if (which == 0) == tool[link]:
+                        Rs, ts, dRs, dts = RF, tF, dRF, dtF
+                    else:
+                        Rs, ts, dRs, dts = RE, tE, dRE, dtE
+                    k -= 1
+                    if deriv:
+                        for j in range(9):
+                            R[k, j] = Rs[j]
+                            dR[k, j] = dRs[j]
+                        for j in range(3):
+                            t[k, j] = ts[j]
+                            dt[k, j] = dts[j]
+                            p_after[k, j] = p[j]
+                            u_after[k, j] = u_raw[j]
+                        col[k] = column[link]
+                    p, u_raw = _applied(Rs, ts, p, u_raw)
+            if link == bed_at:  # the bed, just before link bed_at in chain order
+                tB = (bed[ib, 0], bed[ib, 1], bed[ib, 2])
+                k -= 1
+                k_bed = k
+                if deriv:
+                    for j in range(9):
+                        R[k, j] = _EYE[j]
+                    for j in range(3):
+                        t[k, j] = tB[j]
+                        p_after[k, j] = p[j]
+                        u_after[k, j] = u_raw[j]
+                    col[k] = -1
+                p, u_raw = _applied(_EYE, tB, p, u_raw)
+        tP = (-origin[0], -origin[1], -origin[2])  # P^-1, factor 0
+        if deriv:
+            for j in range(9):
+                R[0, j] = _EYE[j]
+            for j in range(3):
+                t[0, j] = tP[j]
+                p_after[0, j] = p[j]
+                u_after[0, j] = u_raw[j]
+            col[0] = -1
+        p, u_raw = _applied(_EYE, tP, p, u_raw)
         u, norm = _unit(u_raw)
         for j in range(3):
             tip[i, j] = p[j]
