@@ -1184,8 +1184,8 @@ class _Poster:
         ``fit_arcs``) or become straight pieces.
 
         All arcs are sampled and solved together (one Newton solve per stage, not per arc); ``solved_ends``: (nominal,
-        commanded) poses of the chunk's block ends, whose solves the arcs' last points take. Returns (pieces {k: (n, 6)},
-        the arcs kept (k,) int, the others' modes {k: "fit" | "lines"}); k indexes ``rows``."""
+        commanded) poses of the chunk's block ends, whose solves the arcs' last points take. Returns (pieces
+        {k: (n, 6)}, the arcs kept (k,) int, the others' modes {k: "fit" | "lines"}); k indexes ``rows``."""
         p = self.p
         out, modes = {}, {}
         arc_idx = np.asarray(arc_idx, int)
