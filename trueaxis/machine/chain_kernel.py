@@ -51,8 +51,10 @@ from ..compiled import numba  # numba, or the kernels compiled ahead of time (se
 import numpy as np
 
 # Inside the per-pose loop, 3-vectors and 3x3 matrices are tuples (3 floats; 9 floats, row-major): the compiled code
-# keeps them in registers, with no array views (and their reference counting). The functions that take arrays are
-# inlined into the kernels (numba IR), those on tuples are left to LLVM; compiling takes about 10 s, once: cache=True.
+# keeps them in registers, with no array views (and their reference counting). The loop (``_chain_rows``) indexes its
+# arrays in place and hands only tuples to the helpers, left to LLVM: an array handed to a helper, even one inlined
+# into the kernel (numba IR), is reference-counted at each call. The helpers that take arrays (``_store``, ``_row``)
+# serve the per-call set-up only. Compiling takes about 10 s, once: cache=True.
 _EYE = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 _ZERO9 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _ZERO3 = (0.0, 0.0, 0.0)
@@ -126,12 +128,6 @@ def _row(arr, i):
 
 
 @_jit_inline
-def _row9(arr, i):
-    """arr[i, :9] of a 2-d array, as a matrix."""
-    return (arr[i, 0], arr[i, 1], arr[i, 2], arr[i, 3], arr[i, 4], arr[i, 5], arr[i, 6], arr[i, 7], arr[i, 8])
-
-
-@_jit_inline
 def _store(arr, i, x):
     """arr[i, :len(x)] = x."""
     for j in range(len(x)):
@@ -174,20 +170,6 @@ def _store_frame(frames, link, frame):
         frames[link, 21 + j] = tLi[j]
 
 
-@_jit_inline
-def _load_frame(frames, link):
-    """The ``_line_frame`` stored by ``_store_frame``."""
-    f = frames
-    RL = (f[link, 0], f[link, 1], f[link, 2], f[link, 3], f[link, 4], f[link, 5], f[link, 6], f[link, 7], f[link, 8])
-    RLi = (f[link, 12], f[link, 13], f[link, 14], f[link, 15], f[link, 16], f[link, 17], f[link, 18], f[link, 19],
-           f[link, 20])
-    K = (f[link, 24], f[link, 25], f[link, 26], f[link, 27], f[link, 28], f[link, 29], f[link, 30], f[link, 31],
-         f[link, 32])
-    KK = (f[link, 33], f[link, 34], f[link, 35], f[link, 36], f[link, 37], f[link, 38], f[link, 39], f[link, 40],
-          f[link, 41])
-    return RL, (f[link, 9], f[link, 10], f[link, 11]), RLi, (f[link, 21], f[link, 22], f[link, 23]), K, KK
-
-
 @_jit
 def _located_rotary(q, a, c, eps, off, z, deriv):
     """F = L G(q + z) L^-1 of a rotary link as (R, t), and dF/dq as (dR, dt) (zeros unless deriv).
@@ -227,12 +209,6 @@ def _component(delta, e, r, ddelta, de, dr, deriv):
     return R, t, _skew(de), _sub(_sub(ddelta, _cross(de, r)), _cross(e, dr))
 
 
-@_jit_inline
-def _at(arr, i):
-    """Pose i's row of a per-pose input whose pose dimension is its second (L, n|1, ...): row 0 if shared."""
-    return i if arr.shape[1] > 1 else 0
-
-
 @_jit
 def _reference_point(q, a, c, rotary, tool):
     """The component errors' reference point r and dr/dq: G(q) applied to the origin for a tool-branch link (linear:
@@ -250,7 +226,7 @@ def _reference_point(q, a, c, rotary, tool):
 @_jit_inline
 def _line_frames(rotary, direction, pivot, tilt, offset):
     """(L, 42): every rotary link's ``_line_frame`` when the location errors are the same for every pose (tilt and
-    offset with 1 for their pose dimension), for ``_build_chain``; else (0, 42): computed pose by pose."""
+    offset with 1 for their pose dimension), for ``_chain_rows``; else (0, 42): computed pose by pose."""
     n_links = rotary.shape[0]
     shared = tilt.shape[1] == 1 and offset.shape[1] == 1
     frames = np.zeros((n_links if shared else 0, 42))
@@ -260,78 +236,6 @@ def _line_frames(rotary, direction, pivot, tilt, offset):
                 _store_frame(frames, link, _line_frame(_row(direction, link), _row(pivot, link),
                                                        _vec(tilt, link, 0, 0), _vec(offset, link, 0, 0)))
     return frames
-
-
-@_jit_inline
-def _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed,
-                 dcomp, deriv, R, t, dR, dt, col, frames):
-    """Fill the K = 2 L + 2 factors of pose i in chain order: R (K, 9), t (K, 3); with deriv their d/dq (dR, dt) and
-    the q column each depends on (col; -1: none, the bed's derivative being the caller's). Returns the bed's index.
-    ``frames``: the rotary links' ``_line_frames`` (none: computed here)."""
-    n_links = column.shape[0]
-    il, ic = _at(tilt, i), _at(comp, i)
-    ib = i if bed.shape[0] > 1 else 0
-    _store(R, 0, _EYE)
-    _store(t, 0, (-origin[0], -origin[1], -origin[2]))
-    col[0] = -1
-    k = 1
-    k_bed = -1
-    for link in range(n_links + 1):
-        if link == bed_at:
-            _store(R, k, _EYE)
-            _store(t, k, _row(bed, ib))
-            col[k] = -1
-            k_bed = k
-            k += 1
-        if link == n_links:
-            break
-        qa = q[i, column[link]]
-        a, c = _row(direction, link), _row(pivot, link)
-        if rotary[link] and frames.shape[0] > 0:
-            RF, tF, dRF, dtF = _turned(qa, c, zero[link, il], _load_frame(frames, link), deriv)
-        elif rotary[link]:
-            RF, tF, dRF, dtF = _located_rotary(qa, a, c, _vec(tilt, link, il, 0), _vec(offset, link, il, 0),
-                                               zero[link, il], deriv)
-        else:
-            d = _vec(d_act, link, il, 0)
-            RF, tF, dRF, dtF = _EYE, (qa * d[0], qa * d[1], qa * d[2]), _ZERO9, d
-        r, dr = _reference_point(qa, a, c, rotary[link], tool[link])
-        if deriv:
-            RE, tE, dRE, dtE = _component(_vec(comp, link, ic, 0), _vec(comp, link, ic, 3), r,
-                                          _vec(dcomp, link, ic, 0), _vec(dcomp, link, ic, 3), dr, True)
-        else:
-            RE, tE, dRE, dtE = _component(_vec(comp, link, ic, 0), _vec(comp, link, ic, 3), r, _ZERO3, _ZERO3,
-                                          _ZERO3, False)
-        # Tool branch: E then F; workpiece branch: F then E.
-        kf, ke = (k + 1, k) if tool[link] else (k, k + 1)
-        _store(R, kf, RF)
-        _store(t, kf, tF)
-        _store(R, ke, RE)
-        _store(t, ke, tE)
-        if deriv:
-            _store(dR, kf, dRF)
-            _store(dt, kf, dtF)
-            _store(dR, ke, dRE)
-            _store(dt, ke, dtE)
-        col[kf] = column[link]
-        col[ke] = column[link]
-        k += 2
-    return k_bed
-
-
-@_jit_inline
-def _tip_and_axis(R, t, p_after, u_after, keep):
-    """Apply the factors right to left to the origin and to +z: the tip and the raw (unnormalised) tool axis.
-    With keep, p_after[k], u_after[k] get the point and the axis seen on the right of factor k."""
-    p, u = _ZERO3, _Z
-    for k in range(R.shape[0] - 1, -1, -1):
-        if keep:
-            _store(p_after, k, p)
-            _store(u_after, k, u)
-        Rk = _row9(R, k)
-        p = _add(_mv(Rk, p), _row(t, k))
-        u = _mv(Rk, u)
-    return p, u
 
 
 @_jit
@@ -345,10 +249,11 @@ def _unit(u):
 @numba.njit(cache=True)
 def pose(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed):
     """Tool tip (n, 3) mm and unit tool axis (n, 3), part frame (arguments: module docstring)."""
-    n = q.shape[0]
+    n, n_axes = q.shape
     tip, axis = np.empty((n, 3)), np.empty((n, 3))
-    _pose_rows(0, n, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed,
-               tip, axis)
+    # No derivatives: comp stands in for dcomp, empty arrays for dbed and J, all unread.
+    _chain_rows(0, n, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed,
+                comp, np.empty((1, 3, n_axes)), False, tip, axis, np.empty((0, 6, n_axes)))
     return tip, axis
 
 
@@ -356,31 +261,14 @@ def pose(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset
 def pose_parallel(q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed):
     """``pose``, the poses in blocks of PARALLEL_BLOCK over the threads: the same numbers (each pose is computed
     alone, by the same operations)."""
-    n = q.shape[0]
+    n, n_axes = q.shape
     tip, axis = np.empty((n, 3)), np.empty((n, 3))
+    dbed, J = np.empty((1, 3, n_axes)), np.empty((0, 6, n_axes))  # (unread: no derivatives)
     nb = (n + PARALLEL_BLOCK - 1) // PARALLEL_BLOCK
     for b in numba.prange(nb):
-        _pose_rows(b * PARALLEL_BLOCK, min(n, (b + 1) * PARALLEL_BLOCK), q, column, rotary, tool, direction, pivot,
-                   origin, bed_at, tilt, offset, zero, d_act, comp, bed, tip, axis)
+        _chain_rows(b * PARALLEL_BLOCK, min(n, (b + 1) * PARALLEL_BLOCK), q, column, rotary, tool, direction, pivot,
+                    origin, bed_at, tilt, offset, zero, d_act, comp, bed, comp, dbed, False, tip, axis, J)
     return tip, axis
-
-
-@_jit
-def _pose_rows(lo, hi, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
-               bed, tip, axis):
-    """``pose`` for poses lo..hi-1, into tip and axis (a workspace of its own)."""
-    K = 2 * column.shape[0] + 2
-    R, t, dR, dt = np.empty((K, 9)), np.empty((K, 3)), np.empty((K, 9)), np.empty((K, 3))
-    col = np.empty(K, np.int64)
-    p_after, u_after = np.empty((K, 3)), np.empty((K, 3))
-    frames = _line_frames(rotary, direction, pivot, tilt, offset)
-    for i in range(lo, hi):
-        # No derivatives: comp stands in for dcomp, unread.
-        _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
-                     bed, comp, False, R, t, dR, dt, col, frames)
-        p, u_raw = _tip_and_axis(R, t, p_after, u_after, False)
-        _store(tip, i, p)
-        _store(axis, i, _unit(u_raw)[0])
 
 
 @numba.njit(cache=True)
@@ -394,8 +282,8 @@ def pose_and_axis_jacobian(q, column, rotary, tool, direction, pivot, origin, be
     """
     n, n_axes = q.shape
     tip, axis, J = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 6, n_axes))
-    _jacobian_rows(0, n, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
-                   bed, dcomp, dbed, tip, axis, J)
+    _chain_rows(0, n, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
+                bed, dcomp, dbed, True, tip, axis, J)
     return tip, axis, J
 
 
@@ -407,46 +295,149 @@ def pose_and_axis_jacobian_parallel(q, column, rotary, tool, direction, pivot, o
     tip, axis, J = np.empty((n, 3)), np.empty((n, 3)), np.zeros((n, 6, n_axes))
     nb = (n + PARALLEL_BLOCK - 1) // PARALLEL_BLOCK
     for b in numba.prange(nb):
-        _jacobian_rows(b * PARALLEL_BLOCK, min(n, (b + 1) * PARALLEL_BLOCK), q, column, rotary, tool, direction,
-                       pivot, origin, bed_at, tilt, offset, zero, d_act, comp, bed, dcomp, dbed, tip, axis, J)
+        _chain_rows(b * PARALLEL_BLOCK, min(n, (b + 1) * PARALLEL_BLOCK), q, column, rotary, tool, direction, pivot,
+                    origin, bed_at, tilt, offset, zero, d_act, comp, bed, dcomp, dbed, True, tip, axis, J)
     return tip, axis, J
 
 
 @_jit
-def _jacobian_rows(lo, hi, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
-                   bed, dcomp, dbed, tip, axis, J):
-    """``pose_and_axis_jacobian`` for poses lo..hi-1, into tip, axis and J (zeros there; a workspace of its own)."""
+def _applied(R, t, p, u):
+    """The factor (R, t) applied to the point p and to the direction u: (R p + t, R u)."""
+    return _add(_mv(R, p), t), _mv(R, u)
+
+
+@_jit
+def _chain_rows(lo, hi, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act, comp,
+                bed, dcomp, dbed, deriv, tip, axis, J):
+    """Poses lo..hi-1 (a workspace of their own): the tip and unit axis into ``tip`` and ``axis``; with ``deriv`` the
+    axis Jacobian into J (zeros there; ``dcomp`` and ``dbed`` read only then).
+
+    Per pose: the K = 2 L + 2 factors of the chain (P^-1, then the links, workpiece: F E, tool: E F, the bed before
+    link bed_at) made from the tool end, each applied to the point and to the axis as soon as it is made (right to
+    left: the origin and +z to the tip and the raw axis). With deriv they are kept in chain order, R (K, 9), t (K, 3),
+    their d/dq (dR, dt) and the q column each depends on (col; -1: none, the bed's derivative being dbed's), with the
+    point and the axis seen on the right of each (p_after, u_after), for the Jacobian's pass from the left.
+
+    The arrays are indexed where they are, not handed to helpers inside the loop: an array handed to an inlined
+    helper is reference-counted at each call (numba's NRT_incref / NRT_decref, two thirds of the loop's time when the
+    factors were built by helpers taking the arrays); the helpers here take and return tuples."""
+    n_links = column.shape[0]
     n_axes = q.shape[1]
-    K = 2 * column.shape[0] + 2
+    K = 2 * n_links + 2
     R, t, dR, dt = np.empty((K, 9)), np.empty((K, 3)), np.empty((K, 9)), np.empty((K, 3))
     col = np.empty(K, np.int64)
     p_after, u_after = np.empty((K, 3)), np.empty((K, 3))
-    frames = _line_frames(rotary, direction, pivot, tilt, offset)
+    frames = _line_frames(rotary, direction, pivot, tilt, offset)  # the rotary links' line frames, or (0, 42)
+    shared_frames = frames.shape[0] > 0
     for i in range(lo, hi):
-        k_bed = _build_chain(i, q, column, rotary, tool, direction, pivot, origin, bed_at, tilt, offset, zero, d_act,
-                             comp, bed, dcomp, True, R, t, dR, dt, col, frames)
-        idb = i if dbed.shape[0] > 1 else 0
-        p, u_raw = _tip_and_axis(R, t, p_after, u_after, True)
+        # Pose i's row of a per-pose input (row 0 where it is shared: 1 for its pose dimension)
+        il = i if tilt.shape[1] > 1 else 0
+        ic = i if comp.shape[1] > 1 else 0
+        ib = i if bed.shape[0] > 1 else 0
+        p, u_raw = _ZERO3, _Z
+        k = K  # the next factor made is factor k - 1 in chain order
+        k_bed = -1
+        for link in range(n_links, -1, -1):
+            if link < n_links:
+                qa = q[i, column[link]]
+                a = (direction[link, 0], direction[link, 1], direction[link, 2])
+                c = (pivot[link, 0], pivot[link, 1], pivot[link, 2])
+                if rotary[link] and shared_frames:
+                    frame = ((frames[link, 0], frames[link, 1], frames[link, 2], frames[link, 3], frames[link, 4],
+                              frames[link, 5], frames[link, 6], frames[link, 7], frames[link, 8]),
+                             (frames[link, 9], frames[link, 10], frames[link, 11]),
+                             (frames[link, 12], frames[link, 13], frames[link, 14], frames[link, 15], frames[link, 16],
+                              frames[link, 17], frames[link, 18], frames[link, 19], frames[link, 20]),
+                             (frames[link, 21], frames[link, 22], frames[link, 23]),
+                             (frames[link, 24], frames[link, 25], frames[link, 26], frames[link, 27], frames[link, 28],
+                              frames[link, 29], frames[link, 30], frames[link, 31], frames[link, 32]),
+                             (frames[link, 33], frames[link, 34], frames[link, 35], frames[link, 36], frames[link, 37],
+                              frames[link, 38], frames[link, 39], frames[link, 40], frames[link, 41]))
+                    RF, tF, dRF, dtF = _turned(qa, c, zero[link, il], frame, deriv)
+                elif rotary[link]:
+                    RF, tF, dRF, dtF = _located_rotary(qa, a, c, (tilt[link, il, 0], tilt[link, il, 1],
+                                                                  tilt[link, il, 2]),
+                                                       (offset[link, il, 0], offset[link, il, 1], offset[link, il, 2]),
+                                                       zero[link, il], deriv)
+                else:
+                    d = (d_act[link, il, 0], d_act[link, il, 1], d_act[link, il, 2])
+                    RF, tF, dRF, dtF = _EYE, (qa * d[0], qa * d[1], qa * d[2]), _ZERO9, d
+                r, dr = _reference_point(qa, a, c, rotary[link], tool[link])
+                delta = (comp[link, ic, 0], comp[link, ic, 1], comp[link, ic, 2])
+                e = (comp[link, ic, 3], comp[link, ic, 4], comp[link, ic, 5])
+                if deriv:
+                    RE, tE, dRE, dtE = _component(delta, e, r, (dcomp[link, ic, 0], dcomp[link, ic, 1],
+                                                                 dcomp[link, ic, 2]),
+                                                  (dcomp[link, ic, 3], dcomp[link, ic, 4], dcomp[link, ic, 5]), dr,
+                                                  True)
+                else:
+                    RE, tE, dRE, dtE = _component(delta, e, r, _ZERO3, _ZERO3, _ZERO3, False)
+                # the link's two factors, the later one in chain order first (tool branch: E F; workpiece: F E)
+                for which in range(2):
+                    if (which == 0) == tool[link]:
+                        Rs, ts, dRs, dts = RF, tF, dRF, dtF
+                    else:
+                        Rs, ts, dRs, dts = RE, tE, dRE, dtE
+                    k -= 1
+                    if deriv:
+                        for j in range(9):
+                            R[k, j] = Rs[j]
+                            dR[k, j] = dRs[j]
+                        for j in range(3):
+                            t[k, j] = ts[j]
+                            dt[k, j] = dts[j]
+                            p_after[k, j] = p[j]
+                            u_after[k, j] = u_raw[j]
+                        col[k] = column[link]
+                    p, u_raw = _applied(Rs, ts, p, u_raw)
+            if link == bed_at:  # the bed, just before link bed_at in chain order
+                tB = (bed[ib, 0], bed[ib, 1], bed[ib, 2])
+                k -= 1
+                k_bed = k
+                if deriv:
+                    for j in range(9):
+                        R[k, j] = _EYE[j]
+                    for j in range(3):
+                        t[k, j] = tB[j]
+                        p_after[k, j] = p[j]
+                        u_after[k, j] = u_raw[j]
+                    col[k] = -1
+                p, u_raw = _applied(_EYE, tB, p, u_raw)
+        tP = (-origin[0], -origin[1], -origin[2])  # P^-1, factor 0
+        if deriv:
+            for j in range(9):
+                R[0, j] = _EYE[j]
+            for j in range(3):
+                t[0, j] = tP[j]
+                p_after[0, j] = p[j]
+                u_after[0, j] = u_raw[j]
+            col[0] = -1
+        p, u_raw = _applied(_EYE, tP, p, u_raw)
         u, norm = _unit(u_raw)
-        _store(tip, i, p)
-        _store(axis, i, u)
+        for j in range(3):
+            tip[i, j] = p[j]
+            axis[i, j] = u[j]
+        if not deriv:
+            continue
         # d(chain)/dq through factor k: RA (dR_k p_after_k + dt_k) and RA dR_k u_after_k, RA the rotations before k.
+        idb = i if dbed.shape[0] > 1 else 0
         RA = _EYE
         for k in range(K):
-            c = col[k]
-            if c >= 0:
-                dRk = _row9(dR, k)
-                dp = _mv(RA, _add(_mv(dRk, _row(p_after, k)), _row(dt, k)))
-                du = _mv(RA, _mv(dRk, _row(u_after, k)))
+            cq = col[k]
+            if cq >= 0:
+                dRk = (dR[k, 0], dR[k, 1], dR[k, 2], dR[k, 3], dR[k, 4], dR[k, 5], dR[k, 6], dR[k, 7], dR[k, 8])
+                dp = _mv(RA, _add(_mv(dRk, (p_after[k, 0], p_after[k, 1], p_after[k, 2])),
+                                  (dt[k, 0], dt[k, 1], dt[k, 2])))
+                du = _mv(RA, _mv(dRk, (u_after[k, 0], u_after[k, 1], u_after[k, 2])))
                 for j in range(3):
-                    J[i, j, c] += dp[j]
-                    J[i, 3 + j, c] += du[j]
+                    J[i, j, cq] += dp[j]
+                    J[i, 3 + j, cq] += du[j]
             elif k == k_bed:
                 for c2 in range(n_axes):
                     dp = _mv(RA, (dbed[idb, 0, c2], dbed[idb, 1, c2], dbed[idb, 2, c2]))
                     for j in range(3):
                         J[i, j, c2] += dp[j]
-            RA = _mm(RA, _row9(R, k))
+            RA = _mm(RA, (R[k, 0], R[k, 1], R[k, 2], R[k, 3], R[k, 4], R[k, 5], R[k, 6], R[k, 7], R[k, 8]))
         # The unit axis u = raw / |raw|: du = (I - u u^T) d raw / |raw|.
         for c in range(n_axes):
             s = u[0] * J[i, 3, c] + u[1] * J[i, 4, c] + u[2] * J[i, 5, c]

@@ -302,38 +302,50 @@ def next_check_candidate(buf, plain, pos):
     """The first offset >= ``pos`` of ``buf`` (uint8, ASCII) where a block may need the checks word by word
     (``nc.check``), or -1: where one of its patterns matches -- a byte no plain move has (``plain``: True for the
     bytes one may), a G code other than G0..G3 (``G(?![ \t]*0?[0-3](?![0-9.]))``), a G followed by another on its
-    line (``G[^G\n]*G``), an N not at the start of a line, an N with a sign (``N[ \t]*[-+]``)."""
+    line (``G[^G\n]*G``), an N not at the start of a line, an N with a sign (``N[ \t]*[-+]``).
+
+    One pass over the bytes: a G0..G3 waits (``pending``) for another G on its line, found as the scan goes on,
+    instead of a look ahead to the line's end at every G; the rest of the line is looked at only where another pattern
+    matches after such a G (the G's offset is then the answer if a G follows on the line: it comes first)."""
     n = buf.shape[0]
+    pending = -1  # a G0..G3 of this line before i, with no G after it so far
     for i in range(pos, n):
         c = buf[i]
+        hit = False
         if not plain[c]:
-            return i
-        if c == _G:
+            hit = True
+        elif c == _G:
+            if pending >= 0:
+                return pending  # a G followed by another on its line
             j = i + 1
             while j < n and (buf[j] == _SP or buf[j] == _TAB):
                 j += 1
-            # G0..G3 (G00..G03): the lookahead's two ways, '0' then the digit, or the digit alone
-            motion = False
-            if j + 1 < n and buf[j] == _D0 and buf[j + 1] >= _D0 and buf[j + 1] <= _D3 \
-                    and not _digit_or_point(buf, j + 2, n):
-                motion = True
-            elif j < n and buf[j] >= _D0 and buf[j] <= _D3 and not _digit_or_point(buf, j + 1, n):
-                motion = True
-            if not motion:
+            # G0..G3 (G00..G03): the lookahead's two ways, '0' then the digit, or the digit alone, either not
+            # followed by a digit or a point
+            more1 = j + 1 < n and ((buf[j + 1] >= _D0 and buf[j + 1] <= _D9) or buf[j + 1] == _DOT)
+            more2 = j + 2 < n and ((buf[j + 2] >= _D0 and buf[j + 2] <= _D9) or buf[j + 2] == _DOT)
+            if not ((j + 1 < n and buf[j] == _D0 and buf[j + 1] >= _D0 and buf[j + 1] <= _D3 and not more2)
+                    or (j < n and buf[j] >= _D0 and buf[j] <= _D3 and not more1)):
                 return i
-            k = i + 1
-            while k < n and buf[k] != _G and buf[k] != _LF:
-                k += 1
-            if k < n and buf[k] == _G:
-                return i
+            pending = i
         elif c == _N:
             if i > 0 and buf[i - 1] != _LF:
-                return i
-            j = i + 1
-            while j < n and (buf[j] == _SP or buf[j] == _TAB):
-                j += 1
-            if j < n and (buf[j] == _PLUS or buf[j] == _MINUS):
-                return i
+                hit = True
+            else:
+                j = i + 1
+                while j < n and (buf[j] == _SP or buf[j] == _TAB):
+                    j += 1
+                hit = j < n and (buf[j] == _PLUS or buf[j] == _MINUS)
+        elif c == _LF:
+            pending = -1
+        if hit:
+            if pending >= 0:  # a G on the pending G's line after this byte: the G's match comes first
+                k = i + 1
+                while k < n and buf[k] != _G and buf[k] != _LF:
+                    k += 1
+                if k < n and buf[k] == _G:
+                    return pending
+            return i
     return -1
 
 

@@ -67,9 +67,20 @@ class _Features:
 
     @staticmethod
     def search(text):
-        # (each pattern only where its first letter occurs at all: a fast look first)
-        return "#" in text or "[" in text or any(p.pattern[0] in text and p.search(text)
-                                                 for p in _FEATURE_PATTERNS) or None
+        return "#" in text or "[" in text or any(_found(p, text) for p in _FEATURE_PATTERNS) or None
+
+
+def _found(pattern, text) -> bool:
+    """Does ``pattern`` (starting with a literal letter) match somewhere in ``text``? Tried only where its letter
+    occurs (``str.find`` runs at memory speed; ``search`` steps through every character: 0.3 s on a 75 MB program
+    whose comments have an 'm' near the top and none after)."""
+    letter = pattern.pattern[0]
+    at = text.find(letter)
+    while at >= 0:
+        if pattern.match(text, at):
+            return True
+        at = text.find(letter, at + 1)
+    return False
 
 
 _FEATURES = _Features()

@@ -673,7 +673,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                 if li >= blk_hi:  # the next FAST_READ_BLOCK lines
                     blk_lo, blk_hi, blk, blk_code, blk_vals, blk_run = self.scan_block(pre, li, n_lines)
                 i = li - blk_lo
-                g = blk_code[i]
+                g = int(blk_code[i])
                 if g < 4 and blk_run[i] >= min_run:
                     run = self.fast_run(blk, li, blk_lo, pos, motion_mode, feed)
                     if run is not None:  # its lines after this one skipped (in C)
@@ -682,8 +682,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                         continue
                 fast = g < 4 or (None if g == 4 else False)  # 4: more digits than the pre-scan reads: the regex
                 if fast:
-                    o = i * 11
-                    x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = blk_vals[o:o + 11]
+                    x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = blk_vals[i].tolist()
             if fast is None:
                 fast, g, x, y, z, a_, b_, c_, i_, j_, k_, r_, f_ = _regex_words(fast_match(raw))
             if fast:  # (values: NaN where the block has no such word; g: -1 where it has no G word)
@@ -789,8 +788,9 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         return pre, fast_interp.MIN_RUN
 
     def scan_block(self, pre, lo, n_lines):
-        """The pre-scan of FAST_READ_BLOCK lines from lo: (lo, hi, the kernel's arrays, code per line, flat values, run
-        length per line)."""
+        """The pre-scan of FAST_READ_BLOCK lines from lo: (lo, hi, the kernel's arrays, code per line, values per line
+        (lines, 11), run length per line), as arrays: the loop reads the lines it does not hand to ``fast_run`` (a few
+        per cent of a long program's lines), not every line's 11 values as Python floats."""
         from . import fast_interp, fast_read
 
         hi = min(n_lines, lo + FAST_READ_BLOCK)
@@ -799,11 +799,9 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         else:
             b_status, b_g, b_vals = fast_read.scan_lines(pre[1], pre[0], lo, hi)
         # code: the G digit (-1: none) for a block read here, 4: by the regex, 5: not a fast block
-        code = np.where(b_status == fast_read.LINE_FAST, b_g, np.where(b_status == fast_read.LINE_SLOW, 4, 5)).tolist()
-        # one flat list of floats (no list per line: fewer objects for the garbage collector)
-        vals = b_vals.ravel().tolist()
-        runs = fast_interp.run_lengths(b_status, b_g, b_vals).tolist() if fast_interp.ENABLED else [0] * len(code)
-        return lo, hi, (b_status, b_g, b_vals), code, vals, runs
+        code = np.where(b_status == fast_read.LINE_FAST, b_g, np.where(b_status == fast_read.LINE_SLOW, 4, 5))
+        runs = fast_interp.run_lengths(b_status, b_g, b_vals) if fast_interp.ENABLED else np.zeros(code.size, np.int64)
+        return lo, hi, (b_status, b_g, b_vals), code, b_vals, runs
 
     def fast_run(self, blk, li, lo, pos, motion_mode, feed):
         """A run of plain straight moves from line li, read in compiled code (fast_interp): (position, motion

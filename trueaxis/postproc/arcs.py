@@ -318,23 +318,26 @@ class ArcFitter:
         from .post import _arcs_geometry
 
         ps, p = self.ps, self.p
-        K = rows.size
-        k = np.arange(K)
-        ii, jj, nn, a0, sweep, rad0, rad1 = _arcs_geometry(p, rows)
-        sign = np.where(p.motion[rows] == ARC_CCW, 1.0, -1.0)
-        centre6 = p.start[rows].copy()
-        centre6[k, ii] = p.arc_center[rows][k, ii]
-        centre6[k, jj] = p.arc_center[rows][k, jj]
+        # the arcs' frames once per arc (the points of an arc share it): the same numbers, point by point
+        arcs, at = np.unique(rows, return_inverse=True)
+        k = np.arange(arcs.size)
+        ii, jj, nn, a0, sweep, rad0, rad1 = _arcs_geometry(p, arcs)
+        centre6 = p.start[arcs].copy()
+        centre6[k, ii] = p.arc_center[arcs][k, ii]
+        centre6[k, jj] = p.arc_center[arcs][k, jj]
 
         def image(pts6):
-            return ps.twin.nominal_pose(ps.to_machine(p.to_machine(pts6, rows), p.inch[rows]))[0]
+            return ps.twin.nominal_pose(ps.to_machine(p.to_machine(pts6, arcs), p.inch[arcs]))[0]
 
         o = image(centre6)
         axes = []
         for col in (ii, jj, nn):
             unit = centre6.copy()
             unit[k, col] += 1.0
-            axes.append(image(unit) - o)
+            axes.append((image(unit) - o)[at])
+        o, nn, a0, sweep, rad0, rad1 = o[at], nn[at], a0[at], sweep[at], rad0[at], rad1[at]
+        k = np.arange(rows.size)
+        sign = np.where(p.motion[rows] == ARC_CCW, 1.0, -1.0)
         d = tip - o
         # coordinates in program units along the arc's in-plane axes and its normal
         # (an axis the machine does not have, a lathe's Y, maps to nothing: its coordinate is the plane's, 0)

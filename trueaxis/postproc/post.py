@@ -510,6 +510,20 @@ class _PieceWords(NamedTuple):
     # the others, which the compiled writer writes); None: none (``_Poster._piece_texts``)
 
 
+class _ArcModes:
+    """How each compensated arc is written, by index k into the compensated rows: ``kept`` (K,) bool, the arcs kept as
+    they are (their end and centre corrected), and ``split`` {k: "fit" | "lines"}, the others (fitted sub-arcs,
+    straight pieces). ``get(k)``: "arc", "fit", "lines" or None (not an arc). The kept ones in an array, not a dict: a
+    program has hundreds of thousands of them (a dict entry each cost a million-block post 0.4 s)."""
+
+    def __init__(self, n: int):
+        self.kept = np.zeros(n, bool)
+        self.split: dict = {}
+
+    def get(self, k):
+        return "arc" if self.kept[k] else self.split.get(k)
+
+
 class _WrittenEnd:
     """``written_end[r]`` (K, 6): the end written for the program rows r (K,) (program coordinates): ``end[r] +
     delta`` of the compensated rows ``rows`` (the same sum as in a table of them all), ``end[r]`` itself for the
@@ -526,7 +540,10 @@ class _WrittenEnd:
         out = self.end[r]  # (a new array)
         k = self.k[r]
         has = k >= 0
-        out[has] = self.end[r[has]] + self.delta[k[has]]
+        if has.all():  # (as a rule: the same sums, without picking the rows out first)
+            out += self.delta[k]
+        else:
+            out[has] += self.delta[k[has]]
         return out
 
 
@@ -826,7 +843,7 @@ class _Poster:
                                      f"{'it' if len(idle) == 1 else 'them'} at 0, where "
                                      f"{'it' if len(idle) == 1 else 'they'} must stand when the program runs")
         delta_prog = np.empty((rows.size, 6))
-        pieces, arc_mode = {}, {}
+        pieces, arc_mode = {}, _ArcModes(rows.size)
         sq = np.zeros(len(self.names))
         mx = np.zeros(len(self.names))
         # Moves are independent once their nominal start and end are known: compensate them chunk by chunk, so
@@ -835,10 +852,11 @@ class _Poster:
         # A bar on long programs, on a terminal only (tqdm's disable=None).
         bar = tqdm(total=rows.size, unit="move", desc="compensating", disable=None if len(chunks) > 2 else True,
                    leave=False)
-        for sl, (d_prog, dq, pcs, modes) in zip(chunks, self._compensate_chunks(rows, chunks)):
+        for sl, (d_prog, dq, pcs, (kept, modes)) in zip(chunks, self._compensate_chunks(rows, chunks)):
             delta_prog[sl] = d_prog
             pieces.update((sl.start + k, v) for k, v in pcs.items())
-            arc_mode.update((sl.start + k, v) for k, v in modes.items())
+            arc_mode.kept[sl.start + kept] = True
+            arc_mode.split.update((sl.start + k, v) for k, v in modes.items())
             sq += np.sum(dq**2, axis=0)
             mx = np.maximum(mx, np.abs(dq).max(axis=0, initial=0.0))
             bar.update(sl.stop - sl.start)
@@ -929,8 +947,9 @@ class _Poster:
 
     def _compensate(self, rows):
         """Compensate the moves ``rows`` (indices into the program's rows): (correction of each end in program units
-        (K, 6), the same in mm / rad (K, n_axes), split pieces {k: (n, 6) program-coordinate ends}, arc modes {k:
-        "arc" | "lines"}); k indexes ``rows``. Split moves' piece boundaries go to ``self.fractions`` (by row)."""
+        (K, 6), the same in mm / rad (K, n_axes), split pieces {k: (n, 6) program-coordinate ends}, (the arcs kept as
+        they are (k,), the other arcs' modes {k: "fit" | "lines"})); k indexes ``rows``. Split moves' piece boundaries
+        go to ``self.fractions`` (by row)."""
         p = self.p
         inch = p.inch[rows]
         q_end = self.to_machine(p.to_machine(p.end[rows], rows), inch)
@@ -950,16 +969,15 @@ class _Poster:
         self._local.publish.value = (int(rows[-1]), p.end[rows[-1]] + delta_prog[-1])
         self._local.publish.set()
 
-        pieces, arc_mode = {}, {}
+        pieces, arc_kept, arc_mode = {}, np.zeros(0, np.int64), {}
         # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
         feed_rows = np.nonzero((p.motion[rows] == FEED) & self.start_known[rows])[0]
         pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd, end_poses))
         if np.any(arcs):
-            arc_pieces, modes = self._arcs(rows, np.nonzero(arcs)[0], q_start, (q_end, q_cmd), force, inch,
-                                           delta_prog)
+            arc_pieces, arc_kept, arc_mode = self._arcs(rows, np.nonzero(arcs)[0], q_start, (q_end, q_cmd), force,
+                                                        inch, delta_prog)
             pieces.update(arc_pieces)
-            arc_mode.update(modes)
-        return delta_prog, dq, pieces, arc_mode
+        return delta_prog, dq, pieces, (arc_kept, arc_mode)
 
     def _summarise(self, max_abs, rms):
         """Report the correction per axis: max and RMS over the move ends (um or urad)."""
@@ -1206,17 +1224,19 @@ class _Poster:
         ``fit_arcs``) or become straight pieces.
 
         All arcs are sampled and solved together (one Newton solve per stage, not per arc); ``solved_ends``: (nominal,
-        commanded) poses of the chunk's block ends, whose solves the arcs' last points take."""
+        commanded) poses of the chunk's block ends, whose solves the arcs' last points take. Returns (pieces
+        {k: (n, 6)}, the arcs kept (k,) int, the others' modes {k: "fit" | "lines"}); k indexes ``rows``."""
         p = self.p
         out, modes = {}, {}
         arc_idx = np.asarray(arc_idx, int)
         # Stage 1: samples every ARC_SAMPLE_MM along each arc (4 to 16 intervals); the spread of the correction along
         # it decides arc or lines.
         r_arcs = rows[arc_idx]
-        _, _, _, _, sweep, radius, _ = _arcs_geometry(p, r_arcs)
+        geometry = _arcs_geometry(p, r_arcs)
+        sweep, radius = geometry[4], geometry[5]
         length = sweep * radius * np.where(p.inch[r_arcs], MM_PER_INCH, 1.0)
         n_s = np.clip(np.ceil(length / ARC_SAMPLE_MM), 4, 16).astype(int)
-        pts6 = _arcs_points(p, r_arcs, n_s)
+        pts6 = _arcs_points(p, r_arcs, n_s, geometry)
         owner = np.repeat(np.arange(arc_idx.size), n_s + 1)
         q_c, q_pts = self._solve_arc_points(rows, arc_idx, owner, pts6, force, solved_ends)
         lin = [j for j, a in enumerate(self.names) if not self.m.axes[a].is_rotary]
@@ -1229,8 +1249,7 @@ class _Poster:
         # start as a short arc (or a turn less one), not a full circle (LinuxCNC's pmCircleInit).
         kept &= full_turns_close(self, rows, arc_idx, delta_prog)
         kept &= self.tcp is None  # TCP: the control turns an arc's plane with the table; straight pieces only
-        for i in arc_idx[kept]:
-            modes[int(i)] = "arc"
+        arc_kept = arc_idx[kept]
         with self._lock:
             self.rep.arcs_kept += int(kept.sum())
         lin = arc_idx[~kept]
@@ -1240,15 +1259,15 @@ class _Poster:
                 out[k], modes[k] = ends, "fit"
                 self.arc_centres[int(rows[k])] = centres
         if lin.size == 0:
-            return out, modes
+            return out, arc_kept, modes
         # Stage 2: straight pieces, enough that the chord sagitta stays within half the tolerance; the correction's
         # variation is then followed point by point.
         r_lin = rows[lin]
-        _, _, _, _, sweep, radius, _ = _arcs_geometry(p, r_lin)
-        radius = radius * np.where(p.inch[r_lin], MM_PER_INCH, 1.0)
+        geometry = _arcs_geometry(p, r_lin)
+        sweep, radius = geometry[4], geometry[5] * np.where(p.inch[r_lin], MM_PER_INCH, 1.0)
         step = 2 * np.arccos(np.maximum(0.0, 1 - (self.tol_mm / 2) / np.maximum(radius, 1e-9)))
         counts = np.maximum(2, np.ceil(sweep / step)).astype(int)
-        pts6 = _arcs_points(p, r_lin, counts)
+        pts6 = _arcs_points(p, r_lin, counts, geometry)
         owner = np.repeat(np.arange(lin.size), np.asarray(counts) + 1)
         q_c, q_pts = self._solve_arc_points(rows, lin, owner, pts6, force, solved_ends)
         self.check(q_pts, q_c, rows[lin][owner])
@@ -1259,7 +1278,7 @@ class _Poster:
             modes[int(i)] = "lines"
         with self._lock:
             self.rep.arcs_linearised += int(lin.size)
-        return out, modes
+        return out, arc_kept, modes
 
     def _solve_arc_points(self, rows, arc_idx, owner, pts6, force, ends=None):
         """Commanded and nominal machine poses (K, n_axes) for points ``pts6`` (K, 6) on the arcs ``arc_idx[owner]``.
@@ -1531,8 +1550,7 @@ class _Poster:
         last = ends - 1
         excluded = np.zeros(rows.size, bool)
         excluded[list(piece_first)] = True
-        kept = np.zeros(rows.size, bool)
-        kept[[k for k, v in arc_mode.items() if v == "arc"]] = True
+        kept = arc_mode.kept
         # (a kept arc outside the G17/G18/G19 planes is left to the Python path, which refuses it)
         excluded |= kept & ~np.isin(p.arc_plane[rows], (17, 18, 19))
         cand = np.nonzero((p.kind[rows[starts]] != ROW_CYCLE) & ~p.incremental[rows[last]] & ~excluded[last])[0]
@@ -1986,15 +2004,16 @@ def _arcs_geometry(p: Program, rs):
     return ii, jj, 3 - ii - jj, a0, sweep, np.hypot(si - ci, sj - cj), np.hypot(ei - ci, ej - cj)
 
 
-def _arcs_points(p: Program, rs, counts) -> np.ndarray:
+def _arcs_points(p: Program, rs, counts, geometry=None) -> np.ndarray:
     """(sum(counts + 1), 6) points along the arcs ``rs`` (program coordinates), counts[i] + 1 from each one's start to
-    its end, angle and radius linear in the fraction, the helical axis linear."""
+    its end, angle and radius linear in the fraction, the helical axis (and every other axis) linear. ``geometry``: the
+    arcs' ``_arcs_geometry``, if the caller has it."""
     rs = np.asarray(rs, int)
     counts = np.asarray(counts, int)
     if rs.size == 0:
         return np.zeros((0, 6))
     ar = np.arange(rs.size)
-    ii, jj, nn, a0, sweep, rad0, rad1 = _arcs_geometry(p, rs)
+    ii, jj, nn, a0, sweep, rad0, rad1 = _arcs_geometry(p, rs) if geometry is None else geometry
     c, s, e = p.arc_center[rs], p.start[rs], p.end[rs]
     ci, cj = c[ar, ii], c[ar, jj]
     ccw = p.motion[rs] == ARC_CCW
@@ -2009,11 +2028,10 @@ def _arcs_points(p: Program, rs, counts) -> np.ndarray:
     ang = a0[owner] + (sign * sweep)[owner] * t
     rad = rad0[owner] + (rad1 - rad0)[owner] * t
     so, eo = s[owner], e[owner]
-    pts = so + t[:, None] * (eo - so)
-    io, jo, no = ii[owner], jj[owner], nn[owner]
+    pts = so + t[:, None] * (eo - so)  # (the helical axis' column is this, linear in the fraction)
+    io, jo = ii[owner], jj[owner]
     k = np.arange(owner.size)
     pts[k, io] = ci[owner] + rad * np.cos(ang)
     pts[k, jo] = cj[owner] + rad * np.sin(ang)
-    pts[k, no] = so[k, no] + t * (eo[k, no] - so[k, no])
     pts[last] = e
     return pts
