@@ -289,6 +289,13 @@ def test_a_bestfit_never_passes_the_characteristics_it_takes_away(tmp_path):
         assert rows["half_angle_urad"]["result"] == rows["form_um"]["result"] == "pass"
         assert report["feature_summary"]["not measured"] == 3
         assert any("takes away what a rigid move changes" in w for w in report["warnings"])
+        # ... and the report's sections say so where they hold those values (the HTML showed the diameter measured)
+        assert set(report["diameter"]["not_measured"]) == {"measured_mm", "error_um"}
+        assert set(report["cone"]["not_measured"]) == {"axis_tilt_urad", "axis_offset_um"}
+    from trueaxis.inspect.report import _table
+
+    html = _table(report["diameter"])
+    assert "74.64" in html.split("measured")[0] and html.count("not measured with --align bestfit") == 2
 
 
 def test_a_bestfit_on_the_slot_block_does_not_measure_slot_positions_depths_and_contours():

@@ -551,6 +551,8 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
             "the best fit onto the CAD takes away what a rigid move changes: "
             + ", ".join(CHARACTERISTICS[key][2] for key in absorbed) + " not measured (use --align datum, or none)")
     report["feature_table"] = feature_table(report, part_doc, limits, not_measured=absorbed)
+    if absorbed:
+        mark_not_measured(report, absorbed)
     report["feature_summary"] = summary(report["feature_table"])
     figures.update(points=aligned, deviation_um=d_um, beyond_gate=beyond)
     if figure_worker is not None:
@@ -945,10 +947,31 @@ def _value(value, unit: str = "") -> str:
 
 
 def _table(mapping: dict, skip=(), unit: str = "") -> str:
-    """Key-value rows with human labels; each value rounded for its key's unit (or ``unit`` for all)."""
-    rows = "".join(f"<tr><th>{html.escape(_label(k))}</th><td>{_value(v, unit or _unit_of_key(k))}</td></tr>"
-                   for k, v in mapping.items() if k not in skip and not isinstance(v, dict))
+    """Key-value rows with human labels; each value rounded for its key's unit (or ``unit`` for all); a value the
+    section's ``not_measured`` names reads "not measured" with why (a best fit took it away: never a figure)."""
+    absent = mapping.get("not_measured") or {}
+    rows = "".join(f"<tr><th>{html.escape(_label(k))}</th><td>"
+                   + (html.escape(absent[k]) if k in absent else _value(v, unit or _unit_of_key(k)))
+                   + "</td></tr>" for k, v in mapping.items() if k not in skip and not isinstance(v, dict))
     return f"<table class='kv'>{rows}</table>"
+
+
+#: Where a characteristic the feature table reads also stands in the report's sections (section, field): a best
+#: fit's "not measured" is said there too (``mark_not_measured``), not only in the table.
+DETAIL_FIELDS = {"diameter_um": [("diameter", "measured_mm"), ("diameter", "error_um")],
+                 "tilt_urad": [("cone", "axis_tilt_urad")], "axis_offset_um": [("cone", "axis_offset_um")],
+                 "position_um": [("slots", "largest_position_offset_um")], "depth_um": [("slots", "depth_error_um")],
+                 "contour_um": [("slots", "mean_contour_error_um")]}
+
+
+def mark_not_measured(report: dict, absorbed: dict) -> None:
+    """Name, in each section of ``report`` holding it, a characteristic that is not measured (``absorbed``: key ->
+    why): the section's ``not_measured`` maps the field to why (the value stays, as the fit gave it)."""
+    for key, why in absorbed.items():
+        for section, field in DETAIL_FIELDS.get(key, ()):
+            entries = report.get(section)
+            for entry in entries if isinstance(entries, list) else [entries] if isinstance(entries, dict) else []:
+                entry.setdefault("not_measured", {})[field] = why
 
 
 def _header_html(header: dict) -> str:
@@ -1022,7 +1045,8 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
                              "mean_width_mm": slot["width"]["mean_mm"],
                              "mean_width_error_um": slot["width"]["mean_error_um"],
                              "largest_position_offset_um": slot["position_um"]["max_abs"],
-                             "depth_error_um": (slot["depth"] or {}).get("error_um")}))
+                             "depth_error_um": (slot["depth"] or {}).get("error_um"),
+                             "not_measured": slot.get("not_measured") or {}}))
         parts.append("<table><tr><th>segment</th><th>width (mm)</th><th>width error (um)</th><th>position (um)</th>"
                      "<th>parallelism (um)</th></tr>" + "".join(
                          f"<tr><td>{s['segment']}</td><td>{_value(s['width_mm'], 'mm')}</td>"
