@@ -921,6 +921,14 @@ def test_a_pause_between_two_parts_shapes_the_drift_each_part_sees(two_cones, tm
                                  pauses_s=pause)
     assert diag.chosen == ["thermal_x"]
     assert any(n.startswith(f"the drift is read on the clock the pauses given make ({pause:g} s") for n in diag.notes)
+    assert not any("fits the parts better with" in n for n in diag.notes)  # the right pause: nothing to say
+    # A pause given as 0 for this one: the data prefer a longer one and the note says so (the verdict stays).
+    wrong, _ = run_diagnosis_cuts(measured, "nas979", m, candidates="thermal_x,backlash_x,backlash_y", noise_um=0.5,
+                                  pauses_s=0.0)
+    said = [n for n in wrong.notes if "fits the parts better with" in n]
+    assert len(said) == 1, wrong.notes
+    preferred = float(re.search(r"better with ([\d.e+]+) s between them", said[0]).group(1))
+    assert 0.5 * pause < preferred < 2.0 * pause, (preferred, pause)  # 63.4 s for 63.2 s
     with pytest.raises(ValueError, match="pause"):
         combine_states(states, [])
     with pytest.raises(ValueError, match="pause"):

@@ -187,9 +187,62 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
         given = ", ".join(f"{p:g} s" for p in state.pauses_s)
         diag.notes.append(f"the drift is read on the clock the pauses given make ({given} between the parts): a wrong "
                           f"pause changes the drift's size and what goes with it")
+        better = pause_the_data_prefer(states, pauses, diag, state.gap_um)
+        if better is not None:
+            diag.notes.append(better)
     diag.notes.extend(notes)
     state.timings["diagnosis_s"] = time.perf_counter() - t0
     return diag, state
+
+
+#: The pauses tried against the one given, as multiples of it (or, when 0 was given, of the mean cut's duration).
+PAUSE_FACTORS = (0.0, 0.125, 0.25, 0.5, 0.75, 1.5, 2.0, 3.0, 4.0, 8.0)
+#: How much better (chi-square, in noise variances) another pause must fit than the one given to be said.
+PAUSE_CHI2 = 9.0
+
+
+def pause_the_data_prefer(states: list, pauses, diag: Diagnosis, gap_um: np.ndarray) -> str | None:
+    """A note when the verdict's drift fits the parts better with other pauses between them than the ones given
+    (``PAUSE_FACTORS``, by more than ``PAUSE_CHI2`` noise variances), else None. The verdict's members are fitted
+    anew on each clock (the drift's every time constant tried, the others in their fitted shape, bounded as the
+    diagnosis fits): a check of the input, the verdict stays as it is."""
+    from .analysis import _solve_bounded, family
+
+    f = diag.chosen_fit
+    given = np.asarray(pauses, float)
+    scale = given if np.any(given > 0) else np.full_like(given, np.mean([st.t_end_s for st in states]))
+    variants = f.member_variants or (f.variant,)
+
+    def rss(p):
+        cands = {c.name: c for c in build_all(f.members, combine_states(states, p))[0]}
+        if any(m not in cands for m in f.members):
+            return np.inf
+        sets = [[]]
+        for k, name in enumerate(f.members):
+            c = cands[name]
+            shapes = ([v for _, v in c.variants] if family(name) == "thermal" else
+                      [c.variants[variants[k]][1]]) if c.variants else [c.columns]
+            sets = [s + [v] for s in sets for v in shapes]
+        bounds = [b for name in f.members for b in (cands[name].plausible or [None] * cands[name].n_parameters)]
+        best = np.inf
+        for cols in sets:
+            S = np.column_stack(cols)
+            r = gap_um - S @ _solve_bounded(S, gap_um, bounds)[0]
+            best = min(best, float(r @ r))
+        return best
+
+    at_given = rss(given)
+    tried = [(float(np.max(scale * k)), scale * k, rss(scale * k)) for k in PAUSE_FACTORS
+             if not np.allclose(scale * k, given)]
+    if not tried:
+        return None
+    _, p, r = min(tried, key=lambda t: t[2])
+    gain = (at_given - r) / diag.noise_um ** 2
+    if not gain > PAUSE_CHI2:
+        return None
+    said = ", ".join(f"{v:g} s" for v in p)
+    return (f"the drift fits the parts better with {said} between them than with the pause given (chi-square "
+            f"{gain:.0f} noise variances lower): check --pause-s; the drift's size and the verdict rest on it")
 
 
 MAX_GAP_RMS_UM = 500.0  # the post's default correction bound: a larger gap is not a machine effect but a wrong input
