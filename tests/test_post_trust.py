@@ -395,3 +395,17 @@ def test_comprehensive_mode_says_the_milling_mode_it_assumed_and_records_the_con
     assert r.returncode == 0 and "assumed" not in r.stderr
     assert json.loads((tmp_path / "b.json").read_text())["cutting_conditions"][0]["assumed"] == []
     assert (tmp_path / "a.ngc").read_text() == (tmp_path / "b.ngc").read_text()
+
+
+@pytest.mark.parametrize("cycle, line, says", [
+    ("G18 G98 G81 X1 Y3 Z1 R5", 3, "feeds are not along Z (the G18 / G19 plane)"),
+    ("G19 G99 G81 X2 Y1 Z1 R5", 3, "feeds are not along Z (the G18 / G19 plane)"),
+    ("G98 G87 X12 Y3 Z-1 R2 I1 J0 K0\nX20", 3, "G87 back boring"),  # and its modal repeat on the next line
+    ("G98 G81 X12 Y3 Z-1 R2\nG87 X20 Z-1 R2 I1 J0 K0", 4, "G87 back boring")])
+def test_a_canned_cycle_the_rewrite_cannot_write_is_refused(tmp_path, cycle, line, says):
+    # The hole's block was rewritten as if it drilled along Z: G18's 'X1 Y3 Z1 R5' came out 'X1.002 Y4.982 Z1.009
+    # R1.009' (the depth in R), G87's X moved by I, exit 0 (a QA pass; rs274 refused them). Refused, exit 3.
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text(f"G21 G90 G17 G94 F100 S1000 M3\nG0 X0 Y0 Z20\n{cycle}\nG80 G17\nG0 Z20\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero")
+    assert r.returncode == 3 and not out.exists() and f"{src}:{line}: " in r.stderr and says in r.stderr, r.stderr

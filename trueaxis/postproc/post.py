@@ -88,6 +88,8 @@ def condition_marks(lines, source: str) -> list[tuple[int, dict]]:
             marks.append((i, fields))
     return marks
 _MOTION_WORD = re.compile(r"^G0*([0-3])$", re.IGNORECASE)
+# the motion group's codes a line holds (its modal motion: moves, cycles and G80), for the modal cycle in force
+_MOTION_CODE = re.compile(r"(?i)G\s*0*(0|1|2|3|33\.1|38\.[2-5]|73|76|8[0-9])(?![\d.])")
 _NUM = NUMBER  # the one number of nc/grammar.py
 # A plain motion block: N G X Y Z A B C I J K R F, each optional, in this order, nothing else (the writer's fast path)
 _PLAIN = re.compile(
@@ -807,6 +809,7 @@ class _Poster:
     def run(self):
         p = self.p
         rows = np.nonzero((p.kind == ROW_PROGRAMMED) | (p.kind == ROW_CYCLE))[0]
+        self._refuse_cycles_it_cannot_write()
         # Positions are never invented: a block whose end the program has not yet fixed on every axis (or an arc
         # whose start it has not) keeps its own words, uncompensated, and the report and stderr say so.
         end_known, start_known, missing = self.known_positions()
@@ -1760,6 +1763,31 @@ class _Poster:
     def _rewrite_motion(self, body, motion, words, arc, row, sep):
         """A motion block with new axis words ``words`` (formatted): see ``rewrite_block``."""
         return rewrite_block(body, motion, words, arc=arc, was_arc=self.p.motion[row] in (ARC_CW, ARC_CCW), sep=sep)
+
+    def _refuse_cycles_it_cannot_write(self):
+        """PostError for a canned cycle the block rewrite (``_cycle_line``: hole X Y, depth Z and R along Z) cannot
+        write: one in the G18 / G19 plane (its feeds not along Z) or G87 back boring (its hole is offset by I J K):
+        the blocks came out with the depth in R and R at the hole (rs274 refused them; a control without that check
+        would drill to the wrong depth), exit 0, in a QA pass."""
+        p = self.p
+        cyc = np.nonzero(p.kind == ROW_CYCLE)[0]
+        if cyc.size == 0:
+            return
+        feeds = cyc[p.motion[cyc] == FEED]
+        across = feeds[np.any(np.abs(p.end[feeds, :2] - p.start[feeds, :2]) > 1e-9, axis=1)]
+        if across.size:
+            raise PostError(p.source, int(p.line_no[across[0]]), "a canned cycle whose feeds are not along Z (the "
+                                                                 "G18 / G19 plane): the post writes cycles in G17 "
+                                                                 "only; write the holes as G1 moves")
+        # G87 is modal like every cycle: the motion code in force at each cycle line (the last one before it)
+        lines = set(np.unique(p.line_index[cyc]).tolist())
+        mode = None
+        for li in range(max(lines) + 1):
+            codes = _MOTION_CODE.findall(_split_comment(p.lines[li].rstrip("\r\n"))[0])
+            mode = float(codes[-1]) if codes else mode
+            if li in lines and mode == 87.0:
+                raise PostError(p.source, li + 1, "G87 back boring: the post does not write it (its hole is offset "
+                                                  "by I J K); write it as G0 / G1 moves")
 
     def _cycle_line(self, body, ks, rows, delta_prog, fmt, sep):
         """A canned-cycle block: hole position and depth from the correction at the bottom, R from the R level."""
