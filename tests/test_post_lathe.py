@@ -290,3 +290,11 @@ M30
     assert len(kinds) >= 3  # the arc goes through several of the paper's models
     dz_um = (pc[arc, 1] - pg[arc, 1]) * 1000.0
     np.testing.assert_allclose(dz_um[clear], expected_um[clear], rtol=0, atol=0.01)
+
+
+def test_the_lathe_report_names_each_set_of_turning_conditions_used(lathe):
+    # Milling's report listed them; a lathe's list was empty although ap f vc were used (a QA pass).
+    report = {}
+    compensate(TURNING, lathe, "comprehensive", report=report)
+    assert [(c["conditions"], c["first_line"]) for c in report["cutting_conditions"]] == [
+        ({"ap": "2", "f": "0.2", "vc": "180"}, 3), ({"ap": "1", "f": "0.1", "vc": "200"}, 11)]

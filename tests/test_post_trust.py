@@ -58,10 +58,16 @@ def test_a_program_none_of_whose_moves_can_be_compensated_is_refused_and_one_wit
 
 
 def test_incremental_moves_from_an_unknown_start_stay_as_written():
+    from trueaxis.postproc.post import PostWarning
+
     m = load_machine(XH714)
     report = {}
     text = "G21 G91\nG0 Z5\nG0 X10 Y10\nG90 G0 X20 Y20 Z-10\nG1 X30 F100\nM2\n"
-    lines = without_header(compensate(text, m, "geometric", report=report)).splitlines()
+    # the Python hook says it too, to a host that passes no report (it dropped every warning: a QA pass)
+    with pytest.warns(PostWarning, match=r"<string>:2: the position of .* is not known here") as said:
+        out = compensate(text, m, "geometric", report=report)
+    assert len(said) == len(report["warnings"]) == 2
+    lines = without_header(out).splitlines()
     assert lines[1:3] == ["G0 Z5", "G0 X10 Y10"]
     assert [u["line"] for u in report["uncompensated"]] == [2, 3]
     assert lines[3] != "G90 G0 X20 Y20 Z-10" and lines[4] != "G1 X30 F100"
@@ -409,3 +415,39 @@ def test_a_canned_cycle_the_rewrite_cannot_write_is_refused(tmp_path, cycle, lin
     src.write_text(f"G21 G90 G17 G94 F100 S1000 M3\nG0 X0 Y0 Z20\n{cycle}\nG80 G17\nG0 Z20\nM2\n")
     r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero")
     assert r.returncode == 3 and not out.exists() and f"{src}:{line}: " in r.stderr and says in r.stderr, r.stderr
+
+
+def test_comprehensive_mode_says_a_condition_carried_from_another_operation_and_names_one_missing(tmp_path):
+    # The second operation's comment gives no ae: the first's (3 mm) was used and the report said nothing assumed
+    # (a QA pass; FreeCAD writes no ae for a Profile after a Pocket). Now a warning and the report's 'carried'; with
+    # no ae at all the refusal names it.
+    first = "(trueaxis: ap=2 ae=3 fz=0.05 n=8000 d=6 z=3 mode=down)\nG1 Z-2 F500\nG1 X50\nG0 Z5\n"
+    second = "(trueaxis: ap=5 fz=0.04 n=8000 d=6 z=3 mode=up)\nG0 X0 Y20\nG1 Z-5 F400\nG1 X50\nG0 Z5\n"
+    src, rep, setup = tmp_path / "in.ngc", tmp_path / "r.json", tmp_path / "setup.toml"
+    setup.write_text('[setup]\nname = "mm"\nunits = "mm"\n[work_offsets]\nG54 = { X = 0.0, Y = 0.0, Z = -250.0 }\n')
+    src.write_text("G21 G90 G17 G94\nG0 X0 Y0 Z5\n" + first + second + "M2\n")
+    r = run_cli("post", src, "-o", tmp_path / "a.ngc", "--machine", XH714, "--setup", setup, "--mode",
+                "comprehensive", "--report", rep)
+    assert r.returncode == 0, r.stderr
+    assert f"{src}:10: comprehensive mode: the conditions in force here do not give ae: carried from an earlier " \
+           "operation's (ae=3 from line 3)" in r.stderr
+    one, two = json.loads(rep.read_text())["cutting_conditions"]
+    assert one["carried"] == {} and two["carried"] == {"ae": "line 3"} and two["from"]["ap"] == "line 7"
+    src.write_text("G21 G90 G17 G94\nG0 X0 Y0 Z5\n" + second + "M2\n")
+    r = run_cli("post", src, "-o", tmp_path / "b.ngc", "--machine", XH714, "--setup", setup, "--mode",
+                "comprehensive")
+    assert r.returncode == 3 and "needs cutting conditions here (ae not given)" in r.stderr, r.stderr
+
+
+def test_options_that_would_change_nothing_are_refused_not_ignored(tmp_path):
+    # --ap in geometric mode, a CL feed on G-code, --machine-units without the files it is the unit of: each was
+    # accepted and ignored, exit 0 (a QA pass). Refused, exit 2, nothing written.
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90\nG0 X10 Y10 Z-20\nG1 X20 F100\nM2\n")
+    for extra, says in ((["--ap", "5"], "--ap: cutting conditions apply to --mode comprehensive"),
+                        (["--cut-mode", "up"], "--cut-mode: cutting conditions apply"),
+                        (["--cl-feed", "500"], "the CL options (a CL feed, a tilt branch) apply to CL data"),
+                        (["--cl-branch", "+1"], "apply to CL data"),
+                        (["--machine-units", "inch"], "--machine-units: the units of --var and --tool-table")):
+        r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero", *extra)
+        assert r.returncode == 2 and says in r.stderr and not out.exists(), (extra, r.stderr)

@@ -186,9 +186,17 @@ def cmd_post(args) -> int:
     from .resources import machine_file  # a path, or a fixture machine's short name
     from .postproc.post import post_text, _read_input, resolve_setup
 
+    # options that would change nothing are refused, not ignored (a QA pass posted with --ap in geometric mode)
+    cutting = [f"--{k.replace('_', '-')}" for k in ("ap", "ae", "fz", "n", "d", "z", "cut_mode")
+               if getattr(args, k) is not None]
+    if cutting and args.mode != "comprehensive":
+        raise UsageError(f"{' '.join(cutting)}: cutting conditions apply to --mode comprehensive (the mode is "
+                         f"{args.mode})")
+    if args.machine_units is not None and not (args.var or args.tool_table):
+        raise UsageError("--machine-units: the units of --var and --tool-table; neither is given")
     machine = load_machine(machine_file(args.machine))
     setup = resolve_setup(machine, setup=args.setup, var=args.var, tool_table=args.tool_table,
-                          machine_units=args.machine_units, offsets_zero=args.offsets_zero)
+                          machine_units=args.machine_units or "mm", offsets_zero=args.offsets_zero)
     if args.output == "-" and args.report == "-":
         raise UsageError("-o - and --report - both name stdout; name a file for one of them")
     if args.input == "-":  # the program on stdin: read whole, refused as a file would be (NUL bytes, encoding)
@@ -528,7 +536,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "G54..G59.3 with rotation, G92, active system, G28/G30 homes)")
     po.add_argument("--tool-table", metavar="TOOLS.tbl", help="the control's setup: LinuxCNC tool table (tool "
                     "offsets X..C, Z = length; D diameter)")
-    po.add_argument("--machine-units", choices=["mm", "inch"], default="mm",
+    po.add_argument("--machine-units", choices=["mm", "inch"], default=None,
                     help="units of the .var and tool table: LinuxCNC's [TRAJ] LINEAR_UNITS (default mm; the "
                          "standalone rs274 uses inch)")
     po.add_argument("--setup", metavar="SETUP.toml", help="the control's setup for other controls: work offsets, tool "

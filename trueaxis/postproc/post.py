@@ -31,6 +31,7 @@ import gc
 import math
 import re
 import threading
+import warnings
 from dataclasses import dataclass, field
 from typing import NamedTuple
 from pathlib import Path
@@ -199,7 +200,11 @@ def compensate(
     G2/G3 blocks fitted to the corrected path where they hold the tolerance (``.arcs``), else straight pieces;
     None: on for a three-axis mill, off for five-axis machines and lathes (``arcs_default``). ``output_mode``: "joint"
     (the commanded joints) or "tcp" (their nominal forward kinematics in the control's tool-centre-point frame,
-    ``.tcp``); None: the machine file's ``[kinematics] output_mode`` (default joint)."""
+    ``.tcp``); None: the machine file's ``[kinematics] output_mode`` (default joint).
+
+    Each of the report's warnings (a block left uncompensated, a value assumed) is also issued as a
+    :class:`PostWarning` (``warnings.warn``): a host that passes no ``report`` sees them, and can turn them into
+    errors with the ``warnings`` filters."""
     text, source = _read_input(program, source)
     the_setup = resolve_setup(machine, setup=setup, var=var, tool_table=tool_table, machine_units=machine_units,
                               offsets_zero=offsets_zero)
@@ -210,7 +215,13 @@ def compensate(
                          force=force, arcs=arcs, output_mode=output_mode)
     if report is not None:
         report.update(rep.as_dict())
+    for said in rep.warnings:
+        warnings.warn(said, PostWarning, stacklevel=2)
     return out
+
+
+class PostWarning(UserWarning):
+    """What the post says of a program it wrote anyway (``file:line: message``; the report's ``warnings``)."""
 
 
 def resolve_setup(machine: Machine, *, setup=None, var=None, tool_table=None, machine_units: str = "mm",
@@ -308,6 +319,8 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
         check_tcp_machine(machine)
     from ..nc.cl import cl_format
 
+    if cl_format(text) is None and (cl_feed_mm_min is not None or cl_branch not in ("nearest", None)):
+        raise ValueError(f"{source}: the CL options (a CL feed, a tilt branch) apply to CL data; this is G-code")
     if cl_format(text) is not None:
         out, rep = _post_cl(text, machine, mode, tol_um=tol_um, max_correction_mm=max_correction_mm,
                             singular_deg=singular_deg, conditions=conditions, source=source,
@@ -646,11 +659,14 @@ class _Poster:
         cutting = (self.p.motion[rows] != RAPID) & (norm > 1e-9)
         groups: dict = {}
         for k in np.nonzero(cutting)[0]:
-            c = conds(int(self.p.line_index[rows[k]]))
+            li = int(self.p.line_index[rows[k]])
+            c = conds(li)
             if c is None:
+                lack = " ".join(self._missing_conditions.get(li, []))
                 raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
-                                "comprehensive mode needs cutting conditions here: put (trueaxis: ap=.. ae=.. fz=.. "
-                                "n=.. d=.. z=.. mode=down) before the cut, or give them on the command line")
+                                f"comprehensive mode needs cutting conditions here ({lack} not given): put "
+                                "(trueaxis: ap=.. ae=.. fz=.. n=.. d=.. z=.. mode=down) before the cut, or give them "
+                                "on the command line")
             groups.setdefault(c, []).append(k)
         for key, ks in groups.items():
             self._say_conditions(dict(key), int(self.p.line_no[rows[ks[0]]]))
@@ -670,12 +686,19 @@ class _Poster:
         with _REPORT_LOCK:  # the chunks of moves run on two threads
             if any(c["conditions"] == used for c in self.rep.cutting_conditions):
                 return
+            source, carried = self._condition_sources.get(tuple(sorted(used.items())), ({}, {}))
             assumed = [] if "mode" in used else ["mode=down"]
-            self.rep.cutting_conditions.append({"conditions": used, "first_line": line_no, "assumed": assumed})
+            self.rep.cutting_conditions.append({"conditions": used, "first_line": line_no, "assumed": assumed,
+                                                "from": source, "carried": carried})
             if assumed:
                 self.rep.warnings.append(f"{self.p.source}:{line_no}: comprehensive mode: the milling mode is not "
                                          f"given, down milling assumed (--cut-mode up|down, or mode= in the "
                                          f"(trueaxis: ...) conditions)")
+            if carried:
+                said = ", ".join(f"{f}={used[f]} from {where}" for f, where in sorted(carried.items()))
+                self.rep.warnings.append(f"{self.p.source}:{line_no}: comprehensive mode: the conditions in force "
+                                         f"here do not give {' '.join(sorted(carried))}: carried from an earlier "
+                                         f"operation's ({said}); give them in this operation's conditions")
 
     def _conditions_per_line(self):
         """line index -> hashable conditions (tuple of items) valid there, or None."""
@@ -686,18 +709,29 @@ class _Poster:
 
         def at(line_index):
             merged = dict(tool)
+            source = {key: "the machine file's tool" for key in tool}
             k = np.searchsorted(starts, line_index, side="right")
-            for _, f in marks[:k]:
+            for i, f in marks[:k]:
                 merged.update(f)
+                source.update({key: f"line {i + 1}" for key in f})
             merged.update(cli)
-            if not all(key in merged for key in ("ap", "ae", "fz")):
+            source.update({key: "the command line" for key in cli})
+            missing = [key for key in ("ap", "ae", "fz") if key not in merged]
+            if missing:
+                self._missing_conditions[line_index] = missing
                 return None
             try:
                 CuttingConditions.from_mapping(merged)
             except ValueError as exc:
                 raise PostError(self.p.source, line_index + 1, f"cutting conditions: {exc}") from None
-            return tuple(sorted(merged.items()))
+            key = tuple(sorted(merged.items()))
+            # A field from a comment before the one in force (another operation's, which the latest did not give)
+            latest = f"line {marks[k - 1][0] + 1}" if k else None
+            carried = {f: where for f, where in source.items() if where.startswith("line ") and where != latest}
+            self._condition_sources.setdefault(key, (source, carried))
+            return key
 
+        self._missing_conditions, self._condition_sources = {}, {}
         return at
 
     # --- solving -------------------------------------------------------------------------------------------------

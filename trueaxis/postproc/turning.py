@@ -111,6 +111,10 @@ def _turning_conditions(poster):
                     cache[key] = TurningConditions.from_mapping({n: float(v) for n, v in fields.items()})
                 except ValueError as exc:
                     raise PostError(p.source, int(p.line_index[r]) + 1, f"turning conditions: {exc}") from None
+                # the report names each set used, as milling's does (its list was empty on a lathe: a QA pass)
+                if getattr(poster, "rep", None) is not None:  # (a poster made for the forces alone has none)
+                    poster.rep.cutting_conditions.append({"conditions": {n: str(v) for n, v in fields.items()},
+                                                          "first_line": int(p.line_index[r]) + 1, "assumed": []})
             else:
                 cache[key] = None
         out[r] = cache[key]
