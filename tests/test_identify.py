@@ -591,10 +591,27 @@ def test_foreign_program_posted_elsewhere_is_modelled_at_its_commanded_axes(shop
     assert _cli("inspect", tmp_path / "cmm.ply", "--part", "nas979", "--identify", "--machine", TWIN_FILE,
                 "--program", tmp_path / "foreign.ngc", "--write", out, "-o", tmp_path / "rep") == 0
     printed = capsys.readouterr().out
-    assert "no trueaxis-setup comment: assumed" in printed
+    # no setup comment, but the post's header says what it did (it was read as 'none' or unknown before)
+    assert "compensation=geometric by this twin (its post header" in printed
     rep = _report(tmp_path / "rep")
-    assert rep["verdict"]["status"] == "accepted" and rep["program_compensation"]["mode"] is None
+    assert rep["verdict"]["status"] == "accepted" and rep["program_compensation"]["mode"] == "geometric"
     assert rep["verdict"]["residual_after_rms_um"] < 1.5 * NOISE_UM
     truth, written = _written_values(shop / "true.toml"), _written_values(out)
     for p in rep["parameters"]:
         assert abs(written[p["name"]] - truth[p["name"]]) <= 3 * p.get("std_um", p.get("std_urad")), p
+
+
+def test_a_program_a_trueaxis_post_wrote_is_read_as_compensated_by_its_header():
+    # The post kept the program's setup comment 'compensation=none', and the identification reported 'none' for a
+    # program it had compensated (a QA pass). Its header says the mode and the machine file's digest.
+    from trueaxis.identify import program_compensation
+    from trueaxis.postproc.post import compensate
+
+    twin = load_machine(MACHINES / "xh714.toml")
+    text = "(trueaxis-setup: part=slots compensation=none)\nG21 G90\nG0 X10 Y10 Z-20\nG1 X20 F100\nM2\n"
+    assert program_compensation(text, twin)["mode"] == "none"
+    posted = compensate(text, twin, "geometric", offsets_zero=True)
+    said = program_compensation(posted, twin)
+    assert said["mode"] == "geometric" and said["posted"] and said["same_twin"] is True
+    other = program_compensation(posted, load_machine(MACHINES / "nmv1500dcg.toml"))
+    assert other["same_twin"] is False and "by another twin (its post header" in other["note"]

@@ -1102,8 +1102,19 @@ def program_compensation(program_text: str, twin: Machine) -> dict:
     the twin's id, ``trueaxis.postproc.programs.twin_id``), compared with ``twin``. The identification does not
     depend on it (its model is the twin at the axes the program commands, whoever compensated them); the note says
     what was read or assumed. Returns {"mode", "twin_id", "same_twin" (bool or None), "note"}."""
+    from .postproc.post import machine_fingerprint, read_post_header
     from .postproc.programs import read_setup, twin_id
 
+    posted = read_post_header(program_text)
+    if posted is not None:  # a trueaxis post wrote it: its header says the mode and the machine file it used
+        mine = machine_fingerprint(twin).rsplit(" ", 1)[-1]
+        same = None if posted["sha256"] is None else posted["sha256"] == mine
+        by = {True: f"this twin (its post header: machine file sha256 {mine})",
+              False: f"another twin (its post header: machine file sha256 {posted['sha256']}, this one's is {mine})",
+              None: "a trueaxis post whose header names no machine file"}[same]
+        return {"mode": posted["mode"], "twin_id": posted["sha256"], "same_twin": same, "posted": True,
+                "note": f"compensation={posted['mode']} by {by}; a setup comment it carries is the program's before "
+                        "the post; the model is the twin at the axes the program commands"}
     setup = read_setup(program_text)
     mode, tid = setup.get("compensation"), setup.get("twin")
     mine = twin_id(twin)

@@ -417,6 +417,18 @@ def machine_fingerprint(machine: Machine) -> str:
 
 
 HEADER_TAG = "(trueaxis post: "
+
+
+def read_post_header(text: str) -> dict | None:
+    """What a trueaxis post's header (``header_lines``) says of a program: {"mode", "machine", "sha256" (the
+    machine file's, 12 hex digits, or None)}; None for a program no trueaxis post wrote."""
+    head = text[:20_000]
+    m = re.search(r"^\(trueaxis post: trueaxis [^,]*, mode (\w+)(?:, output [^,]*)?, machine (.*)\)[ \t]*\r?$", head,
+                  re.MULTILINE)
+    if m is None:
+        return None
+    fp = re.search(r"^\(trueaxis post: machine file .* sha256 ([0-9a-f]{12})\)[ \t]*\r?$", head, re.MULTILINE)
+    return {"mode": m.group(1), "machine": m.group(2).strip(), "sha256": fp.group(1) if fp else None}
 _HEADER_SKIP = re.compile(r"^[ \t]*(?:%.*|[Oo][0-9]+.*)$")
 
 
