@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 
@@ -495,3 +496,20 @@ def test_comprehensive_force_frame_follows_a_tilted_head():
     flat = f_feed[0] * np.array([1.0, 0, 0]) + f_feed[1] * np.array([0, 1.0, 0]) + f_feed[2] * np.array([0, 0, 1.0])
     p_flat, _ = twin.actual_pose(q_cmd, force_n=flat)
     assert np.linalg.norm(p_flat - p_nom) * 1e3 > 0.1  # the frame matters at this size
+
+
+def test_a_rotary_correction_above_the_bound_near_the_pole_names_the_singular_cone(tmp_path):
+    # "correction of C is -0.3288 deg, above the bound of 0.5 mm: check the machine file" mixed units and blamed the
+    # machine file; the cause was a tilt of 1 deg just outside --singular-deg 1 (a QA pass). Now both are said, and a
+    # larger singular cone posts the program.
+    from trueaxis.postproc.post import PostError, compensate
+
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    text = ("G21 G90 G17 G94\nG0 X30 Y0 Z50 B0.5 C0\nG1 Z20 F500\nG1 X30 Y10 Z20 B0.5 C30\nG1 X20 Y10 Z20 B0.3 C60\n"
+            "G1 X20 Y0 Z20 B0 C90\nG1 X20 Y0 Z20 B-2 C90\nG0 Z80\nM2\n")
+    with pytest.raises(PostError) as info:
+        compensate(text, m, "geometric", offsets_zero=True)
+    said = str(info.value)
+    assert re.search(r"correction of C is [-+][\d.]+ deg \(([\d.]+) mm at the 100 mm lever arm", said), said
+    assert "near the singular cone (--singular-deg 1)" in said and "check the machine file" not in said
+    compensate(text, m, "geometric", offsets_zero=True, singular_deg=3.0)  # held in the cone: posted

@@ -482,7 +482,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     mach = sub.add_parser("machine", help="check or show a machine file")
     msub = mach.add_subparsers(dest="machine_command", required=True)
-    c = msub.add_parser("check", help="validate a machine file (exit 2 and one line per problem if bad)")
+    c = msub.add_parser("check", help="validate a machine file (exit 3 and one line per problem if bad)")
     c.add_argument("file")
     c.set_defaults(func=cmd_machine_check)
     s = msub.add_parser("show", help="print a machine's layout and parameters")

@@ -274,7 +274,8 @@ def _read_axes(data, ck: _Checker) -> dict[str, Axis]:
                             limit=36_000.0 if name in "ABC" else LIMIT_LENGTH_MM)
             if tr is not None:
                 if tr[0] >= tr[1]:
-                    ck.fail(f"{path}.travel", f"must be [low, high] with low < high, got {list(tr)}")
+                    ck.fail(f"{path}.travel", f"must be [low, high] with low < high, got "
+                                              f"[{', '.join(f'{float(v):g}' for v in tr)}]")
                 else:
                     travel = tuple(np.radians(tr)) if kind == "rotary" else (float(tr[0]), float(tr[1]))
         pivot = np.zeros(3)

@@ -818,9 +818,17 @@ class _Poster:
                 k = int(np.argmax(over))
                 unit = "deg" if ax.is_rotary else "mm"
                 val = np.degrees(dq[k, j]) if ax.is_rotary else dq[k, j]
+                lever = f" ({size[k]:.3g} mm at the 100 mm lever arm the bound counts an angle at)" \
+                    if ax.is_rotary else ""
+                pair = self._pair() if ax.is_rotary else None
+                tilt = None if pair is None else float(np.degrees(q_nom[k, pair[1].column]))
+                near = "" if tilt is None or abs(np.sin(np.radians(tilt))) > np.sin(5 * self.singular) else (
+                    f"; the tilt there is {tilt:.3g} deg, near the singular cone (--singular-deg "
+                    f"{np.degrees(self.singular):g}), where the other rotary axis turns fast: a larger --singular-deg "
+                    f"holds it there")
                 raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
-                                f"correction of {a} is {val:+.4f} {unit}, above the bound of {self.max_corr} mm: "
-                                f"check the machine file {self.m.source}")
+                                f"correction of {a} is {val:+.4f} {unit}{lever}, above the bound of {self.max_corr} "
+                                f"mm{near or f': check the machine file {self.m.source}'}")
             if ax.travel is not None:
                 out = ~ax.within_travel(q_cmd[:, j])  # the one travel check
                 if np.any(out):
