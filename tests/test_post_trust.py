@@ -451,3 +451,20 @@ def test_options_that_would_change_nothing_are_refused_not_ignored(tmp_path):
                         (["--machine-units", "inch"], "--machine-units: the units of --var and --tool-table")):
         r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero", *extra)
         assert r.returncode == 2 and says in r.stderr and not out.exists(), (extra, r.stderr)
+
+
+def test_a_rapid_at_the_end_of_an_axis_travel_ends_at_the_limit_and_says_so(tmp_path):
+    # G28 home at Z 0, the end of the XH714's Z stroke, then an XY rapid there: the twin's correction took Z 1.45 um
+    # past the limit and the whole program was refused (a QA pass; the NIST mtc programs do this). A rapid does not
+    # cut: it ends at the limit, with a warning; a feed past the limit is still refused (the test above).
+    src, out, setup = tmp_path / "in.ngc", tmp_path / "out.ngc", tmp_path / "setup.toml"
+    setup.write_text('[setup]\nunits = "mm"\n[work_offsets]\nG54 = { X = 0.0, Y = 0.0, Z = -250.0 }\n'
+                     '[home]\nG28 = { X = 0.0, Y = 0.0, Z = 0.0 }\n[tools]\n1 = { length = 100.0 }\n')
+    src.write_text("G21 G90 G17 G94 G54\nT1 M6 G43 H1\nG0 X10 Y10 Z5\nG1 Z-2 F200\nG1 X60\nG0 Z5\nG91 G28 Z0\n"
+                   "G90 G0 X100 Y50\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--setup", setup)
+    assert r.returncode == 0, r.stderr
+    m = re.search(r"in.ngc:8: a rapid at the end of Z's travel: its correction \(([\d.]+) um past the limit\)", r.stderr)
+    assert m and 0.0 < float(m.group(1)) < 10.0, r.stderr
+    last = [line for line in without_header(out.read_text()).splitlines() if line.startswith("G90 G0 X100")][0]
+    assert last.endswith(" Z150")  # program Z 150 = machine Z 0 (G54 Z -250, tool length 100): the limit

@@ -803,6 +803,27 @@ class _Poster:
                 st["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
         return (res.q, held, res.actual + res.nominal) if poses else (res.q, held)
 
+    def _clamp_rapids_at_the_limit(self, j, q_nom, q_cmd, rows, out):
+        """A rapid whose end the program puts at the limit of axis j (a G28 home at the end of Z's stroke, then an XY
+        rapid there) and whose correction would take it past the limit ends at the limit instead (a rapid does not
+        cut; the warning says so): such programs were refused for 1.45 um (a QA pass). q_cmd is changed in place;
+        returns what is still out of travel."""
+        ax = self.m.axes[self.names[j]]
+        rapid = (self.p.motion[rows] == RAPID) & ax.within_travel(q_nom[:, j])
+        excess = np.minimum(np.abs(q_cmd[:, j] - ax.travel[0]), np.abs(q_cmd[:, j] - ax.travel[1]))
+        clamp = out & rapid & (excess <= self.max_corr)
+        if not np.any(clamp):
+            return out
+        q_cmd[clamp, j] = np.clip(q_cmd[clamp, j], ax.travel[0], ax.travel[1])
+        k = int(np.argmax(clamp))
+        unit, scale = ("urad", 1e6) if ax.is_rotary else ("um", 1e3)
+        with _REPORT_LOCK:
+            self.rep.warnings.append(f"{self.p.source}:{int(self.p.line_no[rows[k]])}: a rapid at the end of "
+                                     f"{self.names[j]}'s travel: its correction ({excess[k] * scale:.3g} {unit} past "
+                                     f"the limit) ends at the limit instead ({int(clamp.sum())} such point"
+                                     f"{'s' if clamp.sum() > 1 else ''} in this chunk); a rapid does not cut")
+        return out & ~clamp
+
     def check(self, q_nom, q_cmd, rows):
         """Correction bound and travel, per point; raises PostError naming the block."""
         dq = q_cmd - q_nom
@@ -831,6 +852,8 @@ class _Poster:
                                 f"mm{near or f': check the machine file {self.m.source}'}")
             if ax.travel is not None:
                 out = ~ax.within_travel(q_cmd[:, j])  # the one travel check
+                if np.any(out):
+                    out = self._clamp_rapids_at_the_limit(j, q_nom, q_cmd, rows, out)
                 if np.any(out):
                     k = int(np.argmax(out))
                     v = np.degrees(q_cmd[k, j]) if ax.is_rotary else q_cmd[k, j]
