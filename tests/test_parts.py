@@ -218,6 +218,13 @@ def test_nas979_bad_overrides_raise_value_error(overrides, message):
         Nas979Params.from_overrides(overrides)
 
 
+def test_slot_passes_beyond_what_a_slot_needs_are_refused():
+    # 0.0001 mm per pass wrote 90,000 passes (720,025 lines, 113 s, no word: a QA pass)
+    with pytest.raises(ValueError, match=r"makes 30000 passes per slot; at most 200"):
+        SlotBlockParams.from_overrides(["axial_depth_per_pass=0.0001"])
+    assert len(SlotBlockParams.from_overrides(["axial_depth_per_pass=0.015"]).pass_depths()) == 200
+
+
 def test_workplane_conveniences_refuse_unknown_names_and_place_on_a_workplane():
     with pytest.raises(ValueError, match="unknown"):
         parts.nas979_workplane(apex_angle=30)

@@ -295,6 +295,9 @@ class Nas979Params(_Params):
         }
 
 
+MAX_SLOT_PASSES = 200  # passes per slot the program generator writes at most
+
+
 @dataclass(frozen=True)
 class SlotBlockParams(_Params):
     """Slot block with three identical slots. Lengths in mm.
@@ -324,6 +327,10 @@ class SlotBlockParams(_Params):
                 raise ValueError(f"slots parameter {name} must be > 0 mm, got {getattr(self, name)}")
         if self.slot_depth >= self.block_height_z:
             raise ValueError(f"slots: slot_depth {self.slot_depth} mm cuts through the block ({self.block_height_z} mm)")
+        passes = math.ceil(self.slot_depth / self.axial_depth_per_pass - 1e-9)
+        if passes > MAX_SLOT_PASSES:  # 0.0001 mm gave 90,000 passes, 720,025 lines in 113 s without a word (QA)
+            raise ValueError(f"slots: axial_depth_per_pass {self.axial_depth_per_pass:g} mm makes {passes} passes "
+                             f"per slot; at most {MAX_SLOT_PASSES} (a slot is cut in a few passes of tenths of a mm)")
         path = np.asarray(self.slot_path, dtype=float)
         if path.ndim != 2 or path.shape[1] != 2 or len(path) < 2:
             raise ValueError("slots parameter slot_path must hold at least two (x, y) points")
