@@ -229,17 +229,22 @@ def _scan_line(src, s, e):
 
 
 @numba.njit(cache=True)
-def scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch, n_extra, extra_val, extra_dec):
-    """Which candidate lines the compiled writer takes: (ok (n,) bool, spans (n, 7) int64, see ``_scan_line``).
+def scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch, n_extra, extra_val, extra_dec, ok,
+         spans):
+    """Which candidate lines the compiled writer takes, into ``ok`` (n,) bool and ``spans`` (n, 7) int64 (see
+    ``_scan_line``; -1 where not ok); returns how many it takes. (Into the caller's arrays: shares of the candidates
+    on the kernels' threads write their parts of the same arrays, which are not joined afterwards.)
 
     src: the program's bytes; line_start (L+1,): byte offset of every line; candidate c is line cand_line[c], its
     axis words the values target[cand_k[c], cols] at decimals dec[inch[cand_k[c]]] (per output axis), then
     n_extra[c] words more (a kept arc's centre) of values extra_val[c] at decimals extra_dec[c]; its motion word
     cand_motion[c] (0..3). A line is taken when it is plain and every number can be written exactly."""
     n = cand_line.size
-    ok = np.zeros(n, np.bool_)
-    spans = np.full((n, 7), -1, np.int64)
+    taken = 0
     for c in range(n):
+        ok[c] = False
+        for j in range(7):
+            spans[c, j] = -1
         li = cand_line[c]
         s = line_start[li]
         e = _body_end(src, s, line_start[li + 1])
@@ -262,7 +267,8 @@ def scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inc
             ok[c] = True
             spans[c, 0], spans[c, 1], spans[c, 2], spans[c, 3] = n0, n1, f0, f1
             spans[c, 4], spans[c, 5], spans[c, 6] = g, r0, r1
-    return ok, spans
+            taken += 1
+    return taken
 
 
 @numba.njit(cache=True)
@@ -525,7 +531,8 @@ def rewrite_line(line: str, motion: int, values, letters: str, decimals, *, lead
     extra_dec = np.zeros((1, 2), np.int64)
     for j, (c, v, d) in enumerate(centre):
         extra_letter[0, j], extra_val[0, j], extra_dec[0, j] = ord(c), v, d
-    ok, spans = scan(src, line_start, one, one, motion_a, target, cols, dec, inch, n_extra, extra_val, extra_dec)
+    ok, spans = np.zeros(1, np.bool_), np.empty((1, 7), np.int64)
+    scan(src, line_start, one, one, motion_a, target, cols, dec, inch, n_extra, extra_val, extra_dec, ok, spans)
     if not ok[0]:
         return None
     out = assemble(src, line_start, np.ones(1, np.int8), one, one, motion_a, spans, target, cols,
