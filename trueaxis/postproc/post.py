@@ -1122,9 +1122,12 @@ class _Poster:
         prev = idx[same] - 1
         same[same] = np.all(q_start[idx[same]] == q_end[prev], axis=1) & (
             True if f_all is None else np.all(f_all[idx[same]] == f_all[prev], axis=1))
-        q0[same] = q_cmd_end[idx[same] - 1]
+        # (the reused moves' positions and their moves before, picked out once for the five arrays taken from there)
+        at = np.flatnonzero(same)
+        before = idx[at] - 1
+        q0[at] = q_cmd_end[before]
         for mine, theirs in zip(poses, end_poses):
-            mine[same] = theirs[idx[same] - 1]
+            mine[at] = theirs[before]
         if not same.all():
             fresh = idx[~same]
             q0[~same], _, solved = self.solve(q_start[fresh], None if f_all is None else f_all[fresh], rows[fresh],
