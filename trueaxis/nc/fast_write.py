@@ -36,7 +36,7 @@ import numpy as np
 MAX_DECIMALS = 22
 _TWO53 = 9007199254740992.0
 _P10 = np.array([float(10**i) for i in range(MAX_DECIMALS + 1)])  # exact: 10**i = 2**i 5**i, 5**22 < 2**53
-_AXIS_ORDER = np.frombuffer(b"XYZABCIJK", np.uint8).copy()
+_WORD_ORDER = np.frombuffer(b"XYZABCIJKRF", np.uint8).copy()  # the words after G, in their order
 _WORD_MAX = 32  # bytes a written axis word can take: separator, letter, sign, 23 digits, point
 
 
@@ -84,15 +84,6 @@ def _rounded(x, d):
 
 
 @numba.njit(cache=True)
-def _put_digits(buf, pos, q, width):
-    """Write the int64 q >= 0 as ``width`` decimal digits (zero-padded on the left) at ``pos``."""
-    for i in range(width - 1, -1, -1):
-        buf[pos + i] = 48 + q % 10
-        q //= 10
-    return pos + width
-
-
-@numba.njit(cache=True)
 def _n_digits(q):
     n = 1
     while q >= 10:
@@ -104,7 +95,8 @@ def _n_digits(q):
 @numba.njit(cache=True)
 def _put_number(buf, pos, x, d, leading_zero, trailing_point):
     """``write_number(x, d, leading_zero=.., trailing_point=..)`` at ``buf[pos:]``; returns the new position.
-    ``_fits(x, d)`` assumed; ``buf`` has room for 26 more bytes."""
+    ``_fits(x, d)`` assumed; ``buf`` has room for 26 more bytes. (The digits are written here, from the last one
+    back, not by a helper: numba reference-counts an array at every call it is handed to, a cost per number.)"""
     q = _rounded(x, d)
     de = d
     if q == 0:
@@ -116,58 +108,29 @@ def _put_number(buf, pos, x, d, leading_zero, trailing_point):
     if q != 0 and x < 0.0:
         buf[pos] = 45  # "-"
         pos += 1
-    nd = _n_digits(q)
-    if de == 0:
-        pos = _put_digits(buf, pos, q, nd)
-        if trailing_point:
-            buf[pos] = 46
-            pos += 1
-        return pos
-    if nd > de:
-        p10 = np.int64(1)
-        for _ in range(de):
-            p10 *= 10
-        pos = _put_digits(buf, pos, q // p10, nd - de)
-        buf[pos] = 46
-        pos += 1
-        return _put_digits(buf, pos, q % p10, de)
-    if leading_zero:
+    # q's digits zero-padded on the left to de (``0.00q``), the point before the last de of them; no integer digit
+    # when they are all the fraction's ("0" before the point with leading_zero), a trailing point when none is
+    n_int = max(_n_digits(q), de) - de
+    if n_int == 0 and leading_zero:
         buf[pos] = 48
         pos += 1
-    buf[pos] = 46
-    pos += 1
-    return _put_digits(buf, pos, q, de)  # (de - nd) leading zeros, then q
-
-
-@numba.njit(cache=True)
-def _blanks(src, i, e):
-    while i < e and (src[i] == 32 or src[i] == 9):
-        i += 1
-    return i
-
-
-@numba.njit(cache=True)
-def _digits(src, i, e):
-    while i < e and 48 <= src[i] <= 57:
-        i += 1
-    return i
-
-
-@numba.njit(cache=True)
-def _number(src, i, e):
-    """End of ``post._NUM`` ([-+]? (digits [.] digits* | . digits)) starting at i, or -1."""
-    if i < e and (src[i] == 43 or src[i] == 45):
-        i += 1
-    j = _digits(src, i, e)
-    if j > i:
-        if j < e and src[j] == 46:
-            j = _digits(src, j + 1, e)
-        return j
-    if i < e and src[i] == 46:
-        j = _digits(src, i + 1, e)
-        if j > i + 1:
-            return j
-    return -1
+    end = pos + n_int + de + (1 if de > 0 or trailing_point else 0)
+    i = end - 1
+    if de == 0 and trailing_point:
+        buf[i] = 46
+        i -= 1
+    for _ in range(de):
+        buf[i] = 48 + q % 10
+        q //= 10
+        i -= 1
+    if de > 0:
+        buf[i] = 46
+        i -= 1
+    for _ in range(n_int):
+        buf[i] = 48 + q % 10
+        q //= 10
+        i -= 1
+    return end
 
 
 @numba.njit(cache=True)
@@ -184,79 +147,112 @@ def _body_end(src, s, e):
 
 
 @numba.njit(cache=True)
-def _scan_line(src, s, e, out):
-    """Match ``post._PLAIN`` on src[s:e]: True and out = (N start, N end, F start, F end, G style, R start, R end)
-    (-1: none; G style 1: ``G01``-like, 0: other), or False."""
-    for j in range(7):
-        out[j] = -1
-    i = _blanks(src, s, e)
+def _scan_line(src, s, e):
+    """Match ``post._PLAIN`` on src[s:e]: (True, N start, N end, F start, F end, G style, R start, R end) (-1: none;
+    G style 1: ``G01``-like, 0: other), or (False, -1, ...).
+
+    The words after the G word are X Y Z A B C I J K R F, each at most once, in this order (R, kept as written when
+    the block stays an arc, and F, kept as written, have their spans noted); each a letter, blanks, ``post._NUM``
+    ([-+]? (digits [.] digits* | . digits)). The bytes are read here, not by helpers: numba reference-counts an
+    array at every call it is handed to, a cost per word."""
+    fail = (False, -1, -1, -1, -1, -1, -1, -1)
+    n0, n1, f0, f1, g, r0, r1 = -1, -1, -1, -1, -1, -1, -1
+    i = s
+    while i < e and (src[i] == 32 or src[i] == 9):
+        i += 1
     if i < e and _upper(src[i]) == 78:  # N digits
-        j = _digits(src, i + 1, e)
+        j = i + 1
+        while j < e and 48 <= src[j] <= 57:
+            j += 1
         if j == i + 1:
-            return False
-        out[0] = i
-        out[1] = j
-        i = _blanks(src, j, e)
+            return fail
+        n0, n1, i = i, j, j
+        while i < e and (src[i] == 32 or src[i] == 9):
+            i += 1
     if i < e and _upper(src[i]) == 71:  # G 0* [0-3], not followed by a digit or point
-        j = _digits(src, i + 1, e)
+        j = i + 1
+        while j < e and 48 <= src[j] <= 57:
+            j += 1
         nd = j - i - 1
         if nd == 0 or (j < e and src[j] == 46) or not (48 <= src[j - 1] <= 51):
-            return False
+            return fail
         for t in range(i + 1, j - 1):
             if src[t] != 48:
-                return False
-        out[4] = 1 if nd == 2 else 0
-        i = _blanks(src, j, e)
+                return fail
+        g = 1 if nd == 2 else 0
+        i = j
+        while i < e and (src[i] == 32 or src[i] == 9):
+            i += 1
     last = -1
-    while i < e:  # X Y Z A B C I J K, each at most once, in this order
+    while i < e:
         c = _upper(src[i])
         a = -1
-        for t in range(last + 1, 9):
-            if _AXIS_ORDER[t] == c:
+        for t in range(last + 1, 11):
+            if _WORD_ORDER[t] == c:
                 a = t
                 break
         if a < 0:
             break
-        j = _number(src, _blanks(src, i + 1, e), e)
-        if j < 0:
-            return False
+        j = i + 1
+        while j < e and (src[j] == 32 or src[j] == 9):
+            j += 1
+        if j < e and (src[j] == 43 or src[j] == 45):
+            j += 1
+        d0 = j
+        while j < e and 48 <= src[j] <= 57:
+            j += 1
+        if j > d0:
+            if j < e and src[j] == 46:
+                j += 1
+                while j < e and 48 <= src[j] <= 57:
+                    j += 1
+        elif j < e and src[j] == 46:
+            j += 1
+            d0 = j
+            while j < e and 48 <= src[j] <= 57:
+                j += 1
+            if j == d0:
+                return fail
+        else:
+            return fail
+        if a == 9:
+            r0, r1 = i, j
+        elif a == 10:
+            f0, f1 = i, j
         last = a
-        i = _blanks(src, j, e)
-    if i < e and _upper(src[i]) == 82:  # R: kept as written when the block stays an arc
-        j = _number(src, _blanks(src, i + 1, e), e)
-        if j < 0:
-            return False
-        out[5] = i
-        out[6] = j
-        i = _blanks(src, j, e)
-    if i < e and _upper(src[i]) == 70:  # F: kept as written
-        j = _number(src, _blanks(src, i + 1, e), e)
-        if j < 0:
-            return False
-        out[2] = i
-        out[3] = j
-        i = _blanks(src, j, e)
-    return i == e
+        i = j
+        while i < e and (src[i] == 32 or src[i] == 9):
+            i += 1
+    if i != e:
+        return fail
+    return (True, n0, n1, f0, f1, g, r0, r1)
 
 
 @numba.njit(cache=True)
-def scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch, n_extra, extra_val, extra_dec):
-    """Which candidate lines the compiled writer takes: (ok (n,) bool, spans (n, 7) int64, see ``_scan_line``).
+def scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inch, n_extra, extra_val, extra_dec, ok,
+         spans):
+    """Which candidate lines the compiled writer takes, into ``ok`` (n,) bool and ``spans`` (n, 7) int64 (see
+    ``_scan_line``; -1 where not ok); returns how many it takes. (Into the caller's arrays: shares of the candidates
+    on the kernels' threads write their parts of the same arrays, which are not joined afterwards.)
 
     src: the program's bytes; line_start (L+1,): byte offset of every line; candidate c is line cand_line[c], its
     axis words the values target[cand_k[c], cols] at decimals dec[inch[cand_k[c]]] (per output axis), then
     n_extra[c] words more (a kept arc's centre) of values extra_val[c] at decimals extra_dec[c]; its motion word
     cand_motion[c] (0..3). A line is taken when it is plain and every number can be written exactly."""
     n = cand_line.size
-    ok = np.zeros(n, np.bool_)
-    spans = np.full((n, 7), -1, np.int64)
-    row = np.empty(7, np.int64)
+    taken = 0
     for c in range(n):
+        ok[c] = False
+        for j in range(7):
+            spans[c, j] = -1
         li = cand_line[c]
         s = line_start[li]
         e = _body_end(src, s, line_start[li + 1])
         m = cand_motion[c]
-        if m < 0 or m > 9 or not _scan_line(src, s, e, row):
+        if m < 0 or m > 9:
+            continue
+        plain, n0, n1, f0, f1, g, r0, r1 = _scan_line(src, s, e)
+        if not plain:
             continue
         k = cand_k[c]
         good = True
@@ -269,14 +265,15 @@ def scan(src, line_start, cand_line, cand_k, cand_motion, target, cols, dec, inc
                 good = False
         if good:
             ok[c] = True
-            spans[c, :] = row
-    return ok, spans
+            spans[c, 0], spans[c, 1], spans[c, 2], spans[c, 3] = n0, n1, f0, f1
+            spans[c, 4], spans[c, 5], spans[c, 6] = g, r0, r1
+            taken += 1
+    return taken
 
 
 @numba.njit(cache=True)
-def _grow(buf, pos, need):
-    if pos + need <= buf.size:
-        return buf
+def _grown(buf, pos, need):
+    """A buffer of at least ``pos + need`` bytes, its first ``pos`` those of ``buf`` (called where ``buf`` is short)."""
     out = np.empty(max(2 * buf.size, pos + need), np.uint8)
     out[:pos] = buf[:pos]
     return out
@@ -296,7 +293,10 @@ def assemble(src, line_start, mode, cand_of_line, cand_k, cand_motion, spans, ta
     """The output program's bytes. Per line li: mode 0, src's line as it is; 1, candidate cand_of_line[li] rewritten
     (``scan`` accepted it): [N sep] G word, sep letter number per output axis, the extra words (a kept arc's
     centre), [sep R] (when keep_r), [sep F], the line ending; 2, the text blob[blob_start[li]:blob_end[li]] (the
-    Python path's). ``sep``: separator byte, or -1 for none."""
+    Python path's). ``sep``: separator byte, or -1 for none.
+
+    The rewritten lines' bytes are copied here, not by helpers (numba reference-counts an array at every call it is
+    handed to, a cost per word); a number is one call (``_put_number``)."""
     n_lines = mode.size
     n_out = cols.size
     buf = np.empty(src.size + blob.size + 16 * n_lines + 64, np.uint8)
@@ -306,18 +306,28 @@ def assemble(src, line_start, mode, cand_of_line, cand_k, cand_motion, spans, ta
         e = line_start[li + 1]
         md = mode[li]
         if md == 0:
-            buf = _grow(buf, pos, e - s)
-            pos = _copy(buf, pos, src, s, e)
+            if pos + (e - s) > buf.size:
+                buf = _grown(buf, pos, e - s)
+            for t in range(s, e):
+                buf[pos] = src[t]
+                pos += 1
             continue
         if md == 2:
-            buf = _grow(buf, pos, blob_end[li] - blob_start[li])
-            pos = _copy(buf, pos, blob, blob_start[li], blob_end[li])
+            if pos + (blob_end[li] - blob_start[li]) > buf.size:
+                buf = _grown(buf, pos, blob_end[li] - blob_start[li])
+            for t in range(blob_start[li], blob_end[li]):
+                buf[pos] = blob[t]
+                pos += 1
             continue
         c = cand_of_line[li]
         k = cand_k[c]
-        buf = _grow(buf, pos, (e - s) + _WORD_MAX * (n_out + n_extra[c] + 1))
+        need = (e - s) + _WORD_MAX * (n_out + n_extra[c] + 1)
+        if pos + need > buf.size:
+            buf = _grown(buf, pos, need)
         if spans[c, 0] >= 0:
-            pos = _copy(buf, pos, src, spans[c, 0], spans[c, 1])
+            for t in range(spans[c, 0], spans[c, 1]):
+                buf[pos] = src[t]
+                pos += 1
             if sep >= 0:
                 buf[pos] = sep
                 pos += 1
@@ -335,19 +345,32 @@ def assemble(src, line_start, mode, cand_of_line, cand_k, cand_motion, spans, ta
                 pos += 1
             buf[pos] = letters[a]
             pos = _put_number(buf, pos + 1, target[k, cols[a]], dec[row, a], leading_zero, trailing_point)
-        pos = _put_row_words(buf, pos, c, n_extra, extra_val, extra_letter, extra_dec, leading_zero, trailing_point,
-                             sep)
+        for a in range(n_extra[c]):
+            if sep >= 0:
+                buf[pos] = sep
+                pos += 1
+            buf[pos] = extra_letter[c, a]
+            pos = _put_number(buf, pos + 1, extra_val[c, a], extra_dec[c, a], leading_zero, trailing_point)
         if keep_r[c] and spans[c, 5] >= 0:
             if sep >= 0:
                 buf[pos] = sep
                 pos += 1
-            pos = _copy(buf, pos, src, spans[c, 5], spans[c, 6])
+            for t in range(spans[c, 5], spans[c, 6]):
+                buf[pos] = src[t]
+                pos += 1
         if spans[c, 2] >= 0:
             if sep >= 0:
                 buf[pos] = sep
                 pos += 1
-            pos = _copy(buf, pos, src, spans[c, 2], spans[c, 3])
-        pos = _copy(buf, pos, src, _body_end(src, s, e), e)
+            for t in range(spans[c, 2], spans[c, 3]):
+                buf[pos] = src[t]
+                pos += 1
+        be = e
+        while be > s and (src[be - 1] == 10 or src[be - 1] == 13):
+            be -= 1
+        for t in range(be, e):
+            buf[pos] = src[t]
+            pos += 1
     return buf[:pos]
 
 
@@ -407,7 +430,6 @@ def pieces(src, line_start, cand_line, first_motion, piece_code, piece_first, pt
     ok = np.zeros(m, np.bool_)
     blob_start = np.zeros(m, np.int64)
     blob_end = np.zeros(m, np.int64)
-    span = np.empty(7, np.int64)
     buf = np.empty(64 * (pts.shape[0] + m) + 64, np.uint8)
     pos = 0
     for c in range(m):
@@ -418,22 +440,26 @@ def pieces(src, line_start, cand_line, first_motion, piece_code, piece_first, pt
         lo = piece_first[c]
         hi = piece_first[c + 1]
         row = 1 if inch[c] else 0
-        if hi <= lo or not _scan_line(src, s, be, span):
+        if hi <= lo:
+            continue
+        plain, n0, n1, f0, f1, g, _, _ = _scan_line(src, s, be)
+        if not plain:
             continue
         if not _pieces_fit(pts, lo, hi, cols, dec[row], n_centre, centre_val, centre_dec):
             continue
         ok[c] = True
         blob_start[c] = pos
         need = (e - s) + (hi - lo) * (_WORD_MAX * (cols.size + 3) + (e - be))
-        buf = _grow(buf, pos, need)
-        if span[0] >= 0:
-            pos = _copy(buf, pos, src, span[0], span[1])
+        if pos + need > buf.size:
+            buf = _grown(buf, pos, need)
+        if n0 >= 0:
+            pos = _copy(buf, pos, src, n0, n1)
             if sep >= 0:
                 buf[pos] = sep
                 pos += 1
         buf[pos] = 71  # "G"
         pos += 1
-        if span[4] == 1:
+        if g == 1:
             buf[pos] = 48
             pos += 1
         buf[pos] = 48 + first_motion[c]
@@ -441,11 +467,11 @@ def pieces(src, line_start, cand_line, first_motion, piece_code, piece_first, pt
         pos = _put_words(buf, pos, pts, lo, cols, letters, dec[row], leading_zero, trailing_point, sep)
         pos = _put_row_words(buf, pos, lo, n_centre, centre_val, centre_letter, centre_dec, leading_zero,
                           trailing_point, sep)
-        if span[2] >= 0:
+        if f0 >= 0:
             if sep >= 0:
                 buf[pos] = sep
                 pos += 1
-            pos = _copy(buf, pos, src, span[2], span[3])
+            pos = _copy(buf, pos, src, f0, f1)
         pos = _copy(buf, pos, src, be, e)
         for i in range(lo + 1, hi):
             buf[pos] = 71
@@ -505,7 +531,8 @@ def rewrite_line(line: str, motion: int, values, letters: str, decimals, *, lead
     extra_dec = np.zeros((1, 2), np.int64)
     for j, (c, v, d) in enumerate(centre):
         extra_letter[0, j], extra_val[0, j], extra_dec[0, j] = ord(c), v, d
-    ok, spans = scan(src, line_start, one, one, motion_a, target, cols, dec, inch, n_extra, extra_val, extra_dec)
+    ok, spans = np.zeros(1, np.bool_), np.empty((1, 7), np.int64)
+    scan(src, line_start, one, one, motion_a, target, cols, dec, inch, n_extra, extra_val, extra_dec, ok, spans)
     if not ok[0]:
         return None
     out = assemble(src, line_start, np.ones(1, np.int8), one, one, motion_a, spans, target, cols,

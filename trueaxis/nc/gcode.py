@@ -913,8 +913,9 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         used_axes.update(c for c in AXES if mask & _WORD_BIT[c])
         units_seen = self.units_seen
         units = "mixed" if len(units_seen) > 1 else ("inch" if units_seen == {"inch"} else "mm")
-        start = np.array(self.r_start, float).reshape(m, 6)
-        end = np.array(self.r_end, float).reshape(m, 6)
+        # the accumulators' memory itself (array("d") is float64; no row is added to them after this): not copied
+        start = np.frombuffer(self.r_start, np.float64).reshape(m, 6)
+        end = np.frombuffer(self.r_end, np.float64).reshape(m, 6)
         offset = st_off[sid].reshape(m, 6)
         feed_rows = st_feed[sid].reshape(m)
         # Numbers too large for a float (a 400-digit X), or sums of huge ones, must not reach a writer as inf/NaN.

@@ -1202,9 +1202,12 @@ class _Poster:
         prev = idx[same] - 1
         same[same] = np.all(q_start[idx[same]] == q_end[prev], axis=1) & (
             True if f_all is None else np.all(f_all[idx[same]] == f_all[prev], axis=1))
-        q0[same] = q_cmd_end[idx[same] - 1]
+        # (the reused moves' positions and their moves before, picked out once for the five arrays taken from there)
+        at = np.flatnonzero(same)
+        before = idx[at] - 1
+        q0[at] = q_cmd_end[before]
         for mine, theirs in zip(poses, end_poses):
-            mine[same] = theirs[idx[same] - 1]
+            mine[at] = theirs[before]
         if not same.all():
             fresh = idx[~same]
             q0[~same], _, solved = self.solve(q_start[fresh], None if f_all is None else f_all[fresh], rows[fresh],
@@ -1419,7 +1422,8 @@ class _Poster:
         written_end, first_row_of_line = self._written_ends(rows, delta_prog, is_cycle)
         # Each compensated move's corrected end; the axis words of the pieces of split moves and linearised arcs (the
         # block's own end last), formatted in one pass per axis.
-        target = p.end[rows] + delta_prog
+        target = p.end[rows]  # (a new array: the sum in place)
+        target += delta_prog
         inch_rows = p.inch[rows]
         split = self._piece_words(pieces, arc_mode, target, inch_rows, axes_out, numbers)
         line_of = p.line_index[rows]
@@ -1464,7 +1468,11 @@ class _Poster:
         and R level) as programmed. A block's incremental words and arc centres count from the end written for the
         row before it."""
         p = self.p
-        written_end = _WrittenEnd(p.end, len(p), rows[~is_cycle], delta_prog[~is_cycle])
+        moves = ~is_cycle
+        if moves.all():  # (as a rule: the same rows, not copied)
+            written_end = _WrittenEnd(p.end, len(p), rows, delta_prog)
+        else:
+            written_end = _WrittenEnd(p.end, len(p), rows[moves], delta_prog[moves])
         first_row_of_line = np.full(len(p.lines), -1)
         first_row_of_line[p.line_index[::-1]] = np.arange(len(p))[::-1]
         return written_end, first_row_of_line
@@ -1660,18 +1668,22 @@ class _Poster:
             table = np.array([[numbers.decimals(c, inch) for inch in (False, True)] for c in "IJK"], np.int64)
             extra_letter[arcs] = np.frombuffer(b"IJK", np.uint8)[which]
             extra_dec[arcs] = table[which, inch0.astype(np.int64)[:, None]]
-        # (each candidate is judged alone: the candidates shared among the kernels' threads, the results joined)
-        shares = _shared(fast_write.scan, cand.size, lambda sl: (
+        # (each candidate is judged alone: the candidates shared among the kernels' threads, each share writing its
+        # part of ok and spans)
+        ok, spans = np.empty(cand.size, np.bool_), np.empty((cand.size, 7), np.int64)
+        _shared(fast_write.scan, cand.size, lambda sl: (
             src, line_start, cand_line[sl], cand_k[sl], cand_motion[sl], target, cols, dec, inch, n_extra[sl],
-            extra_val[sl], extra_dec[sl]))
-        ok, spans = (np.concatenate(x) for x in zip(*shares))
+            extra_val[sl], extra_dec[sl], ok[sl], spans[sl]))
+        taken = np.flatnonzero(ok)
         handled = np.zeros(starts.size, bool)
-        handled[cand[ok]] = True
-        return {"handled": handled, "src": src, "line_start": line_start, "line": cand_line[ok], "k": cand_k[ok],
-                "motion": cand_motion[ok], "spans": spans[ok], "target": target, "cols": cols, "dec": dec,
+        handled[cand[taken]] = True
+        # the candidates' arrays as they are (not the taken ones picked out: a million rows each), "cand" the index of
+        # each taken line's candidate in them
+        return {"handled": handled, "src": src, "line_start": line_start, "line": cand_line[taken], "cand": taken,
+                "k": cand_k, "motion": cand_motion, "spans": spans, "target": target, "cols": cols, "dec": dec,
                 "inch": inch, "sep": sep, "letters": np.frombuffer("".join(axes_out).encode("ascii"), np.uint8),
-                "n_extra": n_extra[ok], "extra_val": extra_val[ok], "extra_letter": extra_letter[ok],
-                "extra_dec": extra_dec[ok], "keep_r": keep_r[ok]}
+                "n_extra": n_extra, "extra_val": extra_val, "extra_letter": extra_letter, "extra_dec": extra_dec,
+                "keep_r": keep_r}
 
     def _fast_pieces(self, rows, starts, ends, is_cycle, arc_mode, split, axes_out, numbers, ends_written, fast):
         """The lines of split moves and fitted arcs the compiled writer takes (``fast_write.pieces``: absolute words,
@@ -1773,7 +1785,7 @@ class _Poster:
         mode = np.zeros(n_lines, np.int8)
         cand_of_line = np.zeros(n_lines, np.int64)
         mode[fast["line"]] = 1
-        cand_of_line[fast["line"]] = np.arange(fast["line"].size)
+        cand_of_line[fast["line"]] = fast["cand"]
         blob_start = np.zeros(n_lines, np.int64)
         blob_end = np.zeros(n_lines, np.int64)
         lis = sorted(texts)
@@ -1796,7 +1808,7 @@ class _Poster:
             fast["motion"], fast["spans"], fast["target"], fast["cols"], fast["letters"], fast["dec"], fast["inch"],
             fast["n_extra"], fast["extra_val"], fast["extra_letter"], fast["extra_dec"], fast["keep_r"],
             bool(info.leading_zero), bool(info.trailing_point), fast["sep"], blob, blob_start[sl], blob_end[sl]))
-        return b"".join(out.tobytes() for out in shares).decode("utf-8")
+        return b"".join(shares).decode("utf-8")  # (the shares' bytes joined as they are: not copied to bytes first)
 
     def _centre_words(self, r, delta_end, last_written, fmt):
         """The centre words of one kept arc (``_centre_values``), formatted."""
