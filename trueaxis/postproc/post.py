@@ -90,6 +90,7 @@ def condition_marks(lines, source: str) -> list[tuple[int, dict]]:
     return marks
 _MOTION_WORD = re.compile(r"^G0*([0-3])$", re.IGNORECASE)
 # the motion group's codes a line holds (its modal motion: moves, cycles and G80), for the modal cycle in force
+_G87 = re.compile(r"(?i)G\s*0*87(?![\d.])")
 _MOTION_CODE = re.compile(r"(?i)G\s*0*(0|1|2|3|33\.1|38\.[2-5]|73|76|8[0-9])(?![\d.])")
 _NUM = NUMBER  # the one number of nc/grammar.py
 # A plain motion block: N G X Y Z A B C I J K R F, each optional, in this order, nothing else (the writer's fast path)
@@ -1868,7 +1869,13 @@ class _Poster:
             raise PostError(p.source, int(p.line_no[across[0]]), "a canned cycle whose feeds are not along Z (the "
                                                                  "G18 / G19 plane): the post writes cycles in G17 "
                                                                  "only; write the holes as G1 moves")
-        # G87 is modal like every cycle: the motion code in force at each cycle line (the last one before it)
+        # G87 is modal like every cycle: the motion code in force at each cycle line (the last one before it). Read
+        # only when a line holds a G87 at all (a million-line program's lines are not scanned one by one for it).
+        text = "".join(p.lines)
+        starts = [m.start() for m in _G87.finditer(text)]  # a G87 anywhere (one pass), then its line's code part
+        if not any(_G87.search(_split_comment(text[text.rfind("\n", 0, i) + 1:text.find("\n", i) % (len(text) + 1)])[0])
+                   for i in starts):
+            return
         lines = set(np.unique(p.line_index[cyc]).tolist())
         mode = None
         for li in range(max(lines) + 1):
