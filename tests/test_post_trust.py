@@ -378,7 +378,8 @@ def test_a_tolerance_below_what_a_written_program_holds_is_refused_and_a_travel_
     # A corrected axis just past its travel: the excess is said (the 6 digits once showed 'X = 200' for 200.0003).
     # G54 at X 100: the program's X100 is the machine's X 200, the end of its travel, which the twin moves outwards.
     setup = tmp_path / "setup.toml"
-    setup.write_text('[setup]\nname = "edge"\nunits = "mm"\n[work_offsets]\nG54 = { X = 100.0, Y = 50.0, Z = -200.0 }\n')
+    setup.write_text('[setup]\nname = "edge"\nunits = "mm"\n'
+                     '[work_offsets]\nG54 = { X = 100.0, Y = 50.0, Z = -200.0 }\n')
     src.write_text("G21 G90 G94 F500\nG0 X10 Y10 Z-10\nG1 X100 Y50 Z-20\nM2\n")
     r = run_cli("post", src, "-o", tmp_path / "edge.ngc", "--machine", XH714, "--setup", setup)
     m = re.search(r"corrected X = ([\d.]+) lies outside its travel \[-?\d+, (\d+)\] by ([\d.]+) um", r.stderr)
@@ -464,7 +465,28 @@ def test_a_rapid_at_the_end_of_an_axis_travel_ends_at_the_limit_and_says_so(tmp_
                    "G90 G0 X100 Y50\nM2\n")
     r = run_cli("post", src, "-o", out, "--machine", XH714, "--setup", setup)
     assert r.returncode == 0, r.stderr
-    m = re.search(r"in.ngc:8: a rapid at the end of Z's travel: its correction \(([\d.]+) um past the limit\)", r.stderr)
+    m = re.search(r"in.ngc:8: a rapid at the end of Z's travel: its correction \(([\d.]+) um past the limit\)",
+                  r.stderr)
     assert m and 0.0 < float(m.group(1)) < 10.0, r.stderr
     last = [line for line in without_header(out.read_text()).splitlines() if line.startswith("G90 G0 X100")][0]
     assert last.endswith(" Z150")  # program Z 150 = machine Z 0 (G54 Z -250, tool length 100): the limit
+
+
+def test_comprehensive_mode_takes_the_cutting_tools_diameter_from_the_setups_tool_table(tmp_path):
+    # The machine file's reference tool (10 mm, 4 flutes) was used although the setup gave the active tool's
+    # diameter (T23 of 0.125 in, a QA pass): the setup's tool table comes before the machine file's tool.
+    src, setup = tmp_path / "in.ngc", tmp_path / "setup.toml"
+    src.write_text("G21 G90 G17 G94 G54\nT1 M6 G43 H1\nG0 X10 Y10 Z5\n(trueaxis: ap=2 ae=1 fz=0.05 n=8000 mode=down)\n"
+                   "G1 Z-2 F200\nG1 X60\nG1 Y40\nG0 Z5\nM2\n")
+    reports = {}
+    for name, tool in (("table", "1 = { length = 100.0, diameter = 3.0 }"), ("none", "1 = { length = 100.0 }")):
+        setup.write_text('[setup]\nunits = "mm"\n[work_offsets]\nG54 = { X = 0.0, Y = 0.0, Z = -250.0 }\n'
+                         f"[tools]\n{tool}\n")
+        r = run_cli("post", src, "-o", tmp_path / f"{name}.ngc", "--machine", XH714, "--setup", setup, "--mode",
+                    "comprehensive", "--report", tmp_path / f"{name}.json")
+        assert r.returncode == 0, r.stderr
+        reports[name] = json.loads((tmp_path / f"{name}.json").read_text())["cutting_conditions"][0]
+    assert reports["table"]["conditions"]["d"] == "3.0"
+    assert reports["table"]["from"]["d"] == "the setup's tool table (T1)"
+    assert reports["none"]["conditions"]["d"] == "10.0" and reports["none"]["from"]["d"] == "the machine file's tool"
+    assert (tmp_path / "table.ngc").read_text() != (tmp_path / "none.ngc").read_text()  # another force, another path

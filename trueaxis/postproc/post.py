@@ -15,7 +15,8 @@ Cutting conditions for comprehensive mode, in order of precedence (the first tha
 1. the caller's ``conditions`` (command line ``--ap --ae --fz --n --d --z --cut-mode``),
 2. the program's structured comments ``(trueaxis: ap=.. ae=.. fz=.. n=.. d=.. z=.. mode=down)``, valid from where they
    stand (FreeCAD's post writes them from the job's tool controller and operation),
-3. the machine file's tool (diameter = 2 x radius, flutes).
+3. the setup's tool table: the diameter of the tool in the spindle (``--tool-table`` D, a setup file's diameter),
+4. the machine file's tool (diameter = 2 x radius, flutes).
 On a lathe the force is Kienzle's turning force from ``(trueaxis: ap=.. f=.. vc=..)`` instead, and each block's
 direction of motion chooses the response surfaces (``trueaxis.postproc.turning``).
 The force is the mechanistic model's mean force over a tooth period, in the feed frame turned to the machine frame:
@@ -360,6 +361,9 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     else:
         poster = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep)
         poster.fit_arcs = arcs_default(machine) if arcs is None else bool(arcs)
+        # the setup's tool diameters (mm): a cut's tool as the control knows it, before the machine file's tool
+        poster.tool_diameters = {int(t): float(o.diameter) for t, o in getattr(setup, "tools", {}).items()
+                                 if getattr(o, "diameter", None)}
         if output_mode == "tcp":
             from .tcp import TcpFrame, tcp_lines
 
@@ -596,6 +600,7 @@ class _Poster:
         self.max_corr = max_corr
         self.singular = np.radians(singular_deg)
         self.conditions = conditions or {}
+        self.tool_diameters = {}
         self.rep = rep
         self.twin = ErrorTwin(machine)
         if machine.kind == "lathe" and mode == "comprehensive":
@@ -720,9 +725,14 @@ class _Poster:
         cli = {k: str(v) for k, v in self.conditions.items() if v is not None}
         starts = [i for i, _ in marks]
 
+        tool_at = dict(zip(self.p.line_index.tolist(), self.p.tool.tolist()))  # the tool in the spindle at a line
+
         def at(line_index):
             merged = dict(tool)
             source = {key: "the machine file's tool" for key in tool}
+            t = tool_at.get(line_index)
+            if t in self.tool_diameters:  # the setup's tool table: the diameter of the tool that cuts here
+                merged["d"], source["d"] = str(self.tool_diameters[t]), f"the setup's tool table (T{t})"
             k = np.searchsorted(starts, line_index, side="right")
             for i, f in marks[:k]:
                 merged.update(f)
