@@ -454,6 +454,16 @@ def test_options_that_would_change_nothing_are_refused_not_ignored(tmp_path):
         assert r.returncode == 2 and says in r.stderr and not out.exists(), (extra, r.stderr)
 
 
+def test_a_programmed_position_outside_the_travel_is_named_as_the_programs_not_as_a_correction(tmp_path):
+    # "corrected X = 224.99 ... by 2.499e+04 um" for a slot block placed 50 mm over (a QA pass): the program's own
+    # position was outside; now said so.
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90\nG0 X10 Y10 Z-20\nG1 X260 F100\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero")
+    assert r.returncode == 3 and not out.exists()
+    assert f"{src}:3: X = 260 (the program's position, in machine coordinates) lies outside its travel" in r.stderr
+
+
 def test_a_rapid_at_the_end_of_an_axis_travel_ends_at_the_limit_and_says_so(tmp_path):
     # G28 home at Z 0, the end of the XH714's Z stroke, then an XY rapid there: the twin's correction took Z 1.45 um
     # past the limit and the whole program was refused (a QA pass; the NIST mtc programs do this). A rapid does not

@@ -871,10 +871,17 @@ class _Poster:
                     t = np.degrees(ax.travel) if ax.is_rotary else ax.travel
                     word = f" (program word {a}{v * self.word_sign[j]:.6g}, rotary_sense {self.m.rotary_sense})" \
                         if self.word_sign[j] < 0 else ""
+                    by = min(abs(v - t[0]), abs(v - t[1])) * (1.0 if ax.is_rotary else 1e3)
+                    unit = "deg" if ax.is_rotary else "um"
+                    if not ax.within_travel(q_nom[k, j]):  # the program's own position, before any correction
+                        nominal = np.degrees(q_nom[k, j]) if ax.is_rotary else q_nom[k, j]
+                        raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
+                                        f"{a} = {nominal:.10g} (the program's position, in machine coordinates) lies "
+                                        f"outside its travel [{t[0]:g}, {t[1]:g}]: the part or the program does not "
+                                        f"fit this machine there")
                     raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
                                     f"corrected {a} = {v:.10g}{word} lies outside its travel [{t[0]:g}, {t[1]:g}]"
-                                    f" by {min(abs(v - t[0]), abs(v - t[1])) * (1.0 if ax.is_rotary else 1e3):.4g} "
-                                    f"{'deg' if ax.is_rotary else 'um'}")
+                                    f" by {by:.4g} {unit}")
 
     # --- the run -------------------------------------------------------------------------------------------------
     def known_positions(self):
