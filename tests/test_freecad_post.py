@@ -305,6 +305,22 @@ def test_arcs_and_output_mode_arguments_reach_the_command(tmp_path, monkeypatch)
         assert out.endswith(f"--mode geometric --tol-um 1{passed})\n"), out
 
 
+def test_cutting_conditions_given_to_the_post_reach_the_command_not_linuxcnc(tmp_path, monkeypatch):
+    # A Profile states no ae: the job's post arguments are where a user gives it; '--ae 2' went to the linuxcnc
+    # post's parser, which raised SystemExit inside FreeCAD (a QA pass).
+    post = load_post_module()
+    exe = stand_in(tmp_path, """
+        shutil.copyfile(args[1], args[3])
+        open(args[3], "a").write("(" + " ".join(args[4:]).replace("(", "") + ")\\n")
+    """)
+    monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+    opts, rest = post.split_arguments("--machine m.toml --mode comprehensive --ae 2 --ap 1.5 --cut-mode up "
+                                      "--precision 4")
+    assert rest == "--precision 4 --no-show-editor"
+    out = post.compensate("G0 X1\n", opts)
+    assert out.endswith("--mode comprehensive --tol-um 1 --ap 1.5 --ae 2 --cut-mode up)\n"), out
+
+
 def test_a_refusal_names_the_block_and_the_reason(tmp_path, monkeypatch):
     post = load_post_module()
     exe = stand_in(tmp_path, """

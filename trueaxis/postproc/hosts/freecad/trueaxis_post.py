@@ -89,6 +89,11 @@ def _build_parser():
                    help="arcs whose correction varies along them become straight pieces")
     p.add_argument("--output-mode", default=None, choices=("joint", "tcp"),
                    help="joint positions, or tool-centre-point positions (trueaxis' default: the machine file's)")
+    for key, what in (("ap", "axial depth, mm"), ("ae", "radial engagement, mm"), ("fz", "feed per tooth, mm"),
+                      ("n", "spindle speed, rpm"), ("d", "tool diameter, mm"), ("z", "flutes")):
+        p.add_argument(f"--{key}", default=None, help=f"comprehensive mode: {what} for every operation (over what the "
+                       "job's operations state)")
+    p.add_argument("--cut-mode", default=None, choices=("down", "up"), help="comprehensive mode: down or up milling")
     p.add_argument("--trueaxis-bin", default=None,
                    help="the trueaxis executable (default: $TRUEAXIS_BIN, else trueaxis on PATH)")
     p.add_argument("--no-show-editor", action="store_true", help="don't pop up the editor before writing output")
@@ -342,6 +347,9 @@ def compensate(gcode, opts, label="program.ngc"):
             cmd.append("--arcs" if opts.arcs else "--no-arcs")
         if opts.output_mode:
             cmd += ["--output-mode", opts.output_mode]
+        for key in ("ap", "ae", "fz", "n", "d", "z", "cut_mode"):  # the cutting conditions, as `trueaxis post` takes them
+            if getattr(opts, key, None) is not None:
+                cmd += [f"--{key.replace('_', '-')}", str(getattr(opts, key))]
         try:
             proc = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, text=True)
         except OSError as exc:
