@@ -221,7 +221,8 @@ def safe_height(machine: Machine, hull_points: np.ndarray, q_rot: np.ndarray, cl
     tr = machine.axes["Z"].travel
     if tr is not None and z > tr[1]:
         raise ValueError(f"no safe height: the part reaches Z {z - clearance:.1f} mm (+{clearance:g} clearance) above "
-                         f"Z's travel ({tr[1]:g} mm); move the part (placement) or check the machine file")
+                         f"Z's travel ({tr[1]:g} mm) at some rotary position; a placement moves the part in X and Y "
+                         f"only: the part origin lower (the machine file's [workpiece] origin) or more Z travel is needed")
     if tr is not None:
         z = min(z + 10.0, tr[1] - 1.0) if z + 10.0 <= tr[1] - 1.0 else z
     return z
