@@ -290,13 +290,18 @@ def test_compensate_runs_the_command_and_returns_its_output(tmp_path, monkeypatc
     assert out == f"G0 X1\n(--machine {os.path.abspath('m.toml')} --mode none --tol-um 0.5 --max-correction-mm 0.2)\n"
 
 
-def test_arcs_and_output_mode_arguments_reach_the_command(tmp_path, monkeypatch):
-    post = load_post_module()
+def echoing_stand_in(tmp_path, monkeypatch):
+    """A stand-in for the trueaxis command that copies the program and appends the options it was given."""
     exe = stand_in(tmp_path, """
         shutil.copyfile(args[1], args[3])
         open(args[3], "a").write("(" + " ".join(args[4:]).replace("(", "") + ")\\n")
     """)
     monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+
+
+def test_arcs_and_output_mode_arguments_reach_the_command(tmp_path, monkeypatch):
+    post = load_post_module()
+    echoing_stand_in(tmp_path, monkeypatch)
     for given, passed in (("", ""), (" --arcs", " --arcs"), (" --no-arcs", " --no-arcs"),
                           (" --no-arcs --output-mode tcp", " --no-arcs --output-mode tcp")):
         opts, rest = post.split_arguments("--machine m.toml" + given + " --precision 4")
@@ -309,11 +314,7 @@ def test_cutting_conditions_given_to_the_post_reach_the_command_not_linuxcnc(tmp
     # A Profile states no ae: the job's post arguments are where a user gives it; '--ae 2' went to the linuxcnc
     # post's parser, which raised SystemExit inside FreeCAD (a QA pass).
     post = load_post_module()
-    exe = stand_in(tmp_path, """
-        shutil.copyfile(args[1], args[3])
-        open(args[3], "a").write("(" + " ".join(args[4:]).replace("(", "") + ")\\n")
-    """)
-    monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+    echoing_stand_in(tmp_path, monkeypatch)
     opts, rest = post.split_arguments("--machine m.toml --mode comprehensive --ae 2 --ap 1.5 --cut-mode up "
                                       "--precision 4")
     assert rest == "--precision 4 --no-show-editor"

@@ -119,6 +119,8 @@ def _put_number(buf, pos, x, d, leading_zero, trailing_point):
     if de == 0 and trailing_point:
         buf[i] = 46
         i -= 1
+    # the fraction's digits, then the integer's: two loops written out, as a helper taking ``buf`` would be
+    # reference-counted by numba at every call (NRT_incref/decref: the cost this layout removed)
     for _ in range(de):
         buf[i] = 48 + q % 10
         q //= 10
