@@ -11,11 +11,11 @@ import pytest
 
 from conftest import MACHINES
 from trueaxis.inspect.cloud import Cloud
-from trueaxis.identify import (find_contacts, identify, machine_for_program, nominal_tool_path,
-                                       reference_parameters, run_identification, sensitivity_matrix)
+from trueaxis.identify import (find_contacts, identify, nominal_tool_path, reference_parameters,
+                               run_identification, sensitivity_matrix)
 from trueaxis.loop import closed_loop, cone_deviation_um, error_free
 from trueaxis.workpiece.parts import Nas979Params, cone_surface_points
-from trueaxis.postproc.programs import nas979_program
+from trueaxis.postproc.programs import nas979_program, placed_for
 from trueaxis.machine import ErrorTwin, load_machine
 from trueaxis.machine.machine_file import dump_machine, parse_machine
 from trueaxis.sim.shop import load_part, simulate
@@ -436,7 +436,7 @@ def test_bestfit_alignment_is_fitted_as_nuisance_through_the_cli(shop, tmp_path,
     fitted = inspect_cloud(shop / "changed.ply", "nas979", align="bestfit")
     text = (shop / "cone.ngc").read_text()
     plain = identify(fitted.aligned, load_part_normals(fitted.aligned), fitted.deviation_um, text,
-                     machine_for_program(load_machine(TWIN_FILE), text))
+                     placed_for(load_machine(TWIN_FILE), text))
     ident = np.nonzero(plain.identified)[0]
     off = np.abs(plain.value[ident] - np.array([truth[plain.names[i]] for i in ident])) / plain.std_noise[ident]
     assert plain.verdict == "refused" or off.max() > 10.0
@@ -495,7 +495,7 @@ def test_a_fit_the_held_out_points_contradict_is_refused_and_nothing_written(sho
     from trueaxis.identify import ToolPath
 
     text = (shop / "cone.ngc").read_text()
-    placed = machine_for_program(nmv, text, "nas979")
+    placed = placed_for(nmv, text, "nas979")
     cloud = read_cloud(shop / "perfect.ply")
     nrm = load_part_normals(cloud.points)
     path = nominal_tool_path(text, placed)

@@ -91,10 +91,10 @@ from scipy.spatial import cKDTree
 
 from .machine import ErrorTwin, Machine, forward_nominal, load_machine
 from .machine.model import ROTATION_LETTER, SQUARENESS, unit_of
-from .inspect.deviation import outward_normals  # noqa: F401 (the identification's normals, re-exported)
+from .inspect.deviation import outward_normals
 from .nc.gcode import Program, parse_program
 from .nc.trajectory import AXES, MM_PER_INCH, interpolate
-from .postproc.programs import ProgramError, check_axes
+from .postproc.programs import ProgramError, check_axes, placed_for
 
 UM_PER_MM = 1e3
 LEVER = 1e-3  # um of contact displacement per (urad of tool-axis error x mm of lever)
@@ -1090,13 +1090,6 @@ def part_normals(points, part: dict) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------- the CLI ----
-def machine_for_program(machine: Machine, program_text: str, part: str | None = None) -> Machine:
-    """The machine with the part placed where the program's setup comment says (``programs.placed_for``)."""
-    from .postproc.programs import placed_for
-
-    return placed_for(machine, program_text, part)
-
-
 def program_compensation(program_text: str, twin: Machine) -> dict:
     """What the program says about its compensation (its ``trueaxis-setup`` comment: ``compensation`` and ``twin``,
     the twin's id, ``trueaxis.postproc.programs.twin_id``), compared with ``twin``. The identification does not
@@ -1155,7 +1148,7 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     if not program_path.is_file():
         raise ValueError(f"{program_path}: no such program file")
     text = program_path.read_text(encoding="utf-8", errors="replace")
-    placed = machine_for_program(original, text, part.get("part"))
+    placed = placed_for(original, text, part.get("part"))
     flipped = None
     if cloud.normals is not None:
         normals, flipped = outward_normals(cloud.points, cloud.normals, part)

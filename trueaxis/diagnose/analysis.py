@@ -332,6 +332,11 @@ def _solve_bounded(S, g, bounds):
     return r.x / scale, True
 
 
+def plausible_bounds(cands: list[Candidate]) -> list:
+    """The plausible bounds of the candidates' parameters in column order, None where a parameter has none."""
+    return [b for c in cands for b in (c.plausible or [None] * c.n_parameters)]
+
+
 def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray, bounded: bool = True) -> Fit:
     """Fit the candidates' columns to the gap, cross-validated over ``folds``. ``bounded``: every fit (the held-out
     ones too) keeps the parameters inside their plausible bounds, so that a candidate is judged by what it explains
@@ -349,7 +354,7 @@ def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray, boun
     options = [v for _, v in cands[0].variants] if len(cands) == 1 and cands[0].variants else \
         [np.column_stack([c.columns for c in cands])]
     n, p = options[0].shape
-    bounds = [b for c in cands for b in (c.plausible or [None] * c.n_parameters)]
+    bounds = plausible_bounds(cands)
 
     def solve(S, y):
         return _solve_bounded(S, y, bounds)[0] if bounded else _solve(S, y)[0]
@@ -683,8 +688,7 @@ def variant_spread(chosen: Fit, by_name: dict, g: np.ndarray, folds: np.ndarray)
 def _pair_rss(a: Candidate, b: Candidate, g: np.ndarray) -> float:
     """Residual sum of squares (um^2) of the bounded fit of two candidates' columns to the whole gap."""
     S = np.column_stack([a.columns, b.columns])
-    bounds = [x for c in (a, b) for x in (c.plausible or [None] * c.n_parameters)]
-    theta = _solve_bounded(S, g, bounds)[0]
+    theta = _solve_bounded(S, g, plausible_bounds([a, b]))[0]
     return float(np.sum((g - S @ theta) ** 2))
 
 

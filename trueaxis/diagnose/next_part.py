@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..nc.gcode import GcodeError
-from .analysis import Diagnosis, _solve_bounded, effect_of, family
+from .analysis import Diagnosis, _solve_bounded, effect_of, family, plausible_bounds
 from .candidates import build_all
 from .state import TwinState, combine_states, twin_state
 
@@ -87,7 +87,7 @@ def _fit_columns(fit, cands: dict) -> list:
 
 
 def _bounds(fit, cands: dict) -> list:
-    return [b for m in fit.members for b in (cands[m].plausible or [None] * cands[m].n_parameters)]
+    return plausible_bounds([cands[m] for m in fit.members])
 
 
 def _misfit(options: list, bounds: list, target: np.ndarray, w: np.ndarray) -> float:
@@ -110,12 +110,14 @@ def separation_z(here: np.ndarray, gap_um: np.ndarray, verdict, rival, cands: di
     density)."""
     zs_here, zs_all = [], []
     for true, other in ((verdict, rival), (rival, verdict)):
-        S_true = _fit_columns(true, cands)
-        opts = [S[here] for S in S_true]
-        fitted = [(_misfit([S], _bounds(true, cands), gap_um, np.ones(len(gap_um))), k) for k, S in enumerate(opts)]
-        k = min(fitted)[1]
-        theta = _solve_bounded(opts[k], gap_um, _bounds(true, cands))[0]
-        signature = S_true[k] @ theta
+        # the true one fitted to the measured gap in the shape that fits it best, then predicted on every row
+        best = None
+        for S in _fit_columns(true, cands):
+            theta = _solve_bounded(S[here], gap_um, _bounds(true, cands))[0]
+            r = gap_um - S[here] @ theta
+            if best is None or float(r @ r) < best[0]:
+                best = (float(r @ r), S @ theta)
+        signature = best[1]
         others = _fit_columns(other, cands)
         zs_here.append(math.sqrt(_misfit([S[here] for S in others], _bounds(other, cands), signature[here],
                                          weight[here])) / sigma)

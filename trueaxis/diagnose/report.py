@@ -25,8 +25,8 @@ from ..fileio import json_text
 from ..nc.gcode import parse_program
 from .analysis import Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from ..postproc.programs import ProgramError, check_axes
-from .state import TwinState, combine_states, pauses_between, place_from_setup, twin_state
+from ..postproc.programs import ProgramError, check_axes, placed_for
+from .state import TwinState, combine_states, pauses_between, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
 
@@ -141,7 +141,7 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
 
         def gate(c=c, pj=pj):
             check_cloud_for_part(c.points, part, pj)
-            placed = place_from_setup(machine, c.program_text, part)  # a program for the other part, a bad setup
+            placed = placed_for(machine, c.program_text, part)  # a program for the other part, a bad setup
             check_axes(placed, parse_program(c.program_text, c.program_name))  # posted for another machine
             check_part_against_program(part, pj, c.program_text)
             normals, turned = cloud_normals(np.asarray(c.points, float), c.normals, pj)
@@ -206,7 +206,7 @@ def pause_the_data_prefer(states: list, pauses, diag: Diagnosis, gap_um: np.ndar
     (``PAUSE_FACTORS``, by more than ``PAUSE_CHI2`` noise variances), else None. The verdict's members are fitted
     anew on each clock (the drift's every time constant tried, the others in their fitted shape, bounded as the
     diagnosis fits): a check of the input, the verdict stays as it is."""
-    from .analysis import _solve_bounded, family
+    from .analysis import _solve_bounded, family, plausible_bounds
 
     f = diag.chosen_fit
     given = np.asarray(pauses, float)
@@ -223,7 +223,7 @@ def pause_the_data_prefer(states: list, pauses, diag: Diagnosis, gap_um: np.ndar
             shapes = ([v for _, v in c.variants] if family(name) == "thermal" else
                       [c.variants[variants[k]][1]]) if c.variants else [c.columns]
             sets = [s + [v] for s in sets for v in shapes]
-        bounds = [b for name in f.members for b in (cands[name].plausible or [None] * cands[name].n_parameters)]
+        bounds = plausible_bounds([cands[name] for name in f.members])
         best = np.inf
         for cols in sets:
             S = np.column_stack(cols)
@@ -232,11 +232,10 @@ def pause_the_data_prefer(states: list, pauses, diag: Diagnosis, gap_um: np.ndar
         return best
 
     at_given = rss(given)
-    tried = [(float(np.max(scale * k)), scale * k, rss(scale * k)) for k in PAUSE_FACTORS
-             if not np.allclose(scale * k, given)]
+    tried = [(rss(scale * k), scale * k) for k in PAUSE_FACTORS if not np.allclose(scale * k, given)]
     if not tried:
         return None
-    _, p, r = min(tried, key=lambda t: t[2])
+    r, p = min(tried, key=lambda t: t[0])
     gain = (at_given - r) / diag.noise_um ** 2
     if not gain > PAUSE_CHI2:
         return None
@@ -524,10 +523,10 @@ def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None
     data = diagnosis_dict(diag, state, inputs)
     data["warnings"] = list(warnings or [])
     data["next_part"] = next_part
-    pngs = pictures(diag, state)
     from ..fileio import check_replaceable_folder, publish_folder
 
     check_replaceable_folder(out_dir)  # before the pictures' seconds
+    pngs = pictures(diag, state)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:

@@ -31,7 +31,7 @@ import numpy as np
 from ..inspect.cloud import CloudError
 from ..machine import ErrorTwin, Machine
 from ..nc.gcode import parse_program
-from ..postproc.programs import check_axes
+from ..postproc.programs import check_axes, placed_for
 
 
 @dataclass
@@ -181,14 +181,6 @@ def combine_states(states: list, pauses_s=()) -> TwinState:
     out["timings"] = {k: sum(st.timings.get(k, 0.0) for st in states) for k in first.timings}
     out["memo"] = {}
     return TwinState(**out)
-
-
-def place_from_setup(machine: Machine, program_text: str, part: str) -> Machine:
-    """The twin placed as the program's setup comment says (``programs.placed_for``; ProgramError for a program of
-    the other part or a malformed origin)."""
-    from ..postproc.programs import placed_for
-
-    return placed_for(machine, program_text, part)
 
 
 def _last_direction(qdot_all: np.ndarray) -> np.ndarray:
@@ -412,7 +404,7 @@ def twin_state(points, normals, machine: Machine, program_text: str, part: str, 
         raise ValueError(f"points and normals must be (N, 3) arrays of the same shape, got {points.shape} and "
                          f"{normals.shape}")
     t0 = time.perf_counter()
-    machine = place_from_setup(machine, program_text, part)
+    machine = placed_for(machine, program_text, part)  # where the program's setup comment places the part
     prog = parse_program(program_text, program_name)
     check_axes(machine, prog)
     has_force = bool(want_force and machine.cutting is not None)
