@@ -274,19 +274,22 @@ def json_ready(value):
 
     import numpy as np
 
-    if isinstance(value, dict):
-        return {str(k): json_ready(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_ready(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return json_ready(value.tolist())
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value
+    def ready(v):  # (the imports once, not at every element of a report's long lists)
+        if isinstance(v, dict):
+            return {str(k): ready(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [ready(x) for x in v]
+        if isinstance(v, np.ndarray):
+            return ready(v.tolist())
+        if isinstance(v, (np.floating, float)):
+            return float(v) if math.isfinite(v) else None
+        if isinstance(v, np.integer):
+            return int(v)
+        if isinstance(v, np.bool_):
+            return bool(v)
+        return v
+
+    return ready(value)
 
 
 def json_text(value, indent: int | None = 2) -> str:

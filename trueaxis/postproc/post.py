@@ -1889,9 +1889,12 @@ class _Poster:
         # G87 is modal like every cycle: the motion code in force at each cycle line (the last one before it). Read
         # only when a line holds a G87 at all (a million-line program's lines are not scanned one by one for it).
         text = "".join(p.lines)
-        starts = [m.start() for m in _G87.finditer(text)]  # a G87 anywhere (one pass), then its line's code part
-        if not any(_G87.search(_split_comment(text[text.rfind("\n", 0, i) + 1:text.find("\n", i) % (len(text) + 1)])[0])
-                   for i in starts):
+        hits = [m.start() for m in _G87.finditer(text)]  # a G87 anywhere (one pass over the text)
+        if not hits:
+            return
+        line_start = np.cumsum([0] + [len(line) for line in p.lines])
+        hit_lines = np.unique(np.searchsorted(line_start, hits, side="right") - 1)
+        if not any(_G87.search(_split_comment(p.lines[li])[0]) for li in hit_lines):  # in a comment only
             return
         lines = set(np.unique(p.line_index[cyc]).tolist())
         mode = None
