@@ -119,8 +119,12 @@ def test_program_refuses_bad_input(tmp_path, capsys):
     assert "five-axis" in _one_line_error(capsys)
     assert main(["program", "slots", "-o", str(out), "--compensate", "none"]) == 2
     _one_line_error(capsys)
-    assert main(["program", "nas979", "-o", str(out), "--placement-mm", "190,0"]) == 2  # off the table
-    assert "travel" in _one_line_error(capsys)
+    # A part the machine cannot reach there is a refused input, exit 3 for both parts (the nas979's was 2, a usage
+    # error, while the slot block's was 3).
+    assert main(["program", "nas979", "-o", str(out), "--placement-mm", "190,0"]) == 3  # off the table
+    assert "pass 1: axis X needs" in _one_line_error(capsys)
+    assert main(["program", "slots", "-o", str(out), "--placement-mm", "900,0"]) == 3
+    assert "outside its travel" in _one_line_error(capsys)
     assert not out.exists()
 
 

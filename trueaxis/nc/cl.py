@@ -625,8 +625,9 @@ def cl_axes(cl: ClData, machine: Machine, *, branch="nearest", previous=None) ->
                 raw = inverse_kinematics(machine, part.tip, part.axis, branch=-1).q
                 name = cl.passes[int(cl.pass_no[sel[0]])]["name"] if cl.passes and cl.pass_no is not None else ""
                 which = f"pass {k + 1} ({name})" if name else f"pass {k + 1}"  # 'pass 1 ():' without a name
-                raise ValueError(f"{which}: {travel_problem(machine, raw) or 'no tilt branch fits'}; "
-                                 "move the part (placement) or check the machine file")
+                # A path the machine cannot reach is a refused input (exit 3, like a program's block out of travel).
+                _fail(cl, int(sel[0]), f"{which}: {travel_problem(machine, raw) or 'no tilt branch fits'}; "
+                      "move the part (placement) or check the machine file")
         else:
             qk, bk = _solve_path(part, machine, branch, previous)
         q[sel], b[sel] = qk, bk
