@@ -254,6 +254,14 @@ def _check_lists(rep, section):
         assert entry["name"] in re.search(r"Estimated, not significant[^<]*", section).group(0)
     detail = {d["name"]: d["reason"] for d in rep["not_identifiable_detail"]}
     assert unseen and all(not detail[name].startswith("held") for name in unseen)
+    # Each kept parameter says why by category too (the list mixes them): the not-significant ones as such, the held
+    # ones as held, and the counts add up to the list.
+    category = {d["name"]: d["category"] for d in rep["not_identifiable_detail"]}
+    assert all(category[e["name"]] == "not_significant" for e in rep["not_significant"])
+    assert all((category[n] in ("gauge", "not_asked")) == detail[n].startswith("held") for n in category)
+    counts = rep["not_identifiable_by_category"]
+    assert sum(counts.values()) == len(rep["not_identifiable"]) and counts.get("not_significant") == len(
+        rep["not_significant"])
 
 
 def _written_values(path):

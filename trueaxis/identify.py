@@ -611,25 +611,28 @@ class Identification:
             combo = ", ".join(f"{c:+.3g} {m}" for m, c in self.confounded_with.get(name, [])[:4])
             like = f"; its effect resembles {combo}" if combo else ""
             if name in gauge:
-                detail.append({"name": name, "reason": "held: the reference value (gauge) of its error function"})
+                detail.append({"name": name, "category": "gauge",
+                               "reason": "held: the reference value (gauge) of its error function"})
             elif self.no_effect[i]:
-                detail.append({"name": name, "reason": "no effect on this part (not reached by the program)"})
+                detail.append({"name": name, "category": "no_effect",
+                               "reason": "no effect on this part (not reached by the program)"})
             elif self.considered is not None and not self.considered[i]:
-                detail.append({"name": name, "reason": "held: not among the parameters asked for (it enters the "
-                                                       "aliasing part of the std)"})
+                detail.append({"name": name, "category": "not_asked",
+                               "reason": "held: not among the parameters asked for (it enters the aliasing part of "
+                                         "the std)"})
             elif name in self.not_significant:
                 ch, sd = self.not_significant[name]
-                detail.append({"name": name, "seen_share": _r(self.seen_share[i], 3),
+                detail.append({"name": name, "category": "not_significant", "seen_share": _r(self.seen_share[i], 3),
                                "reason": f"change {ch:+.3g} +- {sd:.3g} {unit_of(name)} (noise std) is not "
                                          f"significant (below {self.options.get('significance', 3.0):g} std): kept at "
                                          "the twin's value"})
             elif name in self.poorly_determined:
                 rel, sd = self.poorly_determined[name]
-                detail.append({"name": name, "seen_share": _r(self.seen_share[i], 3),
+                detail.append({"name": name, "category": "poorly_determined", "seen_share": _r(self.seen_share[i], 3),
                                "reason": f"determined only to +-{sd:.3g} {unit_of(name)} ({rel:.2g} x its typical "
                                          f"size){like}"})
             else:
-                detail.append({"name": name, "seen_share": _r(self.seen_share[i], 3),
+                detail.append({"name": name, "category": "barely_seen", "seen_share": _r(self.seen_share[i], 3),
                                "reason": f"the part sees {100 * self.seen_share[i]:.0f} % of it{like}"})
         return {
             "method": "weighted least squares on the contact sensitivities of the parameters the part sees, the "
@@ -653,6 +656,10 @@ class Identification:
                                 for k, v in self.not_significant.items()],
             "not_identifiable": [d["name"] for d in detail],
             "not_identifiable_detail": detail,
+            # (the list above mixes why a parameter kept the twin's value: counted by category here; categories:
+            # gauge, no_effect, not_asked, not_significant, poorly_determined, barely_seen)
+            "not_identifiable_by_category": {c: sum(d["category"] == c for d in detail)
+                                             for c in dict.fromkeys(d["category"] for d in detail)},
             "alignment": self.alignment,
             "deviation_rms_um": _r(self.deviation_rms_um),
             "predicted_rms_um": _r(self.predicted_rms_um),
