@@ -42,7 +42,8 @@ __all__ = ["numba", "Kernel", "KERNEL_MODULES", "build_aot", "aot_available", "n
            "thread_slices", "run_twins", "run_threads", "kernels_on_this_thread", "kernels_shared"]
 
 KERNEL_MODULES = ("trueaxis.nc.fast_read", "trueaxis.nc.fast_interp", "trueaxis.nc.fast_write",
-                  "trueaxis.machine.error_kernel", "trueaxis.machine.chain_kernel", "trueaxis.inspect.kernels")
+                  "trueaxis.machine.error_kernel", "trueaxis.machine.chain_kernel", "trueaxis.inspect.kernels",
+                  "trueaxis.postproc.newton_kernel")
 AOT_NAME = "_aot_kernels"
 _HERE = Path(__file__).resolve().parent
 _UNSET = object()
@@ -409,7 +410,7 @@ def _called_from_python() -> set:
             "trueaxis.machine.error_kernel.evaluate_packed", "trueaxis.machine.chain_kernel.pose",
             "trueaxis.machine.chain_kernel.pose_and_axis_jacobian",
             "trueaxis.inspect.kernels.cone_normal_equations", "trueaxis.inspect.kernels.csv_rows",
-            "trueaxis.inspect.kernels.cone_patch_distance"}
+            "trueaxis.inspect.kernels.cone_patch_distance", "trueaxis.postproc.newton_kernel.gauss_newton_step"}
 
 
 def aot_available() -> bool:

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..machine.twin import ErrorTwin
+from .newton_kernel import gauss_newton_step
 
 
 # A Newton step evaluates the pose alone first, and the Jacobian of the poses not converged after it, where the caller's
@@ -122,20 +123,37 @@ def solve_commanded(
         if lean:
             Ja = twin.pose_and_axis_jacobian(qa, _rows(force_n, todo, n), _rows(motion, todo, n))[2]
         on = slice(None) if todo.size == n else todo  # (todo is every pose in order: views, not copies)
-        r = np.hstack([p - p_nom[on], u - u_nom[on]]) @ M.T
-        J = (M @ Ja) * fr[:, None, :]
-        # Normal equations, batched (matmul on stacks of small matrices); held axes get a unit diagonal so their step
-        # is zero.
-        Jt = J.transpose(0, 2, 1)
-        A = Jt @ J  # (a new C-ordered stack: its diagonals are every (k + 1)-th element of a row of k * k)
-        A.reshape(A.shape[0], k * k)[:, :: k + 1] += ~fr
-        b = Jt @ r[..., None]
-        q[todo] = qa - np.linalg.solve(A, b)[..., 0]
+        q[todo] = gauss_newton_step_of(qa, p, u, p_nom[on], u_nom[on], M, Ja, fr)
     ok = pos_err <= tol_um
     if orientation:
         ok &= (ax_err <= tol_urad) | ~free.all(1)
     return SolveResult(q=q, position_residual_um=pos_err, axis_residual_urad=ax_err, iterations=it, converged=ok,
                        actual=(p_act, u_act), nominal=(p_nom, u_nom))
+
+
+def gauss_newton_step_of(qa, p, u, p_nom, u_nom, M, Ja, free) -> np.ndarray:
+    """(n, k) the poses qa after one weighted Gauss-Newton step: qa - x, (J^T J + H) x = J^T r per pose, with
+    r = M [p - p_nom; u - u_nom], J = M Ja with the held axes' columns zero and H their unit diagonal (their step is
+    zero). Compiled (``newton_kernel``); :func:`gauss_newton_step_numpy` is the same in numpy, its reference."""
+    c = np.ascontiguousarray
+    out = np.empty(qa.shape)
+    if gauss_newton_step(c(qa, float), c(p, float), c(u, float), c(p_nom, float), c(u_nom, float), c(M, float),
+                         c(Ja, float), c(free, bool), out):
+        raise np.linalg.LinAlgError("Singular matrix: a pose's Newton step has no unique solution")
+    return out
+
+
+def gauss_newton_step_numpy(qa, p, u, p_nom, u_nom, M, Ja, free) -> np.ndarray:
+    """:func:`gauss_newton_step_of` on stacks of small matrices (numpy's batched matmul and LAPACK's solve): the
+    reference the compiled step is checked against (it was the solver's own step)."""
+    k = qa.shape[1]
+    r = np.hstack([p - p_nom, u - u_nom]) @ M.T
+    J = (M @ Ja) * free[:, None, :]
+    Jt = J.transpose(0, 2, 1)
+    A = Jt @ J  # (a new C-ordered stack: its diagonals are every (k + 1)-th element of a row of k * k)
+    A.reshape(A.shape[0], k * k)[:, :: k + 1] += ~free
+    b = Jt @ r[..., None]
+    return qa - np.linalg.solve(A, b)[..., 0]
 
 
 def _rows(arr, idx, n):
