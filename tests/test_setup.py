@@ -427,3 +427,19 @@ def test_cadquery_hook_takes_the_setup_as_keywords(machine, files):
 
 def test_rs274_is_there():
     require_rs274()
+
+
+def test_a_dynamic_tool_offset_in_the_header_is_no_nested_comment_rs274_refuses(tmp_path, machine, files):
+    # G43.1 under a setup is named in the header ("tool offset (G43.1)"): written as is, its parentheses nest in the
+    # header's comment and LinuxCNC refuses the whole program ("Nested comment found") though the post exited 0.
+    program = "G21 G90 G17 G94\nG54\nT1 M6\nG43 H1\nG0 X10 Y10 Z-10\nG1 X50 Y20 F300\nG49\nG0 Z-100\n" \
+              "G43.1 Z10\nG1 X0 Y0 Z-20\nM2\n"
+    out = compensate(program, machine, "geometric", setup=_setup(files))
+    header = [line for line in out.splitlines() if line.startswith("(trueaxis ")]
+    assert any("tool offset [G43.1] Z10 mm by G43.1" in line for line in header), header
+    assert all(line.count("(") == 1 and line.count(")") == 1 and line.endswith(")") for line in header)
+    path = tmp_path / "out.ngc"
+    path.write_text(out)
+    theirs = run_rs274_setup(path, *files, tmp_path / "rs274")
+    assert theirs.returncode == 0, theirs.stderr
+    assert "Nested comment" not in theirs.stderr

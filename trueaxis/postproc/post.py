@@ -459,7 +459,9 @@ def header_lines(rep: PostReport, machine: Machine) -> list:
         units = "mm, deg" if rot or any(vals[3:]) else "mm"
         how = f" by {u['applied_by']}" if u.get("applied_by") else ""
         lines.append(f"(trueaxis setup: {u['what']} {words}{rot} {units}{how}, from {clean(u['source'])})")
-    return [_fit(line) for line in lines]
+    # Every comment's text without parentheses of its own (what and how words such as "tool offset (G43.1)" too):
+    # LinuxCNC refuses a nested comment, the whole program.
+    return [_fit("(" + clean(line[1:-1]) + ")") for line in lines]
 
 
 def _fit(comment: str, limit: int = 250) -> str:
