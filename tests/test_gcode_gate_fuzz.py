@@ -21,6 +21,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -223,3 +224,34 @@ def test_generated_canned_cycles_in_g90_and_g91_run_the_path_rs274_runs(text):
     mine, theirs = drop_repeats(prog.end_machine), drop_repeats(rs_end)
     assert len(mine) == len(theirs), text
     np.testing.assert_allclose(mine, theirs, atol=1e-4, err_msg=text)
+
+
+# An arc's centre words as rs274 checks them: none along the plane's normal, R not with I J K. Each block inside a
+# run of plain arcs (G17: the compiled reader's path, runs of 16 lines and more) and alone (the reader's own), read by
+# rs274 and by us: both refuse, and the arc with its own plane's words only is read by both along the same path.
+def _arc_run(x0):
+    return "".join(f"G{2 + k % 2} X{x0 + (k + 1) * 2} Y0 I1 J0\n" for k in range(20))
+
+
+@pytest.mark.parametrize("plane, bad, good", [
+    ("", "G2 X40 Y0 I1 J0 K5", "G2 X40 Y0 I1 J0"),
+    ("G18", "G2 X40 Z2 I0 J0 K2", "G2 X40 Z2 I0 K2"),
+    ("G19", "G2 Y2 Z2 I0 J0 K2", "G2 Y2 Z2 J0 K2"),
+    ("", "G2 X40 Y0 R1 I1", "G2 X40 Y0 R1"),
+])
+@pytest.mark.parametrize("in_run", [False, True])
+def test_an_arcs_centre_words_are_checked_as_rs274_checks_them(tmp_path, plane, bad, good, in_run):
+    head = "G21 G90 G17 G94 F100\nG0 X0 Y0 Z0\n" + (_arc_run(-2) if in_run else "G1 X38 Y0\n")
+    tail = _arc_run(40) if in_run and not plane else ""
+    for block, refused in ((bad, True), (good, False)):
+        text = head + (plane + "\n" if plane else "") + block + "\n" + tail + "M2\n"
+        prog, refusal = ours(text)
+        rc, message, rs_end = run_rs274_verdict(text, tmp_path / f"rs{int(refused)}")
+        assert (rc != 0) == refused, (block, message[-200:])
+        if refused:
+            line = text.count("\n", 0, text.index(block)) + 1
+            assert refusal is not None and refusal.startswith(f"fuzz.ngc:{line}: "), (block, refusal)
+            assert ("word given for an arc" in refusal) or ("R and I J K" in refusal)
+        else:
+            assert refusal is None, refusal
+            np.testing.assert_allclose(drop_repeats(prog.end_machine), drop_repeats(rs_end), atol=1e-4)

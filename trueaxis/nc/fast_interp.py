@@ -120,6 +120,8 @@ def straight_run(status, gs, vals, lo, pos0, motion_mode, feed, absolute, invers
             w1 = vals[r, 6 + a1]
             if not (w0 == w0 or w1 == w1):
                 break  # no centre word in the plane: the reader
+            if vals[r, 6 + an] == vals[r, 6 + an]:
+                break  # a centre word along the plane's normal: the reader refuses it
             o0 = w0 if w0 == w0 else 0.0
             o1 = w1 if w1 == w1 else 0.0
             if arc_abs:

@@ -47,6 +47,14 @@ class ArcConversion:
         a0, a1, an = PLANE_AXES[plane]
         cw = mm == 20
         tol = 0.002 if inch else 0.05
+        # rs274's checks of the centre words: none along the plane's normal (a K in G17 would otherwise be dropped
+        # from the output, an arc the control refuses), and not together with R
+        normal_word = CENTER_WORD[an]
+        if normal_word in fvals:
+            raise ValueError(f"{normal_word} word given for an arc in the G{plane} plane (its centre words are "
+                             f"{' and '.join(sorted((CENTER_WORD[a0], CENTER_WORD[a1])))})")
+        if "R" in fvals and any(w in fvals for w in "IJK"):
+            raise ValueError("R and I J K words given for one arc: radius format or centre format, not both")
         if "R" in fvals:
             c0, c1 = arc_center_r((pos[a0], pos[a1]), (target[a0], target[a1]), fvals["R"], cw, tol)
         else:
