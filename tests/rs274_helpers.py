@@ -64,14 +64,15 @@ def tool_table_text(lengths_mm: dict) -> str:
     return "\n".join(rows) + "\n"
 
 
-def run_rs274(program: Path, tool_lengths_mm: dict, workdir: Path) -> CanonMoves:
-    """Interpret ``program`` with rs274 and return its moves. Raises AssertionError when rs274 stops on an error."""
+def run_rs274(program: Path, tool_lengths_mm: dict, workdir: Path, flags: tuple = ()) -> CanonMoves:
+    """Interpret ``program`` with rs274 and return its moves (``flags``: more options, e.g. ``("-b",)`` for the
+    block-delete switch on)."""
     exe = require_rs274()
     workdir.mkdir(parents=True, exist_ok=True)
     tbl = workdir / "tools.tbl"
     tbl.write_text(tool_table_text(tool_lengths_mm))
     out = workdir / "canon.txt"
-    proc = subprocess.run([exe, "-t", str(tbl), "-g", str(program), str(out)], stdin=subprocess.DEVNULL,
+    proc = subprocess.run([exe, *flags, "-t", str(tbl), "-g", str(program), str(out)], stdin=subprocess.DEVNULL,
                           capture_output=True, text=True, timeout=120, cwd=workdir, env=private_env(workdir))
     moves = parse_canon(out.read_text(errors="replace"))
     moves.stderr, moves.returncode = proc.stdout + proc.stderr, proc.returncode

@@ -306,3 +306,41 @@ def test_nist_inch_programs_post_and_rs274_reads_them(tmp_path, name):
     # arcs sampled at 400 points: sagitta of a 2-inch arc over 1/400 of a turn is about 0.3 um; check with that slack
     d_um = distance_to_polyline(actual, nominal) * 1e3
     assert np.percentile(d_um, 99) < 0.1 and d_um.max() < 0.5
+
+
+BLOCK_DELETE = """G21 G90 G17 G94
+G0 X10 Y10 Z-100
+G1 X20 F300
+/G1 X180 Y120
+G1 X50 Y20
+/G2 X80 Y20 I15 J0
+G1 X60 Y40
+M2
+"""
+
+
+@pytest.mark.parametrize("switch", [(), ("-b",)])
+def test_a_split_block_delete_move_is_skipped_whole_with_the_switch_on(tmp_path, xh714, switch):
+    # The long '/' move is split: its pieces after the first were written without the '/', so with the block-delete
+    # switch on the control skipped the first piece only and went to X180 Y120 anyway. Now every piece carries it:
+    # rs274 reads the output with the switch off and on, and the twin's actual end points equal the input's nominal
+    # ones read the same way.
+    report = {}
+    out = compensate(BLOCK_DELETE, xh714, "geometric", tol_um=1.0, report=report)
+    assert report["moves_split"] >= 1
+    assert any("block delete" in w and ":4:" in w for w in report["warnings"])
+    (tmp_path / "in.ngc").write_text(BLOCK_DELETE)
+    (tmp_path / "out.ngc").write_text(out)
+    nominal = run_rs274(tmp_path / "in.ngc", {}, tmp_path / "rs_in", switch)
+    written = run_rs274(tmp_path / "out.ngc", {}, tmp_path / "rs_out", switch)
+    assert nominal.returncode == 0 and written.returncode == 0, written.stderr
+    twin = ErrorTwin(xh714)
+    ends = twin.nominal_pose(nominal.end[:, :3])[0]
+    # the output's moves (split pieces in between) pass through the input's ends in order, each to rs274's 4 decimals
+    actual = twin.actual_pose(written.end[:, :3])[0]
+    hits = [int(np.argmin(np.linalg.norm(actual - e, axis=1))) for e in ends]
+    assert hits == sorted(hits)
+    d_um = np.array([np.linalg.norm(actual[h] - e) for h, e in zip(hits, ends)]) * 1e3
+    assert d_um.max() < 0.15, d_um.max()
+    far = np.abs(written.end[:, 0] - 180).min()
+    assert (far < 1) == (not switch)  # the X180 move is run with the switch off only

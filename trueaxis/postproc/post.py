@@ -936,6 +936,7 @@ class _Poster:
                                 f"{' '.join(first['axes'])} is never known (no absolute move of every axis, or a "
                                 f"program for another kind of machine); nothing written")
         self.rep.moves = int(rows.size)
+        self._note_block_delete(rows)
         idle = [a for a in self.names if self.m.axes[a].is_rotary and a not in p.axes_present]
         if idle:
             # a rotary axis the program never commands stands where the control left it, which the post cannot know
@@ -968,6 +969,25 @@ class _Poster:
 
             self.p, delta_prog, pieces = diameter_words(p, rows, delta_prog, pieces)
         return self._write(rows, delta_prog, pieces, arc_mode)
+
+    def _note_block_delete(self, rows):
+        """A warning when a move is a block-delete block ('/'): the post compensates the program as it runs with the
+        block-delete switch off (as rs274 reads it); with the switch on, the move after a skipped one starts
+        elsewhere, whose path between its compensated ends is then not the one checked."""
+        p = self.p
+        early = getattr(p, "_text_bytes", None)  # (line starts, bytes): only the lines holding a slash are looked at
+        if early is not None:
+            text = np.frombuffer(early[1], np.uint8) if isinstance(early[1], (bytes, bytearray)) else early[1]
+            slash = np.flatnonzero(text == ord("/"))
+            candidates = np.unique(np.searchsorted(early[0], slash, side="right") - 1)
+        else:
+            candidates = np.arange(len(p.lines))
+        moves = candidates[np.isin(candidates, p.line_index[rows])]
+        first = next((int(li) for li in moves if p.lines[li].lstrip().startswith("/")), None)
+        if first is not None:
+            self.rep.warnings.append(f"{p.source}:{first + 1}: block delete: the moves are compensated as the "
+                                     "program runs with the block-delete switch off; with it on, the move after a "
+                                     "skipped block starts elsewhere and only its ends are compensated")
 
     def _compensate_chunks(self, rows, chunks):
         """``_compensate`` of each chunk of ``rows``, the results in chunk order (a generator). The first chunk here,
@@ -1615,6 +1635,9 @@ class _Poster:
         if centres is not None and not np.isnan(centres[0, 0]):  # a fitted arc: its first sub-arc
             words += self._fit_centre_words(r, centres[0], arc_start, fmt)
         texts = [self._rewrite_motion(body, motion, words, False, r, sep), ending]
+        # A block-delete block's pieces are block-delete blocks too: with the switch on, the control skips the whole
+        # move, not its first piece only.
+        skip = "/" if body.lstrip().startswith("/") else ""
         word = "G0" if motion == RAPID else "G1"
         for i_piece in range(1, n):
             if inc:
@@ -1630,7 +1653,7 @@ class _Poster:
                 piece = [word] + [split.words[a][o + i_piece] for a in axes_out]
             if inverse:
                 piece.append(fmt("F", piece_f[i_piece], inch=False))
-            texts += [sep.join(piece), ending]
+            texts += [skip + sep.join(piece), ending]
         return "".join(texts), n - 1
 
     def _fast_lines(self, rows, starts, ends, target, inch_rows, piece_first, arc_mode, axes_out, numbers,
