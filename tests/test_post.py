@@ -344,3 +344,24 @@ def test_a_split_block_delete_move_is_skipped_whole_with_the_switch_on(tmp_path,
     assert d_um.max() < 0.15, d_um.max()
     far = np.abs(written.end[:, 0] - 180).min()
     assert (far < 1) == (not switch)  # the X180 move is run with the switch off only
+
+
+@pytest.mark.parametrize("comment_length, refused", [(240, True), (120, False)])
+def test_a_block_the_rewrite_makes_longer_than_linuxcnc_reads_is_refused(tmp_path, comment_length, refused):
+    # The input line (249 characters) is read by rs274; rewritten with its corrected words (decimals, a Z word) it
+    # became 275, and LinuxCNC refuses such a program whole ("Command too long") while the post exited 0.
+    line = "G1 X60 (" + "x" * comment_length + ")"
+    text = "G21 G90 G17 G94\nG0 X10 Y10 Z-100\nG1 X50 Y20 F300\n" + line + "\nM2\n"
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text(text)
+    (tmp_path / "rs_in").mkdir()
+    assert run_rs274(src, {}, tmp_path / "rs_in").returncode == 0  # the input is a program LinuxCNC reads
+    r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", str(src), "-o", str(out), "--machine",
+                        str(XH714), "--offsets-zero"], capture_output=True, text=True)
+    if refused:
+        assert r.returncode == 3 and not out.exists()
+        assert f"{src}:4: the compensated block is " in r.stderr and "over the 255 LinuxCNC reads" in r.stderr
+    else:
+        assert r.returncode == 0, r.stderr
+        assert max(map(len, out.read_text().splitlines())) <= 255
+        assert run_rs274(out, {}, tmp_path / "rs_out").returncode == 0

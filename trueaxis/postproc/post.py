@@ -370,9 +370,44 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
             poster.tcp, poster.fit_arcs = TcpFrame(poster.twin, machine), False
             prog.lines = tcp_lines(prog, machine, source)  # the program's G43 H.. made the control's TCP code
         out, rep = poster.run()
+        _refuse_long_lines(out, prog, source)
     if header:
         out = with_header(out, rep, machine)
     return out, rep
+
+
+# LinuxCNC reads lines of at most 255 characters ("Command too long"; rs274ngc's LINELEN): a program with a longer one
+# is refused whole.
+MAX_LINE = 255
+# A rewritten block grows by its axis words' digits (at most some 16 characters each, six axes): an input whose
+# lines are all shorter than MAX_LINE less this cannot give a longer line (the header lines are shortened to fit).
+_LINE_GROWTH = 100
+
+
+def _refuse_long_lines(out: str, prog, source: str):
+    """PostError naming the input line when a line of the output is longer than LinuxCNC reads (a block near the
+    limit that the rewritten words lengthen): a program the control refuses is not written."""
+    lengths = [len(line) for line in prog.lines if len(line) > MAX_LINE - _LINE_GROWTH] if len(prog.lines) < 4096 \
+        else None
+    if lengths is not None and not lengths:
+        return
+    if lengths is None:
+        early = getattr(prog, "_text_bytes", None)
+        if early is not None and int(np.diff(early[0]).max(initial=0)) <= MAX_LINE - _LINE_GROWTH:
+            return
+    out_lines = out.splitlines()
+    long = [j for j, line in enumerate(out_lines) if len(line) > MAX_LINE]
+    if not long:
+        return
+    line = out_lines[long[0]]
+    # the input line it comes from: the one with the same comment (the usual cause), else the output's line is named
+    cut = min((i for i in (line.find("("), line.find(";")) if i >= 0), default=-1)
+    tail = line[cut:] if cut >= 0 else None
+    where = next((i + 1 for i, text in enumerate(prog.lines) if tail and tail in text), None)
+    said = "" if where is not None else f" (line {long[0] + 1} of the output)"
+    raise PostError(source, where or 1, f"the compensated block{said} is {len(line)} characters long, over the "
+                                        f"{MAX_LINE} LinuxCNC reads (it refuses the whole program): shorten its "
+                                        "comment; nothing written")
 
 
 def arcs_default(machine: Machine) -> bool:
