@@ -12,7 +12,10 @@ import pytest
 
 from conftest import MACHINES, mill_toml
 from trueaxis.machine import load_machine
+from trueaxis.nc.setup import Setup
 from trueaxis.postproc.post import compensate, without_header
+
+ZERO = Setup(offsets_zero=True)  # the work offsets zero, said: no "no work offset given" warning among those counted
 
 XH714 = MACHINES / "xh714.toml"
 
@@ -30,7 +33,7 @@ FIRST_MOVE_Z_ONLY = "G21 G90 G17\nG0 Z-20\nG0 X10 Y10\nG1 Z-25 F100\nG1 X50 Y20\
 def test_a_block_before_every_axis_is_known_keeps_its_words_and_stderr_says_which(tmp_path):
     src, out, rep = tmp_path / "in.ngc", tmp_path / "out.ngc", tmp_path / "r.json"
     src.write_text(FIRST_MOVE_Z_ONLY)
-    r = run_cli("post", src, "-o", out, "--machine", XH714, "--report", rep)
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--report", rep, "--offsets-zero")
     assert r.returncode == 0, r.stderr
     assert r.stderr.strip().splitlines() == [f"{src}:2: the position of X Y is not known here (no absolute move of "
                                              "it before): block left as written, uncompensated"]
@@ -65,7 +68,7 @@ def test_incremental_moves_from_an_unknown_start_stay_as_written():
     text = "G21 G91\nG0 Z5\nG0 X10 Y10\nG90 G0 X20 Y20 Z-10\nG1 X30 F100\nM2\n"
     # the Python hook says it too, to a host that passes no report (it dropped every warning: a QA pass)
     with pytest.warns(PostWarning, match=r"<string>:2: the position of .* is not known here") as said:
-        out = compensate(text, m, "geometric", report=report)
+        out = compensate(text, m, "geometric", report=report, setup=ZERO)
     assert len(said) == len(report["warnings"]) == 2
     lines = without_header(out).splitlines()
     assert lines[1:3] == ["G0 Z5", "G0 X10 Y10"]
@@ -209,23 +212,23 @@ def test_an_unknown_modal_code_is_refused_unless_passed_through(tmp_path):
         else:
             raise AssertionError(f"{code} was not refused")
         report = {}
-        compensate(text, m, "geometric", source="p.ngc", passthrough_unsupported=True, report=report)
+        compensate(text, m, "geometric", source="p.ngc", passthrough_unsupported=True, report=report, setup=ZERO)
         assert [w.split(": ", 1)[0] for w in report["warnings"]] == ["p.ngc:3"]
     report = {}  # LinuxCNC's M19 (spindle orientation) moves no axis: neither refused nor warned
-    compensate("G21 G90\nG0 X0 Y0 Z-10\nM19 R0\nG1 X10 F100\nM2\n", m, "geometric", report=report)
+    compensate("G21 G90\nG0 X0 Y0 Z-10\nM19 R0\nG1 X10 F100\nM2\n", m, "geometric", report=report, setup=ZERO)
     assert report["warnings"] == []
 
 
 def test_every_warning_goes_to_stderr_as_file_line_and_strict_makes_it_an_error(tmp_path):
     src, out = tmp_path / "w.ngc", tmp_path / "out.ngc"
     src.write_text("G21 G90 G17\nG0 X0 Y0 Z-10\nG41 D1\nG1 X10 F100\nG40\nM250\nM2\n")
-    r = run_cli("post", src, "-o", out, "--machine", XH714, "--passthrough-unsupported")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--passthrough-unsupported", "--offsets-zero")
     assert r.returncode == 0, r.stderr
     warned = [line for line in r.stderr.splitlines() if line.startswith(f"{src}:")]
     assert [w.split(": ", 1)[0] for w in warned] == [f"{src}:3", f"{src}:6"], r.stderr
     assert "G41 cutter radius compensation" in warned[0] and "M250" in warned[1]
     out.unlink()
-    r = run_cli("post", src, "-o", out, "--machine", XH714, "--passthrough-unsupported", "--strict")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--passthrough-unsupported", "--strict", "--offsets-zero")
     assert r.returncode == 3 and not out.exists(), r.stderr
     assert f"{src}:3: G41" in r.stderr and "--strict: 2 warnings" in r.stderr
 
@@ -258,9 +261,9 @@ def test_post_reads_stdin_and_writes_stdout_with_messages_on_stderr(tmp_path):
     text = FIRST_MOVE_Z_ONLY
     src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
     src.write_text(text)
-    assert run_cli("post", src, "-o", out, "--machine", XH714).returncode == 0
-    r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", "-", "-o", "-", "--machine", str(XH714)],
-                       input=text, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero").returncode == 0
+    r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", "-", "-o", "-", "--machine", str(XH714),
+                        "--offsets-zero"], input=text, capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert without_header(r.stdout) == without_header(out.read_text())  # the same program, to the byte
     assert r.stderr.splitlines()[0].startswith("<stdin>:2: the position of X Y is not known")
@@ -500,3 +503,19 @@ def test_comprehensive_mode_takes_the_cutting_tools_diameter_from_the_setups_too
     assert reports["table"]["from"]["d"] == "the setup's tool table (T1)"
     assert reports["none"]["conditions"]["d"] == "10.0" and reports["none"]["from"]["d"] == "the machine file's tool"
     assert (tmp_path / "table.ngc").read_text() != (tmp_path / "none.ngc").read_text()  # another force, another path
+
+
+def test_a_program_selecting_no_work_system_without_a_setup_is_warned_about(tmp_path):
+    # No G54..G59.3 word and no setup: the post takes program coordinates as machine coordinates. A control whose
+    # active system (G54 at start-up) has an offset then cuts every point elsewhere, with corrections computed at the
+    # wrong place (16-19 um in a QA pass): said on stderr, not only in the output's header; --offsets-zero says it.
+    src, out = tmp_path / "in.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90 G17 G94\nG0 X10 Y10 Z-10\nG1 X50 Y20 Z-20 F500\nG1 X-50 Y-30\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714)
+    assert r.returncode == 0, r.stderr
+    assert f"{src}:2: no work offset given: the program selects no work system" in r.stderr
+    assert "(trueaxis setup: no work offset:" in out.read_text()
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero")
+    assert r.returncode == 0 and "no work offset" not in r.stderr, r.stderr
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--strict")
+    assert r.returncode == 3 and "--strict: 1 warning" in r.stderr, r.stderr

@@ -342,6 +342,13 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     rep.blocks_in = len(prog.lines)
     rep.passthrough = [{"line": ln, "reason": r} for ln, r in prog.unsupported]
     rep.warnings = list(prog.warnings)
+    assumed = next((u for u in prog.setup_used if u.get("assumed")), None)
+    if mode != "none" and assumed is not None:
+        # said on stderr too, not only in the output's header: the control's active system may well have an offset
+        rep.warnings.append(f"{source}:{assumed['first_line']}: no work offset given: the program selects no work "
+                            "system and no setup was given (--var, --setup; --offsets-zero to confirm zero), so its "
+                            "coordinates are taken as machine coordinates; with an offset in the control's active "
+                            "system (G54 at start-up) every correction is computed at the wrong place")
     machine_rows = np.nonzero(prog.kind == ROW_MACHINE)[0]
     if mode != "none" and machine_rows.size:
         # G53 positions are machine coordinates, written as given: say so, a feed move among them cuts uncorrected
