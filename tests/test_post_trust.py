@@ -139,6 +139,28 @@ def test_a_program_that_carries_the_header_is_refused_unless_forced(tmp_path):
     assert again.read_text().count("(trueaxis post: trueaxis ") == 2
 
 
+def test_the_slot_program_compensated_by_its_setup_comment_is_refused_unless_forced(tmp_path):
+    # `program slots` posts its slots 2 and 3 section by section, with no post header: only its setup comment
+    # (compensation=per-slot) says so, and `post` compensated it a second time (slot RMS 0.07 -> 14.4 um, a QA pass).
+    from trueaxis.postproc.programs import slots_program
+
+    src, again = tmp_path / "slots.ngc", tmp_path / "again.ngc"
+    slots = slots_program(load_machine(XH714))
+    src.write_text(slots.text)
+    r = run_cli("post", src, "-o", again, "--machine", XH714)
+    assert r.returncode == 3 and not again.exists()
+    lines = r.stderr.strip().splitlines()
+    setup_line = slots.text.splitlines().index(next(ln for ln in slots.text.splitlines() if "trueaxis-setup" in ln))
+    assert len(lines) == 1 and lines[0].startswith(f"{src}:{setup_line + 1}: the program was compensated by trueaxis "
+                                                   "already (its setup comment says compensation=per-slot twin=")
+    assert lines[0].endswith("posting it again would compensate it twice; --force to post it anyway")
+    assert run_cli("post", src, "-o", again, "--machine", XH714, "--force").returncode == 0 and again.exists()
+    # the raw program (no slot compensated) says compensation=none, and posts
+    raw = slots_program(load_machine(XH714), post=False).raw
+    assert "compensation=none)" in raw and "twin=" not in raw
+    assert compensate(raw, load_machine(XH714), "geometric", offsets_zero=True).count("(trueaxis post: trueaxis ") == 1
+
+
 # --- (c) three-axis programs on five-axis machines -------------------------------------------------------------------
 
 THREE_AXIS = "G21 G90 G17\nG0 X0 Y0 Z50\nG1 X20 Y10 Z40 F300\nG1 X30\nG2 X40 Y20 I0 J10\nM2\n"

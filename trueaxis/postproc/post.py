@@ -383,10 +383,18 @@ def arcs_default(machine: Machine) -> bool:
 
 
 def _refuse_posted(text: str, source: str):
-    """PostError when ``text`` carries the header of a trueaxis post: compensating it again would apply the
-    correction twice."""
+    """PostError when ``text`` carries the header of a trueaxis post, or a setup comment saying ``trueaxis program``
+    compensated it (``programs.compensated_already``: the slot block's sections are posted without a post header):
+    compensating it again would apply the correction twice."""
+    from .programs import compensated_already
+
     at = text.find(HEADER_TAG)
     if at < 0:
+        said = compensated_already(text)
+        if said is not None:
+            raise PostError(source, said[1], f"the program was compensated by trueaxis already (its setup comment "
+                                             f"says {said[0][:160]}): posting it again would compensate it twice; "
+                                             "--force to post it anyway")
         return
     line_no = text.count("\n", 0, at) + 1
     end = text.find(")", at)

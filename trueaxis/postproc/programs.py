@@ -306,6 +306,22 @@ def header_name(machine: Machine) -> str:
     return machine.name.replace("(", "[").replace(")", "]").strip()
 
 
+def compensated_already(text: str) -> tuple[str, int] | None:
+    """("compensation=MODE[ twin=ID]", the setup comment's 1-based line) when the program's setup comment says
+    ``trueaxis program`` compensated it (``compensation`` other than ``none``: a cone posted geometric or
+    comprehensive, the slot block's ``per-slot``), else None (no setup comment, or compensation=none). Read item by
+    item, so that a malformed item elsewhere in the comment does not hide what it says of the compensation."""
+    m = _SETUP.search(text)
+    if m is None:
+        return None
+    said = dict(item.partition("=")[::2] for item in m.group(1).split())
+    mode = said.get("compensation", "none")
+    if mode.lower() == "none":
+        return None
+    twin = f" twin={said['twin']}" if said.get("twin") else ""
+    return f"compensation={mode}{twin}", text.count("\n", 0, m.start()) + 1
+
+
 def read_setup(text: str) -> dict:
     """The setup comment of a program (first one): {"part", "origin_mm" (3,), "placement_mm" (2,), ...}; {} if none.
     Raises ValueError for a malformed one."""
@@ -489,7 +505,9 @@ def nas979_program(machine: Machine, params: Nas979Params | None = None, *, comp
     if compensation != "none":
         from .post import compensate
 
-        text = compensate(raw, placed, compensation, source="nas979.ngc", report=report, **(post_options or {}))
+        # force: the raw program's setup comment already names the compensation it is being posted with
+        text = compensate(raw, placed, compensation, source="nas979.ngc", report=report,
+                          **{**(post_options or {}), "force": True})
     return PartProgram(text, raw, cl, q, placed, safe_z,
                        {"placement_mm": placement.tolist(), "feed_mm_min": feed, "passes": cl.passes,
                         "chord_error_um": chord_um, "cut_blocks_per_pass": int((cl.kind == "cut").sum()) // len(cl.passes),
@@ -527,7 +545,9 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, po
     hull = np.array([[x, y, z] for x in (0, p.block_length_x) for y in (0, p.block_width_y)
                      for z in (-p.block_height_z, 0.0)])
     safe_z = safe_height(placed, hull, q, clearance=10.0)
-    setup = setup_comment("slots", placed.workpiece_origin, placement, p.tool_diameter, "per-slot", twin_id(machine))
+    # post=False: no slot is compensated, and the setup comment says so (a post of the raw program is not refused)
+    setup = setup_comment("slots", placed.workpiece_origin, placement, p.tool_diameter, "per-slot" if post else "none",
+                          twin_id(machine) if post else None)
     title = [f"trueaxis slot block: three slots, flat end mill d {p.tool_diameter:g} mm, depth {p.slot_depth:g} mm "
              f"in passes of {p.axial_depth_per_pass:g} mm",
              "slot 1: no compensation, slot 2: geometric, slot 3: comprehensive; each section posted on its own",
@@ -553,8 +573,9 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, po
             posted.append(sec_text)
             continue
         rep = {}
+        # force: the head's setup comment already says compensation=per-slot, of the program these sections make
         out = compensate(head_text + sec_text, placed, mode, source=f"slots.ngc[slot {s + 1}]", report=rep,
-                         header=False, **(post_options or {}))
+                         header=False, **{**(post_options or {}), "force": True})
         if not out.startswith(head_text):
             raise RuntimeError("the post changed the program header; cannot splice the slot sections")
         posted.append(out[len(head_text):])
