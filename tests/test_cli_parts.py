@@ -226,6 +226,28 @@ def test_post_refuses_bad_cl_data_with_its_line(tmp_path, capsys, body, line, re
     assert not posted.exists()
 
 
+@pytest.mark.parametrize("command, option", [
+    (["program", "nas979", "-o", "{tmp}/x.ngc", "--machine", "{missing}"], "--machine"),
+    (["post", "{program}", "-o", "{tmp}/x.ngc", "--machine", "{missing}"], "--machine"),
+    (["diagnose", "--cloud", "{program}", "--part", "nas979", "--program", "{program}", "--machine", "{missing}",
+      "-o", "{tmp}/x"], "--machine"),
+    (["simulate", "{program}", "--part", "nas979", "-o", "{tmp}/x.ply", "--machine", "{missing}"], "--machine"),
+    (["simulate", "{program}", "--part", "nas979", "-o", "{tmp}/x.ply", "--machine", "xh714", "--effects",
+      "{missing}"], "--effects"),
+    (["error", "--at", "X=0", "--machine", "{missing}"], "--machine"),
+    (["machine", "check", "{missing}"], "file"),
+])
+def test_a_missing_machine_file_is_a_usage_error_that_names_the_option(tmp_path, capsys, command, option):
+    # It was exit 3 with a bare "nothere.toml: file not found" (the refusal of a bad machine file), where every other
+    # missing input is a usage error naming the command and the option.
+    prog = tmp_path / "p.ngc"
+    prog.write_text("G21 G90\nG0 X0 Y0 Z0\nM30\n")
+    missing = tmp_path / "nothere.toml"
+    assert main([a.format(missing=missing, program=prog, tmp=tmp_path) for a in command]) == 2
+    assert _one_line_error(capsys) == f"trueaxis {command[0]}: {option} {missing}: cannot read the file: no such file"
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["p.ngc"]
+
+
 def test_every_command_takes_a_fixture_machine_by_its_short_name(tmp_path, capsys):
     """`post --machine nmv1500dcg` as `program --machine nmv1500dcg` (it said "file not found"); an unknown name is a
     usage error that lists the fixture machines."""

@@ -669,7 +669,19 @@ def _located_errors() -> tuple:
 
 
 # inputs that are always file paths (a machine file may be a fixture's name): one that does not exist is a usage error
-_NAMED_FILES = ("input", "program", "cloud", "--cloud", "--program", "--cad")
+_NAMED_FILES = ("input", "program", "cloud", "--cloud", "--program", "--cad", "--effects")
+# inputs that name a file or a fixture machine (``resources.machine_file``): a path that does not exist is a usage error
+_MACHINE_FILES = ("--machine", "file")
+
+
+def _missing(option: str, path) -> bool:
+    """Whether the input ``path`` of ``option`` names a file that does not exist (``-``: stdin; a fixture machine's
+    short name is looked up by ``resources.machine_file``, which names the fixtures when there is none)."""
+    from .resources import names_a_path
+
+    if path is None or path == "-" or Path(path).exists():
+        return False
+    return option in _NAMED_FILES or (option in _MACHINE_FILES and names_a_path(path))
 
 
 def _refusal_errors() -> tuple:
@@ -697,6 +709,10 @@ def _paths(args) -> tuple[list, list]:
         return [("--machine", g("machine"))], [("-o", g("output"), False), ("--cl", g("cl"), False)]
     if cmd == "part":
         return [], [("-o", g("output"), True)]
+    if cmd == "error":
+        return [("--machine", g("machine"))], []
+    if cmd == "machine":
+        return [("file", g("file"))], []
     if cmd == "simulate":
         from .sim.cmm import truth_path
 
@@ -790,7 +806,7 @@ def main(argv=None) -> int:
         for option, path in inputs:
             if path is not None and Path(path).is_dir():
                 raise UsageError(f"{option} {path}: is a folder; name a file")
-            if option in _NAMED_FILES and path is not None and path != "-" and not Path(path).exists():
+            if _missing(option, path):
                 raise UsageError(f"{option} {path}: cannot read the file: no such file")
         check_outputs(inputs, outputs)
         status = int(args.func(args) or 0)
