@@ -117,6 +117,11 @@ def test_program_refuses_bad_input(tmp_path, capsys):
     assert "--placement-mm" in _one_line_error(capsys)
     assert main(["program", "nas979", "-o", str(out), "--machine", "xh714"]) == 2
     assert "five-axis" in _one_line_error(capsys)
+    # the slot block on a lathe said "no safe height ... at some rotary position" (the lathe has no rotary axis)
+    assert main(["program", "slots", "-o", str(out), "--machine", "lathe"]) == 2
+    assert _one_line_error(capsys) == ("trueaxis program: the slot block needs a three-axis mill (X Y Z; a five-axis "
+                                       "mill does too); Two-axis CNC lathe (caliper response-surface paper) is a "
+                                       "lathe with axes X Z")
     assert main(["program", "slots", "-o", str(out), "--compensate", "none"]) == 2
     _one_line_error(capsys)
     # A part the machine cannot reach there is a refused input, exit 3 for both parts (the nas979's was 2, a usage

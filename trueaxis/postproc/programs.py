@@ -534,7 +534,10 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, po
     Sections are marked ``(slot k of 3: compensation MODE)`` ... ``(end of slot k)``."""
     from .post import compensate
 
-
+    linear = [a for a in machine.axis_names if not machine.axes[a].is_rotary]
+    if machine.kind != "mill" or not {"X", "Y", "Z"} <= set(linear):
+        raise ValueError(f"the slot block needs a three-axis mill (X Y Z; a five-axis mill does too); {machine.name} "
+                         f"is a {machine.kind} with axes {' '.join(machine.axis_names)}")
     p = params or SlotBlockParams()
     placed, placement = place_machine(machine, placement_mm)
     z_fl = machine.tool.flutes
