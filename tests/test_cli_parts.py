@@ -194,24 +194,28 @@ def test_simulate_reports_points_not_cut(slot_sim, capsys):
 
 
 def test_simulate_refuses_a_program_for_the_other_part(slot_sim, capsys):
+    # a refused input (exit 3), as the diagnosis and the identification refuse it: one check, programs.placed_for
     d, machine, prog, part_dir = slot_sim
-    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(d / "x.ply")]) == 2
-    assert "not 'nas979'" in _one_line_error(capsys)
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(d / "x.ply")]) == 3
+    assert _one_line_error(capsys) == "trueaxis simulate: the program is for part 'slots', not 'nas979'"
     assert not (d / "x.ply").exists()
 
 
-def test_simulate_perfect_machine_cuts_the_cone(tmp_path, capsys):
+def test_simulate_cuts_with_the_tool_the_program_was_made_for_and_says_so(tmp_path, capsys):
+    # The shop cut an 8 mm tool's program with the machine file's 10 mm tool: 1000 um off everywhere, exit 0.
     machine = tmp_path / "perfect.toml"
     machine.write_text(PERFECT_BC)
-    prog = tmp_path / "cone.ngc"
+    prog = tmp_path / "cone8.ngc"
     assert main(["program", "nas979", "--machine", str(machine), "-o", str(prog), "--compensate", "none",
-                 "--placement-mm", "10,-5"]) == 0
+                 "--tool-diameter", "8"]) == 0
+    capsys.readouterr()
     assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
                  "--points", "3000"]) == 0
-    truth = json.loads((tmp_path / "c.truth.json").read_text())
-    dev = np.array(truth["per_point"]["deviation_um"])
-    assert truth["points_not_cut"] == 0
-    assert np.sqrt(np.mean(dev**2)) < 0.3 and np.abs(dev).max() < 0.5
+    said = capsys.readouterr().out
+    assert said.rstrip().endswith("; cut with the program's tool, d 8 mm (its setup comment's tool_d_mm; the machine "
+                                  "file's: d 10 mm)")
+    dev = np.array(json.loads((tmp_path / "c.truth.json").read_text())["per_point"]["deviation_um"])
+    assert dev.size > 2900 and np.sqrt(np.mean(dev**2)) < 0.3 and np.abs(dev).max() < 0.5  # as the 10 mm cone's
 
 
 @pytest.mark.parametrize("body, line, reason", [

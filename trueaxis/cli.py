@@ -315,7 +315,9 @@ def cmd_program(args) -> int:
 
 def cmd_simulate(args) -> int:
     """``trueaxis simulate PROGRAM --machine TRUE.toml [--effects E.toml] --part PART [--part-dir DIR] -o cmm.ply
-    [--points N] [--noise-um S] [--seed K]``: the virtual shop's cloud and its truth sidecar; a one-line summary."""
+    [--points N] [--noise-um S] [--seed K]``: the virtual shop's cloud and its truth sidecar; a one-line summary.
+    The shop cuts with the tool the program was made for when its setup comment says (``tool_d_mm``), as a shop
+    loads the tool the program names, and the summary says so when it is not the machine file's tool."""
     import numpy as np
 
     from .machine import load_machine
@@ -342,8 +344,16 @@ def cmd_simulate(args) -> int:
     print(f"{args.output}: {d.size} points ({not_cut} not cut); the cut surface's deviation (noise-free) mean "
           f"{d.mean():+.2f} um, rms {np.sqrt(np.mean(d**2)):.2f} um, range {d.min():+.2f}..{d.max():+.2f} um; the "
           f"cloud's with the probe noise (sigma {args.noise_um or 0.0:g} um) rms {np.sqrt(np.mean(measured**2)):.2f} "
-          f"um; truth in {truth}; {res.timings['total_s']:.1f} s")
+          f"um; truth in {truth}; {res.timings['total_s']:.1f} s{_tool_note(res.machine.tool, machine.tool)}")
     return 0
+
+
+def _tool_note(cut_with, machine_files) -> str:
+    """'; cut with the program's tool ...' when the shop cut with another tool than the machine file's, else ''."""
+    if cut_with.radius == machine_files.radius:
+        return ""
+    return (f"; cut with the program's tool, d {2 * cut_with.radius:g} mm (its setup comment's tool_d_mm; the machine "
+            f"file's: d {2 * machine_files.radius:g} mm)")
 
 
 def cmd_diagnose(args) -> int:
@@ -583,7 +593,8 @@ def build_parser() -> argparse.ArgumentParser:
     pg.set_defaults(func=cmd_program)
 
     sm = sub.add_parser("simulate", help="machine a program on a true machine and measure it on a virtual CMM")
-    sm.add_argument("program", help="machine-axis NC program")
+    sm.add_argument("program", help="machine-axis NC program; its trueaxis-setup comment places the part and names "
+                    "the tool it was made for (tool_d_mm), which the shop then cuts with (the summary says so)")
     sm.add_argument("--machine", required=True, help="the true machine (TOML)")
     sm.add_argument("--effects", help="effects the twin may not have (TOML)")
     sm.add_argument("--part", required=True, choices=part_names())

@@ -270,9 +270,12 @@ class ProgramError(ValueError):
 
 
 def placed_for(machine: Machine, program_text: str, part: str | None = None) -> Machine:
-    """The machine with the part placed where the program's setup comment says (``origin_mm``), as the virtual shop
-    and the shop floor do. Raises ProgramError for a program of another part (``part`` given) or a malformed
-    origin."""
+    """The machine set up as the program's setup comment says, as the shop floor sets it up to run the program (the
+    virtual shop, the diagnosis and the identification all take it from here): the part placed at ``origin_mm``,
+    and the tool the program was made for in the spindle (``tool_d_mm``: a flat end mill of that diameter; the
+    machine file's tool length, flutes and flute length stay, as the program's axis words assume that length). What
+    the comment does not say stays the machine file's. Raises ProgramError for a program of another part (``part``
+    given), a malformed origin or a tool diameter that is not a positive number."""
     setup = read_setup(program_text)
     if part is not None and setup.get("part") and setup["part"] != part:
         raise ProgramError(f"the program is for part {setup['part']!r}, not {part!r}")
@@ -282,6 +285,15 @@ def placed_for(machine: Machine, program_text: str, part: str | None = None) -> 
             raise ProgramError("the program's setup comment origin_mm must be three numbers")
         if not np.allclose(origin, machine.workpiece_origin, atol=1e-9):
             machine = dataclasses.replace(machine, workpiece_origin=origin.astype(float))
+    if "tool_d_mm" in setup:
+        try:
+            diameter = float(setup["tool_d_mm"])
+        except ValueError:
+            diameter = math.nan
+        if not (math.isfinite(diameter) and diameter > 0):
+            raise ProgramError(f"the program's setup comment tool_d_mm={setup['tool_d_mm']} is not a positive number")
+        if not math.isclose(diameter, 2 * machine.tool.radius, rel_tol=0.0, abs_tol=1e-9):
+            machine = dataclasses.replace(machine, tool=dataclasses.replace(machine.tool, radius=diameter / 2))
     return machine
 
 

@@ -11,8 +11,8 @@ force with the real engagement, thermal drift) -> tool wear (radius and length a
 the machined surface as the envelope of the cutting instances (``envelope``) along each probe normal, with the part's
 spring-back from its clamping deformation -> probe noise.
 
-``simulate_program_file`` does the same for a program file whose setup comment places the part (``trueaxis
-simulate`` in ``trueaxis.cli``).
+``simulate_program_file`` does the same for a program file whose setup comment places the part and names the tool it
+was made for (``trueaxis simulate`` in ``trueaxis.cli``).
 """
 
 from __future__ import annotations
@@ -300,29 +300,24 @@ def simulate_program_file(program_path, machine: Machine, part: str, *, effects_
     """Machine the program file ``program_path`` on the true ``machine`` (with the effects file ``effects_path``, or
     none) and measure ``part`` with the virtual CMM (``points`` probe points, ``noise_um`` probe noise, ``seed``).
 
-    The program's setup comment ``(trueaxis-setup: part=.. origin_mm=X,Y,Z ...)`` (written by
-    ``trueaxis.postproc.programs``) places the part: its origin replaces the machine file's ``[workpiece] origin`` (said
-    on stderr), and a program for the other part is refused. Errors raise ValueError with a clear message.
-    """
-    import dataclasses
+    The shop sets the machine up as the program's setup comment ``(trueaxis-setup: part=.. origin_mm=X,Y,Z
+    tool_d_mm=D ...)`` (written by ``trueaxis.postproc.programs``) says, through ``programs.placed_for`` as the
+    diagnosis and the identification do: its origin replaces the machine file's ``[workpiece] origin`` (said on
+    stderr), and it cuts with the tool the program was made for (``tool_d_mm``; the result's ``machine.tool``). A
+    program for the other part is refused with ProgramError; other errors raise ValueError with a clear message."""
     import sys
 
-    from ..postproc.programs import read_setup
+    from ..postproc.programs import placed_for
 
     program_path = Path(program_path)
     if not program_path.is_file():
         raise ValueError(f"{program_path}: no such program file")
-    setup = read_setup(program_path.read_text(encoding="utf-8", errors="replace"))
-    if setup.get("part") and setup["part"] != part:
-        raise ValueError(f"{program_path} is a program for part {setup['part']!r}, not {part!r}")
-    if "origin_mm" in setup:
-        origin = setup["origin_mm"]
-        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-            raise ValueError(f"{program_path}: setup comment origin_mm must be three numbers")
-        if not np.allclose(origin, machine.workpiece_origin, atol=1e-9):
-            print(f"part placed as the program says: origin {origin.tolist()} mm in M (machine file: "
-                  f"{machine.workpiece_origin.tolist()})", file=sys.stderr)
-            machine = dataclasses.replace(machine, workpiece_origin=origin.astype(float))
-    effects = load_effects(effects_path, machine) if effects_path else None
-    return simulate(program_path, machine, effects, part=part, part_dir=part_dir, points=int(points),
+    text = program_path.read_text(encoding="utf-8", errors="replace")
+    placed = placed_for(machine, text, part)
+    part_data = load_part(part, None, part_dir)
+    if not np.allclose(placed.workpiece_origin, machine.workpiece_origin, atol=1e-9):
+        print(f"part placed as the program says: origin {placed.workpiece_origin.tolist()} mm in M (machine file: "
+              f"{machine.workpiece_origin.tolist()})", file=sys.stderr)
+    effects = load_effects(effects_path, placed) if effects_path else None
+    return simulate(program_path, placed, effects, part=part, part_json=part_data, points=int(points),
                     noise_um=float(noise_um), seed=int(seed), progress=progress)
