@@ -218,6 +218,41 @@ def test_simulate_cuts_with_the_tool_the_program_was_made_for_and_says_so(tmp_pa
     assert dev.size > 2900 and np.sqrt(np.mean(dev**2)) < 0.3 and np.abs(dev).max() < 0.5  # as the 10 mm cone's
 
 
+def test_simulate_refuses_a_program_for_another_size_of_the_part(tmp_path, capsys):
+    # A cone of base diameter 70 simulated against the default 80 mm part: exit 0, rms 4830 um. Refused as the
+    # diagnosis refuses it, by the same check.
+    from trueaxis.diagnose import report
+    from trueaxis.postproc import programs
+
+    assert report.check_part_against_program is programs.check_part_against_program
+    machine = tmp_path / "perfect.toml"
+    machine.write_text(PERFECT_BC)
+    prog = tmp_path / "cone70.ngc"
+    assert main(["program", "nas979", "--machine", str(machine), "-o", str(prog), "--compensate", "none",
+                 "--param", "base_diameter=70", "--step-deg", "3", "--chord-tol-um", "5"]) == 0
+    capsys.readouterr()
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
+                 "--points", "3000"]) == 3
+    assert _one_line_error(capsys) == ("trueaxis simulate: the program cuts a cone of base_diameter 70; the part's "
+                                       "description gives base_diameter 80.0: give the description `trueaxis part` "
+                                       "wrote for it (--part-dir)")
+    assert not (tmp_path / "c.ply").exists() and not (tmp_path / "c.truth.json").exists()
+
+
+def test_simulate_perfect_machine_cuts_the_cone(tmp_path, capsys):
+    machine = tmp_path / "perfect.toml"
+    machine.write_text(PERFECT_BC)
+    prog = tmp_path / "cone.ngc"
+    assert main(["program", "nas979", "--machine", str(machine), "-o", str(prog), "--compensate", "none",
+                 "--placement-mm", "10,-5"]) == 0
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
+                 "--points", "3000"]) == 0
+    truth = json.loads((tmp_path / "c.truth.json").read_text())
+    dev = np.array(truth["per_point"]["deviation_um"])
+    assert truth["points_not_cut"] == 0
+    assert np.sqrt(np.mean(dev**2)) < 0.3 and np.abs(dev).max() < 0.5
+
+
 @pytest.mark.parametrize("body, line, reason", [
     ("10,0,5,0,0,1,500\n12,0,5,0,0,1,-100\n", 3, "feed must be positive"),
     ("10,0,5,0,0,1,500\n12,0,5,0,0,0,500\n", 3, "tool-axis vector"),

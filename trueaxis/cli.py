@@ -317,7 +317,8 @@ def cmd_simulate(args) -> int:
     """``trueaxis simulate PROGRAM --machine TRUE.toml [--effects E.toml] --part PART [--part-dir DIR] -o cmm.ply
     [--points N] [--noise-um S] [--seed K]``: the virtual shop's cloud and its truth sidecar; a one-line summary.
     The shop cuts with the tool the program was made for when its setup comment says (``tool_d_mm``), as a shop
-    loads the tool the program names, and the summary says so when it is not the machine file's tool."""
+    loads the tool the program names, and the summary says so when it is not the machine file's tool; a program
+    for another size of the part than --part-dir describes is refused (exit 3)."""
     import numpy as np
 
     from .machine import load_machine
@@ -598,7 +599,8 @@ def build_parser() -> argparse.ArgumentParser:
     sm.add_argument("--machine", required=True, help="the true machine (TOML)")
     sm.add_argument("--effects", help="effects the twin may not have (TOML)")
     sm.add_argument("--part", required=True, choices=part_names())
-    sm.add_argument("--part-dir", help="folder holding <part>.json (default: the default part parameters)")
+    sm.add_argument("--part-dir", help="folder holding <part>.json (default: the default part parameters); a "
+                    "program whose title names another size of the part is refused (exit 3)")
     sm.add_argument("-o", "--output", required=True, help="CMM cloud (PLY, part frame); <name>.truth.json beside it")
     sm.add_argument("--points", type=_number(int, low=1), default=200_000, help="probe points (200000)")
     sm.add_argument("--noise-um", type=NON_NEGATIVE, default=0.0, help="probe noise sigma, um (0)")

@@ -297,6 +297,17 @@ def placed_for(machine: Machine, program_text: str, part: str | None = None) -> 
     return machine
 
 
+def check_part_against_program(part: str, part_json: dict, program_text: str, option: str = "--part-json") -> None:
+    """ProgramError when the part's description (``option``'s, or the default part) is not the part the program cuts
+    (a NAS 979 program names its cone in its title): another description would give the cut another surface and
+    other normals, read as a machine error. Silent for a program that does not say."""
+    from ..workpiece.part import get_part
+
+    why = get_part(part).program_mismatch(part_json, program_text)
+    if why:
+        raise ProgramError(f"{why}: give the description `trueaxis part` wrote for it ({option})")
+
+
 def check_axes(machine: Machine, program) -> None:
     """ProgramError when ``program`` (a parsed ``Program``) moves axes ``machine`` does not have (a program posted
     for another machine: the twin cannot cut it)."""

@@ -304,10 +304,12 @@ def simulate_program_file(program_path, machine: Machine, part: str, *, effects_
     tool_d_mm=D ...)`` (written by ``trueaxis.postproc.programs``) says, through ``programs.placed_for`` as the
     diagnosis and the identification do: its origin replaces the machine file's ``[workpiece] origin`` (said on
     stderr), and it cuts with the tool the program was made for (``tool_d_mm``; the result's ``machine.tool``). A
-    program for the other part is refused with ProgramError; other errors raise ValueError with a clear message."""
+    program for the other part, or for another size of the part than the description (``part_dir``, or the part's
+    default; ``programs.check_part_against_program``), is refused with ProgramError; other errors raise ValueError
+    with a clear message."""
     import sys
 
-    from ..postproc.programs import placed_for
+    from ..postproc.programs import check_part_against_program, placed_for
 
     program_path = Path(program_path)
     if not program_path.is_file():
@@ -315,6 +317,7 @@ def simulate_program_file(program_path, machine: Machine, part: str, *, effects_
     text = program_path.read_text(encoding="utf-8", errors="replace")
     placed = placed_for(machine, text, part)
     part_data = load_part(part, None, part_dir)
+    check_part_against_program(part, part_data, text, option="--part-dir")
     if not np.allclose(placed.workpiece_origin, machine.workpiece_origin, atol=1e-9):
         print(f"part placed as the program says: origin {placed.workpiece_origin.tolist()} mm in M (machine file: "
               f"{machine.workpiece_origin.tolist()})", file=sys.stderr)
