@@ -161,6 +161,45 @@ def test_the_slot_program_compensated_by_its_setup_comment_is_refused_unless_for
     assert compensate(raw, load_machine(XH714), "geometric", offsets_zero=True).count("(trueaxis post: trueaxis ") == 1
 
 
+NO_FORCE_MILL = mill_toml("no force mill (test)", tail="""[location]
+C0Y = 50.0
+[cutting]
+material = "C45"
+Ktc = 2000.0
+Krc = 750.0
+Kac = 400.0
+Kte = 30.0
+Kre = 45.0
+Kae = 5.0
+""")
+
+
+def test_comprehensive_mode_on_a_twin_without_a_force_model_says_it_corrects_no_force(tmp_path):
+    # It corrected nothing for the force and said nothing: the output was the geometric one, posted as comprehensive.
+    machine, src = tmp_path / "m.toml", tmp_path / "in.ngc"
+    machine.write_text(NO_FORCE_MILL)
+    src.write_text("G21 G90\n(trueaxis: ap=2 ae=5 fz=0.05 n=5000 d=10 z=4 mode=down)\nG0 X0 Y0 Z-10\n"
+                   "G1 X50 Y20 F300\nM2\n")
+    said = (f"{src}:1: comprehensive mode: the twin of no force mill (test) has no force model (no [force] "
+            "compliance, no [loaded] parameter set, no response surfaces): nothing is corrected for the cutting force, "
+            "the program is compensated as in geometric mode")
+    out, report = tmp_path / "out.ngc", tmp_path / "report.json"
+    r = run_cli("post", src, "-o", out, "--machine", machine, "--mode", "comprehensive", "--report", report)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.strip().splitlines() == [said]
+    assert json.loads(report.read_text())["warnings"] == [said]
+    geometric = run_cli("post", src, "-o", tmp_path / "geo.ngc", "--machine", machine)
+    assert geometric.returncode == 0 and geometric.stderr == ""  # the same moves, and geometric mode says nothing
+    assert without_header(out.read_text()) == without_header((tmp_path / "geo.ngc").read_text())
+    strict = run_cli("post", src, "-o", tmp_path / "s.ngc", "--machine", machine, "--mode", "comprehensive",
+                     "--strict")
+    assert strict.returncode == 3 and not (tmp_path / "s.ngc").exists()
+    # a twin with a force model: no such warning
+    machine.write_text(NO_FORCE_MILL + "[force]\ncompliance_um_per_n = [[0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.01]]\n")
+    forced = run_cli("post", src, "-o", out, "--machine", machine, "--mode", "comprehensive")
+    assert forced.returncode == 0 and "no force model" not in forced.stderr
+
+
 # --- (c) three-axis programs on five-axis machines -------------------------------------------------------------------
 
 THREE_AXIS = "G21 G90 G17\nG0 X0 Y0 Z50\nG1 X20 Y10 Z40 F300\nG1 X30\nG2 X40 Y20 I0 J10\nM2\n"

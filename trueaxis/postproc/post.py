@@ -948,6 +948,12 @@ class _Poster:
             self.rep.warnings.append(f"{p.source}:1: the program never commands {' '.join(idle)}: the corrections take "
                                      f"{'it' if len(idle) == 1 else 'them'} at 0, where "
                                      f"{'it' if len(idle) == 1 else 'they'} must stand when the program runs")
+        if self.mode == "comprehensive" and not self.m.force_models():
+            # the force is computed, but a twin the same under any load turns it into no correction: said, not silent
+            self.rep.warnings.append(f"{p.source}:1: comprehensive mode: the twin of {self.m.name} has no force "
+                                     "model (no [force] compliance, no [loaded] parameter set, no response surfaces): "
+                                     "nothing is corrected for the cutting force, the program is compensated as in "
+                                     "geometric mode")
         delta_prog = np.empty((rows.size, 6))
         pieces, arc_mode = {}, _ArcModes(rows.size)
         sq = np.zeros(len(self.names))
