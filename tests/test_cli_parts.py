@@ -193,6 +193,29 @@ def test_simulate_reports_points_not_cut(slot_sim, capsys):
     assert 300 < n < 500  # about two slots of three
 
 
+def test_simulate_notes_a_force_model_of_the_true_machine_it_does_not_apply(slot_sim, capsys):
+    # A true machine with compliance cut with no force and said nothing: its comprehensive slot looked worse than the
+    # geometric one. The note says so, and how to apply it; an effects file that applies it silences it.
+    from trueaxis.machine import load_machine
+    from trueaxis.sim.effects import Effects, ForceDeflection
+    from trueaxis.sim.shop import unapplied_force_note
+
+    d, _, prog, part_dir = slot_sim
+    machine = d / "compliant.toml"
+    machine.write_text(PERFECT_3AX + "[force]\ncompliance_um_per_n = [[0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.01]]\n")
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "slots", "--part-dir", str(part_dir),
+                 "-o", str(d / "compliant.ply"), "--points", "300"]) == 0
+    said = capsys.readouterr().out.splitlines()
+    assert len(said) == 2 and said[1] == (
+        "  note: the true machine's force model ([force] compliance) is not applied in this run: the tool cut with no "
+        "force on it, so a comprehensive compensation looks worse than a geometric one; to apply it, give --effects "
+        "with [force] use_machine_compliance = true")
+    true = load_machine(machine)
+    assert unapplied_force_note(true, Effects(force=ForceDeflection(np.eye(3), False))) == said[1][len("  note: "):]
+    assert unapplied_force_note(true, Effects(force=ForceDeflection(None, True))) is None
+    assert unapplied_force_note(load_machine(slot_sim[1]), Effects()) is None  # no force model: nothing to say
+
+
 def test_simulate_refuses_a_program_for_the_other_part(slot_sim, capsys):
     # a refused input (exit 3), as the diagnosis and the identification refuse it: one check, programs.placed_for
     d, machine, prog, part_dir = slot_sim

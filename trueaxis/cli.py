@@ -346,6 +346,8 @@ def cmd_simulate(args) -> int:
           f"{d.mean():+.2f} um, rms {np.sqrt(np.mean(d**2)):.2f} um, range {d.min():+.2f}..{d.max():+.2f} um; the "
           f"cloud's with the probe noise (sigma {args.noise_um or 0.0:g} um) rms {np.sqrt(np.mean(measured**2)):.2f} "
           f"um; truth in {truth}; {res.timings['total_s']:.1f} s{_tool_note(res.machine.tool, machine.tool)}")
+    for note in res.info.get("notes", []):  # what this run leaves out of the true machine (its force model)
+        print(f"  note: {note}")
     return 0
 
 

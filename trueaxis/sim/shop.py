@@ -152,6 +152,9 @@ def simulate(
     ci = np.nonzero(cutting)[0]
     force_part = np.zeros((len(traj), 3))
     info = {"samples": len(traj), "cutting_samples": int(ci.size)}
+    unapplied = unapplied_force_note(machine, effects)
+    if unapplied:
+        info["notes"] = [unapplied]
     if effects.needs_force and ci.size:
         conds_by_line = structured_conditions(prog, machine)
         conds = [conds_by_line[i] for i in traj.line[ci]]
@@ -248,6 +251,19 @@ def simulate(
         timings=timings,
         info=info,
     )
+
+
+def unapplied_force_note(machine: Machine, effects: Effects) -> str | None:
+    """A note when the true machine has a force model (``Machine.force_models``) that a run with ``effects`` does not
+    apply (only ``[force] use_machine_compliance = true`` in the effects hands the cutting force to the twin), else
+    None: the tool then cuts with no force on the twin, and a comprehensively compensated cut (the slot block's
+    third slot) looks worse than a geometric one."""
+    models = machine.force_models()
+    if not models or (effects.force is not None and effects.force.use_machine_compliance):
+        return None
+    return (f"the true machine's force model ({', '.join(models)}) is not applied in this run: the tool cut with no "
+            "force on it, so a comprehensive compensation looks worse than a geometric one; to apply it, give "
+            "--effects with [force] use_machine_compliance = true")
 
 
 def write_cmm(result: SimResult, out_ply, binary: bool = True) -> Path:
