@@ -117,6 +117,11 @@ def test_program_refuses_bad_input(tmp_path, capsys):
     assert "--placement-mm" in _one_line_error(capsys)
     assert main(["program", "nas979", "-o", str(out), "--machine", "xh714"]) == 2
     assert "five-axis" in _one_line_error(capsys)
+    # the slot block on a lathe said "no safe height ... at some rotary position" (the lathe has no rotary axis)
+    assert main(["program", "slots", "-o", str(out), "--machine", "lathe"]) == 2
+    assert _one_line_error(capsys) == ("trueaxis program: the slot block needs a three-axis mill (X Y Z; a five-axis "
+                                       "mill does too); Two-axis CNC lathe (caliper response-surface paper) is a "
+                                       "lathe with axes X Z")
     assert main(["program", "slots", "-o", str(out), "--compensate", "none"]) == 2
     _one_line_error(capsys)
     # A part the machine cannot reach there is a refused input, exit 3 for both parts (the nas979's was 2, a usage
@@ -188,11 +193,73 @@ def test_simulate_reports_points_not_cut(slot_sim, capsys):
     assert 300 < n < 500  # about two slots of three
 
 
+def test_simulate_notes_a_force_model_of_the_true_machine_it_does_not_apply(slot_sim, capsys):
+    # A true machine with compliance cut with no force and said nothing: its comprehensive slot looked worse than the
+    # geometric one. The note says so, and how to apply it; an effects file that applies it silences it.
+    from trueaxis.machine import load_machine
+    from trueaxis.sim.effects import Effects, ForceDeflection
+    from trueaxis.sim.shop import unapplied_force_note
+
+    d, _, prog, part_dir = slot_sim
+    machine = d / "compliant.toml"
+    machine.write_text(PERFECT_3AX + "[force]\ncompliance_um_per_n = [[0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.01]]\n")
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "slots", "--part-dir", str(part_dir),
+                 "-o", str(d / "compliant.ply"), "--points", "300"]) == 0
+    said = capsys.readouterr().out.splitlines()
+    assert len(said) == 2 and said[1] == (
+        "  note: the true machine's force model ([force] compliance) is not applied in this run: the tool cut with no "
+        "force on it, so a comprehensive compensation looks worse than a geometric one; to apply it, give --effects "
+        "with [force] use_machine_compliance = true")
+    true = load_machine(machine)
+    assert unapplied_force_note(true, Effects(force=ForceDeflection(np.eye(3), False))) == said[1][len("  note: "):]
+    assert unapplied_force_note(true, Effects(force=ForceDeflection(None, True))) is None
+    assert unapplied_force_note(load_machine(slot_sim[1]), Effects()) is None  # no force model: nothing to say
+
+
 def test_simulate_refuses_a_program_for_the_other_part(slot_sim, capsys):
+    # a refused input (exit 3), as the diagnosis and the identification refuse it: one check, programs.placed_for
     d, machine, prog, part_dir = slot_sim
-    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(d / "x.ply")]) == 2
-    assert "not 'nas979'" in _one_line_error(capsys)
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(d / "x.ply")]) == 3
+    assert _one_line_error(capsys) == "trueaxis simulate: the program is for part 'slots', not 'nas979'"
     assert not (d / "x.ply").exists()
+
+
+def test_simulate_cuts_with_the_tool_the_program_was_made_for_and_says_so(tmp_path, capsys):
+    # The shop cut an 8 mm tool's program with the machine file's 10 mm tool: 1000 um off everywhere, exit 0.
+    machine = tmp_path / "perfect.toml"
+    machine.write_text(PERFECT_BC)
+    prog = tmp_path / "cone8.ngc"
+    assert main(["program", "nas979", "--machine", str(machine), "-o", str(prog), "--compensate", "none",
+                 "--tool-diameter", "8"]) == 0
+    capsys.readouterr()
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
+                 "--points", "3000"]) == 0
+    said = capsys.readouterr().out
+    assert said.rstrip().endswith("; cut with the program's tool, d 8 mm (its setup comment's tool_d_mm; the machine "
+                                  "file's: d 10 mm)")
+    dev = np.array(json.loads((tmp_path / "c.truth.json").read_text())["per_point"]["deviation_um"])
+    assert dev.size > 2900 and np.sqrt(np.mean(dev**2)) < 0.3 and np.abs(dev).max() < 0.5  # as the 10 mm cone's
+
+
+def test_simulate_refuses_a_program_for_another_size_of_the_part(tmp_path, capsys):
+    # A cone of base diameter 70 simulated against the default 80 mm part: exit 0, rms 4830 um. Refused as the
+    # diagnosis refuses it, by the same check.
+    from trueaxis.diagnose import report
+    from trueaxis.postproc import programs
+
+    assert report.check_part_against_program is programs.check_part_against_program
+    machine = tmp_path / "perfect.toml"
+    machine.write_text(PERFECT_BC)
+    prog = tmp_path / "cone70.ngc"
+    assert main(["program", "nas979", "--machine", str(machine), "-o", str(prog), "--compensate", "none",
+                 "--param", "base_diameter=70", "--step-deg", "3", "--chord-tol-um", "5"]) == 0
+    capsys.readouterr()
+    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
+                 "--points", "3000"]) == 3
+    assert _one_line_error(capsys) == ("trueaxis simulate: the program cuts a cone of base_diameter 70; the part's "
+                                       "description gives base_diameter 80.0: give the description `trueaxis part` "
+                                       "wrote for it (--part-dir)")
+    assert not (tmp_path / "c.ply").exists() and not (tmp_path / "c.truth.json").exists()
 
 
 def test_simulate_perfect_machine_cuts_the_cone(tmp_path, capsys):
@@ -224,6 +291,28 @@ def test_post_refuses_bad_cl_data_with_its_line(tmp_path, capsys, body, line, re
     err = _one_line_error(capsys)
     assert err.startswith(f"{cl}:{line}:") and reason in err
     assert not posted.exists()
+
+
+@pytest.mark.parametrize("command, option", [
+    (["program", "nas979", "-o", "{tmp}/x.ngc", "--machine", "{missing}"], "--machine"),
+    (["post", "{program}", "-o", "{tmp}/x.ngc", "--machine", "{missing}"], "--machine"),
+    (["diagnose", "--cloud", "{program}", "--part", "nas979", "--program", "{program}", "--machine", "{missing}",
+      "-o", "{tmp}/x"], "--machine"),
+    (["simulate", "{program}", "--part", "nas979", "-o", "{tmp}/x.ply", "--machine", "{missing}"], "--machine"),
+    (["simulate", "{program}", "--part", "nas979", "-o", "{tmp}/x.ply", "--machine", "xh714", "--effects",
+      "{missing}"], "--effects"),
+    (["error", "--at", "X=0", "--machine", "{missing}"], "--machine"),
+    (["machine", "check", "{missing}"], "file"),
+])
+def test_a_missing_machine_file_is_a_usage_error_that_names_the_option(tmp_path, capsys, command, option):
+    # It was exit 3 with a bare "nothere.toml: file not found" (the refusal of a bad machine file), where every other
+    # missing input is a usage error naming the command and the option.
+    prog = tmp_path / "p.ngc"
+    prog.write_text("G21 G90\nG0 X0 Y0 Z0\nM30\n")
+    missing = tmp_path / "nothere.toml"
+    assert main([a.format(missing=missing, program=prog, tmp=tmp_path) for a in command]) == 2
+    assert _one_line_error(capsys) == f"trueaxis {command[0]}: {option} {missing}: cannot read the file: no such file"
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["p.ngc"]
 
 
 def test_every_command_takes_a_fixture_machine_by_its_short_name(tmp_path, capsys):

@@ -142,6 +142,67 @@ def test_a_program_that_carries_the_header_is_refused_unless_forced(tmp_path):
     assert again.read_text().count("(trueaxis post: trueaxis ") == 2
 
 
+def test_the_slot_program_compensated_by_its_setup_comment_is_refused_unless_forced(tmp_path):
+    # `program slots` posts its slots 2 and 3 section by section, with no post header: only its setup comment
+    # (compensation=per-slot) says so, and `post` compensated it a second time (slot RMS 0.07 -> 14.4 um, a QA pass).
+    from trueaxis.postproc.programs import slots_program
+
+    src, again = tmp_path / "slots.ngc", tmp_path / "again.ngc"
+    slots = slots_program(load_machine(XH714))
+    src.write_text(slots.text)
+    r = run_cli("post", src, "-o", again, "--machine", XH714)
+    assert r.returncode == 3 and not again.exists()
+    lines = r.stderr.strip().splitlines()
+    setup_line = slots.text.splitlines().index(next(ln for ln in slots.text.splitlines() if "trueaxis-setup" in ln))
+    assert len(lines) == 1 and lines[0].startswith(f"{src}:{setup_line + 1}: the program was compensated by trueaxis "
+                                                   "already (its setup comment says compensation=per-slot twin=")
+    assert lines[0].endswith("posting it again would compensate it twice; --force to post it anyway")
+    assert run_cli("post", src, "-o", again, "--machine", XH714, "--force").returncode == 0 and again.exists()
+    # the raw program (no slot compensated) says compensation=none, and posts
+    raw = slots_program(load_machine(XH714), post=False).raw
+    assert "compensation=none)" in raw and "twin=" not in raw
+    assert compensate(raw, load_machine(XH714), "geometric", offsets_zero=True).count("(trueaxis post: trueaxis ") == 1
+
+
+NO_FORCE_MILL = mill_toml("no force mill (test)", tail="""[location]
+C0Y = 50.0
+[cutting]
+material = "C45"
+Ktc = 2000.0
+Krc = 750.0
+Kac = 400.0
+Kte = 30.0
+Kre = 45.0
+Kae = 5.0
+""")
+
+
+def test_comprehensive_mode_on_a_twin_without_a_force_model_says_it_corrects_no_force(tmp_path):
+    # It corrected nothing for the force and said nothing: the output was the geometric one, posted as comprehensive.
+    machine, src = tmp_path / "m.toml", tmp_path / "in.ngc"
+    machine.write_text(NO_FORCE_MILL)
+    src.write_text("G21 G90\n(trueaxis: ap=2 ae=5 fz=0.05 n=5000 d=10 z=4 mode=down)\nG0 X0 Y0 Z-10\n"
+                   "G1 X50 Y20 F300\nM2\n")
+    said = (f"{src}:1: comprehensive mode: the twin of no force mill (test) has no force model (no [force] "
+            "compliance, no [loaded] parameter set, no response surfaces): nothing is corrected for the cutting force, "
+            "the program is compensated as in geometric mode")
+    out, report = tmp_path / "out.ngc", tmp_path / "report.json"
+    r = run_cli("post", src, "-o", out, "--machine", machine, "--mode", "comprehensive", "--report", report)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.strip().splitlines() == [said]
+    assert json.loads(report.read_text())["warnings"] == [said]
+    geometric = run_cli("post", src, "-o", tmp_path / "geo.ngc", "--machine", machine)
+    assert geometric.returncode == 0 and geometric.stderr == ""  # the same moves, and geometric mode says nothing
+    assert without_header(out.read_text()) == without_header((tmp_path / "geo.ngc").read_text())
+    strict = run_cli("post", src, "-o", tmp_path / "s.ngc", "--machine", machine, "--mode", "comprehensive",
+                     "--strict")
+    assert strict.returncode == 3 and not (tmp_path / "s.ngc").exists()
+    # a twin with a force model: no such warning
+    machine.write_text(NO_FORCE_MILL + "[force]\ncompliance_um_per_n = [[0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.01]]\n")
+    forced = run_cli("post", src, "-o", out, "--machine", machine, "--mode", "comprehensive")
+    assert forced.returncode == 0 and "no force model" not in forced.stderr
+
+
 # --- (c) three-axis programs on five-axis machines -------------------------------------------------------------------
 
 THREE_AXIS = "G21 G90 G17\nG0 X0 Y0 Z50\nG1 X20 Y10 Z40 F300\nG1 X30\nG2 X40 Y20 I0 J10\nM2\n"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 
@@ -275,3 +276,17 @@ def test_programs_state_their_work_offset_and_the_setup_they_expect(cone_prog, s
         assert p.setup_used[0]["source"] == f"<string>:{i + 1} (G10 L2)"
     out = compensate(cone_prog.raw, cone_prog.machine, "geometric", source="cone.ngc")
     assert any(line.startswith("(trueaxis setup: G54 0 mm, from cone.ngc:") for line in out.splitlines()[:8])
+
+
+def test_placed_for_puts_the_programs_tool_in_the_spindle():
+    # The setup comment's tool_d_mm is the tool the program was made for: the shop (simulate), the diagnosis and the
+    # identification cut with it; the machine file's length and flutes stay (the axis words assume that length).
+    from trueaxis.postproc.programs import ProgramError, placed_for, setup_comment
+
+    nmv = load_machine(MACHINES / "nmv1500dcg.toml")
+    text = setup_comment("nas979", nmv.workpiece_origin, (0.0, 0.0), 8.0, "none") + "\nG0 X0\n"
+    placed = placed_for(nmv, text, "nas979")
+    assert placed.tool == dataclasses.replace(nmv.tool, radius=4.0) and nmv.tool.radius == 5.0
+    assert placed_for(nmv, "G0 X0\n").tool == nmv.tool  # a program that does not say: the machine file's tool
+    with pytest.raises(ProgramError, match="tool_d_mm=-8 is not a positive number"):
+        placed_for(nmv, text.replace("tool_d_mm=8", "tool_d_mm=-8"))

@@ -315,7 +315,10 @@ def cmd_program(args) -> int:
 
 def cmd_simulate(args) -> int:
     """``trueaxis simulate PROGRAM --machine TRUE.toml [--effects E.toml] --part PART [--part-dir DIR] -o cmm.ply
-    [--points N] [--noise-um S] [--seed K]``: the virtual shop's cloud and its truth sidecar; a one-line summary."""
+    [--points N] [--noise-um S] [--seed K]``: the virtual shop's cloud and its truth sidecar; a one-line summary.
+    The shop cuts with the tool the program was made for when its setup comment says (``tool_d_mm``), as a shop
+    loads the tool the program names, and the summary says so when it is not the machine file's tool; a program
+    for another size of the part than --part-dir describes is refused (exit 3)."""
     import numpy as np
 
     from .machine import load_machine
@@ -342,8 +345,18 @@ def cmd_simulate(args) -> int:
     print(f"{args.output}: {d.size} points ({not_cut} not cut); the cut surface's deviation (noise-free) mean "
           f"{d.mean():+.2f} um, rms {np.sqrt(np.mean(d**2)):.2f} um, range {d.min():+.2f}..{d.max():+.2f} um; the "
           f"cloud's with the probe noise (sigma {args.noise_um or 0.0:g} um) rms {np.sqrt(np.mean(measured**2)):.2f} "
-          f"um; truth in {truth}; {res.timings['total_s']:.1f} s")
+          f"um; truth in {truth}; {res.timings['total_s']:.1f} s{_tool_note(res.machine.tool, machine.tool)}")
+    for note in res.info.get("notes", []):  # what this run leaves out of the true machine (its force model)
+        print(f"  note: {note}")
     return 0
+
+
+def _tool_note(cut_with, machine_files) -> str:
+    """'; cut with the program's tool ...' when the shop cut with another tool than the machine file's, else ''."""
+    if cut_with.radius == machine_files.radius:
+        return ""
+    return (f"; cut with the program's tool, d {2 * cut_with.radius:g} mm (its setup comment's tool_d_mm; the machine "
+            f"file's: d {2 * machine_files.radius:g} mm)")
 
 
 def cmd_diagnose(args) -> int:
@@ -583,11 +596,13 @@ def build_parser() -> argparse.ArgumentParser:
     pg.set_defaults(func=cmd_program)
 
     sm = sub.add_parser("simulate", help="machine a program on a true machine and measure it on a virtual CMM")
-    sm.add_argument("program", help="machine-axis NC program")
+    sm.add_argument("program", help="machine-axis NC program; its trueaxis-setup comment places the part and names "
+                    "the tool it was made for (tool_d_mm), which the shop then cuts with (the summary says so)")
     sm.add_argument("--machine", required=True, help="the true machine (TOML)")
     sm.add_argument("--effects", help="effects the twin may not have (TOML)")
     sm.add_argument("--part", required=True, choices=part_names())
-    sm.add_argument("--part-dir", help="folder holding <part>.json (default: the default part parameters)")
+    sm.add_argument("--part-dir", help="folder holding <part>.json (default: the default part parameters); a "
+                    "program whose title names another size of the part is refused (exit 3)")
     sm.add_argument("-o", "--output", required=True, help="CMM cloud (PLY, part frame); <name>.truth.json beside it")
     sm.add_argument("--points", type=_number(int, low=1), default=200_000, help="probe points (200000)")
     sm.add_argument("--noise-um", type=NON_NEGATIVE, default=0.0, help="probe noise sigma, um (0)")
@@ -669,7 +684,19 @@ def _located_errors() -> tuple:
 
 
 # inputs that are always file paths (a machine file may be a fixture's name): one that does not exist is a usage error
-_NAMED_FILES = ("input", "program", "cloud", "--cloud", "--program", "--cad")
+_NAMED_FILES = ("input", "program", "cloud", "--cloud", "--program", "--cad", "--effects")
+# inputs that name a file or a fixture machine (``resources.machine_file``): a path that does not exist is a usage error
+_MACHINE_FILES = ("--machine", "file")
+
+
+def _missing(option: str, path) -> bool:
+    """Whether the input ``path`` of ``option`` names a file that does not exist (``-``: stdin; a fixture machine's
+    short name is looked up by ``resources.machine_file``, which names the fixtures when there is none)."""
+    from .resources import names_a_path
+
+    if path is None or path == "-" or Path(path).exists():
+        return False
+    return option in _NAMED_FILES or (option in _MACHINE_FILES and names_a_path(path))
 
 
 def _refusal_errors() -> tuple:
@@ -697,6 +724,10 @@ def _paths(args) -> tuple[list, list]:
         return [("--machine", g("machine"))], [("-o", g("output"), False), ("--cl", g("cl"), False)]
     if cmd == "part":
         return [], [("-o", g("output"), True)]
+    if cmd == "error":
+        return [("--machine", g("machine"))], []
+    if cmd == "machine":
+        return [("file", g("file"))], []
     if cmd == "simulate":
         from .sim.cmm import truth_path
 
@@ -790,7 +821,7 @@ def main(argv=None) -> int:
         for option, path in inputs:
             if path is not None and Path(path).is_dir():
                 raise UsageError(f"{option} {path}: is a folder; name a file")
-            if option in _NAMED_FILES and path is not None and path != "-" and not Path(path).exists():
+            if _missing(option, path):
                 raise UsageError(f"{option} {path}: cannot read the file: no such file")
         check_outputs(inputs, outputs)
         status = int(args.func(args) or 0)

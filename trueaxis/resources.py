@@ -20,10 +20,17 @@ def machine_files() -> list[Path]:
     return sorted((fixtures_dir() / "machines").glob("*.toml"))
 
 
+def names_a_path(name: str) -> bool:
+    """Whether :func:`machine_file` reads ``name`` as a path (a ``.toml`` name, or a file that exists), not as a
+    fixture machine's short name."""
+    p = Path(name)
+    return p.suffix == ".toml" or p.exists()
+
+
 def machine_file(name: str) -> Path:
     """A fixture machine by short name ('nmv1500dcg') or a path to any machine file."""
     p = Path(name)
-    if p.suffix == ".toml" or p.exists():
+    if names_a_path(name):
         return p
     candidate = fixtures_dir() / "machines" / f"{name}.toml"
     if not candidate.exists():

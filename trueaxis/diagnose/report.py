@@ -25,7 +25,7 @@ from ..fileio import json_text
 from ..nc.gcode import parse_program
 from .analysis import Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from ..postproc.programs import ProgramError, check_axes, placed_for
+from ..postproc.programs import ProgramError, check_axes, check_part_against_program, placed_for
 from .state import TwinState, combine_states, pauses_between, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
@@ -245,17 +245,6 @@ def pause_the_data_prefer(states: list, pauses, diag: Diagnosis, gap_um: np.ndar
 
 
 MAX_GAP_RMS_UM = 500.0  # the post's default correction bound: a larger gap is not a machine effect but a wrong input
-
-
-def check_part_against_program(part: str, part_json: dict, program_text: str) -> None:
-    """The part's description (``--part-json``, or the default part) must be the part the program cuts (a NAS 979
-    program names its cone in its title): another description would give the twin another surface to cut and other
-    normals, read as a machine error. Silent for a program that does not say."""
-    from ..workpiece.part import get_part
-
-    why = get_part(part).program_mismatch(part_json, program_text)
-    if why:
-        raise ProgramError(f"{why}: give the description `trueaxis part` wrote for it (--part-json)")
 
 
 def check_cloud_for_part(points, part: str, part_json: dict | None = None) -> None:

@@ -166,6 +166,14 @@ class Machine:
     def is_five_axis(self) -> bool:
         return len(self.rotary_axes) == 2
 
+    def force_models(self) -> tuple[str, ...]:
+        """What of the twin depends on the cutting force, as a machine file names it: "[force] compliance",
+        "[loaded] parameter set", "[[force.surface]] response surfaces"; () when nothing does (the twin is the same
+        under any load: a comprehensive compensation corrects no force, a simulation cuts with none)."""
+        return tuple(name for name, has in (("[force] compliance", self.compliance_um_per_n is not None),
+                                            ("[loaded] parameter set", self.loaded is not None),
+                                            ("[[force.surface]] response surfaces", bool(self.surfaces))) if has)
+
     def location_names(self) -> list[str]:
         """Every location parameter this layout has, in a fixed order."""
         names = [n for n, (ax, _) in SQUARENESS.items() if ax in self.axes]

@@ -425,10 +425,18 @@ def arcs_default(machine: Machine) -> bool:
 
 
 def _refuse_posted(text: str, source: str):
-    """PostError when ``text`` carries the header of a trueaxis post: compensating it again would apply the
-    correction twice."""
+    """PostError when ``text`` carries the header of a trueaxis post, or a setup comment saying ``trueaxis program``
+    compensated it (``programs.compensated_already``: the slot block's sections are posted without a post header):
+    compensating it again would apply the correction twice."""
+    from .programs import compensated_already
+
     at = text.find(HEADER_TAG)
     if at < 0:
+        said = compensated_already(text)
+        if said is not None:
+            raise PostError(source, said[1], f"the program was compensated by trueaxis already (its setup comment "
+                                             f"says {said[0][:160]}): posting it again would compensate it twice; "
+                                             "--force to post it anyway")
         return
     line_no = text.count("\n", 0, at) + 1
     end = text.find(")", at)
@@ -985,6 +993,12 @@ class _Poster:
             self.rep.warnings.append(f"{p.source}:1: the program never commands {' '.join(idle)}: the corrections take "
                                      f"{'it' if len(idle) == 1 else 'them'} at 0, where "
                                      f"{'it' if len(idle) == 1 else 'they'} must stand when the program runs")
+        if self.mode == "comprehensive" and not self.m.force_models():
+            # the force is computed, but a twin the same under any load turns it into no correction: said, not silent
+            self.rep.warnings.append(f"{p.source}:1: comprehensive mode: the twin of {self.m.name} has no force "
+                                     "model (no [force] compliance, no [loaded] parameter set, no response surfaces): "
+                                     "nothing is corrected for the cutting force, the program is compensated as in "
+                                     "geometric mode")
         delta_prog = np.empty((rows.size, 6))
         pieces, arc_mode = {}, _ArcModes(rows.size)
         sq = np.zeros(len(self.names))

@@ -270,9 +270,12 @@ class ProgramError(ValueError):
 
 
 def placed_for(machine: Machine, program_text: str, part: str | None = None) -> Machine:
-    """The machine with the part placed where the program's setup comment says (``origin_mm``), as the virtual shop
-    and the shop floor do. Raises ProgramError for a program of another part (``part`` given) or a malformed
-    origin."""
+    """The machine set up as the program's setup comment says, as the shop floor sets it up to run the program (the
+    virtual shop, the diagnosis and the identification all take it from here): the part placed at ``origin_mm``,
+    and the tool the program was made for in the spindle (``tool_d_mm``: a flat end mill of that diameter; the
+    machine file's tool length, flutes and flute length stay, as the program's axis words assume that length). What
+    the comment does not say stays the machine file's. Raises ProgramError for a program of another part (``part``
+    given), a malformed origin or a tool diameter that is not a positive number."""
     setup = read_setup(program_text)
     if part is not None and setup.get("part") and setup["part"] != part:
         raise ProgramError(f"the program is for part {setup['part']!r}, not {part!r}")
@@ -282,7 +285,27 @@ def placed_for(machine: Machine, program_text: str, part: str | None = None) -> 
             raise ProgramError("the program's setup comment origin_mm must be three numbers")
         if not np.allclose(origin, machine.workpiece_origin, atol=1e-9):
             machine = dataclasses.replace(machine, workpiece_origin=origin.astype(float))
+    if "tool_d_mm" in setup:
+        try:
+            diameter = float(setup["tool_d_mm"])
+        except ValueError:
+            diameter = math.nan
+        if not (math.isfinite(diameter) and diameter > 0):
+            raise ProgramError(f"the program's setup comment tool_d_mm={setup['tool_d_mm']} is not a positive number")
+        if not math.isclose(diameter, 2 * machine.tool.radius, rel_tol=0.0, abs_tol=1e-9):
+            machine = dataclasses.replace(machine, tool=dataclasses.replace(machine.tool, radius=diameter / 2))
     return machine
+
+
+def check_part_against_program(part: str, part_json: dict, program_text: str, option: str = "--part-json") -> None:
+    """ProgramError when the part's description (``option``'s, or the default part) is not the part the program cuts
+    (a NAS 979 program names its cone in its title): another description would give the cut another surface and
+    other normals, read as a machine error. Silent for a program that does not say."""
+    from ..workpiece.part import get_part
+
+    why = get_part(part).program_mismatch(part_json, program_text)
+    if why:
+        raise ProgramError(f"{why}: give the description `trueaxis part` wrote for it ({option})")
 
 
 def check_axes(machine: Machine, program) -> None:
@@ -304,6 +327,22 @@ def written_for(text: str) -> tuple[str, int] | None:
 def header_name(machine: Machine) -> str:
     """The machine's name as a program header writes it (its parentheses as brackets)."""
     return machine.name.replace("(", "[").replace(")", "]").strip()
+
+
+def compensated_already(text: str) -> tuple[str, int] | None:
+    """("compensation=MODE[ twin=ID]", the setup comment's 1-based line) when the program's setup comment says
+    ``trueaxis program`` compensated it (``compensation`` other than ``none``: a cone posted geometric or
+    comprehensive, the slot block's ``per-slot``), else None (no setup comment, or compensation=none). Read item by
+    item, so that a malformed item elsewhere in the comment does not hide what it says of the compensation."""
+    m = _SETUP.search(text)
+    if m is None:
+        return None
+    said = dict(item.partition("=")[::2] for item in m.group(1).split())
+    mode = said.get("compensation", "none")
+    if mode.lower() == "none":
+        return None
+    twin = f" twin={said['twin']}" if said.get("twin") else ""
+    return f"compensation={mode}{twin}", text.count("\n", 0, m.start()) + 1
 
 
 def read_setup(text: str) -> dict:
@@ -489,7 +528,9 @@ def nas979_program(machine: Machine, params: Nas979Params | None = None, *, comp
     if compensation != "none":
         from .post import compensate
 
-        text = compensate(raw, placed, compensation, source="nas979.ngc", report=report, **(post_options or {}))
+        # force: the raw program's setup comment already names the compensation it is being posted with
+        text = compensate(raw, placed, compensation, source="nas979.ngc", report=report,
+                          **{**(post_options or {}), "force": True})
     return PartProgram(text, raw, cl, q, placed, safe_z,
                        {"placement_mm": placement.tolist(), "feed_mm_min": feed, "passes": cl.passes,
                         "chord_error_um": chord_um, "cut_blocks_per_pass": int((cl.kind == "cut").sum()) // len(cl.passes),
@@ -516,7 +557,10 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, po
     Sections are marked ``(slot k of 3: compensation MODE)`` ... ``(end of slot k)``."""
     from .post import compensate
 
-
+    linear = [a for a in machine.axis_names if not machine.axes[a].is_rotary]
+    if machine.kind != "mill" or not {"X", "Y", "Z"} <= set(linear):
+        raise ValueError(f"the slot block needs a three-axis mill (X Y Z; a five-axis mill does too); {machine.name} "
+                         f"is a {machine.kind} with axes {' '.join(machine.axis_names)}")
     p = params or SlotBlockParams()
     placed, placement = place_machine(machine, placement_mm)
     z_fl = machine.tool.flutes
@@ -527,7 +571,9 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, po
     hull = np.array([[x, y, z] for x in (0, p.block_length_x) for y in (0, p.block_width_y)
                      for z in (-p.block_height_z, 0.0)])
     safe_z = safe_height(placed, hull, q, clearance=10.0)
-    setup = setup_comment("slots", placed.workpiece_origin, placement, p.tool_diameter, "per-slot", twin_id(machine))
+    # post=False: no slot is compensated, and the setup comment says so (a post of the raw program is not refused)
+    setup = setup_comment("slots", placed.workpiece_origin, placement, p.tool_diameter, "per-slot" if post else "none",
+                          twin_id(machine) if post else None)
     title = [f"trueaxis slot block: three slots, flat end mill d {p.tool_diameter:g} mm, depth {p.slot_depth:g} mm "
              f"in passes of {p.axial_depth_per_pass:g} mm",
              "slot 1: no compensation, slot 2: geometric, slot 3: comprehensive; each section posted on its own",
@@ -553,8 +599,9 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, po
             posted.append(sec_text)
             continue
         rep = {}
+        # force: the head's setup comment already says compensation=per-slot, of the program these sections make
         out = compensate(head_text + sec_text, placed, mode, source=f"slots.ngc[slot {s + 1}]", report=rep,
-                         header=False, **(post_options or {}))
+                         header=False, **{**(post_options or {}), "force": True})
         if not out.startswith(head_text):
             raise RuntimeError("the post changed the program header; cannot splice the slot sections")
         posted.append(out[len(head_text):])

@@ -11,8 +11,8 @@ force with the real engagement, thermal drift) -> tool wear (radius and length a
 the machined surface as the envelope of the cutting instances (``envelope``) along each probe normal, with the part's
 spring-back from its clamping deformation -> probe noise.
 
-``simulate_program_file`` does the same for a program file whose setup comment places the part (``trueaxis
-simulate`` in ``trueaxis.cli``).
+``simulate_program_file`` does the same for a program file whose setup comment places the part and names the tool it
+was made for (``trueaxis simulate`` in ``trueaxis.cli``).
 """
 
 from __future__ import annotations
@@ -152,6 +152,9 @@ def simulate(
     ci = np.nonzero(cutting)[0]
     force_part = np.zeros((len(traj), 3))
     info = {"samples": len(traj), "cutting_samples": int(ci.size)}
+    unapplied = unapplied_force_note(machine, effects)
+    if unapplied:
+        info["notes"] = [unapplied]
     if effects.needs_force and ci.size:
         conds_by_line = structured_conditions(prog, machine)
         conds = [conds_by_line[i] for i in traj.line[ci]]
@@ -250,6 +253,19 @@ def simulate(
     )
 
 
+def unapplied_force_note(machine: Machine, effects: Effects) -> str | None:
+    """A note when the true machine has a force model (``Machine.force_models``) that a run with ``effects`` does not
+    apply (only ``[force] use_machine_compliance = true`` in the effects hands the cutting force to the twin), else
+    None: the tool then cuts with no force on the twin, and a comprehensively compensated cut (the slot block's
+    third slot) looks worse than a geometric one."""
+    models = machine.force_models()
+    if not models or (effects.force is not None and effects.force.use_machine_compliance):
+        return None
+    return (f"the true machine's force model ({', '.join(models)}) is not applied in this run: the tool cut with no "
+            "force on it, so a comprehensive compensation looks worse than a geometric one; to apply it, give "
+            "--effects with [force] use_machine_compliance = true")
+
+
 def write_cmm(result: SimResult, out_ply, binary: bool = True) -> Path:
     """Write the measured cloud (cut points only) as PLY in the part frame and ``<name>.truth.json`` beside it.
 
@@ -300,29 +316,27 @@ def simulate_program_file(program_path, machine: Machine, part: str, *, effects_
     """Machine the program file ``program_path`` on the true ``machine`` (with the effects file ``effects_path``, or
     none) and measure ``part`` with the virtual CMM (``points`` probe points, ``noise_um`` probe noise, ``seed``).
 
-    The program's setup comment ``(trueaxis-setup: part=.. origin_mm=X,Y,Z ...)`` (written by
-    ``trueaxis.postproc.programs``) places the part: its origin replaces the machine file's ``[workpiece] origin`` (said
-    on stderr), and a program for the other part is refused. Errors raise ValueError with a clear message.
-    """
-    import dataclasses
+    The shop sets the machine up as the program's setup comment ``(trueaxis-setup: part=.. origin_mm=X,Y,Z
+    tool_d_mm=D ...)`` (written by ``trueaxis.postproc.programs``) says, through ``programs.placed_for`` as the
+    diagnosis and the identification do: its origin replaces the machine file's ``[workpiece] origin`` (said on
+    stderr), and it cuts with the tool the program was made for (``tool_d_mm``; the result's ``machine.tool``). A
+    program for the other part, or for another size of the part than the description (``part_dir``, or the part's
+    default; ``programs.check_part_against_program``), is refused with ProgramError; other errors raise ValueError
+    with a clear message."""
     import sys
 
-    from ..postproc.programs import read_setup
+    from ..postproc.programs import check_part_against_program, placed_for
 
     program_path = Path(program_path)
     if not program_path.is_file():
         raise ValueError(f"{program_path}: no such program file")
-    setup = read_setup(program_path.read_text(encoding="utf-8", errors="replace"))
-    if setup.get("part") and setup["part"] != part:
-        raise ValueError(f"{program_path} is a program for part {setup['part']!r}, not {part!r}")
-    if "origin_mm" in setup:
-        origin = setup["origin_mm"]
-        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-            raise ValueError(f"{program_path}: setup comment origin_mm must be three numbers")
-        if not np.allclose(origin, machine.workpiece_origin, atol=1e-9):
-            print(f"part placed as the program says: origin {origin.tolist()} mm in M (machine file: "
-                  f"{machine.workpiece_origin.tolist()})", file=sys.stderr)
-            machine = dataclasses.replace(machine, workpiece_origin=origin.astype(float))
-    effects = load_effects(effects_path, machine) if effects_path else None
-    return simulate(program_path, machine, effects, part=part, part_dir=part_dir, points=int(points),
+    text = program_path.read_text(encoding="utf-8", errors="replace")
+    placed = placed_for(machine, text, part)
+    part_data = load_part(part, None, part_dir)
+    check_part_against_program(part, part_data, text, option="--part-dir")
+    if not np.allclose(placed.workpiece_origin, machine.workpiece_origin, atol=1e-9):
+        print(f"part placed as the program says: origin {placed.workpiece_origin.tolist()} mm in M (machine file: "
+              f"{machine.workpiece_origin.tolist()})", file=sys.stderr)
+    effects = load_effects(effects_path, placed) if effects_path else None
+    return simulate(program_path, placed, effects, part=part, part_json=part_data, points=int(points),
                     noise_um=float(noise_um), seed=int(seed), progress=progress)
