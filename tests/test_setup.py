@@ -443,3 +443,38 @@ def test_a_dynamic_tool_offset_in_the_header_is_no_nested_comment_rs274_refuses(
     theirs = run_rs274_setup(path, *files, tmp_path / "rs274")
     assert theirs.returncode == 0, theirs.stderr
     assert "Nested comment" not in theirs.stderr
+
+
+@pytest.mark.parametrize("setter", ["G92 X10 Y10 Z0", "G10 L20 P1 X0 Y0 Z0", "G92 X5"])
+def test_an_offset_set_from_the_current_position_carries_that_positions_correction(tmp_path, machine, files, setter):
+    # G92 and G10 L20 set their offset from the position the control holds: after a compensated move that is the
+    # corrected position, so written as given the offset took the correction and every later point was off by it
+    # (8-20 um, exit 0, a QA pass). rs274 reads the output: the same machine positions as ours, on the nominal path.
+    program = f"G21 G90 G17 G94\nG54\nG0 X30 Y-40 Z-30\n{setter}\nG0 X10 Y10 Z-10\nG1 X50 Y20 Z-20 F500\n" \
+              "G2 X80 Y20 I15 J0\nG1 X-50 Y-30\nM2\n"
+    setup = _setup(files)
+    report = {}
+    out = compensate(program, machine, "geometric", setup=setup, report=report, arcs=False)
+    written = [line for line in out.splitlines() if line.startswith(setter.split(" X")[0])]
+    assert len(written) == 1 and written[0] != setter  # its values carry the correction
+    shifted = report["offsets_shifted"]
+    assert [(e["line"], e["what"]) for e in shifted] == [(4, "G92" if setter.startswith("G92") else "G10 L20")]
+    assert 0 < max(abs(v) for v in shifted[0]["by_program_units"].values()) < 0.05  # a correction: microns
+    path = tmp_path / "out.ngc"
+    path.write_text(out)
+    theirs = run_rs274_setup(path, *files, tmp_path / "rs274")
+    assert theirs.returncode == 0, theirs.stderr
+    nominal_rs = run_rs274_setup(_write(tmp_path / "in.ngc", program), *files, tmp_path / "rs274_in")
+    twin = ErrorTwin(machine)
+    nominal = nominal_polyline(parse_program(program, setup=setup), machine)
+    moves = [k in ("feed", "arc", "traverse") for k in theirs.kind]
+    d_um = distance_to_polyline(twin.actual_pose(theirs.end[moves][:, :3])[0], nominal) * 1e3
+    assert d_um.max() < 0.15, d_um.max()
+    # and the last point, where the nominal program ends (rs274's reading of the input)
+    last_um = np.linalg.norm(twin.actual_pose(theirs.end[-1:, :3])[0] - twin.nominal_pose(nominal_rs.end[-1:, :3])[0])
+    assert last_um * 1e3 < 0.15
+
+
+def _write(path, text):
+    path.write_text(text)
+    return path

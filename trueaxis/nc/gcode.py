@@ -263,6 +263,9 @@ class Program:
     rotation: np.ndarray | None = None
     setup_used: list = field(default_factory=list)
     source_line: np.ndarray | None = None  # flattened programs (see .flatten): 1-based source line of each text line
+    # The blocks that set an offset from the position the control holds (G92, G10 L20 with axis words): (line index,
+    # axis indices (0..5) given, "G92" or "G10 L20"). A post that moves that position must move their values too.
+    position_sets: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return int(self.motion.shape[0])
@@ -635,6 +638,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                 raise ValueError(f"reference point {k} must have 6 values (X Y Z A B C), got shape {v.shape}")
         self.warnings: list = []
         self.unsupported: list = []
+        self.position_sets: list = []  # (line index, axis indices, what): G92 / G10 L20 set from the current position
         self.params: dict = {}
 
     # -- helpers ------------------------------------------------------------------------------------------------
@@ -938,7 +942,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             arc_incremental=st_flags[sid, 5].astype(bool).reshape(m),
             diameter=st_diameter[sid].reshape(m), line_index=np.array(r_line, np.int32), words=words, lines=lines,
             units=units, axes_present="".join(a for a in AXES if a in used_axes), warnings=self.warnings,
-            unsupported=self.unsupported, rotation=rotation, setup_used=setup_used,
+            unsupported=self.unsupported, rotation=rotation, setup_used=setup_used, position_sets=self.position_sets,
         )
 
     def setup_report(self, sid, kind, line, st_meta, hist, selects_work, used_axes):

@@ -225,6 +225,8 @@ class Conversion:
                                self.u_scale, self.machine_of, self.program_of)
             if changed is not None:
                 idx, letters = changed
+                if int(fvals.get("L", -1)) == 20 and letters:
+                    self.position_sets.append((li, list(letters), "G10 L20"))
                 for i in letters:
                     self.g5x_known[idx, i] = True
                 self.g5x_src[idx] = f"{self.source}:{line_no} (G10 L{int(fvals.get('L', -1))})"
@@ -247,6 +249,8 @@ class Conversion:
             self.refs["G28" if nonmodal == 281 else "G30"] = np.array(self.machine_of(self.pos)) * self.u_scale
             self.ref_given["G28" if nonmodal == 281 else "G30"] = True
         elif nonmodal in (920, 921, 922, 923):
+            if nonmodal == 920 and ax:
+                self.position_sets.append((li, [i for i, _ in ax], "G92"))
             return self.g92_shift(line_no, nonmodal, ax)
         return ax
 

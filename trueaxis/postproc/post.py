@@ -159,6 +159,9 @@ class PostReport:
     setup_used: list = field(default_factory=list)
     uncompensated: list = field(default_factory=list)
     cutting_conditions: list = field(default_factory=list)  # comprehensive mode: each set used, what was assumed
+    # G92 / G10 L20 blocks whose values carry the correction of the position they are set from (.. line, what, the
+    # correction added per axis in program units)
+    offsets_shifted: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -382,6 +385,9 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
         out = with_header(out, rep, machine)
     return out, rep
 
+
+# An axis word of a flattened block: letter, blanks, a plain number (G92 / G10 L20 values).
+_AXIS_WORD = re.compile(r"(?i)([XYZABC])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 
 # LinuxCNC reads lines of at most 255 characters ("Command too long"; rs274ngc's LINELEN): a program with a longer one
 # is refused whole.
@@ -1542,10 +1548,49 @@ class _Poster:
         split = self._piece_texts(split, (ends - 1).tolist(), inch_rows, axes_out, numbers)
         extra += self._write_lines(out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out,
                                    numbers, ends_written)
+        if p.position_sets:
+            self._shift_position_sets(out, written_end, numbers)
         self.rep.blocks_out = len(p.lines) + extra
         if fast is None:
             return "".join(out), self.rep
         return self._fast_assemble(fast, out), self.rep
+
+    def _shift_position_sets(self, out, written_end, numbers):
+        """G92 and G10 L20 take their offset from the position the control holds, which the correction of the move
+        before moved: their values move by that correction (program units), so that the control sets the offset the
+        program means. Written as given, every later point was off by that correction (8-20 um, a QA pass)."""
+        p = self.p
+        for li, axes, what in p.position_sets:
+            r = int(np.searchsorted(p.line_index, li, side="left")) - 1  # the last row before the block
+            if r < 0:
+                continue
+            c = written_end[np.array([r])][0] - p.end[r]
+            if not np.any(c[axes]):
+                continue
+            text = out[li] if isinstance(out, list) or li in out else p.lines[li]
+            body = text.rstrip("\r\n")
+            cut = min((i for i in (body.find("("), body.find(";")) if i >= 0), default=len(body))
+            code, comment = body[:cut], body[cut:]
+            if re.search(r"(?i)G\s*2[01](?![.\d])", code):
+                raise PostError(p.source, li + 1, f"{what} with a change of units on its block: write the G20 / G21 "
+                                                  "on a block of its own")
+            fmt = numbers.formatter(bool(p.inch[r]))
+            done = set()
+
+            def shifted(m, fmt=fmt, c=c, axes=axes, done=done):
+                i = AXES.index(m.group(1).upper())
+                if i not in axes or i in done:
+                    return m.group(0)
+                done.add(i)
+                return fmt(m.group(1).upper(), float(m.group(2)) + c[i])
+
+            code = _AXIS_WORD.sub(shifted, code)
+            if done != set(axes):  # (a value the flattened block does not write as a number)
+                raise PostError(p.source, li + 1, f"{what}: its axis values are not plain numbers here; the correction "
+                                                  "the control's position carries cannot be added to them")
+            out[li] = code + comment + text[len(body):]
+            self.rep.offsets_shifted.append({"line": li + 1, "what": what, "by_program_units": {
+                AXES[i]: float(c[i]) for i in axes}})
 
     def _axes_out(self):
         """The axis words every rewritten block carries: X Y Z and the program's other axes of the machine (a lathe:
