@@ -187,7 +187,8 @@ def test_comprehensive_mode_on_a_twin_without_a_force_model_says_it_corrects_no_
             "compliance, no [loaded] parameter set, no response surfaces): nothing is corrected for the cutting force, "
             "the program is compensated as in geometric mode")
     out, report = tmp_path / "out.ngc", tmp_path / "report.json"
-    r = run_cli("post", src, "-o", out, "--machine", machine, "--mode", "comprehensive", "--report", report, "--offsets-zero")
+    r = run_cli("post", src, "-o", out, "--machine", machine, "--mode", "comprehensive", "--report", report,
+                "--offsets-zero")
     assert r.returncode == 0, r.stderr
     assert r.stderr.strip().splitlines() == [said]
     assert json.loads(report.read_text())["warnings"] == [said]
