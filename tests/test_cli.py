@@ -109,3 +109,21 @@ def test_error_direction_reaches_each_of_the_lathe_papers_four_models(sign, dire
 def test_error_direction_is_refused_when_not_forward_or_backward():
     r = run("error", "--machine", BC, "--at", "X=1", "--direction", "sideways")
     assert r.returncode == 2 and "Traceback" not in r.stderr
+
+
+def test_machine_nominal_writes_the_error_free_twin_a_loop_starts_from(tmp_path):
+    from trueaxis.machine import ErrorTwin, load_machine
+    from trueaxis.resources import machine_file
+
+    out = tmp_path / "zero.toml"
+    r = run("machine", "nominal", "nmv1500dcg", "-o", str(out))
+    assert r.returncode == 0, r.stderr
+    zero, full = load_machine(out), load_machine(machine_file("nmv1500dcg"))
+    assert zero.axis_names == full.axis_names and zero.parameter_names() == full.parameter_names()
+    assert not np.any(zero.parameter_values()) and np.any(full.parameter_values())
+    assert zero.loaded is None and zero.compliance_um_per_n is None and not zero.surfaces
+    q = np.array([[10.0, -20.0, -150.0, 0.3, 1.1], [-40.0, 30.0, -90.0, -0.5, -2.0]])
+    p, u = ErrorTwin(zero).actual_pose(q)
+    pn, un = ErrorTwin(zero).nominal_pose(q)
+    assert np.array_equal(p, pn) and np.array_equal(u, un)  # no error anywhere: the nominal chain itself
+    assert np.linalg.norm(ErrorTwin(full).actual_pose(q)[0] - pn, axis=1).min() > 1e-3  # (the fixture's errors: um)

@@ -123,6 +123,22 @@ def cmd_machine_check(args) -> int:
     return 0
 
 
+def cmd_machine_nominal(args) -> int:
+    from .fileio import atomic_write
+    from .machine import load_machine
+    from .machine.machine_file import dump_machine
+    from .resources import machine_file
+
+    m = load_machine(machine_file(args.file))
+    nominal = m.error_free()
+    nominal.note = (f"error-free twin of {m.name} ({m.source}): every error parameter zero, no force model; "
+                    "written by trueaxis machine nominal")
+    atomic_write(args.output, dump_machine(nominal))
+    print(f"{args.output}: {m.name} with every one of its {len(m.parameter_names())} error parameters zero and no "
+          "force model")
+    return 0
+
+
 def cmd_machine_show(args) -> int:
     from .machine import load_machine
     from .resources import machine_file  # a path, or a fixture machine's short name
@@ -501,6 +517,11 @@ def build_parser() -> argparse.ArgumentParser:
     s = msub.add_parser("show", help="print a machine's layout and parameters")
     s.add_argument("file")
     s.set_defaults(func=cmd_machine_show)
+    z = msub.add_parser("nominal", help="write the machine's error-free twin (every error zero, no force model): "
+                                        "the twin a closed loop starts from")
+    z.add_argument("file")
+    z.add_argument("-o", "--output", required=True, help="machine file to write (TOML, atomically)")
+    z.set_defaults(func=cmd_machine_nominal)
 
     e = sub.add_parser("error", help="volumetric error at one pose (um, urad; part frame)")
     e.add_argument("--machine", required=True, help="machine file (TOML)")
@@ -727,7 +748,7 @@ def _paths(args) -> tuple[list, list]:
     if cmd == "error":
         return [("--machine", g("machine"))], []
     if cmd == "machine":
-        return [("file", g("file"))], []
+        return [("file", g("file"))], ([("-o", g("output"), False)] if g("output") else [])
     if cmd == "simulate":
         from .sim.cmm import truth_path
 

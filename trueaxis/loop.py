@@ -41,10 +41,8 @@ from .workpiece.part import get_part
 
 
 def error_free(machine: Machine) -> Machine:
-    """The machine's layout with every error parameter zero and no force model: a nominal twin."""
-    zero = np.zeros(len(machine.parameter_names()))
-    return dataclasses.replace(machine.with_parameters(zero), loaded=None, loaded_force_n=None,
-                               compliance_um_per_n=None, surfaces=())
+    """The machine's layout with every error parameter zero and no force model (``Machine.error_free``)."""
+    return machine.error_free()
 
 
 # ----------------------------------------------------------------------------------------------- deviations ----

@@ -220,6 +220,13 @@ class Machine:
                 i += n
         return replace(self, errors=ErrorSet(location=location, components=components))
 
+    def error_free(self) -> "Machine":
+        """The machine's layout with every error parameter zero and no force model: a nominal twin (the twin a shop
+        starts its closed loop from)."""
+        zero = np.zeros(len(self.parameter_names()))
+        return replace(self.with_parameters(zero), loaded=None, loaded_force_n=None, compliance_um_per_n=None,
+                       surfaces=())
+
     def _component_items(self):
         for axis in self.axis_names:
             comps = self.errors.components.get(axis, {})
