@@ -731,8 +731,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                         rad1 = hypot(pos[a0] - c0, pos[a1] - c1)
                         rad2 = hypot(target[a0] - c0, target[a1] - c1)
                         dr = abs(rad1 - rad2)
-                        wn = ijk[an]  # (a centre word along the plane's normal: arc_to refuses it)
-                        if (w0 == w0 or w1 == w1) and wn != wn and rad1 > 0.0 and (
+                        if (w0 == w0 or w1 == w1) and ijk[an] != ijk[an] and rad1 > 0.0 and (  # (normal: arc_to)
                                 dr <= arc_tol or dr <= 0.001 * max(rad1, rad2)):
                             center = [0.0, 0.0, 0.0]
                             center[a0], center[a1], center[an] = c0, c1, pos[an]

@@ -162,6 +162,9 @@ class PostReport:
     # G92 / G10 L20 blocks whose values carry the correction of the position they are set from (.. line, what, the
     # correction added per axis in program units)
     offsets_shifted: list = field(default_factory=list)
+    # canned cycles: the largest distance (um) between the X Y correction the twin asks for in a hole (R plane and
+    # below) and the one written (the hole's bottom)
+    max_cycle_deviation_um: float = 0.0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -674,6 +677,7 @@ class _Poster:
         self.stats = {"um": 0.0, "urad": 0.0, "urad_singular": 0.0, "singular_points": 0, "singular_lines": set()}
         self.fractions = {}  # program row -> piece boundaries (fractions of the move) of split moves
         self.fit_arcs = False  # arcs fitted to the corrected path (.arcs); set by post_text
+        self._cycle_warned = False  # (the canned cycles' deviation is warned about once)
         self.arc_centres = {}  # program row -> (n, 3) centres (program coordinates) of a fitted arc's sub-arcs
         # chunks compensated side by side (``_compensate_chunks``): the report's sums and maxima under the lock, a
         # chunk's warnings and its own values (``_local``: the chunk before's end, its notes) kept in chunk order;
@@ -2031,6 +2035,25 @@ class _Poster:
                 raise PostError(p.source, li + 1, "G87 back boring: the post does not write it (its hole is offset "
                                                   "by I J K); write it as G0 / G1 moves")
 
+    def _note_cycle_deviation(self, rr, ends, r_nominal, deltas, d_bottom):
+        """A canned cycle writes one X Y per hole, corrected at its bottom: at the R plane and between (where the feed
+        enters and runs) the correction the twin asks for differs by what the errors change along Z. The largest such
+        difference is reported (``max_cycle_deviation_um``) and, over the tolerance, warned about once."""
+        in_hole = ends[:, 2] <= r_nominal + 1e-9
+        if not in_hole.any():
+            return
+        scale = np.where(self.p.inch[rr[in_hole]], MM_PER_INCH, 1.0) * 1e3  # program units -> um
+        off = np.hypot(*(deltas[in_hole, :2] - d_bottom[:2]).T) * scale
+        worst = float(off.max())
+        self.rep.max_cycle_deviation_um = max(self.rep.max_cycle_deviation_um, worst)
+        if worst > 1e3 * self.tol_mm and not self._cycle_warned:
+            self._cycle_warned = True
+            self.rep.warnings.append(
+                f"{self.p.source}:{int(self.p.line_no[rr[0]])}: canned cycle: a hole's X Y is corrected at its bottom; "
+                f"at its R plane the twin asks for a correction {worst:.2f} um away (over the {1e3 * self.tol_mm:g} um "
+                "tolerance): the feed into the hole leaves its nominal axis by up to that; write the holes as G0 / G1 "
+                "moves where that matters (the report's max_cycle_deviation_um is the largest over the program)")
+
     def _cycle_line(self, body, ks, rows, delta_prog, fmt, sep):
         """A canned-cycle block: hole position and depth from the correction at the bottom, R from the R level."""
         p = self.p
@@ -2046,6 +2069,7 @@ class _Poster:
         at_r = np.nonzero(np.isclose(ends[:, 2], r_nominal) & (np.arange(len(rr)) < first))[0]
         d_r = delta_prog[ks[int(at_r[-1])]] if at_r.size else d_bottom
         r_level = r_nominal + d_r[2]
+        self._note_cycle_deviation(rr, ends, r_nominal, delta_prog[ks], d_bottom)
         code, comment = _split_comment(body)
         toks = tokenize_line(code)
         keep = [t[1] for t in toks if not (t[0] == "word" and t[1][0].upper() in "XYZR")]
