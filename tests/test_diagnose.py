@@ -778,6 +778,36 @@ def test_a_second_backlash_that_fits_nothing_alone_is_paired():
         assert f.std[i] < 0.2 * truth
 
 
+def test_a_fit_that_pins_a_determined_parameter_at_its_bound_is_not_plausible():
+    # Two columns u and u + 0.005 v: the truncated solution (singular values above RCOND_PLAUSIBLE) sees only u and
+    # lies inside the +-30 um bounds (20, 20), but the gap carries 0.3 um of v, far above its 0.01 um noise, and the
+    # free solution is (-20, +60): the bounded fit pins b at +30.0 with a std of 3.4 um. That value is a ceiling,
+    # not an estimate (the defect: EYC_1sin = -30.0 +- 3.1 um on its bound was the verdict rotary_radial_c, the
+    # plausibility having been judged on the truncated solution only).
+    from trueaxis.diagnose.analysis import AT_BOUND_DETERMINED, fit_candidate
+    from trueaxis.diagnose.candidates import Candidate
+
+    rng = np.random.default_rng(0)
+    n = 400
+    u, v = rng.normal(size=n), rng.normal(size=n)
+    v -= u * (u @ v) / (u @ u)
+    folds = np.arange(n) % 5
+
+    def fit(weak, g):
+        c = Candidate("two_columns", np.column_stack([u, u + weak * v]), ["a_um", "b_um"], ["um", "um"],
+                      [(-30.0, 30.0), (-30.0, 30.0)])
+        return fit_candidate([c], g, folds)
+
+    pinned = fit(0.005, 40.0 * u + 0.3 * v + rng.normal(0.0, 0.01, n))
+    assert pinned.value[1] == pytest.approx(30.0) and pinned.std[1] < AT_BOUND_DETERMINED * 60.0
+    assert not pinned.plausible
+    # The same pin along a direction the data leave open (std 100 um, the whole range) is the bounded solver's
+    # choice, not a bound the data reach: judged as before, on the resolved directions (plausible here).
+    open_ = fit(0.0005, 40.0 * u + rng.normal(0.0, 1.0, n))
+    assert open_.value[1] == pytest.approx(30.0) and open_.std[1] > AT_BOUND_DETERMINED * 60.0
+    assert open_.plausible
+
+
 def test_an_effect_beyond_the_plausible_bounds_is_no_verdict_for_a_weaker_candidate():
     # Lost motion of 80 um on X, beyond the candidate's plausible 60 um: backlash_x fits with its value at the
     # bound (not a verdict) and servo lag with weights far past any loop's took the verdict, though backlash_x

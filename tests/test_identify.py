@@ -152,6 +152,42 @@ def test_alignment_makes_rigid_motions_unidentifiable(measured_cone):
     assert set(aligned.as_report()["alignment"]) >= {"TX_um", "RZ_urad"}
 
 
+def test_bestfit_writes_no_change_whose_effect_the_alignment_hides(measured_cone):
+    # A best fit takes every rigid motion of the part out of the deviations (on the cone, a move along its axis is
+    # its size). A change whose effect a rigid motion reproduces is then fitted to nothing on that share, no held-out
+    # point can check it, and the written twin applies it to the next part: the defect wrote XOC / YOC / BOC worth
+    # 41 um RMS of rigid motion here (and a nas979 loop's next part came out 17 um undersize). The best fit,
+    # linearised: the least-squares rigid motion of the deviations taken out, each point moved with it.
+    prog, true, pts, nrm, dev = measured_cone
+    rows = np.concatenate([nrm, 1e-3 * np.cross(pts, nrm)], axis=1)     # um per um of move, per urad of turn
+    rigid = rows @ np.linalg.lstsq(rows, dev, rcond=None)[0]
+    aligned = identify(pts - (rigid * 1e-3)[:, None] * nrm, nrm, dev - rigid, prog.text, prog.machine,
+                       alignment="bestfit")
+    change = aligned.value - aligned.prior
+    path = nominal_tool_path(prog.text, prog.machine)
+    contacts = find_contacts(pts - (dev * 1e-3)[:, None] * nrm, nrm, path, prog.machine.tool.radius,
+                             prog.machine.tool.flute_length)
+    S, _ = sensitivity_matrix(nrm, contacts, path, ErrorTwin(prog.machine))
+    effect = S[contacts.found] @ change                                  # what the written changes do to the part
+    hidden = rows[contacts.found] @ np.linalg.lstsq(rows[contacts.found], effect, rcond=None)[0]
+    assert np.sqrt(np.mean(hidden**2)) <= 0.5 * aligned.noise_um + 1e-6
+    # Not vacuous: the fit asked for the C line's offsets, each hiding tens of um, and held them, said why.
+    assert {"XOC", "YOC"} <= set(aligned.hidden_by_alignment)
+    assert min(aligned.hidden_by_alignment[k][1] for k in ("XOC", "YOC")) > 10.0
+    assert not aligned.identified[[aligned.names.index(k) for k in ("XOC", "YOC")]].any()
+    categories = {d["name"]: d["category"] for d in aligned.as_report()["not_identifiable_detail"]}
+    assert categories["XOC"] == categories["YOC"] == "hidden_by_alignment"
+
+
+def test_verdict_refuses_changes_the_alignment_hides():
+    from trueaxis.identify import _verdict
+
+    confirmed = {"points": 500, "confirmed": True}
+    assert _verdict(2, 5.0, 5.0, 0.5, confirmed, 3.0)[0] == "accepted"
+    status, reasons = _verdict(2, 5.0, 5.0, 0.5, confirmed, 3.0, hidden=(12.0, 0.25, []))
+    assert status == "refused" and "12.00 um" in reasons[0] and "best-fit alignment hides" in reasons[0]
+
+
 def test_reference_values_are_held(nmv):
     held = reference_parameters(nmv)
     assert "EXX@0" in held and "EYX.P0" in held and "EBB@0" in held

@@ -71,9 +71,14 @@ along each combination makes on the part, um), the condition numbers (all parame
 ones), and the combinations the part cannot see, named by their largest loadings. One part at one placement cannot
 separate everything: a cone measured in the part frame sees the rotary axes' location errors mostly through one-
 and two-per-turn patterns that several parameters share; with ``alignment="bestfit"`` (deviations after a best fit)
-the rigid motions are fitted as nuisance and every parameter that mimics a rigid motion of the part drops out;
-with "datum" (a 3-2-1 frame on the stock's uncut datum planes) nothing the machine cut is moved and the model has no
-nuisance.
+the rigid motions are fitted as nuisance and every parameter that mimics a rigid motion of the part drops out.
+More: a best fit hides the share of any change's effect that a rigid motion reproduces (on the cone a move along
+its axis is its size), so the data never judge that share, while the written twin would apply it to the next part.
+The written changes together may hide at most ``min_explained`` x the noise (RMS over the points); above it the
+change hiding the most is held at the twin's value (reported as ``hidden_by_alignment``) and the fit repeated, and
+a fit above it is never accepted. On the cone this holds the C line's offsets and EXX: a best-fitted cone
+identifies form (two-per-turn motions and the like) only. With "datum" (a 3-2-1 frame on the stock's uncut datum
+planes) nothing the machine cut is moved and the model has no nuisance.
 
 Units: mm and rad inside, deviations and errors in um, angles in urad; reports name their units in their keys.
 """
@@ -586,6 +591,8 @@ class Identification:
     heldout: dict = field(default_factory=dict)
     considered: np.ndarray | None = None
     normals_flipped: int | None = None  # cloud normals turned outward (``outward_normals``); None: the part's normals
+    hidden_by_alignment: dict = field(default_factory=dict)  # name -> (change, hidden RMS um): held, see identify
+    hidden_rms_um: float | None = None  # the written changes' effect a best fit hides, um RMS (None: no best fit)
 
     @property
     def accepted(self) -> bool:
@@ -620,6 +627,12 @@ class Identification:
                 detail.append({"name": name, "category": "not_asked",
                                "reason": "held: not among the parameters asked for (it enters the aliasing part of "
                                          "the std)"})
+            elif name in self.hidden_by_alignment:
+                ch, hid = self.hidden_by_alignment[name]
+                detail.append({"name": name, "category": "hidden_by_alignment", "seen_share": _r(self.seen_share[i], 3),
+                               "reason": f"change {ch:+.3g} {unit_of(name)} would move the part by {hid:.3g} um RMS "
+                                         "in a way the best-fit alignment took out of the data (a rigid motion, on the "
+                                         "cone its size): not checked by the data, kept at the twin's value"})
             elif name in self.not_significant:
                 ch, sd = self.not_significant[name]
                 detail.append({"name": name, "category": "not_significant", "seen_share": _r(self.seen_share[i], 3),
@@ -657,10 +670,12 @@ class Identification:
             "not_identifiable": [d["name"] for d in detail],
             "not_identifiable_detail": detail,
             # (the list above mixes why a parameter kept the twin's value: counted by category here; categories:
-            # gauge, no_effect, not_asked, not_significant, poorly_determined, barely_seen)
+            # gauge, no_effect, not_asked, hidden_by_alignment, not_significant, poorly_determined, barely_seen)
             "not_identifiable_by_category": {c: sum(d["category"] == c for d in detail)
                                              for c in dict.fromkeys(d["category"] for d in detail)},
             "alignment": self.alignment,
+            # bestfit: the changes' effect on the part that a rigid motion reproduces (the alignment hides it)
+            "alignment_hidden_rms_um": None if self.hidden_rms_um is None else _r(self.hidden_rms_um),
             "deviation_rms_um": _r(self.deviation_rms_um),
             "predicted_rms_um": _r(self.predicted_rms_um),
             "residual_rms_um": _r(self.residual_rms_um),
@@ -693,6 +708,10 @@ class Identification:
             u = unit_of(self.names[i])
             out.append(f"  {self.names[i]:10s} change {self.value[i] - self.prior[i]:+9.2f} +- {self.std[i]:.2f} {u}"
                        f" (noise {self.std_noise[i]:.2f}, aliasing {self.std_alias[i]:.2f})")
+        if self.hidden_by_alignment:
+            out.append("  hidden by the best fit, kept: " + ", ".join(
+                f"{k} {v[0]:+.2f} ({v[1]:.2f} um RMS hidden)" for k, v in list(self.hidden_by_alignment.items())[:8])
+                + (" ..." if len(self.hidden_by_alignment) > 8 else ""))
         if self.not_significant:
             out.append("  not significant, kept: " + ", ".join(
                 f"{k} {v[0]:+.2f} +- {v[1]:.2f}" for k, v in list(self.not_significant.items())[:8])
@@ -842,21 +861,38 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     # Significance: drop the least significant change (against its noise std: do the data demand it?) until every
     # kept one is significant. The reported std adds the aliasing: how well the data fix the value, not whether the
     # part needs a change.
+    # Under a best fit, the changes must not carry a rigid motion of the part either: the alignment took every rigid
+    # motion (on the cone: its size, axis position and tilt) out of the data, so that share of a change's effect is
+    # fitted to nothing and no held-out point can check it, yet the written twin applies it to the next part (the
+    # best-fitted nas979 loop wrote XOC / YOC / AOC / BOC changes worth 95 um of rigid motion, 25 um of cone size,
+    # and the next part came out 17 um undersize). The change with the largest hidden share is dropped (held at the
+    # twin's value) until the hidden effect of all changes together is below ``min_explained`` x the noise, the size
+    # below which the identification writes no change at all.
     params_active = act_all[act_all >= na]
-    not_significant = {}
+    noise = float(math.sqrt(spec.s2))
+    hidden_bound = min_explained * noise
+    not_significant, hidden_by_alignment = {}, {}
+    hidden_rms = 0.0
     while True:
         theta, cov, s2 = _least_squares(system, chosen)
         held = np.setdiff1d(params_active, chosen) if alias_prior else np.array([], int)
         var_noise, var_alias = _variances(system, chosen, held, typical, s2)
         pos = np.nonzero(chosen >= na)[0]
         if pos.size == 0:
+            hidden_rms = 0.0
             break
         zval = np.abs(theta[chosen[pos]]) / np.sqrt(np.maximum(var_noise[pos], 1e-300))
         worst = int(np.argmin(zval))
-        if zval[worst] >= significance:
+        if zval[worst] < significance:
+            c = int(chosen[pos[worst]])
+            not_significant[col_names[c]] = (float(theta[c]), float(math.sqrt(var_noise[pos[worst]])))
+            chosen = chosen[chosen != c]
+            continue
+        hidden_each, hidden_rms = _hidden_by_alignment(system, chosen, theta, na)
+        if hidden_rms <= hidden_bound:
             break
-        c = int(chosen[pos[worst]])
-        not_significant[col_names[c]] = (float(theta[c]), float(math.sqrt(var_noise[pos[worst]])))
+        c = int(chosen[pos[int(np.argmax(hidden_each))]])
+        hidden_by_alignment[col_names[c]] = (float(theta[c]), float(np.max(hidden_each)))
         chosen = chosen[chosen != c]
     residual = _residual(jac, inv, w, g, b, theta, na)
     std_noise_all = np.zeros(system.N.shape[0])
@@ -954,9 +990,9 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     dev_rms = float(np.sqrt(np.mean(dev[idx] ** 2)))
     before = float(np.sqrt(np.mean(b**2)))
     after = float(np.sqrt(np.mean(residual**2)))
-    noise = float(math.sqrt(spec.s2))
     explained = math.sqrt(max(before**2 - after**2, 0.0))
-    verdict, reasons = _verdict(params_chosen.size, dev_rms, before, after, heldout, significance)
+    verdict, reasons = _verdict(params_chosen.size, dev_rms, before, after, heldout, significance,
+                                hidden=(hidden_rms, hidden_bound, list(hidden_by_alignment)))
     if verdict != "no change" and explained < min_explained * noise:
         # Statistically significant but too small to matter: a few tenths of a micrometre that the first-order
         # model and the envelope's discretisation leave; not worth a new twin.
@@ -982,8 +1018,30 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
                  "significance": significance, "alias_prior": bool(alias_prior),
                  "min_explained": min_explained},
         std_noise=std_noise, std_alias=std_alias, not_significant=not_significant, verdict=verdict,
-        reasons=reasons, heldout=heldout, considered=considered,
+        reasons=reasons, heldout=heldout, considered=considered, hidden_by_alignment=hidden_by_alignment,
+        hidden_rms_um=hidden_rms if rigid and verdict != "no change" else (0.0 if rigid else None),
     )
+
+
+def _hidden_by_alignment(system: _System, chosen, theta, na):
+    """What of the changes' effect on the part a rigid motion of the part reproduces: the share a best-fit alignment
+    takes out of the data (and out of the held-out points), so that the data never judged it.
+
+    The rigid motion that best reproduces the effect of the changes t (the parameters among ``chosen``) is
+    a = N_aa^-1 N_ap t over the alignment columns among ``chosen`` (the first ``na`` columns); its RMS effect on the
+    points is sqrt(t^T N_pa N_aa^-1 N_ap t / sum omega). Returns each change's own hidden RMS (P,) um and that of all
+    the changes together, um (0 without alignment columns)."""
+    a, p = chosen[chosen < na], chosen[chosen >= na]
+    if a.size == 0 or p.size == 0:
+        return np.zeros(p.size), 0.0
+    d = 1.0 / system.scale[a]
+    fac = cho_factor(system.N[np.ix_(a, a)] * d[:, None] * d[None, :])
+    motion = cho_solve(fac, system.N[np.ix_(a, p)] * d[:, None]) * d[:, None]      # (A, P) rigid motion per unit
+    H = system.N[np.ix_(p, a)] @ motion                                              # (P, P)
+    t = theta[p]
+    wsum = max(system.wsum, 1e-300)
+    each = np.sqrt(np.maximum(t**2 * np.diag(H), 0.0) / wsum)
+    return each, float(math.sqrt(max(float(t @ H @ t), 0.0) / wsum))
 
 
 def _variances(system: _System, chosen, held, typical, s2):
@@ -1001,12 +1059,24 @@ def _variances(system: _System, chosen, held, typical, s2):
     return s2 * inv_diag, np.sum(C**2 * typical[held][None, :] ** 2, axis=1)
 
 
-def _verdict(n_changed: int, dev_rms: float, before: float, after: float, heldout: dict, significance: float):
-    """accepted / no change / refused, with the reasons (one line each)."""
+def _verdict(n_changed: int, dev_rms: float, before: float, after: float, heldout: dict, significance: float,
+             hidden: tuple = (0.0, math.inf, [])):
+    """accepted / no change / refused, with the reasons (one line each). ``hidden``: (RMS um of the changes' effect
+    that the best-fit alignment hides, the most it may be, the parameters held because of it)."""
+    hidden_rms, hidden_bound, held_hidden = hidden
+    if n_changed == 0 and held_hidden:
+        return "no change", [f"every change the part asks for would move it in a way the best-fit alignment took out "
+                             f"of the data (a rigid motion; on the cone, its size), which no point can check: "
+                             f"{', '.join(held_hidden)} held, the twin's values stand (residual {before:.2f} um, "
+                             f"deviation {dev_rms:.2f} um); identify them from a cloud aligned with --align none or "
+                             "datum"]
     if n_changed == 0:
         return "no change", [f"no parameter changes by {significance:g} noise std or more: the twin's values stand "
                              f"(residual {before:.2f} um, deviation {dev_rms:.2f} um)"]
     reasons = []
+    if not hidden_rms <= hidden_bound:
+        reasons.append(f"the changes move the part by {hidden_rms:.2f} um RMS in a way the best-fit alignment hides "
+                       f"(above {hidden_bound:.2f} um): not confirmed by the data")
     if not after < dev_rms:
         reasons.append(f"residual {after:.2f} um is not below the deviation {dev_rms:.2f} um")
     if not after < before:

@@ -22,7 +22,9 @@ Bounded fits. Every fit, the held-out ones included, keeps the parameters inside
 (``lsq_linear`` when the free solution leaves them), so a candidate is judged by what it explains with physically
 plausible values. A fit is *not plausible* -- and can never be the verdict -- when its free solution, in the
 directions of parameter space the part resolves (singular values above ``RCOND_PLAUSIBLE`` of the largest), lies
-outside or on its bounds: a value at a bound is a floor or a ceiling, not an estimate. Bounds that are the
+outside or on its bounds, or when its fitted (bounded) values put a parameter the part determines (std below
+``AT_BOUND_DETERMINED`` of the plausible range) on a bound (within ``AT_BOUND_REL`` of the range): a value at a
+bound is a floor or a ceiling, not an estimate. Bounds that are the
 candidate's form (``Candidate.form``: the non-negative weights of servo lag's mixtures) do not count. A candidate with
 variants (a shape parameter on a grid: backlash's transition, thermal's time constant, servo's two regimes) picks the
 variant on the training points of each fold, so the held-out judgement pays for the choice.
@@ -108,6 +110,12 @@ CLOSEST = 4
 ROTARY_CONF_CAP = 0.5
 Z_SHADOW = 2.0
 RCOND_PLAUSIBLE = 1e-2
+#: A fitted (bounded) value within this share of its plausible range from a bound is at the bound (not plausible):
+#: 0.1 %, 0.06 um of a +-30 um radial motion's range; the bounded solver puts an active parameter on it exactly.
+AT_BOUND_REL = 1e-3
+#: ... when the part determines it: its std below this share of the plausible range (half: the data place it within
+#: the range; a larger std leaves the whole range open, and the pin is the bounded solver's choice).
+AT_BOUND_DETERMINED = 0.5
 FORM_REL = 0.1
 
 SEPARATING_MEASUREMENT = {
@@ -332,6 +340,14 @@ def _solve_bounded(S, g, bounds):
     return r.x / scale, True
 
 
+def at_bound_value(value: float, bound: tuple) -> bool:
+    """True when ``value`` lies on or beyond the plausible ``bound`` (low, high), or within ``AT_BOUND_REL`` of the
+    range (high - low) of either end: the bounded fit put it there, a floor or a ceiling, not an estimate."""
+    lo, hi = bound
+    margin = AT_BOUND_REL * (hi - lo)
+    return not (lo + margin < value < hi - margin)
+
+
 def plausible_bounds(cands: list[Candidate]) -> list:
     """The plausible bounds of the candidates' parameters in column order, None where a parameter has none."""
     return [b for c in cands for b in (c.plausible or [None] * c.n_parameters)]
@@ -402,10 +418,19 @@ def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray, boun
     # cannot see, such as two radial directions whose columns differ only by a lever arm, takes no value). A
     # solution outside the bounds, or at one (the bounded value is then a floor or a ceiling, not an estimate), is
     # not plausible and cannot be a verdict.
+    # The fitted values themselves (the bounded solution, the values reported) are held to the same rule, in the
+    # parameters the part determines: one the bounded fit pins at a bound (within ``AT_BOUND_REL`` of the plausible
+    # range) with a std below ``AT_BOUND_DETERMINED`` of that range is a floor or a ceiling the data run into, even
+    # when the truncated free solution lies inside (a large gap carries signal in the directions it drops: EYC_1sin
+    # = -30.0 +- 3.1 um on its -30 um bound was a verdict, the truncated solution at +6.9). A pinned parameter
+    # with a larger std is the solver's choice along a direction the data leave open, not a bound they reach.
     theta_free = _solve(S, g, RCOND_PLAUSIBLE)[0]
     form = [c.form_bound(i) for c in cands for i in range(c.n_parameters)]
     plausible = all(b is None or f or (b[0] + 1e-6 * abs(b[0]) < v < b[1] - 1e-6 * abs(b[1]))
                     for v, b, f in zip(theta_free, bounds, form))
+    plausible = plausible and not any(
+        b is not None and not f and at_bound_value(v, b) and sd < AT_BOUND_DETERMINED * (b[1] - b[0])
+        for v, sd, b, f in zip(theta, std, bounds, form))
     # Determined: a fit that needs a large value (a quarter of the plausible range) of a parameter whose std
     # exceeds twice that range is an alias of nearly collinear columns, not an estimate, and no verdict.
     edge = any(b is not None and not f and sd > 2.0 * (b[1] - b[0]) and abs(v) > 0.25 * (b[1] - b[0])
