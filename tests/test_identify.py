@@ -245,6 +245,17 @@ def test_closed_loop_cuts_the_deviation_by_80_percent(part, machine_file, option
     assert result.rms_reduction >= 0.8
     if part == "nas979":
         assert result.after.metrics["roundness_max_um"] < result.before.metrics["roundness_max_um"]
+    # a written change whose value the part does not pin down alone (within 2 std of zero change) says so, in the
+    # report and on the terminal: one term of a combination, not a measurement of that error
+    ident = result.identification
+    entries = ident.as_report()["parameters"]
+    lines = [ln for ln in ident.verdict_lines() if " change " in ln]
+    for e in entries:
+        u = "um" if "change_um" in e else "urad"
+        if abs(abs(e[f"change_{u}"]) - 2.0 * e[f"std_{u}"]) > 1e-3:  # (not on the edge, where rounding decides)
+            assert e["determined_alone"] == (abs(e[f"change_{u}"]) > 2.0 * e[f"std_{u}"])
+        said = [ln for ln in lines if ln.split()[0] == e["name"]]
+        assert len(said) == 1 and ("not determined alone" in said[0]) == (not e["determined_alone"])
 
 
 # ------------------------------------------------------------------------------- identification through the CLI ----

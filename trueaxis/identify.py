@@ -610,6 +610,10 @@ class Identification:
             if self.std_noise is not None:
                 entry[f"std_noise_{u}"] = _r(self.std_noise[i])
                 entry[f"std_aliasing_{u}"] = _r(self.std_alias[i])
+            # written because the part needs it (significant against the noise), yet its own value not determined
+            # (the change within 2 of its std with aliasing): one term of a combination that predicts this part,
+            # not a measurement of that error alone
+            entry["determined_alone"] = bool(abs(self.value[i] - self.prior[i]) > 2.0 * self.std[i])
             params.append(entry)
         detail = []
         gauge = set(reference_parameters(self.machine))
@@ -706,8 +710,10 @@ class Identification:
                        "flipped to its outward side")
         for i in np.nonzero(self.identified)[0]:
             u = unit_of(self.names[i])
+            alone = abs(self.value[i] - self.prior[i]) > 2.0 * self.std[i]
             out.append(f"  {self.names[i]:10s} change {self.value[i] - self.prior[i]:+9.2f} +- {self.std[i]:.2f} {u}"
-                       f" (noise {self.std_noise[i]:.2f}, aliasing {self.std_alias[i]:.2f})")
+                       f" (noise {self.std_noise[i]:.2f}, aliasing {self.std_alias[i]:.2f})"
+                       + ("" if alone else "  [in combination: not determined alone]"))
         if self.hidden_by_alignment:
             out.append("  hidden by the best fit, kept: " + ", ".join(
                 f"{k} {v[0]:+.2f} ({v[1]:.2f} um RMS hidden)" for k, v in list(self.hidden_by_alignment.items())[:8])
