@@ -247,6 +247,18 @@ def test_check_extent_names_the_part_the_axis_and_the_distance():
         check_extent(inside, box_max, box_min, tolerance_mm=0.5)
 
 
+@pytest.mark.parametrize("unit, factor", [("cm", 10.0), ("inch", 25.4), ("m", 1000.0)])
+def test_a_cloud_too_small_for_the_part_is_refused_as_a_unit_mistake(unit, factor):
+    # A slot block's cloud written in metres (or cm, inches) and read as mm shrinks into a corner of the part, where
+    # every point passed as lying on the top face: 2.15 um RMS, exit 0 (a QA pass). Refused, saying why.
+    box_min, box_max = np.array([-80.0, -50.0, -30.0]), np.array([80.0, 50.0, 0.0])
+    rng = np.random.default_rng(3)
+    measured = box_min + (box_max - box_min) * (0.1 + 0.8 * rng.random((500, 3)))  # spans 80 % of the block
+    check_extent(measured, box_min, box_max, tolerance_mm=0.5, part="slots")
+    with pytest.raises(CloudError, match=r"the cloud spans .* where the slots part spans 160 mm .*: is it in mm\?"):
+        check_extent(measured / factor, box_min, box_max, tolerance_mm=0.5, part="slots")
+
+
 # ---------------------------------------------------------------- files as CMM software and other programs write them
 
 CMM_POINTS = np.array([[12.5, -3.25, 4.0], [-7.125, 0.5, 19.75], [0.0, 40.0, -2.5], [3.0625, 1.5, 0.001]])
@@ -478,4 +490,8 @@ def test_csv_header_units_are_read_into_mm_and_mixed_or_unknown_units_refused(tm
         read_cloud(tmp_path / "c.csv")
     (tmp_path / "c.csv").write_text("X [furlong],Y [furlong],Z [furlong]\n1,2,3\n")
     with pytest.raises(CloudError, match="'furlong'"):
+        read_cloud(tmp_path / "c.csv")
+    # a unit on x alone: y's and z's not said (it scaled all three by 25.4 without a word, a QA pass)
+    (tmp_path / "c.csv").write_text("X [in],Y,Z\n1,2,3\n")
+    with pytest.raises(CloudError, match=r"a unit for some coordinates only \(x in 'in'; y, z without\)"):
         read_cloud(tmp_path / "c.csv")

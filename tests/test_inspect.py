@@ -446,7 +446,7 @@ def test_refuses_a_cloud_that_cannot_be_the_part_and_says_how_far_off(tmp_path):
     np.savetxt(tmp_path / "shifted.xyz", p + [150.0, 0.0, 0.0])
     _refusal(tmp_path, "shifted.xyz", None, "exceeds the nas979 part by 1")
     np.savetxt(tmp_path / "metres.xyz", p * 1e-3)  # inside the box, on no surface
-    _refusal(tmp_path, "metres.xyz", None, "cannot be the nas979 part")
+    _refusal(tmp_path, "metres.xyz", None, "where the nas979 part spans")  # a unit mistake, said so
     np.savetxt(tmp_path / "slots.xyz", p + [100.0, 40.0, -2.0])
     r = run("inspect", str(tmp_path / "slots.xyz"), "--part", "slots", "-o", str(tmp_path / "rep"))
     assert r.returncode == 3 and "exceeds the slots part" in r.stderr and not (tmp_path / "rep").exists()

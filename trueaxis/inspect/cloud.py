@@ -383,6 +383,12 @@ def _header_scale(words: list[str], name: str) -> float:
             units[column] = unit
     if not units:
         return 1.0
+    if set(units) != {"x", "y", "z"}:  # a unit on some coordinates only: the others' is not said (mixed, or one unit
+        # meant for all): refused, not guessed
+        given = ", ".join(f"{c} in {u!r}" for c, u in sorted(units.items()))
+        raise CloudError(f"{name}: CSV header gives a unit for some coordinates only ({given}; "
+                         f"{', '.join(c for c in 'xyz' if c not in units)} without): give it for x, y and z, or none "
+                         "(mm)")
     unknown = sorted({u for u in units.values() if u not in _CSV_UNITS_MM})
     if unknown:
         raise CloudError(f"{name}: CSV header gives the coordinates in {unknown[0]!r}, a unit trueaxis does not know "
@@ -692,6 +698,10 @@ def write_deviation_csv(path: str | os.PathLike, points: np.ndarray, deviation_u
 
 # ------------------------------------------------------------------------------------------------------------ extent
 
+# The least share of the part's largest extent a cloud must span (``check_extent``): a unit mistake of 10x and more
+# falls below it, a measurement of these parts does not.
+MIN_SPAN_SHARE = 0.25
+
 def check_extent(points: np.ndarray, bbox_min, bbox_max, tolerance_mm: float, part: str = "part",
                  outliers: float = 0.0) -> None:
     """Refuse a cloud that does not lie within a part's bounding box (grown by a tolerance).
@@ -724,6 +734,16 @@ def check_extent(points: np.ndarray, bbox_min, bbox_max, tolerance_mm: float, pa
     if not 0.0 <= outliers < 1.0:
         raise ValueError(f"outliers must be a share in [0, 1), got {outliers}")
     outside = np.any((points < bbox_min - tolerance_mm) | (points > bbox_max + tolerance_mm), axis=1)
+    # Too small as well: a cloud in cm, inches or metres, read as mm, shrinks by 10, 25.4 or 1000 into a corner of
+    # the part, where every point may pass as lying on a face (a slot block's cloud in metres was inspected as
+    # 2.15 um RMS, all on its top face, exit 0). A measurement spans most of the part; MIN_SPAN_SHARE is far below
+    # any measurement plan of these parts and above a unit's factor.
+    span_cloud = float(np.ptp(points, axis=0).max()) if len(points) > 1 else 0.0
+    span_part = float((bbox_max - bbox_min).max())
+    if span_cloud < MIN_SPAN_SHARE * span_part:
+        raise CloudError(f"the cloud spans {span_cloud:.3g} mm where the {part} part spans {span_part:.3g} mm "
+                         f"(less than {MIN_SPAN_SHARE:.0%} of it): is it in mm? (in cm, inches or metres it reads 10, "
+                         "25.4 or 1000 times too small; give the unit in the file's header)")
     if outside.sum() <= outliers * len(points):
         return
     # how far the cloud sticks out of the box on either side, per axis
