@@ -208,6 +208,18 @@ def test_a_refused_program_raises_with_the_block_and_writes_nothing(freecad_job)
     assert re.search(r"refused\.ngc:\d+: block 'G0 [^']*': correction of [XYZ] is .* above the bound", message)
 
 
+@pytest.mark.external
+def test_an_option_nobody_knows_is_an_error_not_an_exit_of_freecad(freecad_job):
+    # Unknown options go on to the linuxcnc post, whose argparse exits (SystemExit: it would take FreeCAD with it),
+    # and a bad --precision raised a bare ValueError: both are now the post's own error, naming the options.
+    said = freecad_job.facts["bad_options"]
+    assert said["--frobnicate 3"].startswith("TrueaxisPostError: trueaxis post: ") and "--frobnicate" in \
+        said["--frobnicate 3"], said
+    assert said["--precision abc"].startswith("TrueaxisPostError: trueaxis post: ") and "--precision" in \
+        said["--precision abc"], said
+    assert not freecad_job.facts["bad_option_file_written"]
+
+
 # --- the script's pure parts, in this Python ----------------------------------------------------------------------
 
 class Quantity:
@@ -377,3 +389,8 @@ def test_macro_folder_follows_freecad_settings_then_its_data_folder(tmp_path, mo
 </FCParamGroup></FCParamGroup></FCParamGroup></FCParameters>
 """)
     assert default_macro_dir(home) == custom
+    # a configured folder that does not exist yet is still where FreeCAD looks: the install creates it there (it
+    # went to the data folder, where FreeCAD never looked, and said 'installed': a QA pass)
+    custom.rmdir()
+    assert default_macro_dir(home) == custom
+    assert install_post(default_macro_dir(home)) == custom / "trueaxis_post.py" and custom.is_dir()

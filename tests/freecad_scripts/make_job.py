@@ -101,6 +101,17 @@ try:
         refused = None
     except module.TrueaxisPostError as exc:
         refused = str(exc)
+    # options neither the script nor the linuxcnc post knows, or a bad value for the latter: an error to report, not
+    # the linuxcnc post's argparse exiting (SystemExit inside FreeCAD)
+    bad_options = {}
+    for extra in ("--frobnicate 3", "--precision abc"):
+        try:
+            trueaxis.export(postlist, os.path.join(OUT, "bad_option.ngc"), args + " " + extra)
+            bad_options[extra] = "accepted"
+        except module.TrueaxisPostError as exc:
+            bad_options[extra] = "TrueaxisPostError: " + str(exc).splitlines()[0]
+        except BaseException as exc:  # noqa: BLE001 - what escaped is the finding
+            bad_options[extra] = f"{type(exc).__name__}: {exc}"
 
     facts = {
         "postlist": [o.Label for o in postlist],
@@ -112,6 +123,8 @@ try:
         "conditions": {o.Label: module.conditions_comment(module.cutting_conditions(o)) for o in postlist},
         "refused_message": refused,
         "refused_file_written": os.path.exists(refused_path),
+        "bad_options": bad_options,
+        "bad_option_file_written": os.path.exists(os.path.join(OUT, "bad_option.ngc")),
     }
     with open(os.path.join(OUT, "job.json"), "w") as f:
         json.dump(facts, f, indent=2)

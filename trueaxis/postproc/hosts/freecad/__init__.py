@@ -42,14 +42,15 @@ def _configured_macro_dirs(home: Path) -> list[Path]:
 def default_macro_dir(home: Path | None = None) -> Path:
     """FreeCAD's user macro folder.
 
-    In order: the MacroPath of FreeCAD's user.cfg when it names an existing folder; then the default folder of a
+    In order: the MacroPath of FreeCAD's user.cfg (FreeCAD looks there for post processors whether the folder exists
+    yet or not: the install creates it; it went to the data folder instead, where FreeCAD never looked); then the
+    default folder of a
     FreeCAD whose user data folder exists (``$XDG_DATA_HOME/FreeCAD/Macro``, which the Debian 0.20 build and 0.21+
     use, then ``~/.FreeCAD/Macro`` of older builds); else the XDG one.
     """
     home = Path(home) if home is not None else Path.home()
     for configured in _configured_macro_dirs(home):
-        if configured.is_dir():
-            return configured
+        return configured
     data_home = Path(os.environ.get("XDG_DATA_HOME") or home / ".local" / "share")
     candidates = [data_home / "FreeCAD" / "Macro", home / ".FreeCAD" / "Macro"]
     for macro in candidates:

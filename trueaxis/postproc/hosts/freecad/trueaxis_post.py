@@ -287,7 +287,14 @@ def linuxcnc_gcode(objectslist, argstring):
         return head + parse(pathobj)
 
     lc.parse = parse_with_conditions
-    gcode = lc.export(objectslist, "-", argstring)
+    try:
+        gcode = lc.export(objectslist, "-", argstring)
+    except SystemExit:  # its argparse on an option it does not know: an exit inside FreeCAD would take FreeCAD along
+        raise TrueaxisPostError(f"trueaxis post: an option neither trueaxis nor FreeCAD's linuxcnc post knows, or a "
+                                f"value it cannot take, among {argstring!r}\n{TOOLTIP_ARGS}") from None
+    except ValueError as exc:  # a value it takes and then cannot use (--precision abc)
+        raise TrueaxisPostError(f"trueaxis post: FreeCAD's linuxcnc post cannot use its options {argstring!r}: "
+                                f"{exc}") from None
     if gcode is None:
         raise TrueaxisPostError(f"trueaxis post: FreeCAD's linuxcnc post refused the job (arguments {argstring!r}, "
                                 "or an object that is not a path: see the report view)")
