@@ -126,6 +126,23 @@ def test_a_destination_the_system_refuses_is_one_line_exit_1_naming_the_users_pa
     r = run("post", str(program), "-o", "/sys/trueaxis_out.ngc", "--machine", BC, "--offsets-zero")
     one_line_refusal(r, 1, "/sys/trueaxis_out.ngc")
     assert ".tmp" not in r.stderr
+    # /proc refuses with ENOENT: the same refusal (it was exit 2, a missing input, naming the temporary file)
+    r = run("post", str(program), "-o", "/proc/trueaxis_out.ngc", "--machine", BC, "--offsets-zero")
+    one_line_refusal(r, 1, "/proc/trueaxis_out.ngc: cannot write here")
+    assert ".tmp" not in r.stderr
+
+
+@pytest.mark.parametrize("place", ["/proc/trueaxis_report", "/sys/trueaxis_report"])
+def test_a_report_folder_the_system_refuses_is_exit_1_naming_the_users_path(tmp_path, place):
+    # /proc said "[Errno 2] No such file or directory: '/proc/.trueaxis_report.a0d8xvyw.tmp'", exit 2 (a missing
+    # input), /sys exit 1: both are the system's refusal of the user's path
+    assert run("program", "nas979", "-o", str(tmp_path / "c.ngc")).returncode == 0
+    sim = run("simulate", str(tmp_path / "c.ngc"), "--machine", "nmv1500dcg", "--part", "nas979", "-o",
+              str(tmp_path / "c.ply"), "--points", "600")
+    assert sim.returncode == 0, sim.stderr
+    r = run("inspect", str(tmp_path / "c.ply"), "--part", "nas979", "-o", place)
+    one_line_refusal(r, 1, f"{place}: cannot write here")
+    assert ".tmp" not in r.stderr
 
 
 def _big_program(path: Path, blocks: int):

@@ -137,6 +137,12 @@ def check_outputs(inputs: Iterable[tuple[str, str | os.PathLike | None]],
                                       f"{name_b} outside it")
 
 
+class WriteRefused(OSError):
+    """The system refused a place to write an output: its ``filename`` is the user's path (the temporary one beside
+    it is never named). An OSError of its own class: OSError(ENOENT, ...) would become FileNotFoundError, a missing
+    input to the CLI (exit 2), where this is the system's refusal (exit 1) as for every other output."""
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """A temporary file beside ``path`` for writers that want a file name (exporters): when the block ends without an
@@ -148,7 +154,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         fd, temp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     except OSError as exc:  # name the user's path, not the temporary one
-        raise OSError(exc.errno, f"cannot write here: {exc.strerror}", str(path)) from None
+        raise WriteRefused(exc.errno, f"cannot write here: {exc.strerror}", str(path)) from None
     os.close(fd)
     try:
         yield Path(temp)
@@ -235,6 +241,19 @@ def check_replaceable_folder(path: str | os.PathLike) -> None:
     shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
     raise OutputPathError(f"{path}: holds files trueaxis did not write there ({shown}); the report replaces its "
                           "output folder whole: name a new or empty folder")
+
+
+def temp_folder_beside(out: Path, suffix: str = ".tmp") -> Path:
+    """A new temporary folder beside the output folder ``out`` (its parent created), to be published as ``out``
+    (:func:`publish_folder`). A place the system does not let us write is said naming the user's path (not the
+    temporary one) as the system's refusal (exit 1): /proc said 'No such file or directory' about a name the user
+    never gave, exit 2."""
+    out = Path(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=suffix, dir=out.parent))
+    except OSError as exc:
+        raise WriteRefused(exc.errno, f"cannot write here: {exc.strerror}", str(out)) from None
 
 
 def publish_folder(temp: Path, out: Path) -> None:

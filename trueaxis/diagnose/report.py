@@ -13,7 +13,6 @@ import html
 import io
 import os
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -512,12 +511,11 @@ def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None
     data = diagnosis_dict(diag, state, inputs)
     data["warnings"] = list(warnings or [])
     data["next_part"] = next_part
-    from ..fileio import check_replaceable_folder, publish_folder
+    from ..fileio import check_replaceable_folder, publish_folder, temp_folder_beside
 
     check_replaceable_folder(out_dir)  # before the pictures' seconds
     pngs = pictures(diag, state)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    tmp = temp_folder_beside(out_dir, suffix="")
     try:
         for k, v in pngs.items():
             (tmp / k).write_bytes(v)

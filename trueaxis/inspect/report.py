@@ -47,14 +47,13 @@ import json
 import math
 import re
 import shutil
-import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..fileio import OutputPathError, json_ready as _clean, publish_folder, resolve_output
+from ..fileio import OutputPathError, json_ready as _clean, publish_folder, resolve_output, temp_folder_beside
 from . import deviation as dv
 from .cloud import Cloud, CloudError, check_extent, read_cloud, write_deviation_csv, write_deviation_ply
 from .tolerances import CHARACTERISTICS, feature_table, load_tolerances, summary
@@ -1228,9 +1227,7 @@ def write_report(inspection: Inspection, out_dir, figure_worker=None) -> Path:
         out = resolve_output(out_dir, folder=True)  # a link to a folder: the folder it names
     except OutputPathError as exc:
         raise dv.InspectionError(str(exc)) from None
-    parent = out.parent
-    parent.mkdir(parents=True, exist_ok=True)
-    temp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
+    temp = temp_folder_beside(out)
     try:
         report = _clean(inspection.report)
         if figure_worker is not None:
