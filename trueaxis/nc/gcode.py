@@ -266,6 +266,8 @@ class Program:
     # The blocks that set an offset from the position the control holds (G92, G10 L20 with axis words): (line index,
     # axis indices (0..5) given, "G92" or "G10 L20"). A post that moves that position must move their values too.
     position_sets: list = field(default_factory=list)
+    # 1-based lines that start with '/' (block delete): read as executed (the switch off, as rs274 reads them)
+    block_delete_lines: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return int(self.motion.shape[0])
@@ -639,6 +641,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         self.warnings: list = []
         self.unsupported: list = []
         self.position_sets: list = []  # (line index, axis indices, what): G92 / G10 L20 set from the current position
+        self.block_delete_lines: list = []  # 1-based lines starting with '/' (block delete), read with the switch off
         self.params: dict = {}
 
     # -- helpers ------------------------------------------------------------------------------------------------
@@ -942,6 +945,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             diameter=st_diameter[sid].reshape(m), line_index=np.array(r_line, np.int32), words=words, lines=lines,
             units=units, axes_present="".join(a for a in AXES if a in used_axes), warnings=self.warnings,
             unsupported=self.unsupported, rotation=rotation, setup_used=setup_used, position_sets=self.position_sets,
+            block_delete_lines=self.block_delete_lines,
         )
 
     def setup_report(self, sid, kind, line, st_meta, hist, selects_work, used_axes):

@@ -56,7 +56,7 @@ def read_block(interp, raw: str, line_no: int, findall):
             pass
         else:
             if other == "/" and not gcodes and not mcodes and not vals:
-                pass  # block delete: executed, the block delete switch is off, as in rs274
+                interp.block_delete_lines.append(line_no)  # executed, the switch off, as in rs274 (the post says so)
             elif other == "<" or other == ">":
                 refuse = "o-word subroutine / control flow"
             elif other in "#[]=+-*":

@@ -403,14 +403,8 @@ _LINE_GROWTH = 100
 def _refuse_long_lines(out: str, prog, source: str):
     """PostError naming the input line when a line of the output is longer than LinuxCNC reads (a block near the
     limit that the rewritten words lengthen): a program the control refuses is not written."""
-    lengths = [len(line) for line in prog.lines if len(line) > MAX_LINE - _LINE_GROWTH] if len(prog.lines) < 4096 \
-        else None
-    if lengths is not None and not lengths:
+    if max(map(len, prog.lines), default=0) <= MAX_LINE - _LINE_GROWTH:  # (30 ms at a million lines)
         return
-    if lengths is None:
-        early = getattr(prog, "_text_bytes", None)
-        if early is not None and int(np.diff(early[0]).max(initial=0)) <= MAX_LINE - _LINE_GROWTH:
-            return
     out_lines = out.splitlines()
     long = [j for j, line in enumerate(out_lines) if len(line) > MAX_LINE]
     if not long:
@@ -1041,16 +1035,13 @@ class _Poster:
         block-delete switch off (as rs274 reads it); with the switch on, the move after a skipped one starts
         elsewhere, whose path between its compensated ends is then not the one checked."""
         p = self.p
-        early = getattr(p, "_text_bytes", None)  # (line starts, bytes): only the lines holding a slash are looked at
-        if early is not None:
-            text = np.frombuffer(early[1], np.uint8) if isinstance(early[1], (bytes, bytearray)) else early[1]
-            slash = np.flatnonzero(text == ord("/"))
-            candidates = np.unique(np.searchsorted(early[0], slash, side="right") - 1)
-        else:
-            candidates = np.arange(len(p.lines))
-        moves = candidates[np.isin(candidates, p.line_index[rows])]
-        first = next((int(li) for li in moves if p.lines[li].lstrip().startswith("/")), None)
+        if not p.block_delete_lines:
+            return
+        deleted = np.asarray(p.block_delete_lines) - 1  # (line indices: the reader's 1-based lines of the text)
+        moves = deleted[np.isin(deleted, p.line_index[rows])]
+        first = int(moves[0]) if moves.size else None
         if first is not None:
+            first = int(p.line_no[rows[np.argmax(p.line_index[rows] == first)]]) - 1  # (a flattened program's source)
             self.rep.warnings.append(f"{p.source}:{first + 1}: block delete: the moves are compensated as the "
                                      "program runs with the block-delete switch off; with it on, the move after a "
                                      "skipped block starts elsewhere and only its ends are compensated")
