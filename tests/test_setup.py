@@ -478,3 +478,29 @@ def test_an_offset_set_from_the_current_position_carries_that_positions_correcti
 def _write(path, text):
     path.write_text(text)
     return path
+
+
+def test_tool_length_offsets_are_said_with_the_tip_error_per_10_mm_they_leave(tmp_path, machine, files):
+    # The twin's errors are those of its reference tool; a tool of another length moves the tip by the length
+    # difference times the tool-axis error, which the post does not correct (the shop's tool-length convention is not
+    # known to it). It exited 0 without a word (a QA pass: the machine file's tool length changed nothing): now said,
+    # with the twin's largest tool-axis error on the program's moves, checked here at rs274's machine positions.
+    setup = _setup(files)
+    report = {}
+    out = compensate(MM_PROGRAM, machine, "geometric", setup=setup, report=report, arcs=False)
+    said = [w for w in report["warnings"] if "tool length offsets in force" in w]
+    assert len(said) == 1 and "tool 1 offset 63.5 mm" in said[0], report["warnings"]
+    src = tmp_path / "in.ngc"
+    src.write_text(MM_PROGRAM)
+    theirs = run_rs274_setup(src, *files, tmp_path / "rs274")
+    twin = ErrorTwin(machine)
+    q = theirs.end[[k in ("feed", "arc", "traverse") for k in theirs.kind]][:, :3]
+    du = np.linalg.norm(twin.actual_pose(q)[1] - twin.nominal_pose(q)[1], axis=1) * 1e6
+    assert du.max() > 1.0  # the machine's angular errors: the figure can be wrong
+    assert report["tool_axis_error_max_urad"] == pytest.approx(du.max(), rel=0.05)
+    assert f"up to {du.max() * 0.01:.2f} um per 10 mm" in said[0] or \
+        f"up to {report['tool_axis_error_max_urad'] * 0.01:.2f} um per 10 mm" in said[0]
+    plain = {}  # without tool length offsets: nothing to say
+    compensate(MM_PROGRAM.replace("G43 H1", "G49").replace("G43 H2", "G49"), machine, "geometric", setup=setup,
+               report=plain, arcs=False)
+    assert not any("tool length offsets" in w for w in plain["warnings"]) and plain["tool_axis_error_max_urad"] is None
