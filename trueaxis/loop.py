@@ -143,8 +143,14 @@ class LoopResult:
             for k in b["roundness_um"]:
                 lines.append(f"  {k}: {b['roundness_um'][k]:.2f} -> {a['roundness_um'].get(k, float('nan')):.2f} um")
         r = self.identification
+        ids = np.nonzero(r.identified)[0]
+        # '*': written as one term of the combination the part needs, its own value not determined (within 2 std of
+        # no change, the aliasing counted), as the identification's own lines say
+        alone = {i: abs(r.value[i] - r.prior[i]) > 2.0 * r.std[i] for i in ids}
         lines.append("  identified: " + ", ".join(f"{r.names[i]} {r.value[i]:+.2f} +- {r.std[i]:.2f}"
-                                                 for i in np.nonzero(r.identified)[0]))
+                                                 + ("" if alone[i] else "*") for i in ids))
+        if not all(alone.values()):
+            lines.append("  (* in combination: the part needs the sum of these changes, not each value alone)")
         return "\n".join(lines)
 
 
