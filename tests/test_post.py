@@ -386,3 +386,11 @@ def test_a_canned_cycles_deviation_above_its_bottom_is_reported_and_checked_by_t
         got.append(np.hypot(*(actual - nominal)[:2]) * 1e3)
     assert max(got) > 0.2  # the errors change along Z on this machine: the check can fail
     assert abs(report["max_cycle_deviation_um"] - max(got)) < 0.05, (report["max_cycle_deviation_um"], got)
+
+
+def test_the_hook_says_a_mistyped_file_name_is_no_file(xh714, tmp_path):
+    # compensate('nonexistent_file.ngc', m) read the name as G-code: "word 'n' with no number" (a QA pass)
+    with pytest.raises(FileNotFoundError, match="nonexistent_file.ngc: no such file"):
+        compensate(str(tmp_path / "nonexistent_file.ngc"), xh714)
+    one_line = compensate("G21 G90 G0 X10 Y10 Z-100", xh714, offsets_zero=True)  # a one-line program stays one
+    assert "G0 X10.00" in one_line

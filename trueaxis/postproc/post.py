@@ -266,7 +266,15 @@ def _read_input(program, source):
         return text, source or str(path)
     if not isinstance(program, str):
         raise TypeError(f"program must be G-code text or a path, got {type(program).__name__}")
+    one_line = program.strip()
+    if "\n" not in one_line and Path(one_line).suffix.lower() in _PROGRAM_SUFFIXES and " " not in one_line:
+        # a file's name, not a program (read as G-code it said "word 'n' with no number"): the file is not there
+        raise FileNotFoundError(f"{one_line}: no such file (the program is given as its text or its path)")
     return program, source or "<string>"
+
+
+# The names of program files a string that is not a file may be meant as (``_read_input``).
+_PROGRAM_SUFFIXES = {".ngc", ".nc", ".tap", ".gcode", ".cnc", ".txt", ".csv", ".apt", ".cls", ".cl"}
 
 
 def _fewer_collections(fn):
