@@ -257,3 +257,15 @@ def test_inspect_refuses_an_output_folder_holding_other_files_before_any_work(tm
         run = subprocess.run([sys.executable, "-m", "trueaxis.cli", "inspect", str(tmp_path / "c.ply"), "--part",
                               "nas979", "-o", str(report)], capture_output=True, text=True)
         assert run.returncode == 0, run.stderr
+
+
+def test_an_empty_output_path_and_a_report_folder_to_stdout_are_refused(tmp_path, program):
+    # inspect -o - made a folder named '-'; -o '' fell back to the default report folder (a QA pass)
+    cloud = tmp_path / "c.xyz"
+    cloud.write_text("0 0 0\n1 0 0\n")
+    for out, said in (("-", "-o -: a folder cannot go to standard output"), ("", "-o: an empty path")):
+        r = run("inspect", str(cloud), "--part", "nas979", "-o", out, cwd=tmp_path)
+        one_line_refusal(r, 2, said)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c.xyz", "in.ngc"]  # (nothing written)
+    r = run("post", str(program), "-o", "", "--machine", BC, "--offsets-zero")
+    one_line_refusal(r, 2, "-o: an empty path")

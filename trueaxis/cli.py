@@ -441,7 +441,8 @@ def cmd_inspect(args) -> int:
         raise UsageError("--identify needs --machine TWIN.toml and --program PROG.ngc")
     if not args.identify and (args.machine or args.program or args.write):
         raise UsageError("--machine, --program and --write go with --identify")
-    out_dir = Path(args.output) if args.output else Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
+    out_dir = Path(args.output) if args.output is not None else \
+        Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
     # the pictures are drawn by a second process started now (matplotlib imports while the cloud is read), and the
     # inspection's BLAS runs on one thread (trueaxis.inspect.workers: same numbers, faster on a busy machine)
     keep_freed_memory()  # fewer page faults for the large temporary arrays (same values)
@@ -760,7 +761,7 @@ def _paths(args) -> tuple[list, list]:
                 *(("--program", p) for p in g("program") or []), *(("--part-json", p) for p in g("part_json") or [])], \
             [("-o", g("output"), "replaced")]
     if cmd == "inspect":
-        out = g("output") or Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
+        out = g("output") if g("output") is not None else Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
         # the files read besides the named ones: the part JSON of --part-dir, the JSON beside --cad
         part_json = None if g("part_dir") is None else Path(g("part_dir")) / f"{args.part}.json"
         cad_json = None if g("cad") is None else Path(g("cad")).with_suffix(".json")

@@ -112,6 +112,12 @@ def check_outputs(inputs: Iterable[tuple[str, str | os.PathLike | None]],
     (options not given) are skipped. An output folder may not contain an input file either (the old report folder is
     replaced whole). Raises OutputPathError naming both options.
     """
+    outputs = list(outputs)
+    for name, p, folder in outputs:
+        if p is not None and str(p).strip() == "":
+            raise OutputPathError(f"{name}: an empty path; name the output")
+        if folder and str(p) == "-":  # (a file output may be '-', standard output, where its command says so)
+            raise OutputPathError(f"{name} -: a folder cannot go to standard output; name a folder")
     ins = [(name, Path(p)) for name, p in inputs if p is not None and str(p) != "-"]
     outs = [(name, Path(p), folder) for name, p, folder in outputs if p is not None and str(p) != "-"]
     for name, out, folder in outs:
