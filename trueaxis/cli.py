@@ -443,6 +443,10 @@ def cmd_inspect(args) -> int:
         raise UsageError("--machine, --program and --write go with --identify")
     out_dir = Path(args.output) if args.output is not None else \
         Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
+    if args.machine:  # a file, or a fixture machine's short name, as every other command takes it
+        from .resources import machine_file
+
+        args.machine = str(machine_file(args.machine))
     # the pictures are drawn by a second process started now (matplotlib imports while the cloud is read), and the
     # inspection's BLAS runs on one thread (trueaxis.inspect.workers: same numbers, faster on a busy machine)
     keep_freed_memory()  # fewer page faults for the large temporary arrays (same values)
@@ -506,7 +510,8 @@ def build_parser() -> argparse.ArgumentParser:
                                        "input refused (a program, CL data, a machine file, a setup, a cloud, "
                                        "tolerances; a --strict warning) or a computed result refused (an "
                                        "identification that does not explain the part), nothing written; "
-                                       "130 / 143 interrupted (SIGINT / SIGTERM).")
+                                       "130 / 143 interrupted (SIGINT / SIGTERM); 141 the reader of standard "
+                                       "output went away (a pipe closed).")
     p.add_argument("--version", action="version", version=f"trueaxis {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 

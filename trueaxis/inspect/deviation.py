@@ -14,8 +14,8 @@ Two references, one rule:
 - **The CAD mesh**, through open3d's ``RaycastingScene.compute_closest_points``, where the JSON has no analytic
   surface: a point farther than ``gate_mm`` from every analytic patch is measured against the mesh as well, and the
   mesh wins when it is nearer by more than its chord error (a CAD face the JSON does not describe: a fillet, a
-  chamfer, a user's own feature). With no analytic surfaces at all (``--cad`` without a JSON) every point is measured
-  against the mesh. The mesh is fine enough that its chord error is below 0.1 um; the bound is stated with the mesh.
+  chamfer, a user's own feature). With no analytic surfaces at all every point is measured against the mesh (the CLI
+  refuses ``--cad`` without its JSON: the surfaces' ids and tolerances come from it). The mesh is fine enough that its chord error is below 0.1 um; the bound is stated with the mesh.
 
 Meshes: a part that has its own mesh (``Part.mesh``) gives it: the NAS 979 part is meshed directly from its analytic
 description (``trueaxis.workpiece.mesh``, numpy; the chord error is the sagitta ``R (1 - cos(dtheta / 2))`` of the
