@@ -1196,3 +1196,25 @@ def test_the_noise_estimate_is_unbiased_on_a_regular_probe_grid():
         est.append(estimate_noise_um(st))
     se = noise_estimate_rel_se(st) / np.sqrt(len(est))
     assert abs(np.mean(est) - 1.0) < 3 * se, (np.mean(est), se)
+
+
+def test_a_program_another_twin_compensated_or_for_the_force_is_said_before_the_diagnosis():
+    # A program compensated by another twin (a QA pass: "none (0.50)", a 32 um gap, nothing said), or compensated for
+    # the cutting force with the twin's force model while the twin's cut here has none: the gap holds what the
+    # diagnosis then reports, said as a warning. The program a twin compensated itself, geometrically: nothing.
+    from trueaxis.diagnose.report import program_machine_warnings
+    from trueaxis.postproc.programs import nas979_program
+
+    twin = load_machine(MACHINES / "bc_offset.toml")
+    nominal = twin.error_free()
+    options = dict(step_deg=3.0, chord_tol_um=None)
+    own = nas979_program(twin, compensation="geometric", **options).text
+    others = nas979_program(nominal, compensation="geometric", **options).text
+    force = nas979_program(twin, compensation="comprehensive", **options).text
+    assert program_machine_warnings(twin, [(own, "own.ngc")]) == []
+    said = program_machine_warnings(twin, [(others, "others.ngc")])
+    assert len(said) == 1 and said[0].startswith("others.ngc: compensation=geometric by another twin") and \
+        "what the two twins differ by" in said[0]
+    said = program_machine_warnings(twin, [(force, "force.ngc")])
+    assert len(said) == 1 and "compensated for the cutting force with the twin's force model ([force] compliance)" \
+        in said[0]

@@ -99,7 +99,7 @@ from .machine.model import ROTATION_LETTER, SQUARENESS, unit_of
 from .inspect.deviation import outward_normals
 from .nc.gcode import Program, parse_program
 from .nc.trajectory import AXES, MM_PER_INCH, interpolate
-from .postproc.programs import ProgramError, check_axes, placed_for
+from .postproc.programs import ProgramError, check_axes, placed_for, program_compensation  # noqa: F401 (re-exported)
 
 UM_PER_MM = 1e3
 LEVER = 1e-3  # um of contact displacement per (urad of tool-axis error x mm of lever)
@@ -1173,44 +1173,6 @@ def part_normals(points, part: dict) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------- the CLI ----
-def program_compensation(program_text: str, twin: Machine) -> dict:
-    """What the program says about its compensation (its ``trueaxis-setup`` comment: ``compensation`` and ``twin``,
-    the twin's id, ``trueaxis.postproc.programs.twin_id``), compared with ``twin``. The identification does not
-    depend on it (its model is the twin at the axes the program commands, whoever compensated them); the note says
-    what was read or assumed. Returns {"mode", "twin_id", "same_twin" (bool or None), "note"}."""
-    from .postproc.post import machine_fingerprint, read_post_header
-    from .postproc.programs import read_setup, twin_id
-
-    posted = read_post_header(program_text)
-    if posted is not None:  # a trueaxis post wrote it: its header says the mode and the machine file it used
-        mine = machine_fingerprint(twin).rsplit(" ", 1)[-1]
-        same = None if posted["sha256"] is None else posted["sha256"] == mine
-        by = {True: f"this twin (its post header: machine file sha256 {mine})",
-              False: f"another twin (its post header: machine file sha256 {posted['sha256']}, this one's is {mine})",
-              None: "a trueaxis post whose header names no machine file"}[same]
-        return {"mode": posted["mode"], "twin_id": posted["sha256"], "same_twin": same, "posted": True,
-                "note": f"compensation={posted['mode']} by {by}; a setup comment it carries is the program's before "
-                        "the post; the model is the twin at the axes the program commands"}
-    setup = read_setup(program_text)
-    mode, tid = setup.get("compensation"), setup.get("twin")
-    mine = twin_id(twin)
-    if not setup:
-        note = ("the program has no trueaxis-setup comment: assumed its axis words are the axes commanded at the cut "
-                "(compensated or not, by whoever); the model is the twin at those axes")
-    elif mode == "none":
-        note = ("the program's setup comment says compensation=none (a post run on it afterwards would not show "
-                "there); the model is the twin at the axes the program commands, compensated or not")
-    elif tid is None:
-        note = (f"the program says compensation={mode or 'unknown'} but not by which twin: assumed its axis words "
-                "are the axes commanded at the cut; the model is the twin at those axes")
-    elif tid == mine:
-        note = f"compensation={mode} by this twin ({tid}); the model is the twin at the commanded axes"
-    else:
-        note = (f"compensation={mode} by another twin ({tid}, this one is {mine}); the model is this twin at the "
-                "axes the program commands")
-    return {"mode": mode, "twin_id": tid, "same_twin": None if tid is None else tid == mine, "note": note}
-
-
 def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, program: str | Path,
                        write: str | Path | None = None, alignment: str = "none", robust: bool = False,
                        parameters=None, max_relative_std: float = 0.2) -> tuple[dict, Identification]:

@@ -602,15 +602,26 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
 def program_machine_warnings(machine, programs: list) -> list[str]:
     """A program posted for another machine (its header names the machine), one line each; read before any
     simulation. programs : [(text, path)], one per cut."""
-    from ..postproc.programs import header_name, written_for
+    from ..postproc.programs import header_name, program_compensation, written_for
 
     out = []
     name = header_name(machine)
+    models = machine.force_models()
     for program_text, program in programs:
         posted = written_for(program_text)
         if posted and posted[0] != name:
             out.append(f"{program} was written for the machine {posted[0]!r}, the twin given is "
                        f"{name!r}: a diagnosis against another machine's twin names that machine's differences")
+            continue
+        said = program_compensation(program_text, machine)
+        if said["same_twin"] is False:  # compensated by another twin: what the twins differ by is in the gap
+            out.append(f"{program}: {said['note'].split(';')[0]}: the gap holds what the two twins differ by as well "
+                       "(diagnose with the twin that compensated it, or expect twin_parameters)")
+        if said["mode"] == "comprehensive" and models:
+            out.append(f"{program}: compensated for the cutting force with the twin's force model ("
+                       f"{', '.join(models)}), while the twin's cut here is made without force (as the virtual shop's "
+                       "by default): the force correction the program carries shows in the gap, as a force "
+                       "deflection")
     return out
 
 

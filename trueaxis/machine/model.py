@@ -224,8 +224,9 @@ class Machine:
         """The machine's layout with every error parameter zero and no force model: a nominal twin (the twin a shop
         starts its closed loop from)."""
         zero = np.zeros(len(self.parameter_names()))
+        # (no longer the file's content: its source is memory, so that nothing fingerprints it by the file's bytes)
         return replace(self.with_parameters(zero), loaded=None, loaded_force_n=None, compliance_um_per_n=None,
-                       surfaces=())
+                       surfaces=(), source="<memory>")
 
     def _component_items(self):
         for axis in self.axis_names:
