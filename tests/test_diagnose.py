@@ -221,6 +221,8 @@ def test_control_says_none_of_the_candidates(slots):
     cands, _ = build_all([n for n in LIBRARY if n not in ("force_deflection", "tool_deflection")], st)
     diag = diagnose_state(st, cands)
     assert diag.verdict == "none of the candidates" and diag.chosen == []
+    # said as no gap, not as a gap no candidate explains (a control read like a failure, a QA pass)
+    assert any(n.startswith("no gap above the noise") for n in diag.notes), diag.notes
     # ~200 independent neighbour pairs: the MAD scale scatters by ~10 %, so 3 sigma is 30 %.
     assert estimate_noise_um(st) == pytest.approx(1.0, rel=0.3)
 

@@ -945,6 +945,9 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
             # The gap is well above the noise and nothing here explains it: an effect outside the library, or one
             # the library holds in a form too poor for it. "None" is then the honest answer, but not a sure one.
             confidence = min(confidence, 0.6)
+        else:  # nothing to explain: said so, not as a gap no candidate explains (a control read like a failure)
+            notes.append(f"no gap above the noise: its RMS {math.sqrt(ms_before):.2f} um is the probe noise "
+                         f"({sigma:.2f} um) within its sampling; the twin predicts this part")
     closest = [{"effect": f.name, "explained_share_above_noise": f.explained_share,
                 "held_out_rms_after_um": f.rms_after_um, "significant": f.significant, "plausible": f.plausible,
                 "explains": f.explains,
