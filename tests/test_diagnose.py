@@ -1235,3 +1235,27 @@ def test_a_noise_given_above_the_gap_holds_the_confidence(slots):
     assert too_big.chosen == ["backlash_y"]  # the same fit, held: not sure of it
     assert too_big.confidence <= 0.5
     assert any("is not above the probe noise given" in n for n in too_big.notes), too_big.notes
+
+
+def test_measured_points_the_program_did_not_cut_are_said_on_the_terminal(slots, tmp_path, capsys):
+    # Points on a face the program does not cut are left out: said on the terminal (it was only the page's point
+    # count, a QA pass)
+    from trueaxis.cli import main
+    from trueaxis.inspect.cloud import write_cloud_ply
+
+    m, prog, _ = slots
+    r = _cut(m, prog, {"backlash": {"Y": {"amplitude": 8.0}}}, noise=1.0, seed=5, points=300)
+    lo, hi = r.measured.min(axis=0), r.measured.max(axis=0)
+    top = np.c_[np.linspace(lo[0] + 5.0, hi[0] - 5.0, 40), np.full(40, 0.5 * (lo[1] + hi[1])), np.full(40, hi[2])]
+    pts = np.vstack([r.measured, top])
+    normals = np.vstack([r.normals, np.tile([0.0, 0.0, 1.0], (40, 1))])
+    write_cloud_ply(tmp_path / "cmm.ply", pts, normals)
+    (tmp_path / "p.ngc").write_text(prog.text)
+    rc = main(["diagnose", "--cloud", str(tmp_path / "cmm.ply"), "--part", "slots", "--machine", "xh714",
+               "--program", str(tmp_path / "p.ngc"), "--candidates", "backlash_y", "--noise-um", "1.0", "-o",
+               str(tmp_path / "rep")])
+    assert rc == 0
+    err = capsys.readouterr().err
+    said = re.search(r"warning: (\d+) of (\d+) measured points were not cut by the program", err)
+    data = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
+    assert said and int(said.group(1)) == data["points_not_cut_by_twin"] >= 30 and int(said.group(2)) == len(pts)  # (most)

@@ -445,6 +445,8 @@ def _html(data: dict, pngs: dict) -> str:
         f"</td></tr>" for c in data["candidates"])
     chosen = "".join(f"<p><b>{e(c['effect'])}</b> (confidence {c['confidence']:.2f}): {e(parameters_text(c))}</p>"
                      for c in data["chosen"]) or "<p><b>none of the candidates</b> explains the gap.</p>"
+    if data["chosen"] and "indistinguishable" in data.get("verdict", ""):  # the ties, as the terminal says them
+        chosen = f"<p>Verdict: {e(data['verdict'])}</p>" + chosen
     alt = ""
     if data["alternatives"]:
         alt = (f"<p>Almost as good: {e(', '.join(data['alternatives']))}. "
@@ -575,7 +577,7 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     except ValueError as exc:  # a refusal says too when a program was written for another machine: the likely cause
         if not posted_for:
             raise
-        raise type(exc)(f"{exc}. Note: {'; '.join(posted_for)}") from None
+        raise type(exc)(f"{str(exc).rstrip('.?')}; note: {'; '.join(posted_for)}") from None
     one = len(clouds) == 1
     inputs = {"cloud": str(clouds[0]) if one else [str(c) for c in clouds], "part": part, "machine": str(machine),
               "program": str(programs[0]) if one else [str(p) for p in programs],
@@ -585,6 +587,10 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     if not one:
         inputs["pauses_s"] = list(state.pauses_s)
     warnings = posted_for + input_warnings(state, noise_um) + per_cut_warnings(diag, state)
+    if state.dropped:  # said on the terminal too, not only in the page's point count
+        warnings.append(f"{state.dropped} of {state.dropped + len(state)} measured points were not cut by the "
+                        "program on the twin (another feature of the part, or a program that does not cut there): "
+                        "left out of the diagnosis")
     plan = None
     if one:
         from .next_part import plan_next_part
