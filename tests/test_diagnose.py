@@ -381,7 +381,7 @@ def test_every_cloud_is_checked_before_the_first_simulation_and_a_refusal_names_
     assert calls == []
     (tmp_path / "p.ngc").write_text("(machine: Another Mill)\n" + prog.text)
     write_cmm(dataclasses.replace(r, measured=r.measured + 0.8 * r.normals), tmp_path / "far.ply")
-    with pytest.raises(CloudError, match=r"from the part this program cuts.*Note: .*p.ngc was written for the "
+    with pytest.raises(CloudError, match=r"from the part this program cuts.*note: .*p.ngc was written for the "
                                          r"machine 'Another Mill'"):
         diagnose_files(tmp_path / "far.ply", "slots", str(MACHINES / "xh714.toml"), tmp_path / "p.ngc",
                        tmp_path / "out", part_json=prog.part_json)
