@@ -287,7 +287,8 @@ def test_cli_warns_of_a_program_for_another_machine_and_a_noise_far_from_the_dat
     assert main(args + ["--noise-um", "5.0", "-o", str(tmp_path / "warned")]) == 0
     err = capsys.readouterr().err
     assert "written for the machine 'Another mill" in err and "--noise-um 5 um, but the data show" in err
-    assert len(json.loads((tmp_path / "warned" / "diagnosis.json").read_text())["warnings"]) == 2
+    warned = json.loads((tmp_path / "warned" / "diagnosis.json").read_text())["warnings"]
+    assert sum("written for the machine" in w or "--noise-um 5 um" in w for w in warned) == 2  # (both in the file)
     (tmp_path / "p.ngc").write_text(prog.text)
     assert main(args + ["--noise-um", "1.0", "-o", str(tmp_path / "quiet")]) == 0
     assert "warning" not in capsys.readouterr().err
@@ -1259,3 +1260,18 @@ def test_measured_points_the_program_did_not_cut_are_said_on_the_terminal(slots,
     said = re.search(r"warning: (\d+) of (\d+) measured points were not cut by the program", err)
     data = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
     assert said and int(said.group(1)) == data["points_not_cut_by_twin"] >= 30 and int(said.group(2)) == len(pts)  # (most)
+
+
+def test_a_verdict_that_makes_the_max_grow_beyond_the_noise_is_said():
+    from types import SimpleNamespace
+
+    from trueaxis.diagnose.report import max_growth_warning
+
+    def diag(before, after):
+        return SimpleNamespace(chosen_fit=object(), verdict="servo_lag", noise_um=1.0,
+                               gap_before={"max": before, "rms": 5.0}, gap_after={"max": after, "rms": 1.5})
+
+    said = max_growth_warning(diag(14.09, 22.13))  # the QA pass's servo case
+    assert len(said) == 1 and "max grows (14.09 -> 22.13 um) while its RMS goes 5.00 -> 1.50 um" in said[0]
+    assert max_growth_warning(diag(6.10, 7.33)) == []  # within the noise's extremes: not said
+    assert max_growth_warning(SimpleNamespace(**{**vars(diag(1.0, 9.0)), "chosen_fit": None})) == []
