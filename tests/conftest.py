@@ -82,6 +82,18 @@ def tilted_cone_case(n_blocks: int = 3000):
     return m, cone_flank_program(m, cone, n_blocks=n_blocks)
 
 
+# A [cutting] table for test machines: C45's mechanistic milling coefficients (N/mm^2 and N/mm), as the fixtures'.
+CUTTING_C45 = """[cutting]
+material = "C45"
+Ktc = 2000.0
+Krc = 750.0
+Kac = 400.0
+Kte = 30.0
+Kre = 45.0
+Kae = 5.0
+"""
+
+
 def mill_toml(name: str, travel: tuple = ((-200.0, 200.0), (-150.0, 150.0), (-400.0, 0.0)), tail: str = "") -> str:
     """A three-axis test mill's machine file (the XH714's layout: the table on Y then X, Z on the tool; a 10 mm, 100 mm
     tool): ``travel`` of X, Y, Z in mm, then ``tail`` (the tool's further keys, location errors, tables, ...)."""

@@ -8,22 +8,14 @@ import re
 import numpy as np
 import pytest
 
-from conftest import mill_toml
+from conftest import CUTTING_C45, mill_toml
 from trueaxis.cli import main
 
 PERFECT_3AX = mill_toml("perfect 3-axis mill (test)", tail="""flutes = 4
 flute_length = 30.0
 [workpiece]
 origin = [0.0, 0.0, -300.0]
-[cutting]
-material = "C45"
-Ktc = 2000.0
-Krc = 750.0
-Kac = 400.0
-Kte = 30.0
-Kre = 45.0
-Kae = 5.0
-""")
+""" + CUTTING_C45)
 
 PERFECT_BC = """
 [machine]

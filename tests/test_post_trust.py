@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import MACHINES, mill_toml
+from conftest import CUTTING_C45, MACHINES, mill_toml
 from trueaxis.machine import load_machine
 from trueaxis.nc.setup import Setup
 from trueaxis.postproc.post import compensate, without_header
@@ -166,15 +166,7 @@ def test_the_slot_program_compensated_by_its_setup_comment_is_refused_unless_for
 
 NO_FORCE_MILL = mill_toml("no force mill (test)", tail="""[location]
 C0Y = 50.0
-[cutting]
-material = "C45"
-Ktc = 2000.0
-Krc = 750.0
-Kac = 400.0
-Kte = 30.0
-Kre = 45.0
-Kae = 5.0
-""")
+""" + CUTTING_C45)
 
 
 def test_comprehensive_mode_on_a_twin_without_a_force_model_says_it_corrects_no_force(tmp_path):
