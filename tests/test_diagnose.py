@@ -992,6 +992,10 @@ def test_two_measured_parts_are_diagnosed_together_from_the_command_line(two_con
     where = where[:where.index("</table>")]
     assert "cmm0.ply" not in where and data["where"][0]["variable"] in where  # the ranking, not the parts' rows
     assert all(c["held_out_rms_um_after"] < 1.3 < c["gap_rms_um_before"] for c in data["per_cut"])
+    # --plan-next with two parts plans none, and says so (it was ignored without a word)
+    assert main(args + two + ["--plan-next", "-o", str(d / "planned")]) == 0
+    said = json.loads((d / "planned" / "diagnosis.json").read_text())["warnings"]
+    assert said == ["--plan-next plans the next part from one measured part; with several given it plans none"]
     capsys.readouterr()
     # The same cloud twice (its noise would pass for signal: the noise estimate fell to 0.002 um): refused, exit 3.
     assert main(args + two[:4] + two[:4] + ["--pause-s", "0", "-o", str(d / "dup")]) == 3

@@ -611,6 +611,8 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
         found = plan_next_part(diag, state, m, part, part_description(part, each[0]), texts[0], search=plan_next,
                                want_force=bool(members & set(FORCE_CANDIDATES)), progress=progress)
         plan = None if found is None else found.as_dict(part, str(machine))
+    elif plan_next:  # (it was ignored without a word, a QA pass)
+        warnings.append("--plan-next plans the next part from one measured part; with several given it plans none")
     if progress is not None:
         progress(f"writing the report and its pictures into {output}")
     data = write_report(diag, state, output, inputs, warnings, next_part=plan)
