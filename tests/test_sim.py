@@ -412,3 +412,21 @@ def test_the_envelope_progress_bar_is_not_written_off_a_terminal(capfd):
     np.testing.assert_allclose(res.deviation_um, 10.0, atol=0.003)
     out, err = capfd.readouterr()
     assert out == "" and err == "", err
+
+
+def test_an_effects_file_that_switches_nothing_on_is_said(xh714):
+    # An effects file with everything off, or asking for the force model of a machine that has none, ran as the
+    # machine alone without a word (a QA pass): the run's notes say it
+    pts, nrm = boss_probe(n_per_side=50)
+    machine = xh714.error_free()  # (no force model)
+    quiet = simulate(square_boss_program(), machine, parse_effects({"backlash": {"X": {"amplitude": 5.0,
+                                                                                       "enabled": False}}},
+                                                                   machine=machine),
+                     part="slots", probe=(pts, nrm))
+    assert any("no effect is switched on" in n for n in quiet.info.get("notes", [])), quiet.info
+    asked = simulate(square_boss_program(), machine, parse_effects({"force": {"use_machine_compliance": True}},
+                                                                   machine=machine), part="slots", probe=(pts, nrm))
+    assert any("has none: no force deflection in this run" in n for n in asked.info.get("notes", [])), asked.info
+    on = simulate(square_boss_program(), machine, parse_effects({"backlash": {"X": {"amplitude": 5.0}}},
+                                                                machine=machine), part="slots", probe=(pts, nrm))
+    assert not on.info.get("notes")

@@ -17,6 +17,8 @@ was made for (``trueaxis simulate`` in ``trueaxis.cli``).
 
 from __future__ import annotations
 
+import dataclasses
+
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -152,9 +154,9 @@ def simulate(
     ci = np.nonzero(cutting)[0]
     force_part = np.zeros((len(traj), 3))
     info = {"samples": len(traj), "cutting_samples": int(ci.size)}
-    unapplied = unapplied_force_note(machine, effects)
-    if unapplied:
-        info["notes"] = [unapplied]
+    notes = [n for n in (unapplied_force_note(machine, effects), _idle_effects_note(machine, effects)) if n]
+    if notes:
+        info["notes"] = notes
     if effects.needs_force and ci.size:
         conds_by_line = structured_conditions(prog, machine)
         conds = [conds_by_line[i] for i in traj.line[ci]]
@@ -264,6 +266,21 @@ def unapplied_force_note(machine: Machine, effects: Effects) -> str | None:
     return (f"the true machine's force model ({', '.join(models)}) is not applied in this run: the tool cut with no "
             "force on it, so a comprehensive compensation looks worse than a geometric one; to apply it, give "
             "--effects with [force] use_machine_compliance = true")
+
+
+def _idle_effects_note(machine: Machine, effects: Effects) -> str | None:
+    """A note when an effects file was given that switches nothing on, or asks for the true machine's force model
+    where it has none: the run is then the true machine alone (said, not left silent: a QA pass)."""
+    if effects.source == "<none>":
+        return None
+    if effects.force is not None and effects.force.use_machine_compliance and not machine.force_models() \
+            and effects.force.compliance_um_per_n is None:
+        return (f"{effects.source}: [force] use_machine_compliance asks for the true machine's force model, and "
+                f"{machine.name} has none: no force deflection in this run")
+    on = [f.name for f in dataclasses.fields(effects) if f.name != "source" and getattr(effects, f.name)]
+    if not on:
+        return f"{effects.source}: no effect is switched on: the run is the true machine alone"
+    return None
 
 
 def write_cmm(result: SimResult, out_ply, binary: bool = True) -> Path:
