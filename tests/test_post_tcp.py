@@ -168,7 +168,7 @@ def test_tcp_code_g43_4_replaces_the_programs_g43():
     assert fanuc.replace("G43.4 H1", "G43 H1") == linuxcnc
 
 
-def test_tcp_output_refuses_what_it_cannot_write():
+def test_tcp_output_refuses_what_it_cannot_write(tmp_path):
     m = load_machine(ROOT / "fixtures" / "machines" / "nmv1500dcg.toml")
     setup = Setup(offsets_zero=True)
     src = _program(m, "B", [(-20, 30), (-35, 120), (-10, 200), (-50, -40)])
@@ -180,6 +180,15 @@ def test_tcp_output_refuses_what_it_cannot_write():
     with pytest.raises(ValueError, match="table-table"):
         post_text(src, load_machine(ROOT / "fixtures" / "machines" / "headtable.toml"), "geometric", setup=setup,
                   output_mode="tcp")
+    # A tool length in force: the control turns the tip, a tool length below the joints' point, which the TCP frame
+    # does not model: refused (a QA pass: the tip written 13.5 mm off at B 10 deg with an 87.5 mm tool, exit 0)
+    from trueaxis.nc.setup import load_setup
+
+    tools = tmp_path / "tools.tbl"
+    tools.write_text("T1 P1 Z87.5 D10\n")
+    with pytest.raises(PostError, match=r":\d+: TCP output with a tool length offset in force \(tool 1 offset "
+                                        r"Z87.5 mm\)"):
+        post_text(src, m, "geometric", setup=load_setup(tool_table=tools, offsets_zero=True), output_mode="tcp")
 
 
 def test_machine_file_output_mode_is_read_and_written_back(tmp_path):

@@ -12,8 +12,10 @@ turns with it: ``world = P · p_W`` with ``p_W`` the model's nominal tool tip in
 the part (``[workpiece] origin``, axes parallel). Work offsets (G54...) then act in that frame, as in joint mode at
 zero rotary angles. LinuxCNC's parameters from the machine file (docs/linuxcnc.md): ``x-rot-point``, ``y-rot-point``
 = C's ``pivot`` (x, y); B's line through ``(x-rot-point + x-offset, *, z-rot-point + z-offset)`` = B's ``pivot``
-(A's: ``(*, y-rot-point + y-offset, z-rot-point + z-offset)``); ``tool-offset`` = the tool length of G43 (it cancels:
-the control adds it to Z and removes it in the kinematics); ``conventional-directions`` per ``rotary_sense``.
+(A's: ``(*, y-rot-point + y-offset, z-rot-point + z-offset)``); ``tool-offset`` = the tool length of G43, which must
+be 0 here: the control turns the tip, a tool length below the joints' point, about the rotary axes, and this frame
+takes the joints' point as the tip (``refuse_tool_length``: a non-zero length is refused, not written wrong);
+``conventional-directions`` per ``rotary_sense``.
 
 Only table-table machines (both rotary axes on the workpiece branch) have such a frame (a head turns the tool, and
 LinuxCNC's trt kinematics do not describe it); the post refuses TCP output for others."""
@@ -82,6 +84,25 @@ class TcpFrame:
         s2 = s[:, None] if s.ndim else s
         wa, wb = self.world(ca), self.world(cb)
         return self.joints(wa + s2 * (wb - wa), ca + s2 * (cb - ca))
+
+
+def refuse_tool_length(prog, source: str) -> None:
+    """PostError when a tool length offset other than zero is in force: the control's TCP kinematics (LinuxCNC's trt
+    kinematics with its ``tool-offset`` pin, a Fanuc G43.4) turn the tool tip, a tool length below the joints' point,
+    about the rotary axes, which ``TcpFrame`` does not model yet (it takes the joints' point as the tip): the written
+    tip missed by about L sin B, 13.5 mm at B 10 deg with an 87.5 mm tool, exit 0 (a QA pass). Until it does, TCP
+    output is written for a zero tool length only (the tool table's length 0, or ``--offsets-zero`` without it, and
+    the control's ``tool-offset`` 0)."""
+    from .post import PostError
+
+    used = [u for u in prog.setup_used if u["what"].startswith("tool") and any(u["values_mm_deg"][:3])]
+    if used:
+        u = used[0]
+        length = " ".join(f"{a}{v:g}" for a, v in zip("XYZ", u["values_mm_deg"]) if v)
+        raise PostError(source, int(u["first_line"]), f"TCP output with a tool length offset in force ({u['what']} "
+                                                      f"{length} mm): not written, the TCP frame does not model the "
+                                                      "tip a tool length below the joints yet (it would miss by about "
+                                                      "L sin B); use --output-mode joint")
 
 
 def tcp_lines(prog, machine, source: str) -> list:
