@@ -358,6 +358,10 @@ def test_linuxcnc_trt_rotary_sense_reads_and_writes_rotary_words_negated(tmp_pat
     np.testing.assert_array_equal(b.end[:, :3], a.end[:, :3])
     np.testing.assert_allclose(b.end[:, 4:], -a.end[:, 4:], atol=1e-12)
     assert np.abs(a.end[:, 4:]).max() > 0  # rotary words were written
+    # a program position out of travel names the program's own word too (it said "B = 60" for the word B-60)
+    with pytest.raises(Exception, match=r":3: B = 130 \(program word B-130, rotary_sense linuxcnc-trt\)"):
+        compensate("G21 G90 G17\nG0 X0 Y0 Z10 B0 C0\nG1 X10 Y5 Z-1 B-130 F500\nM30\n", trt, "geometric",
+                   offsets_zero=True)
     try:
         parse_machine(trt_text.replace('"linuxcnc-trt"', '"trt"'))
     except MachineFileError as exc:

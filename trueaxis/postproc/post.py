@@ -605,7 +605,7 @@ class _PieceWords(NamedTuple):
 
     first: dict  # k -> index of the piece's first point into ``words``
     pts: dict  # k -> (n, 6) program coordinates of its pieces' ends
-    words: dict | None  # axis letter -> the formatted words of the piece ends the Python writer writes, in order ("" for
+    words: dict | None  # axis letter -> the formatted words of the piece ends the Python writer writes, in order ("":
     # the others, which the compiled writer writes); None: none (``_Poster._piece_texts``)
 
 
@@ -943,10 +943,12 @@ class _Poster:
                     unit = "deg" if ax.is_rotary else "um"
                     if not ax.within_travel(q_nom[k, j]):  # the program's own position, before any correction
                         nominal = np.degrees(q_nom[k, j]) if ax.is_rotary else q_nom[k, j]
+                        said = f" (program word {a}{nominal * self.word_sign[j]:.6g}, rotary_sense " \
+                               f"{self.m.rotary_sense})" if self.word_sign[j] < 0 else ""
                         raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
-                                        f"{a} = {nominal:.10g} (the program's position, in machine coordinates) lies "
-                                        f"outside its travel [{t[0]:g}, {t[1]:g}]: the part or the program does not "
-                                        f"fit this machine there")
+                                        f"{a} = {nominal:.10g}{said} (the program's position, in machine "
+                                        f"coordinates) lies outside its travel [{t[0]:g}, {t[1]:g}]: the part or the "
+                                        f"program does not fit this machine there")
                     raise PostError(self.p.source, int(self.p.line_no[rows[k]]),
                                     f"corrected {a} = {v:.10g}{word} lies outside its travel [{t[0]:g}, {t[1]:g}]"
                                     f" by {by:.4g} {unit}")
