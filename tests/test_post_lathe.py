@@ -298,3 +298,21 @@ def test_the_lathe_report_names_each_set_of_turning_conditions_used(lathe):
     compensate(TURNING, lathe, "comprehensive", report=report)
     assert [(c["conditions"], c["first_line"]) for c in report["cutting_conditions"]] == [
         ({"ap": "2", "f": "0.2", "vc": "180"}, 3), ({"ap": "1", "f": "0.1", "vc": "200"}, 11)]
+
+
+def test_a_g95_feed_that_disagrees_with_the_conditions_comment_is_said(lathe):
+    # The force comes from the comment's f; a program feeding F0.4 per revolution under a comment f=0.2 cut about
+    # 1.8 times the force corrected for, without a word (a QA pass). Said; the same feed, or G94, says nothing.
+    program = ("G18 G21 G90 G95\nG0 X120 Z-5\n(trueaxis: ap=2 f=0.2 vc=180)\nG1 X80 Z-10 F{feed}\nG1 Z-100\n"
+               "G0 X190\nM2\n")
+    for feed, said in (("0.4", True), ("0.2", False)):
+        report = {}
+        compensate(program.format(feed=feed), lathe, "comprehensive", report=report, offsets_zero=True)
+        told = [w for w in report["warnings"] if "per revolution (G95), its conditions comment says" in w]
+        assert len(told) == int(said), report["warnings"]
+        if said:
+            assert told[0].startswith("<string>:4: the program feeds F0.4 per revolution (G95)") and "f=0.2" in told[0]
+    report = {}
+    compensate(program.format(feed="100").replace("G95", "G94"), lathe, "comprehensive", report=report,
+               offsets_zero=True)
+    assert not any("per revolution (G95), its" in w for w in report["warnings"])
