@@ -389,9 +389,8 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
         poster.tool_diameters = {int(t): float(o.diameter) for t, o in getattr(setup, "tools", {}).items()
                                  if getattr(o, "diameter", None)}
         if output_mode == "tcp":
-            from .tcp import TcpFrame, refuse_tool_length, tcp_lines
+            from .tcp import TcpFrame, tcp_lines
 
-            refuse_tool_length(prog, source)
             poster.tcp, poster.fit_arcs = TcpFrame(poster.twin, machine), False
             prog.lines = tcp_lines(prog, machine, source)  # the program's G43 H.. made the control's TCP code
         out, rep = poster.run()

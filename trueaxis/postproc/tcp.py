@@ -108,14 +108,15 @@ def refuse_tool_length(prog, source: str) -> None:
 def tcp_lines(prog, machine, source: str) -> list:
     """The program's lines for TCP output: every ``G43`` (tool length compensation from the table, ``G43 H..``) made
     the machine's TCP code (``[kinematics] tcp_code``, default ``G43.4``: Fanuc-style tool centre point with the tool
-    length of H; LinuxCNC's trt kinematics take ``G43``, kept as it is). Refused (PostError): no G43 before the first
-    move (the control's TCP transform needs the tool length), and canned cycles (their Z moves are along the table's
-    Z in TCP mode, not the tool's)."""
+    length of H; LinuxCNC's trt kinematics take ``G43``, kept as it is). Refused (PostError): a tool length other
+    than zero in force (``refuse_tool_length``), no G43 before the first move (the control's TCP transform needs the
+    tool length), and canned cycles (their Z moves are along the table's Z in TCP mode, not the tool's)."""
     import re
 
     from ..nc.gcode import ROW_CYCLE, ROW_PROGRAMMED
     from .post import PostError, _split_comment, _split_ending
 
+    refuse_tool_length(prog, source)
     code = getattr(machine, "tcp_code", "G43.4")
     if np.any(prog.kind == ROW_CYCLE):
         r = int(np.argmax(prog.kind == ROW_CYCLE))
