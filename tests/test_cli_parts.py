@@ -216,16 +216,27 @@ def test_simulate_refuses_a_program_for_the_other_part(slot_sim, capsys):
     assert not (d / "x.ply").exists()
 
 
-def test_simulate_cuts_with_the_tool_the_program_was_made_for_and_says_so(tmp_path, capsys):
-    # The shop cut an 8 mm tool's program with the machine file's 10 mm tool: 1000 um off everywhere, exit 0.
+def _perfect_cone(tmp_path, name, *options):
+    """(machine file, program) of the cone on the perfect B-C table, uncompensated, with the ``program`` options."""
     machine = tmp_path / "perfect.toml"
     machine.write_text(PERFECT_BC)
-    prog = tmp_path / "cone8.ngc"
+    prog = tmp_path / name
     assert main(["program", "nas979", "--machine", str(machine), "-o", str(prog), "--compensate", "none",
-                 "--tool-diameter", "8"]) == 0
+                 *options]) == 0
+    return machine, prog
+
+
+def _simulate_cone(tmp_path, machine, prog):
+    """``simulate`` of the cone program on the machine, 3000 points into tmp_path / c.ply: its exit status."""
+    return main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
+                 "--points", "3000"])
+
+
+def test_simulate_cuts_with_the_tool_the_program_was_made_for_and_says_so(tmp_path, capsys):
+    # The shop cut an 8 mm tool's program with the machine file's 10 mm tool: 1000 um off everywhere, exit 0.
+    machine, prog = _perfect_cone(tmp_path, "cone8.ngc", "--tool-diameter", "8")
     capsys.readouterr()
-    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
-                 "--points", "3000"]) == 0
+    assert _simulate_cone(tmp_path, machine, prog) == 0
     said = capsys.readouterr().out
     assert said.rstrip().endswith("; cut with the program's tool, d 8 mm (its setup comment's tool_d_mm; the machine "
                                   "file's: d 10 mm)")
@@ -240,14 +251,10 @@ def test_simulate_refuses_a_program_for_another_size_of_the_part(tmp_path, capsy
     from trueaxis.postproc import programs
 
     assert report.check_part_against_program is programs.check_part_against_program
-    machine = tmp_path / "perfect.toml"
-    machine.write_text(PERFECT_BC)
-    prog = tmp_path / "cone70.ngc"
-    assert main(["program", "nas979", "--machine", str(machine), "-o", str(prog), "--compensate", "none",
-                 "--param", "base_diameter=70", "--step-deg", "3", "--chord-tol-um", "5"]) == 0
+    machine, prog = _perfect_cone(tmp_path, "cone70.ngc", "--param", "base_diameter=70", "--step-deg", "3",
+                                  "--chord-tol-um", "5")
     capsys.readouterr()
-    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
-                 "--points", "3000"]) == 3
+    assert _simulate_cone(tmp_path, machine, prog) == 3
     assert _one_line_error(capsys) == ("trueaxis simulate: the program cuts a cone of base_diameter 70; the part's "
                                        "description gives base_diameter 80.0: give the description `trueaxis part` "
                                        "wrote for it (--part-dir)")
@@ -255,13 +262,8 @@ def test_simulate_refuses_a_program_for_another_size_of_the_part(tmp_path, capsy
 
 
 def test_simulate_perfect_machine_cuts_the_cone(tmp_path, capsys):
-    machine = tmp_path / "perfect.toml"
-    machine.write_text(PERFECT_BC)
-    prog = tmp_path / "cone.ngc"
-    assert main(["program", "nas979", "--machine", str(machine), "-o", str(prog), "--compensate", "none",
-                 "--placement-mm", "10,-5"]) == 0
-    assert main(["simulate", str(prog), "--machine", str(machine), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
-                 "--points", "3000"]) == 0
+    machine, prog = _perfect_cone(tmp_path, "cone.ngc", "--placement-mm", "10,-5")
+    assert _simulate_cone(tmp_path, machine, prog) == 0
     truth = json.loads((tmp_path / "c.truth.json").read_text())
     dev = np.array(truth["per_point"]["deviation_um"])
     assert truth["points_not_cut"] == 0
