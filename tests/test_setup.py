@@ -489,7 +489,7 @@ def test_tool_length_offsets_are_said_with_the_tip_error_per_10_mm_they_leave(tm
     report = {}
     out = compensate(MM_PROGRAM, machine, "geometric", setup=setup, report=report, arcs=False)
     said = [w for w in report["warnings"] if "tool length offsets in force" in w]
-    assert len(said) == 1 and "tool 1 offset 63.5 mm" in said[0], report["warnings"]
+    assert len(said) == 1 and "tool 1 offset Z63.5 mm" in said[0], report["warnings"]
     src = tmp_path / "in.ngc"
     src.write_text(MM_PROGRAM)
     theirs = run_rs274_setup(src, *files, tmp_path / "rs274")

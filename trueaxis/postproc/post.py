@@ -1059,8 +1059,8 @@ class _Poster:
         u_act = self.twin.actual_pose(q)[1]
         u_nom = self.twin.nominal_pose(q)[1]
         worst_urad = float(np.linalg.norm(u_act - u_nom, axis=1).max()) * 1e6
-        said = ", ".join(f"{u['what']} {u['values_mm_deg'][2]:g} mm" for u in tools[:3]) + (" ..." if len(tools) > 3
-                                                                                          else "")
+        said = ", ".join(f"{u['what']} " + " ".join(f"{a}{v:g}" for a, v in zip("XYZ", u["values_mm_deg"]) if v)
+                         + " mm" for u in tools[:3]) + (" ..." if len(tools) > 3 else "")  # (a lathe's X too)
         self.rep.tool_axis_error_max_urad = worst_urad
         self.rep.warnings.append(
             f"{p.source}:{tools[0]['first_line']}: tool length offsets in force ({said}): the twin's errors are those "
