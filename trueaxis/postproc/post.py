@@ -400,9 +400,6 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     return out, rep
 
 
-# An axis word of a flattened block: letter, blanks, a plain number (G92 / G10 L20 values).
-_AXIS_WORD = re.compile(r"(?i)([XYZABC])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
-
 # LinuxCNC reads lines of at most 255 characters ("Command too long"; rs274ngc's LINELEN): a program with a longer one
 # is refused whole.
 MAX_LINE = 255
@@ -429,6 +426,13 @@ def _refuse_long_lines(out: str, prog, source: str):
     raise PostError(source, where or 1, f"the compensated block{said} is {len(line)} characters long, over the "
                                         f"{MAX_LINE} LinuxCNC reads (it refuses the whole program): shorten its "
                                         "comment; nothing written")
+
+
+def tool_offsets_in_force(prog) -> list[dict]:
+    """The program's tool length offsets other than zero (its ``setup_used`` entries of tools), each with ``said``:
+    "tool 1 offset Z63.5 mm" (every component given, a lathe's X too)."""
+    return [{**u, "said": f"{u['what']} " + " ".join(f"{a}{v:g}" for a, v in zip("XYZ", u["values_mm_deg"]) if v)
+             + " mm"} for u in prog.setup_used if u["what"].startswith("tool") and any(u["values_mm_deg"][:3])]
 
 
 def arcs_default(machine: Machine) -> bool:
@@ -1051,7 +1055,7 @@ class _Poster:
         tool is a convention of the shop the post is not told). Said with the size it reaches on this program's
         moves: the largest tool-axis error of the twin there (a sample of at most 4096 of them), per 10 mm."""
         p = self.p
-        tools = [u for u in p.setup_used if u["what"].startswith("tool") and any(u["values_mm_deg"][:3])]
+        tools = tool_offsets_in_force(p)
         if not tools or rows.size == 0:
             return
         pick = rows[np.unique(np.linspace(0, rows.size - 1, min(rows.size, 4096)).astype(int))]
@@ -1059,8 +1063,7 @@ class _Poster:
         u_act = self.twin.actual_pose(q)[1]
         u_nom = self.twin.nominal_pose(q)[1]
         worst_urad = float(np.linalg.norm(u_act - u_nom, axis=1).max()) * 1e6
-        said = ", ".join(f"{u['what']} " + " ".join(f"{a}{v:g}" for a, v in zip("XYZ", u["values_mm_deg"]) if v)
-                         + " mm" for u in tools[:3]) + (" ..." if len(tools) > 3 else "")  # (a lathe's X too)
+        said = ", ".join(u["said"] for u in tools[:3]) + (" ..." if len(tools) > 3 else "")
         self.rep.tool_axis_error_max_urad = worst_urad
         self.rep.warnings.append(
             f"{p.source}:{tools[0]['first_line']}: tool length offsets in force ({said}): the twin's errors are those "
@@ -1075,14 +1078,12 @@ class _Poster:
         p = self.p
         if not p.block_delete_lines:
             return
-        deleted = np.asarray(p.block_delete_lines) - 1  # (line indices: the reader's 1-based lines of the text)
-        moves = deleted[np.isin(deleted, p.line_index[rows])]
-        first = int(moves[0]) if moves.size else None
-        if first is not None:
-            first = int(p.line_no[rows[np.argmax(p.line_index[rows] == first)]]) - 1  # (a flattened program's source)
-            self.rep.warnings.append(f"{p.source}:{first + 1}: block delete: the moves are compensated as the "
-                                     "program runs with the block-delete switch off; with it on, the move after a "
-                                     "skipped block starts elsewhere and only its ends are compensated")
+        deleted = np.isin(p.line_index[rows], np.asarray(p.block_delete_lines) - 1)  # (the reader's 1-based lines)
+        if deleted.any():
+            line = int(p.line_no[rows[np.argmax(deleted)]])  # (a flattened program's source line)
+            self.rep.warnings.append(f"{p.source}:{line}: block delete: the moves are compensated as the program runs "
+                                     "with the block-delete switch off; with it on, the move after a skipped block "
+                                     "starts elsewhere and only its ends are compensated")
 
     def _compensate_chunks(self, rows, chunks):
         """``_compensate`` of each chunk of ``rows``, the results in chunk order (a generator). The first chunk here,
@@ -1601,27 +1602,26 @@ class _Poster:
             if not np.any(c[axes]):
                 continue
             text = out[li] if isinstance(out, list) or li in out else p.lines[li]
-            body = text.rstrip("\r\n")
-            cut = min((i for i in (body.find("("), body.find(";")) if i >= 0), default=len(body))
-            code, comment = body[:cut], body[cut:]
-            if re.search(r"(?i)G\s*2[01](?![.\d])", code):
+            words = [t for t in tokenize_line(text) if t[0] == "word"]  # (comments, inline ones too, left alone)
+            if any(re.fullmatch(r"(?i)G0*2[01]", w[1]) for w in words):
                 raise PostError(p.source, li + 1, f"{what} with a change of units on its block: write the G20 / G21 "
                                                   "on a block of its own")
             fmt = numbers.formatter(bool(p.inch[r]))
-            done = set()
-
-            def shifted(m, fmt=fmt, c=c, axes=axes, done=done):
-                i = AXES.index(m.group(1).upper())
-                if i not in axes or i in done:
-                    return m.group(0)
-                done.add(i)
-                return fmt(m.group(1).upper(), float(m.group(2)) + c[i])
-
-            code = _AXIS_WORD.sub(shifted, code)
-            if done != set(axes):  # (a value the flattened block does not write as a number)
+            new, done = {}, set()
+            for _, word, start, end in words:
+                i = AXES.find(word[0].upper())
+                if i in axes and i not in done:
+                    try:
+                        new[start, end] = fmt(word[0].upper(), float(word[1:]) + c[i])
+                    except ValueError:  # (a value the flattened block does not write as a plain number)
+                        break
+                    done.add(i)
+            if done != set(axes):
                 raise PostError(p.source, li + 1, f"{what}: its axis values are not plain numbers here; the correction "
                                                   "the control's position carries cannot be added to them")
-            out[li] = code + comment + text[len(body):]
+            for (start, end), value in sorted(new.items(), reverse=True):
+                text = text[:start] + value + text[end:]
+            out[li] = text
             self.rep.offsets_shifted.append({"line": li + 1, "what": what, "by_program_units": {
                 AXES[i]: float(c[i]) for i in axes}})
 

@@ -93,16 +93,14 @@ def refuse_tool_length(prog, source: str) -> None:
     tip missed by about L sin B, 13.5 mm at B 10 deg with an 87.5 mm tool, exit 0 (a QA pass). Until it does, TCP
     output is written for a zero tool length only (the tool table's length 0, or ``--offsets-zero`` without it, and
     the control's ``tool-offset`` 0)."""
-    from .post import PostError
+    from .post import PostError, tool_offsets_in_force
 
-    used = [u for u in prog.setup_used if u["what"].startswith("tool") and any(u["values_mm_deg"][:3])]
+    used = tool_offsets_in_force(prog)
     if used:
-        u = used[0]
-        length = " ".join(f"{a}{v:g}" for a, v in zip("XYZ", u["values_mm_deg"]) if v)
-        raise PostError(source, int(u["first_line"]), f"TCP output with a tool length offset in force ({u['what']} "
-                                                      f"{length} mm): not written, the TCP frame does not model the "
-                                                      "tip a tool length below the joints yet (it would miss by about "
-                                                      "L sin B); use --output-mode joint")
+        raise PostError(source, int(used[0]["first_line"]), f"TCP output with a tool length offset in force "
+                                                            f"({used[0]['said']}): not written, the TCP frame does not "
+                                                            "model the tip a tool length below the joints yet (it "
+                                                            "would miss by about L sin B); use --output-mode joint")
 
 
 def tcp_lines(prog, machine, source: str) -> list:
