@@ -504,3 +504,16 @@ def test_tool_length_offsets_are_said_with_the_tip_error_per_10_mm_they_leave(tm
     compensate(MM_PROGRAM.replace("G43 H1", "G49").replace("G43 H2", "G49"), machine, "geometric", setup=setup,
                report=plain, arcs=False)
     assert not any("tool length offsets" in w for w in plain["warnings"]) and plain["tool_axis_error_max_urad"] is None
+
+
+@pytest.mark.parametrize("program, lost", [
+    ("G21 G90\nG92 X0 Y0 Z0\nG0 X10 Y10 Z-20\nG1 X20 Y5 Z-30 F100\nM2\n", "X Y Z"),  # the classic start-of-program G92
+    ("G21 G90\nG0 Z-20\nG92 X0 Y0\nG0 X10 Y10\nG1 X20 Y5 Z-30 F100\nM2\n", "X Y"),
+    ("G21 G90\nG0 Z-20\nG10 L20 P1 X0\nG0 X10 Y10\nM2\n", "X"),
+])
+def test_an_offset_set_from_a_position_the_program_never_gave_is_refused(machine, program, lost):
+    # The control's position when the program starts is not in the program: a G92 (or G10 L20) set from it was
+    # taken as set from the program's zero, without a word (the offset and every machine position after it invented)
+    with pytest.raises(Exception, match=rf"<string>:\d: G\S+( L20)? sets its offset from the position of {lost}, "
+                                        "which the program has not given before it"):
+        compensate(program, machine, "geometric", offsets_zero=True)

@@ -982,6 +982,7 @@ class _Poster:
         # whose start it has not) keeps its own words, uncompensated, and the report and stderr say so.
         end_known, start_known, missing = self.known_positions()
         self.start_known = start_known
+        self._refuse_position_sets_from_unknown(missing)
         unknown = ~end_known[rows] | (np.isin(p.motion[rows], (ARC_CW, ARC_CCW)) & ~start_known[rows])
         if np.any(unknown) and self.tcp is not None:
             li = int(p.line_index[rows[np.argmax(unknown)]])
@@ -1047,6 +1048,21 @@ class _Poster:
 
             self.p, delta_prog, pieces = diameter_words(p, rows, delta_prog, pieces)
         return self._write(rows, delta_prog, pieces, arc_mode)
+
+    def _refuse_position_sets_from_unknown(self, missing):
+        """PostError for a G92 / G10 L20 that sets its offset from the position of an axis the program has not given
+        yet (the control's position when the program starts): the offset, and every machine position after it, would
+        be invented (it was taken as set from the program's zero, without a word). ``missing``: ``known_positions``'."""
+        p = self.p
+        for li, axes, what in p.position_sets:
+            r = int(np.searchsorted(p.line_index, li, side="left")) - 1  # the last row before the block
+            lost = [AXES[i] for i in axes if r < 0 or int(missing[r]) >> i & 1]
+            if lost:
+                raise PostError(p.source, li + 1, f"{what} sets its offset from the position of {' '.join(lost)}, "
+                                                  "which the program has not given before it (the control's position "
+                                                  "when it starts): the offset and every machine position after it "
+                                                  "would be invented; move to an absolute position first, or set the "
+                                                  "offset with G10 L2")
 
     def _note_tool_lengths(self, rows):
         """A warning when the program runs under tool length offsets: the twin's errors are its reference tool's
