@@ -94,3 +94,58 @@ def test_the_first_chunk_with_an_error_names_its_block(xh714_wide, monkeypatch):
         errors.append(str(exc.value))
     assert errors[0] == errors[1]
     assert ":151:" in errors[0]
+
+
+FIXTURE_PROGRAMS = ["arcs_planes.ngc", "offsets_tools.ngc", "units_inverse_time.ngc"]
+
+
+def _segments_written(monkeypatch):
+    """A list that counts the output's pieces the writer writes (``post._Writer._segment`` calls with lines)."""
+    seen = []
+    segment = post_module._Writer._segment
+
+    def spy(self, g_hi, line_hi):
+        seen.append(line_hi - self.line)
+        return segment(self, g_hi, line_hi)
+
+    monkeypatch.setattr(post_module._Writer, "_segment", spy)
+    return seen
+
+
+@pytest.mark.parametrize("name", FIXTURE_PROGRAMS + ["cycles", "split", "nist", "non-ascii"])
+def test_the_output_written_as_the_chunks_come_is_the_one_written_at_the_end(xh714_wide, monkeypatch, name):
+    # The writer writes each chunk's lines while the chunks after it are compensated: lines whose rows straddle two
+    # chunks, incremental words and arc centres that count from the chunk before's last written end, G92 values that
+    # carry the correction before them, canned cycles, split moves and fitted arcs, G93 feeds of split pieces, and the
+    # Python writer (a program that is not ASCII) give the bytes and report of one chunk written at the end.
+    kw = {"offsets_zero": True, "tol_um": 0.2, "arcs": True}
+    if name in FIXTURE_PROGRAMS:
+        text = (ROOT / "fixtures" / "programs" / name).read_text()
+    elif name == "cycles":  # (the fixture's cycles the post writes: G17, absolute)
+        lines = (ROOT / "fixtures" / "programs" / "cycles.ngc").read_text().splitlines(keepends=True)
+        text = "".join(lines[i - 1] for i in [1, 2, 3, 4, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 17, 19, 20, 24])
+    elif name == "split":
+        text = SPLIT_PROGRAM
+    elif name == "nist":
+        text, kw = (NIST / "mtc_plate_1.nc").read_text(errors="replace"), {"offsets_zero": True}
+    else:
+        text = SPLIT_PROGRAM.replace("\n", " (\u00d8 10 mm)\n", 3)
+    monkeypatch.setattr(post_module, "ROW_CHUNK", 10**9)
+    whole = {}
+    seen = _segments_written(monkeypatch)
+    expected = compensate(text, xh714_wide, "geometric", report=whole, **kw)
+    assert len(seen) == 1
+    for chunk in (1, 3):
+        for flag in (False, True):
+            monkeypatch.setattr(post_module, "ROW_CHUNK", chunk)
+            monkeypatch.setattr(post_module, "CHUNK_THREADS", flag)
+            seen.clear()
+            rep = {}
+            assert compensate(text, xh714_wide, "geometric", report=rep, **kw) == expected
+            # (the RMS of the corrections sums the chunks' squares: its last digit depends on the chunking)
+            correction = rep.pop("correction")
+            assert correction.keys() == whole["correction"].keys()
+            for axis, figures in correction.items():
+                assert figures == pytest.approx(whole["correction"][axis], rel=1e-12)
+            assert rep == {k: v for k, v in whole.items() if k != "correction"}
+            assert len([n for n in seen if n > 0]) > 3  # written in pieces, not at the end
