@@ -264,6 +264,64 @@ def test_a_flattened_program_posts_and_rs274_reads_the_output_along_the_source_p
     assert d.max() < 0.02, d.max()
 
 
+FLAT_BODY = ["(a flat one)", "G21 G90 G17", "#1 = 10", "G0 X0 Y0 Z-5", "G1 X#1 Y5 Z-11 F200", "G0 Z-5"]
+
+
+@pytest.mark.parametrize("name, lines", [
+    ("percent", ["%"] + FLAT_BODY + ["M30", "%"]),
+    ("program_number", ["%", "O1234"] + FLAT_BODY + ["M30", "%"]),
+    ("program_name", ["%", "O0000(NAME)"] + FLAT_BODY + ["M30", "(not executed)", "%", "(after the closing %)"]),
+    ("percent_ends_it", ["%"] + FLAT_BODY + ["%"]),
+    ("m2", FLAT_BODY + ["M2"]),
+])
+@pytest.mark.parametrize("ending", ["\n", "\r\n"])
+def test_a_flattened_program_keeps_its_percent_lines_first_and_last_and_rs274_reads_the_output(tmp_path, name, lines,
+                                                                                               ending):
+    """The post's header and the flat program's note go after the leading '%' and program number, and the closing
+    '%' stays last: LinuxCNC reads a '%' only as the first line ("Bad character '%' used" before any motion, when
+    the header came first), and a program opened with '%' keeps its closing one after M30 too."""
+    from conftest import MACHINES
+    from trueaxis.machine import load_machine
+    from trueaxis.postproc.post import compensate, without_header
+
+    text = ending.join(lines) + ending
+    out = compensate(text, load_machine(MACHINES / "xh714.toml"), "geometric")
+    rc_in, msg_in, src_end = run_rs274_verdict(text, tmp_path / "in")
+    rc_out, msg_out, out_end = run_rs274_verdict(out, tmp_path / "out")
+    assert rc_in == 0 and rc_out == 0, (msg_in, msg_out)
+    assert len(out_end) == len(src_end) == 3
+    np.testing.assert_allclose(out_end[:, :3], src_end[:, :3], atol=0.01)  # the correction: a few um
+    out_lines = out.splitlines()
+    start = 2 if lines[1].startswith("O") else 1 if lines[0] == "%" else 0
+    assert out_lines[:start] == lines[:start]
+    assert without_header(out).splitlines()[start].startswith("(flattened by trueaxis")
+    assert out_lines[-1] == ("%" if "%" in lines else lines[-1])
+    assert all(line.endswith(ending) for line in out.splitlines(keepends=True))
+
+
+def test_a_flattened_program_with_percent_and_number_names_its_source_lines():
+    text = "%\r\nO1234\r\n#1=10\r\nG0 X#1\r\nG1 X[#1*2] F100\r\nM30\r\n(x)\r\n%\r\n(after)\r\n"
+    prog = parse_program(text, "a.ngc")
+    assert prog.lines[:2] == ["%\r\n", "O1234\r\n"] and prog.lines[2].startswith("(flattened by trueaxis")
+    assert prog.lines[3:] == ["G0 X10\r\n", "G1 X20 F100\r\n", "M30\r\n", "%\r\n"]
+    assert prog.line_no.tolist() == [4, 5]
+    assert [int(n) for n in prog.source_line[:len(prog.lines)]] == [1, 2, 2, 4, 5, 6, 8]
+    assert prog.warnings[0].startswith("a.ngc:3: flattened")
+    with pytest.raises(GcodeError) as info:
+        parse_program(text.replace("#1*2", "1/0"), "a.ngc")
+    assert str(info.value).startswith("a.ngc:5: division by zero")
+
+
+def test_a_programs_start_is_its_percent_and_program_number_lines():
+    from trueaxis.nc.flatten import program_start
+
+    assert program_start("%\nO1234\nG0 X1\n") == len("%\nO1234\n")
+    assert program_start("%\r\nO0000(NAME)\r\n(c)\r\n") == len("%\r\nO0000(NAME)\r\n")
+    assert program_start("G21\n%\n") == 0
+    assert program_start("o100 sub\nG0 X#1\no100 endsub\n") == 0  # an O-word subroutine, not a program number
+    assert program_start("%") == 0  # without a line ending: the file's only line
+
+
 def test_brackets_and_hashes_in_comments_leave_the_program_untouched():
     text = "G21 G90 (tool #3 [rough])\nG0 X1 Y2 ; note [a]\nG1 X3 F100\nM2\n%\n"
     prog = parse_program(text)

@@ -520,7 +520,7 @@ class _Flattener:
                 out.append(text if text.endswith(("\n", "\r")) else text + "\n")
                 src.append(k + 1)
             code = self.line_code(k)[0]
-            if code == "%":
+            if self.lines[k].lstrip()[:1] == "%":  # (as the reader tells a '%' line)
                 percents += 1
                 if percents == 2:
                     break  # the closing '%': what follows is not read
@@ -529,10 +529,23 @@ class _Flattener:
             k += 1
         if src == list(range(1, len(src) + 1)) and all(a is b for a, b in zip(out, self.lines)):
             return None  # '#' or '[' only in comments: nothing evaluated, every line as it is
+        if percents == 1 and k < n:  # ended by M2 / M30 in a program that opened with '%': its closing '%' kept
+            closing = self.closing_percent(k + 1)
+            if closing is not None:
+                out.append(self.lines[closing])  # (as it is: without a line ending, it is the file's last)
+                src.append(closing + 1)
         if out and not self.lines[-1].endswith(("\n", "\r")) and out[-1].endswith("\n") and \
                 self.lines[src[-1] - 1] is self.lines[-1]:
             out[-1] = out[-1][:-1]
         return FlatProgram("".join(out), src)
+
+    def closing_percent(self, start):
+        """The index of the first '%' line from line ``start`` on (None: none). The lines between the program's end
+        and it are not executed, and not written: the flat program is what runs."""
+        for k in range(start, len(self.lines)):
+            if self.lines[k].lstrip()[:1] == "%":
+                return k
+        return None
 
     @property
     def fanuc_called(self):
@@ -693,6 +706,23 @@ def flatten_program(text: str, lines: list | None = None, params: dict | None = 
     return _Flattener(lines, params).run()
 
 
+# The lines a program starts with that stay first: its '%' (LinuxCNC reads one only as the first line: "Bad character
+# '%' used" elsewhere) and its program number (O1234, O0000(NAME)). The flat program's note and the post's header go
+# after them.
+_START_LINE = re.compile(r"^[ \t]*(?:%.*|[Oo][ \t]*[0-9]+[ \t]*(?:[(;].*)?)$")
+
+
+def program_start(text: str, most: int = 3) -> int:
+    """The length in characters of ``text``'s leading '%' and program number lines (at most ``most`` lines, each
+    ended by a line ending; 0: none)."""
+    pos = 0
+    for line in text[:4096].splitlines(keepends=True)[:most]:
+        if not (_START_LINE.match(line.rstrip("\r\n")) and line.endswith(("\n", "\r"))):
+            break
+        pos += len(line)
+    return pos
+
+
 FLAT_NOTE = ("(flattened by trueaxis: parameters, expressions, O-word control flow and M98 subprograms evaluated as "
              "LinuxCNC does)")
 
@@ -700,8 +730,8 @@ FLAT_NOTE = ("(flattened by trueaxis: parameters, expressions, O-word control fl
 def read_flat(text: str, source: str, passthrough: bool, split, interpret):
     """Read ``text`` through the pre-pass, rs274's block checks (:mod:`.check`) and ``interpret`` (text -> Program).
 
-    A program with macros is flattened first; its Program then reads the flat text (its first line a comment saying
-    so), ``Program.source_line`` maps each flat line to the source line, and every message names the source line.
+    A program with macros is flattened first; its Program then reads the flat text (its first line after a leading
+    '%' and program number a comment saying so), ``Program.source_line`` maps each flat line to the source line, and every message names the source line.
     With ``passthrough`` a macro layer the pre-pass refuses is left to the reader, which passes such blocks through.
     """
     from .check import check_blocks
@@ -719,8 +749,11 @@ def read_flat(text: str, source: str, passthrough: bool, split, interpret):
     if flat is None:  # nothing to evaluate (or refused and passed through)
         check_blocks(text, source, passthrough, None)
         return interpret(text)
-    flat_text = FLAT_NOTE + _ending(lines[0]) + flat.text
-    line_map = [1] + flat.source_line
+    at = program_start(flat.text)  # the note after the leading '%' and program number
+    n_start = len(flat.text[:at].splitlines())
+    flat_text = flat.text[:at] + FLAT_NOTE + _ending(lines[0]) + flat.text[at:]
+    line_map = flat.source_line[:n_start] + [flat.source_line[n_start - 1] if n_start else 1] + \
+        flat.source_line[n_start:]
     check_blocks(flat_text, source, passthrough, line_map)
     try:
         prog = interpret(flat_text)

@@ -44,6 +44,7 @@ from ..compiled import kernels_on_this_thread, run_twins, thread_slices
 from ..machine import ErrorTwin, Machine
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
 from ..machine.kinematics import machine_to_part_rotation
+from ..nc.flatten import program_start
 from ..nc.gcode import (
     ARC_CCW,
     ARC_CW,
@@ -502,7 +503,6 @@ def read_post_header(text: str) -> dict | None:
         return None
     fp = re.search(r"^\(trueaxis post: machine file .* sha256 ([0-9a-f]{12})\)[ \t]*\r?$", head, re.MULTILINE)
     return {"mode": m.group(1), "machine": m.group(2).strip(), "sha256": fp.group(1) if fp else None}
-_HEADER_SKIP = re.compile(r"^[ \t]*(?:%.*|[Oo][0-9]+.*)$")
 
 
 def header_lines(rep: PostReport, machine: Machine) -> list:
@@ -542,14 +542,8 @@ def _fit(comment: str, limit: int = 250) -> str:
 
 def with_header(text: str, rep: PostReport, machine: Machine) -> str:
     """``text`` with ``header_lines`` inserted after its leading ``%`` / program number lines, in its line endings."""
-    lines_head = text[:4096].splitlines(keepends=True)
-    pos = 0
-    for line in lines_head[:3]:
-        if _HEADER_SKIP.match(line.rstrip("\r\n")) and line.endswith(("\n", "\r")):
-            pos += len(line)
-        else:
-            break
-    first = lines_head[0] if lines_head else "\n"
+    pos = program_start(text)
+    first = text[:4096].splitlines(keepends=True)[0] if text else "\n"
     ending = "\r\n" if first.endswith("\r\n") else "\n"
     lines = header_lines(rep, machine)
     rep.blocks_out += len(lines)
