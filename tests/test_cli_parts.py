@@ -125,6 +125,24 @@ def test_program_refuses_bad_input(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_program_prints_the_posts_warnings_as_the_post_command_does(tmp_path):
+    """A machine with [cutting] and no force model: the slot block's comprehensive slot warns. The warning was Python's
+    (``programs.py:603: PostWarning: ...`` and the source line that raised it); it is ``file:line: message`` now."""
+    import subprocess
+    import sys
+
+    machine = tmp_path / "m.toml"
+    machine.write_text(PERFECT_3AX)
+    r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "program", "slots", "--machine", str(machine), "-o",
+                        str(tmp_path / "s.ngc")], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr.splitlines() == [
+        "slots.ngc[slot 3]:1: comprehensive mode: the twin of perfect 3-axis mill (test) has no force model (no "
+        "[force] compliance, no [loaded] parameter set, no response surfaces): nothing is corrected for the cutting "
+        "force, the program is compensated as in geometric mode"]
+    assert "PostWarning" not in r.stderr and "compensate(" not in r.stderr
+
+
 # ---------------------------------------------------------------------------------------------------- simulate ----
 @pytest.fixture(scope="module")
 def slot_sim(tmp_path_factory):

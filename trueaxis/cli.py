@@ -10,6 +10,7 @@ written) with 1 (README "How it fails").
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
@@ -229,8 +230,7 @@ def cmd_post(args) -> int:
                             passthrough_unsupported=args.passthrough_unsupported, source=source,
                             cl_feed_mm_min=args.cl_feed, cl_branch=branch, setup=setup, force=args.force,
                             arcs=args.arcs, output_mode=args.output_mode)
-    for warning in report.warnings:  # each 'file:line: message'
-        print(warning, file=sys.stderr)
+    print_warnings(report.warnings)
     if args.strict and report.warnings:
         print(f"trueaxis post: --strict: {len(report.warnings)} warning{'s' if len(report.warnings) > 1 else ''}; "
               f"{args.output} not written", file=sys.stderr)
@@ -248,6 +248,32 @@ def cmd_post(args) -> int:
           f"{len(report.singular_blocks)} singular blocks", file=sys.stderr if "-" in (args.output, args.report)
           else sys.stdout)  # stdout carries the program (or the report) then
     return 0
+
+
+def print_warnings(said) -> None:
+    """The post's warnings on stderr, each one line as it says it: ``file:line: message`` (README)."""
+    for warning in said:
+        print(warning, file=sys.stderr)
+
+
+@contextlib.contextmanager
+def post_warnings():
+    """The post's warnings (``PostWarning``) of the posts run inside printed as the post command prints them
+    (``print_warnings``), not as Python shows a warning (its category, and the source line that raised it); other
+    warnings shown as before."""
+    import warnings
+
+    from .postproc.post import PostWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PostWarning)
+        try:
+            yield
+        finally:
+            print_warnings(str(w.message) for w in caught if issubclass(w.category, PostWarning))
+    for w in caught:
+        if not issubclass(w.category, PostWarning):
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
 
 
 def _decode_program(data: bytes, source: str) -> tuple[str, str]:
@@ -318,8 +344,9 @@ def cmd_program(args) -> int:
             raise UsageError(f"{option} does not apply to the {part.title}")
         options[keyword] = value
     machine = load_machine(machine_file(args.machine or part.default_machine))
-    prog = make(machine, part.params_type.from_overrides(args.param or []),
-                placement_mm=_parse_placement(args.placement_mm), **options)
+    with post_warnings():  # the programs' posts: each warning 'file:line: message', as the post command says them
+        prog = make(machine, part.params_type.from_overrides(args.param or []),
+                    placement_mm=_parse_placement(args.placement_mm), **options)
     atomic_write(args.output, prog.text)
     if args.cl:
         prog.cl.write_csv(args.cl)
