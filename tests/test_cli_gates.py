@@ -79,6 +79,14 @@ def test_report_naming_the_output_or_the_input_is_refused_and_the_input_kept(tmp
     r = run("post", str(program), "-o", str(program), "--machine", BC)
     one_line_refusal(r, 2, "would overwrite the input")
     assert program.read_text() == PROGRAM
+    # the input named once ("would overwrite the input input PATH" named the positional's name as well), an option's
+    # input with its option
+    assert r.stderr == f"trueaxis post: -o {program} would overwrite the input {program}; name another output\n"
+    machine = tmp_path / "m.toml"
+    machine.write_text(Path(BC).read_text())
+    r = run("post", str(program), "-o", str(machine), "--machine", str(machine))
+    assert r.returncode == 2 and r.stderr == (f"trueaxis post: -o {machine} would overwrite the input {machine} "
+                                              "(--machine); name another output\n")
 
 
 def test_an_output_through_a_symbolic_link_replaces_the_target_and_keeps_the_link(tmp_path, program):

@@ -128,7 +128,8 @@ def check_outputs(inputs: Iterable[tuple[str, str | os.PathLike | None]],
             inside = folder and out.exists() and inp.exists() and \
                 Path(os.path.realpath(inp)).is_relative_to(Path(os.path.realpath(out)))
             if _same(out, inp) or inside:
-                raise OutputPathError(f"{name} {out} would overwrite the input {in_name} {inp}; name another output")
+                given = f" ({in_name})" if in_name.startswith("-") else ""  # an option's name; a positional's is not
+                raise OutputPathError(f"{name} {out} would overwrite the input {inp}{given}; name another output")
     for i, (name_a, a, _) in enumerate(outs):
         for name_b, b, _ in outs[i + 1:]:
             if _same(a, b):
