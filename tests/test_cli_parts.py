@@ -279,6 +279,30 @@ def test_simulate_refuses_a_program_for_another_size_of_the_part(tmp_path, capsy
     assert not (tmp_path / "c.ply").exists() and not (tmp_path / "c.truth.json").exists()
 
 
+def test_simulate_refuses_a_program_written_for_another_machine_as_the_post_does(tmp_path, capsys):
+    # Its axis words are that machine's joints: the shop cut another path (exit 0 with thousands of um, or exit 2
+    # "no probe point was cut: nothing to write"). Refused where its header names the machine, exit 3, by the post's
+    # check (post.refuse_other_machine).
+    from trueaxis.machine import load_machine
+    from trueaxis.postproc.programs import header_name
+    from trueaxis.resources import machine_file
+
+    machine, prog = _perfect_cone(tmp_path, "cone.ngc", "--step-deg", "3", "--chord-tol-um", "5")
+    capsys.readouterr()
+    other = machine_file("bc_offset")
+    assert main(["simulate", str(prog), "--machine", str(other), "--part", "nas979", "-o", str(tmp_path / "c.ply"),
+                 "--points", "3000"]) == 3
+    line = next(k for k, t in enumerate(prog.read_text().splitlines(), 1) if t.startswith("(machine: "))
+    assert _one_line_error(capsys) == (
+        f"{prog}:{line}: the program was written for the machine 'perfect B-C table [test]', this simulation is of "
+        f"{header_name(load_machine(other))!r}: its axis words are that machine's joints; simulate the program "
+        "written for this machine (or remove this line)")
+    assert not (tmp_path / "c.ply").exists() and not (tmp_path / "c.truth.json").exists()
+    assert main(["post", str(prog), "-o", str(tmp_path / "p.ngc"), "--machine", str(other)]) == 3
+    assert _one_line_error(capsys).startswith(f"{prog}:{line}: the program was written for the machine 'perfect B-C "
+                                              "table [test]', this post is for ")
+
+
 def test_simulate_perfect_machine_cuts_the_cone(tmp_path, capsys):
     machine, prog = _perfect_cone(tmp_path, "cone.ngc", "--placement-mm", "10,-5")
     assert _simulate_cone(tmp_path, machine, prog) == 0

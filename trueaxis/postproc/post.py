@@ -317,7 +317,7 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     ``force``: post a program that already carries that header (it was compensated already: refused otherwise)."""
     if not force:
         _refuse_posted(text, source)
-    _refuse_other_machine(text, source, machine)
+    refuse_other_machine(text, source, machine)
     if mode not in MODES:
         raise ValueError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
     if not (math.isfinite(tol_um) and tol_um > 0):
@@ -463,17 +463,19 @@ def _refuse_posted(text: str, source: str):
                                      "posting it again would compensate it twice; --force to post it anyway")
 
 
-def _refuse_other_machine(text: str, source: str, machine: Machine):
+def refuse_other_machine(text: str, source: str, machine: Machine, use: tuple = ("this post is for", "post")):
     """PostError when the program's header says it was written for another machine (``programs.written_for``): its
     axis words are that machine's joints, which this machine's kinematics turns into another tool path (a cone for
-    the NMV 1500 DCG posted for another B-C table: its nominal tip 7.4 mm off, in a QA pass)."""
+    the NMV 1500 DCG posted for another B-C table: its nominal tip 7.4 mm off, in a QA pass). ``use``: what is done
+    with the program on ``machine``, for the message: (the words before the machine's name, the verb) (the virtual
+    shop's: ("this simulation is of", "simulate"))."""
     from .programs import header_name, written_for
 
     posted = written_for(text)
     if posted and posted[0] != header_name(machine):
-        raise PostError(source, posted[1], f"the program was written for the machine {posted[0]!r}, this post is "
-                                           f"for {header_name(machine)!r}: its axis words are that machine's joints; "
-                                           "post the program written for this machine (or remove this line)")
+        raise PostError(source, posted[1], f"the program was written for the machine {posted[0]!r}, {use[0]} "
+                                           f"{header_name(machine)!r}: its axis words are that machine's joints; "
+                                           f"{use[1]} the program written for this machine (or remove this line)")
 
 
 def machine_fingerprint(machine: Machine) -> str:

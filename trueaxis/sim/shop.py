@@ -338,16 +338,20 @@ def simulate_program_file(program_path, machine: Machine, part: str, *, effects_
     diagnosis and the identification do: its origin replaces the machine file's ``[workpiece] origin`` (said on
     stderr), and it cuts with the tool the program was made for (``tool_d_mm``; the result's ``machine.tool``). A
     program for the other part, or for another size of the part than the description (``part_dir``, or the part's
-    default; ``programs.check_part_against_program``), is refused with ProgramError; other errors raise ValueError
-    with a clear message."""
+    default; ``programs.check_part_against_program``), is refused with ProgramError, and a program whose header says
+    it was written for another machine with PostError (``post.refuse_other_machine``, as the post refuses it); other
+    errors raise ValueError with a clear message."""
     import sys
 
+    from ..postproc.post import refuse_other_machine
     from ..postproc.programs import check_part_against_program, placed_for
 
     program_path = Path(program_path)
     if not program_path.is_file():
         raise ValueError(f"{program_path}: no such program file")
     text = program_path.read_text(encoding="utf-8", errors="replace")
+    # a program written for another machine: its axis words are that machine's joints (the post's check)
+    refuse_other_machine(text, str(program_path), machine, ("this simulation is of", "simulate"))
     placed = placed_for(machine, text, part)
     part_data = load_part(part, None, part_dir)
     check_part_against_program(part, part_data, text, option="--part-dir")
