@@ -277,3 +277,17 @@ def test_an_empty_output_path_and_a_report_folder_to_stdout_are_refused(tmp_path
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c.xyz", "in.ngc"]  # (nothing written)
     r = run("post", str(program), "-o", "", "--machine", BC, "--offsets-zero")
     one_line_refusal(r, 2, "-o: an empty path")
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["post", "in.ngc", "-o", "out.ngc", "--machine", "m.toml", "--mod", "none"], "unrecognized arguments: --mod"),
+    (["post", "in.ngc", "-o", "out.ngc", "--machine", "m.toml", "--offsets-zer"], "unrecognized arguments: --offsets-zer"),
+    (["machine", "nominal", "m.toml", "--out", "n.toml"], "required: -o/--output")])
+def test_an_abbreviated_option_is_refused_not_taken_for_the_option_it_begins(argv, said, capsys):
+    # argparse takes a unique prefix for the option by default: a mistyped one picked an option without a word
+    from trueaxis.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert said in capsys.readouterr().err

@@ -527,18 +527,27 @@ def cmd_inspect(args) -> int:
 
 
 # ------------------------------------------------------------------------------------------------------ parser ----
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser without abbreviated options: ``--mod`` is not taken for ``--mode`` (a mistyped prefix could
+    pick another option than the one meant, without a word); the subcommands' parsers are of this class too."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
     from .workpiece.part import part_names
 
-    p = argparse.ArgumentParser(prog="trueaxis", description="Machine-tool error compensation: post, inspect, diagnose.",
-                                epilog="Exit status: 0 done; 1 the system refused (a file that cannot be read or "
-                                       "written); 2 usage (an option, a value, a path), nothing written; 3 an "
-                                       "input refused (a program, CL data, a machine file, a setup, a cloud, "
-                                       "tolerances; a --strict warning) or a computed result refused (an "
-                                       "identification that does not explain the part), nothing written; "
-                                       "130 / 143 interrupted (SIGINT / SIGTERM); 141 the reader of standard "
-                                       "output went away (a pipe closed).")
+    p = _Parser(prog="trueaxis", description="Machine-tool error compensation: post, inspect, diagnose.",
+                epilog="Exit status: 0 done; 1 the system refused (a file that cannot be read or "
+                       "written); 2 usage (an option, a value, a path), nothing written; 3 an "
+                       "input refused (a program, CL data, a machine file, a setup, a cloud, "
+                       "tolerances; a --strict warning) or a computed result refused (an "
+                       "identification that does not explain the part), nothing written; "
+                       "130 / 143 interrupted (SIGINT / SIGTERM); 141 the reader of standard "
+                       "output went away (a pipe closed).")
     p.add_argument("--version", action="version", version=f"trueaxis {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
