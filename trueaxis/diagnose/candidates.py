@@ -402,6 +402,36 @@ def rotary_error_motion(state: TwinState, axis: str, motion: str) -> Candidate |
 
 #: Share of the strongest column's independent part (pivoted QR) a twin location error needs to be re-identified.
 TWIN_RESOLVED = 0.1
+# A re-mounted table or a collision moves location errors by a few hundred um / urad, not by millimetres.
+TWIN_SPAN = 300.0
+
+
+def resolved_columns(cols: np.ndarray, seen: np.ndarray, span: float) -> np.ndarray:
+    """Indices of the columns ``cols`` (N, k; um per unit of each parameter) among ``seen`` that a fit can tell
+    apart on these points, chosen greedily: at each step, of the columns whose part independent of the ones kept is
+    at least ``TWIN_RESOLVED`` of their own size, the one whose independent part moves the surface most at its
+    plausible bound (``span`` units); until no column is left with an independent part that large.
+
+    (Until 2026-11-28 a column-pivoted QR of the columns scaled to one size chose among a group of columns that move
+    the surface alike the one with the largest independent share, whatever it could reach: a 10 um change of the C
+    line's Y offset was taken up by a tilt of the B line, which needed 253 urad and another parameter at its bound,
+    and the fit was set aside as not plausible.)"""
+    idx = np.nonzero(seen)[0]
+    size = np.linalg.norm(cols[:, idx], axis=0)
+    resid = cols[:, idx] / size  # unit columns, made independent of the kept ones step by step (Gram-Schmidt)
+    reach = size * span
+    keep, free = [], np.ones(idx.size, bool)
+    while True:
+        share = np.linalg.norm(resid, axis=0)
+        ok = free & (share >= TWIN_RESOLVED)
+        if not ok.any():
+            break
+        j = int(np.argmax(np.where(ok, share * reach, -np.inf)))
+        keep.append(idx[j])
+        free[j] = False
+        u = resid[:, j] / share[j]
+        resid = resid - np.outer(u, u @ resid)
+    return np.sort(np.asarray(keep, int))
 
 
 def twin_parameters(state: TwinState, min_norm_um: float = 1e-3) -> Candidate | None:
@@ -416,24 +446,18 @@ def twin_parameters(state: TwinState, min_norm_um: float = 1e-3) -> Candidate | 
     seen = np.sqrt(np.mean(cols**2, axis=0)) > min_norm_um
     if not np.any(seen):
         return None
-    # Only the location errors this part resolves: a column-pivoted QR of the scaled columns keeps those whose
-    # independent part is at least ``TWIN_RESOLVED`` of the strongest (two offsets that move the surface alike on
-    # this part, say an offset of C's line and one of B's, are one parameter here; the kept one takes up both).
-    from scipy.linalg import qr
-
-    idx = np.nonzero(seen)[0]
-    a = cols[:, idx] / np.sqrt(np.mean(cols[:, idx] ** 2, axis=0))
-    _, r, piv = qr(a, mode="economic", pivoting=True)
-    d = np.abs(np.diag(r))
-    keep = np.sort(idx[piv[d > TWIN_RESOLVED * d[0]]])
+    # Only the location errors this part resolves (two offsets that move the surface alike on this part, say an
+    # offset of C's line and a tilt of B's, are one parameter here; the kept one takes up both), and of each group
+    # of such the one that can take it up within its plausible bound: ``resolved_columns``.
+    keep = resolved_columns(cols, seen, TWIN_SPAN)
     seen = np.zeros_like(seen)
     seen[keep] = True
     kept = [n for n, s in zip(names, seen) if s]
     from ..machine.model import unit_of
 
     units = [unit_of(n) for n in kept]
-    # A re-mounted table or a collision moves location errors by a few hundred um / urad, not by millimetres.
-    return Candidate("twin_parameters", cols[:, seen], [f"d{n}" for n in kept], units, [(-300.0, 300.0)] * len(kept),
+    return Candidate("twin_parameters", cols[:, seen], [f"d{n}" for n in kept], units,
+                     [(-TWIN_SPAN, TWIN_SPAN)] * len(kept),
                      "changes of the twin's own location errors (re-identification), not a new effect")
 
 
