@@ -466,8 +466,8 @@ def cmd_inspect(args) -> int:
 
     if args.identify and not (args.machine and args.program):
         raise UsageError("--identify needs --machine TWIN.toml and --program PROG.ngc")
-    if not args.identify and (args.machine or args.program or args.write):
-        raise UsageError("--machine, --program and --write go with --identify")
+    if not args.identify and (args.machine or args.program or args.write or args.setup_sigma_um is not None):
+        raise UsageError("--machine, --program, --write and --setup-sigma-um go with --identify")
     out_dir = Path(args.output) if args.output is not None else \
         Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
     if args.machine:  # a file, or a fixture machine's short name, as every other command takes it
@@ -492,7 +492,7 @@ def cmd_inspect(args) -> int:
 
             report, identification = run_identification(result.aligned_cloud(), result.deviation_um, result.part,
                                                         machine=args.machine, program=args.program, write=args.write,
-                                                        alignment=args.align)
+                                                        alignment=args.align, setup_sigma_um=args.setup_sigma_um)
             result.report["identification"] = report
         with single_blas_thread():
             write_report(result, out_dir, figure_worker=figures)
@@ -729,6 +729,9 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--program", help="with --identify: the program that cut the part")
     i.add_argument("--write", help="with --identify: write the updated machine file here (only when the fit is "
                    "accepted or changes nothing; a refused fit writes nothing and exits 3)")
+    i.add_argument("--setup-sigma-um", type=NON_NEGATIVE, default=None, metavar="UM",
+                   help="with --identify: the size of the part's set-up offset (how far it may sit off in its frame), "
+                        "fitted as nuisance and never written (default 5 um; 0: the set-up is known exactly)")
     i.set_defaults(func=cmd_inspect)
     return p
 

@@ -48,21 +48,21 @@ squares with every other parameter held at the twin's value (the worst dropped w
 function's level (``reference_parameters``) are always held: only the sum of the constant parts of all functions
 along one direction reaches the tool.
 
-Standard deviations and significance. The noise part is s^2 (A_S^T W A_S)^-1. The parameters held at the twin's
-values (all with an effect on the part that are not fitted, those outside ``parameters`` included) are not known
-either: each can differ from the truth by about its typical size, and whatever of it the fitted ones can mimic, they
-absorb (a parameter seen in part takes a held one's error; the cone's YOC takes an AOC it cannot tell apart). That
-bias is C theta_h with C = N_SS^-1 N_Sh; a zero-mean Gaussian prior at the typical sizes on theta_h gives it the
-covariance C diag(typical^2) C^T, added to the noise part: the analytic form of the Monte Carlo over the unseen
-parameters that ISO/TS 15530-4 uses for CMM tasks (exact here, the model being linear). A fitted parameter keeps its
-change only when the change is at least ``significance`` (3) times its noise std (the data demand it); the others
-are dropped, least significant first, and held. ``robust`` re-weights the rows by the soft-L1 (or Huber) loss,
-iteratively re-weighted least squares: the stationary point of ``scipy.optimize.least_squares(loss="soft_l1")``
-with ``f_scale`` from the residuals' MAD.
+Standard deviations and significance. The noise part is s^2 (A_S^T W A_S)^-1. The parameters held at the twin's values
+(all with an effect on the part that are not fitted, those outside ``parameters`` included) are not known either: each
+can differ from the truth by about its typical size, and whatever of it the fitted ones can mimic, they absorb (a
+parameter seen in part takes a held one's error; the cone's YOC takes an AOC it cannot tell apart). That bias is C
+theta_h with C = N_SS^-1 N_Sh; a zero-mean Gaussian prior at the typical sizes on theta_h gives it the covariance C
+diag(typical^2) C^T, added to the noise part: the analytic form of the Monte Carlo over the unseen parameters that
+ISO/TS 15530-4 uses for CMM tasks (exact here, the model being linear). A fitted parameter keeps its change only when
+the change is at least ``significance`` (3) times its noise and set-up std (the data demand it; see the set-up offset
+below); the others are dropped, least significant first, and held. ``robust`` re-weights the rows by the soft-L1 (or
+Huber) loss, iteratively re-weighted least squares: the stationary point of
+``scipy.optimize.least_squares(loss="soft_l1")`` with ``f_scale`` from the residuals' MAD.
 
 Verdict. *accepted*: the residual RMS is below the deviation RMS and below the twin's own misfit, and the
 improvement holds on held-out points (the fit repeated without every 5th of 20 blocks of the tool path in program
-order; the held-out mean square must fall by at least half of what the fit's own points gain). *no change*: no
+order; the held-out mean square must fall at least half way to the fit's residual on its own points). *no change*: no
 change is significant, or the changes would explain less than half the noise (RMS): the twin's values stand.
 *refused*: any accepted test fails; ``inspect --write`` then writes nothing and exits 3.
 
@@ -78,7 +78,21 @@ The written changes together may hide at most ``min_explained`` x the noise (RMS
 change hiding the most is held at the twin's value (reported as ``hidden_by_alignment``) and the fit repeated, and
 a fit above it is never accepted. On the cone this holds the C line's offsets and EXX: a best-fitted cone
 identifies form (two-per-turn motions and the like) only. With "datum" (a 3-2-1 frame on the stock's uncut datum
-planes) nothing the machine cut is moved and the model has no nuisance.
+planes) nothing the machine cut is moved and the model has no alignment nuisance.
+
+The part's set-up offset. With "none" and "datum" the part may sit a few um off (clamped off in its fixture, its work
+offset set off; and the constant level of the axes' errors, which their gauge leaves out): a translation t of the
+part, deviation n . t. It is fitted with the changes as nuisance with a zero-mean Gaussian prior (``setup_sigma_um``,
+5 um per direction): the MAP fit (N + R)^-1 rhs, R = s^2 / sigma^2 on its columns. Reported (``setup_offset``), never
+written. A change counts as significant only against its noise and set-up std together (the set-up's share
+s^2 diag((N + R)^-1 R (N + R)^-1), the bias a set-up offset of its prior size leaves): the next part is clamped
+again, and a change that a set-up offset could have made would write this clamping into the twin (a 3 um offset of
+the slot block along Y was written as EYY.P1 +11 um, EYX@400 +6 um, C0Y +6 urad, and a run of the full case as A0Z
++1014 urad). Which parameters are seen is judged without it. A fit that puts more than ``SETUP_PLAUSIBLE`` (3) sigma
+in the set-up has found the machine's own translation of the part (the cone's C line offsets move it by tens of um),
+not a set-up: the set-up is then held at zero while the changes are fitted (in their std and significance as a held
+quantity at its prior) and fitted after them for the report. The verdict weighs what the changes explain beyond the
+twin as it is with the set-up offset fitted.
 
 Units: mm and rad inside, deviations and errors in um, angles in urad; reports name their units in their keys.
 """
@@ -391,38 +405,46 @@ def _alignment_rows(points, normals):
 
 @dataclass
 class _System:
-    N: np.ndarray       # (Q, Q) normal matrix over [alignment?, active parameters]
+    N: np.ndarray       # (Q, Q) normal matrix over [nuisance (alignment or set-up)?, active parameters]
     rhs: np.ndarray     # (Q,)
     scale: np.ndarray   # (Q,) column norms (equilibration)
     btb: float          # sum of omega b^2
     n: float            # number of rows
     wsum: float         # sum of omega
+    ridge: np.ndarray | None = None  # (Q,) prior precision per column, in N's units (the set-up offset's; else 0)
+
+    def regularised(self, cols) -> np.ndarray:
+        """N over ``cols`` with the prior's precision on its diagonal: the normal matrix of the MAP fit."""
+        A = self.N[np.ix_(cols, cols)]
+        return A if self.ridge is None else A + np.diag(self.ridge[cols])
 
 
-def _assemble(jac: _Jacobians, inv, w, b, omega, g=None) -> _System:
+def _assemble(jac: _Jacobians, inv, w, b, omega, g=None, ridge=None) -> _System:
+    """Normal equations of the rows w_i^T J(q_k) (weights omega) and the nuisance rows g (N, na) in front; ``ridge``
+    (na + P,) the prior precision of each column (the set-up offset's), kept apart from the data's N."""
     k = jac.q.shape[0]
     ow = omega[:, None] * w
     M = _grouped(inv, ow, w, k, symmetric=True)                                  # (k, 6, 6)
     v = np.stack([np.bincount(inv, ow[:, i] * b, minlength=k) for i in range(6)], axis=1)
     P = jac.cols.size
-    na = 0 if g is None else 6
+    na = 0 if g is None else g.shape[1]
     N = np.zeros((na + P, na + P))
     rhs = np.zeros(na + P)
     if g is not None:
         og = omega[:, None] * g
-        N[:6, :6] = og.T @ g
-        rhs[:6] = og.T @ b
-        G = _grouped(inv, og, w, k)                              # (k, 6, 6): sum omega g w^T
+        N[:na, :na] = og.T @ g
+        rhs[:na] = og.T @ b
+        G = _grouped(inv, og, w, k)                              # (k, na, 6): sum omega g w^T
     for sl, J in jac.chunks():
         Jf = J.reshape(-1, P)
         N[na:, na:] += Jf.T @ (M[sl] @ J).reshape(-1, P)
         rhs[na:] += Jf.T @ v[sl].reshape(-1)
         if g is not None:
-            N[:6, na:] += np.einsum("kij,kjp->ip", G[sl], J)
+            N[:na, na:] += np.einsum("kij,kjp->ip", G[sl], J)
     if g is not None:
-        N[na:, :6] = N[:6, na:].T
+        N[na:, :na] = N[:na, na:].T
     d = np.sqrt(np.maximum(np.diag(N), 0.0))
-    return _System(N, rhs, d, float(np.sum(omega * b * b)), float(b.size), float(np.sum(omega)))
+    return _System(N, rhs, d, float(np.sum(omega * b * b)), float(b.size), float(np.sum(omega)), ridge)
 
 
 @dataclass
@@ -460,7 +482,7 @@ def _independent(system: _System, cols, tol: float = 1e-8):
 
     def ok(c):
         d = 1.0 / system.scale[c]
-        return c.size == 0 or np.linalg.eigvalsh(system.N[np.ix_(c, c)] * d[:, None] * d[None, :])[0] > tol
+        return c.size == 0 or np.linalg.eigvalsh(system.regularised(c) * d[:, None] * d[None, :])[0] > tol
 
     if ok(cols):
         return cols
@@ -472,15 +494,16 @@ def _independent(system: _System, cols, tol: float = 1e-8):
 
 
 def _least_squares(system: _System, chosen):
-    """Weighted least squares over the columns ``chosen``, the others held: theta (Q,), covariance per unit variance
-    (Q, Q), residual variance s^2 (um^2)."""
+    """Weighted least squares over the columns ``chosen``, the others held (with the set-up offset's prior where
+    ``system.ridge`` has one: the MAP fit): theta (Q,), covariance per unit variance (Q, Q), residual variance s^2
+    (um^2)."""
     Q = system.N.shape[0]
     theta = np.zeros(Q)
     cov = np.zeros((Q, Q))
     if chosen.size == 0:
         return theta, cov, system.btb / max(1.0, system.n)
     d = 1.0 / system.scale[chosen]
-    A = system.N[np.ix_(chosen, chosen)] * d[:, None] * d[None, :]
+    A = system.regularised(chosen) * d[:, None] * d[None, :]
     fac = cho_factor(A)
     theta[chosen] = cho_solve(fac, system.rhs[chosen] * d) * d
     cov[np.ix_(chosen, chosen)] = cho_solve(fac, np.eye(chosen.size)) * d[:, None] * d[None, :]
@@ -512,6 +535,12 @@ def _fit_identifiable(system: _System, chosen, typical, max_relative_std, na, no
 
 
 ALIGNMENT_TYPICAL = 1000.0  # um, urad: a best fit moves the part freely
+#: A part's set-up offset, um per direction (the prior's sigma; uncalibrated, as typical_magnitude's): a part clamped
+#: a few um off in its fixture, a work offset probed to a few um, and the constant level of the axes' component
+#: errors, which their gauge (``reference_parameters``) leaves to it. Fitted as nuisance, never written.
+SETUP_TYPICAL_UM = 5.0
+SETUP_NAMES = ("TX", "TY", "TZ")  # the set-up offset: a translation of the part in its frame, um
+SETUP_PLAUSIBLE = 3.0  # a set-up offset fitted beyond this many prior sigma is the machine's translation of the part
 #: Fewest held-out points for the held-out check of a fit (as for the points used at all): with fewer the check
 #: cannot run, and an identification it cannot check is never accepted.
 MIN_HELDOUT_POINTS = 10
@@ -544,19 +573,22 @@ def typical_magnitude(name: str, machine: Machine) -> float:
 class Identification:
     """What ``identify`` found. Values in the machine file's units (um / urad).
 
-    names : (P,) every twin parameter.  prior, value : (P,) the twin's values before and after (only ``identified``
-    ones changed).  std : (P,) standard deviation of the identified ones (NaN for the rest): the noise part
-    ``std_noise`` and the aliasing part ``std_alias`` (what the held parameters, at their typical sizes, can push
-    into it) added in quadrature.  identified : (P,) bool: fitted and its change significant.
-    seen_share : (P,) share of each parameter inside the combinations the part determines (1: the part sees it
-    alone; 0: not at all; NaN: no effect).  no_effect : (P,) bool.
-    confounded_with : name -> [(name, coefficient), ...]: the identified parameters whose combination looks most
-    like it.  poorly_determined : name -> (std / typical size, std) of those dropped for their uncertainty.
-    not_significant : name -> (change, std) of those fitted but dropped because the change was below
-    ``significance`` std.  alignment : the rigid motion fitted (alignment "bestfit").  residual_um : (N,) per point
-    after the fit (NaN where no contact).  singular_values_um : RMS deviation of a typical-size change along each
-    combination, descending.  unseen : the combinations the part cannot see.  machine : the twin with the fitted
-    values.  verdict : "accepted" | "no change" | "refused", with ``reasons`` and the held-out check ``heldout``.
+    names : (P,) every twin parameter.  prior, value : (P,) the twin's values before and after (only ``identified`` ones
+    changed).  std : (P,) standard deviation of the identified ones (NaN for the rest): the noise part ``std_noise`` and
+    the aliasing part ``std_alias`` (what the held parameters and the part's set-up offset, at their typical sizes, can
+    push into it; the set-up's share is ``std_setup``) added in quadrature. identified : (P,) bool: fitted and its
+    change significant (against its noise and set-up std). seen_share : (P,) share of each parameter inside the
+    combinations the part determines (1: the part sees it alone; 0: not at all; NaN: no effect).  no_effect : (P,) bool.
+    confounded_with : name -> [(name, coefficient), ...]: the identified parameters whose combination looks most like
+    it.  poorly_determined : name -> (std / typical size, std) of those dropped for their uncertainty. not_significant :
+    name -> (change, std) of those fitted but dropped because the change was below ``significance`` std.  alignment :
+    the rigid motion fitted (alignment "bestfit").  setup_offset : the part's set-up offset fitted as nuisance ("none",
+    "datum"; TX_um ... with their std; never written).  residual_um : (N,) per point after the fit (NaN where no
+    contact).  predicted_rms_um : residual RMS of the twin as it is; placed_rms_um : the same with the nuisance (set-up
+    offset, best fit) alone fitted, what the changes must beat.  singular_values_um : RMS deviation of a typical-size
+    change along each combination, descending.  unseen : the combinations the part cannot see.  machine : the twin with
+    the fitted values.  verdict : "accepted" | "no change" | "refused", with ``reasons`` and the held-out check
+    ``heldout``.
     """
 
     names: list
@@ -593,6 +625,9 @@ class Identification:
     normals_flipped: int | None = None  # cloud normals turned outward (``outward_normals``); None: the part's normals
     hidden_by_alignment: dict = field(default_factory=dict)  # name -> (change, hidden RMS um): held, see identify
     hidden_rms_um: float | None = None  # the written changes' effect a best fit hides, um RMS (None: no best fit)
+    setup_offset: dict = field(default_factory=dict)  # the part's set-up offset fitted as nuisance (never written)
+    std_setup: np.ndarray | None = None  # (P,) the share of std_alias a set-up offset of its prior size leaves
+    placed_rms_um: float | None = None  # residual RMS of the twin as is with the nuisance alone fitted, um
 
     @property
     def accepted(self) -> bool:
@@ -610,6 +645,8 @@ class Identification:
             if self.std_noise is not None:
                 entry[f"std_noise_{u}"] = _r(self.std_noise[i])
                 entry[f"std_aliasing_{u}"] = _r(self.std_alias[i])
+            if self.std_setup is not None:
+                entry[f"std_setup_{u}"] = _r(self.std_setup[i])  # of std_aliasing: the part's set-up offset's share
             # written because the part needs it (significant against the noise), yet its own value not determined
             # (the change within 2 of its std with aliasing): one term of a combination that predicts this part,
             # not a measurement of that error alone
@@ -640,9 +677,9 @@ class Identification:
             elif name in self.not_significant:
                 ch, sd = self.not_significant[name]
                 detail.append({"name": name, "category": "not_significant", "seen_share": _r(self.seen_share[i], 3),
-                               "reason": f"change {ch:+.3g} +- {sd:.3g} {unit_of(name)} (noise std) is not "
-                                         f"significant (below {self.options.get('significance', 3.0):g} std): kept at "
-                                         "the twin's value"})
+                               "reason": f"change {ch:+.3g} +- {sd:.3g} {unit_of(name)} (noise and set-up std) is "
+                                         f"not significant (below {self.options.get('significance', 3.0):g} std): "
+                                         "kept at the twin's value"})
             elif name in self.poorly_determined:
                 rel, sd = self.poorly_determined[name]
                 detail.append({"name": name, "category": "poorly_determined", "seen_share": _r(self.seen_share[i], 3),
@@ -657,6 +694,9 @@ class Identification:
                       + (f" (robust: IRLS {self.options.get('loss')})" if self.options.get("robust") else ""),
             "verdict": {"status": self.verdict, "reasons": list(self.reasons),
                         "residual_before_rms_um": _r(self.predicted_rms_um),
+                        # the twin as is with the part's set-up offset (or the best fit) alone fitted: the changes'
+                        # baseline
+                        "residual_placed_rms_um": None if self.placed_rms_um is None else _r(self.placed_rms_um),
                         "residual_after_rms_um": _r(self.residual_rms_um),
                         "deviation_rms_um": _r(self.deviation_rms_um), "heldout": self.heldout},
             "std_method": STD_METHOD if self.options.get("alias_prior", True) else "noise only (s^2 (A^T W A)^-1)",
@@ -678,6 +718,9 @@ class Identification:
             "not_identifiable_by_category": {c: sum(d["category"] == c for d in detail)
                                              for c in dict.fromkeys(d["category"] for d in detail)},
             "alignment": self.alignment,
+            # "none" / "datum": the part's set-up offset (a translation of the part in its frame), fitted as nuisance
+            # with a prior of prior_sigma_um per direction; reported, never written to the twin
+            "setup_offset": self.setup_offset,
             # bestfit: the changes' effect on the part that a rigid motion reproduces (the alignment hides it)
             "alignment_hidden_rms_um": None if self.hidden_rms_um is None else _r(self.hidden_rms_um),
             "deviation_rms_um": _r(self.deviation_rms_um),
@@ -703,8 +746,16 @@ class Identification:
         h = self.heldout
         ho = (f"; held-out points {h['before_rms_um']:.2f} -> {h['after_rms_um']:.2f} um (fit predicted "
               f"{h['fit_before_rms_um']:.2f} -> {h['fit_after_rms_um']:.2f})" if "before_rms_um" in h else "")
-        out.append(f"  residual RMS {self.predicted_rms_um:.2f} um with the twin as is -> {self.residual_rms_um:.2f} "
-                   f"um after; deviation RMS {self.deviation_rms_um:.2f} um{ho}")
+        placed = ""
+        if self.setup_offset and self.placed_rms_um is not None:
+            placed = f" ({self.placed_rms_um:.2f} um with the part's set-up offset)"
+        out.append(f"  residual RMS {self.predicted_rms_um:.2f} um with the twin as is{placed} -> "
+                   f"{self.residual_rms_um:.2f} um after; deviation RMS {self.deviation_rms_um:.2f} um{ho}")
+        if self.setup_offset:
+            t = self.setup_offset
+            out.append("  set-up offset of the part (fitted, not written): " + ", ".join(
+                f"{a} {t[a + '_um']:+.2f} +- {t[a + '_std_um']:.2f}" for a in SETUP_NAMES
+                if t.get(a + "_um") is not None) + " um")
         if self.normals_flipped:
             out.append(f"  cloud normals: {self.normals_flipped} of {self.n_points} pointed into the part and were "
                        "flipped to its outward side")
@@ -712,7 +763,8 @@ class Identification:
             u = unit_of(self.names[i])
             alone = abs(self.value[i] - self.prior[i]) > 2.0 * self.std[i]
             out.append(f"  {self.names[i]:10s} change {self.value[i] - self.prior[i]:+9.2f} +- {self.std[i]:.2f} {u}"
-                       f" (noise {self.std_noise[i]:.2f}, aliasing {self.std_alias[i]:.2f})"
+                       f" (noise {self.std_noise[i]:.2f}, aliasing {self.std_alias[i]:.2f}"
+                       + (f" of which set-up {self.std_setup[i]:.2f}" if self.setup_offset else "") + ")"
                        + ("" if alone else "  [in combination: not determined alone]"))
         if self.hidden_by_alignment:
             out.append("  hidden by the best fit, kept: " + ", ".join(
@@ -749,7 +801,8 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
              loss: str = "soft_l1", alignment: str = "none", max_relative_std: float = 0.2, min_share: float = 0.6,
              weights=None, path: ToolPath | None = None, max_gap_mm: float = 0.5,
              irls_iterations: int = 10, significance: float = 3.0, alias_prior: bool = True,
-             holdout_blocks: int = 20, holdout_every: int = 5, min_explained: float = 0.5) -> Identification:
+             holdout_blocks: int = 20, holdout_every: int = 5, min_explained: float = 0.5,
+             setup_sigma_um: float = SETUP_TYPICAL_UM) -> Identification:
     """Identify the twin's error parameters from a measured part.
 
     points : (N, 3) measured points, mm, part frame.  normals : (N, 3) unit outward normals of the nominal surface.
@@ -765,13 +818,20 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     alignment : how the deviations were aligned: "none" (part frame as fixed by the fixture) | "datum" (3-2-1 on
         the stock's datum planes: no machine-error mode removed) | "bestfit" (the six rigid motions removed: fitted
         as nuisance here too).
+    setup_sigma_um : with "none" and "datum", the part's set-up offset (a translation of the part in its frame: how
+        far it was clamped or its work offset set off, and the constant level of the axes' errors that their gauge
+        leaves out) is fitted as nuisance with a zero-mean Gaussian prior of this size per direction (um; inf: free,
+        0: none, the set-up known exactly). It is reported (``setup_offset``), never written; a change counts as
+        significant only against its noise and set-up std together, so no set-up offset of that size becomes an
+        axis error. Not used with "bestfit" (its free translation covers it).
     max_relative_std : a combination of parameters (in typical sizes, ``typical_magnitude``) counts as seen when
         the data determine it to better than this share of a typical size; an identified parameter must be
         determined that well too.
     min_share : a parameter is fitted when at least this share of it lies in the seen combinations.
-    significance : a fitted parameter keeps its change only when |change| >= significance x its noise std (the
-        data demand the change); the others are dropped one by one (least significant first) and held at the
-        twin's value. The reported std adds the aliasing (``alias_prior``).
+    significance : a fitted parameter keeps its change only when |change| >= significance x its noise and set-up
+        std (the data demand the change, and no set-up offset of a typical size makes it); the others are dropped
+        one by one (least significant first) and held at the twin's value. The reported std adds the aliasing of
+        the held parameters (``alias_prior``).
     alias_prior : include the aliasing of the held parameters (typical-size prior) in the std.
     holdout_blocks, holdout_every : the tool path (program order) is cut into ``holdout_blocks`` blocks and every
         ``holdout_every``-th block's points are held out of a second fit that checks the predicted improvement.
@@ -795,6 +855,8 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         raise ValueError(f"max_relative_std must be > 0 and min_share in (0, 1]; got {max_relative_std}, {min_share}")
     if not (significance >= 0 and holdout_blocks >= 2 and 2 <= holdout_every <= holdout_blocks):
         raise ValueError("significance must be >= 0 and 2 <= holdout_every <= holdout_blocks")
+    if not setup_sigma_um >= 0:
+        raise ValueError(f"setup_sigma_um must be >= 0 (inf: a free set-up offset), got {setup_sigma_um}")
     if np.any(np.abs(np.linalg.norm(n, axis=1) - 1.0) > 1e-3):
         raise ValueError("normals must be unit vectors")
     omega0 = np.ones(x.shape[0]) if weights is None else np.asarray(weights, float).reshape(-1)
@@ -822,8 +884,11 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     uniq, inv = np.unique(contacts.sample[idx], return_inverse=True)
     w = contact_weights(n[idx], contacts.lever_mm[idx])
     rigid = _RIGID_NUISANCE[alignment]
-    g = _alignment_rows(x0[idx], n[idx]) if rigid else None
-    na = 6 if rigid else 0
+    # Nuisance columns in front: a best fit's six rigid motions, or the part's set-up offset (a translation of the
+    # part in its frame, um: the deviation moves by n . t), which no machine parameter may take.
+    setup = not rigid and setup_sigma_um > 0
+    g = _alignment_rows(x0[idx], n[idx]) if rigid else (n[idx].copy() if setup else None)
+    na = 0 if g is None else g.shape[1]
 
     # Columns: every parameter but the gauge values (the held ones enter the aliasing prior); may_change: those the
     # caller lets the fit change.
@@ -834,22 +899,41 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     jac = _Jacobians(twin, path.q[uniq], cols)
     b = dev[idx] - contacts.gap_um[idx]                          # what the twin does not explain yet
     omega = omega0[idx] / np.mean(omega0[idx])
-    typical = np.r_[np.full(na, ALIGNMENT_TYPICAL), [typical_magnitude(names[c], machine) for c in cols]]
+    nuisance_typical = setup_sigma_um if setup and math.isfinite(setup_sigma_um) else ALIGNMENT_TYPICAL
+    typical = np.r_[np.full(na, nuisance_typical), [typical_magnitude(names[c], machine) for c in cols]]
     col_names = list(ALIGNMENT_NAMES[:na]) + [names[c] for c in cols]
 
     system = _assemble(jac, inv, w, b, omega, g)
     active = system.scale > 1e-9 * max(system.scale.max(), 1e-300)
     act_all = np.nonzero(active)[0]
     act = np.nonzero(active & may_change)[0]
+    # Which parameters the part sees: the spectrum of the parameters (and a best fit's rigid motions), as if the
+    # part's set-up were known. The set-up offset enters the fit below, with its prior: a parameter it could mimic
+    # is fitted where the data ask for more than a set-up offset of its typical size (the significance test), and
+    # the set-up takes it otherwise. (Seen against a free set-up, every parameter that moves the cone along its
+    # axis, its size, would drop out, and a machine's 65 um of it would be called a set-up offset.)
+    setup_cols = act[act < na] if setup else np.array([], int)
+    if setup:
+        act = act[act >= na]
+        s2_noise = _spectrum(system, np.r_[setup_cols, act], typical, max_relative_std).s2  # the set-up free
     spec = _spectrum(system, act, typical, max_relative_std)
+    if not setup:
+        s2_noise = spec.s2
+    ridge = None
+    if setup and math.isfinite(setup_sigma_um):
+        # The set-up offset's prior in the units of N: minimising sum omega r^2 / s^2 + |t|^2 / sigma^2 is the least
+        # squares of N + (s^2 / sigma^2) I on its columns.
+        ridge = np.zeros(system.N.shape[0])
+        ridge[:na] = s2_noise / setup_sigma_um**2
+        system.ridge = ridge
     share = np.full(system.N.shape[0], np.nan)
     share[act] = spec.share
     seen = act[(act >= na) & (spec.share >= min_share)]
     seen = seen[np.argsort(-spec.share[np.searchsorted(act, seen)], kind="stable")]
     candidates = _independent(system, np.r_[_independent(system, act[act < na]), seen])
     chosen, theta, cov, s2, dropped = _fit_identifiable(system, candidates, typical, max_relative_std, na,
-                                                         spec.s2)
-    residual = _residual(jac, inv, w, g, b, theta, na)
+                                                         s2_noise)
+    residual = _residual(jac, inv, w, g, b, _placed(system, chosen, setup_cols), na)
     if robust:
         # IRLS on the same columns: soft-L1 rho(z) = 2 (sqrt(1 + z^2) - 1), Huber; scale from the residuals' MAD.
         f_scale = max(1.4826 * float(np.median(np.abs(residual - np.median(residual)))), 1e-6)
@@ -857,16 +941,19 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
             z = np.abs(residual) / f_scale
             rw = 1.0 / np.sqrt(1.0 + z**2) if loss == "soft_l1" else np.minimum(1.0, 1.0 / np.maximum(z, 1e-300))
             omega = omega0[idx] / np.mean(omega0[idx]) * rw
-            system = _assemble(jac, inv, w, b, omega, g)
+            system = _assemble(jac, inv, w, b, omega, g, ridge)
             old = theta
-            theta, cov, s2 = _least_squares(system, chosen)
+            theta, cov, s2 = _least_squares(system, np.r_[setup_cols, chosen].astype(int))
             residual = _residual(jac, inv, w, g, b, theta, na)
             if np.max(np.abs(theta - old), initial=0.0) <= 1e-6 * max(1.0, np.max(np.abs(theta), initial=0.0)):
                 break
 
-    # Significance: drop the least significant change (against its noise std: do the data demand it?) until every
-    # kept one is significant. The reported std adds the aliasing: how well the data fix the value, not whether the
-    # part needs a change.
+    # Significance: drop the least significant change (against its noise and set-up std: do the data demand it, and
+    # could no set-up offset of its typical size make it?) until every kept one is significant. The reported std
+    # adds the aliasing of the held parameters: how well the data fix the value, not whether the part needs a
+    # change. The set-up offset is not a property of the machine: the next part is clamped again, so a change that
+    # only a set-up offset could have made would write this part's clamping into the twin (a 3 um offset along Y on
+    # the slot block was written as EYY.P1 +11 um, EYX@400 +6 um and C0Y +6 urad, 7 to 75 noise std each).
     # Under a best fit, the changes must not carry a rigid motion of the part either: the alignment took every rigid
     # motion (on the cone: its size, axis position and tilt) out of the data, so that share of a change's effect is
     # fitted to nothing and no held-out point can check it, yet the written twin applies it to the next part (the
@@ -875,70 +962,46 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     # twin's value) until the hidden effect of all changes together is below ``min_explained`` x the noise, the size
     # below which the identification writes no change at all.
     params_active = act_all[act_all >= na]
-    noise = float(math.sqrt(spec.s2))
+    noise = float(math.sqrt(s2_noise))
     hidden_bound = min_explained * noise
-    not_significant, hidden_by_alignment = {}, {}
-    hidden_rms = 0.0
-    while True:
-        theta, cov, s2 = _least_squares(system, chosen)
-        held = np.setdiff1d(params_active, chosen) if alias_prior else np.array([], int)
-        var_noise, var_alias = _variances(system, chosen, held, typical, s2)
-        pos = np.nonzero(chosen >= na)[0]
-        if pos.size == 0:
-            hidden_rms = 0.0
-            break
-        zval = np.abs(theta[chosen[pos]]) / np.sqrt(np.maximum(var_noise[pos], 1e-300))
-        worst = int(np.argmin(zval))
-        if zval[worst] < significance:
-            c = int(chosen[pos[worst]])
-            not_significant[col_names[c]] = (float(theta[c]), float(math.sqrt(var_noise[pos[worst]])))
-            chosen = chosen[chosen != c]
-            continue
-        hidden_each, hidden_rms = _hidden_by_alignment(system, chosen, theta, na)
-        if hidden_rms <= hidden_bound:
-            break
-        c = int(chosen[pos[int(np.argmax(hidden_each))]])
-        hidden_by_alignment[col_names[c]] = (float(theta[c]), float(np.max(hidden_each)))
-        chosen = chosen[chosen != c]
+    held_all = params_active if alias_prior else np.array([], int)
+    nuis = dict(na=na, rigid=rigid, hidden_bound=hidden_bound, significance=significance, names=col_names)
+    # The part's set-up offset first fitted with the changes (its prior: a few um). A fit that puts more than
+    # SETUP_PLAUSIBLE sigma there has found no set-up offset of a clamped part but the machine's own translation of
+    # the part (on the cone the C line's offsets move it by tens of um, and as a set-up offset the next part would
+    # keep it): the set-up is then held at zero and enters each change's std and significance only.
+    sig = _significant(system, np.r_[setup_cols, chosen].astype(int), held_all, typical, setup_cols, **nuis)
+    setup_held = bool(setup_cols.size and ridge is not None and np.any(
+        np.abs(sig.theta[setup_cols]) > SETUP_PLAUSIBLE * setup_sigma_um))
+    if setup_held:
+        implausible = sig.theta[setup_cols]
+        sig = _significant(system, chosen, held_all, typical, setup_cols, **nuis)
+    chosen, theta = sig.chosen, _placed(system, sig.chosen, setup_cols)
+    not_significant, hidden_by_alignment, hidden_rms = sig.not_significant, sig.hidden, sig.hidden_rms
     residual = _residual(jac, inv, w, g, b, theta, na)
+    # The twin as it is, the part placed: the nuisance (set-up offset, or the best fit's rigid motion) fitted alone.
+    # The verdict weighs what the changes explain beyond it: a set-up offset explains the part without any change.
+    nuisance = chosen[chosen < na] if rigid else setup_cols
+    placed_fit = _least_squares(system, nuisance)
+    placed_residual = _residual(jac, inv, w, g, b, placed_fit[0], na) if nuisance.size else b
     std_noise_all = np.zeros(system.N.shape[0])
+    std_setup_all = np.zeros(system.N.shape[0])
     std_alias_all = np.zeros(system.N.shape[0])
-    std_noise_all[chosen] = np.sqrt(np.maximum(var_noise, 0.0))
-    std_alias_all[chosen] = np.sqrt(np.maximum(var_alias, 0.0))
+    std_noise_all[chosen] = np.sqrt(np.maximum(sig.var_noise, 0.0))
+    std_setup_all[chosen] = np.sqrt(np.maximum(sig.var_setup, 0.0))
+    # the reported aliasing: what the held parameters and the set-up offset, at their typical sizes, push into it
+    std_alias_all[chosen] = np.sqrt(np.maximum(sig.var_alias + sig.var_setup, 0.0))
     std_all = np.hypot(std_noise_all, std_alias_all)
+    if setup_held:  # the set-up fitted on top of the changes: reported, with the noise std of that fit
+        std_all[setup_cols] = np.sqrt(np.maximum(np.diag(_least_squares(system, setup_cols)[1])[setup_cols], 0.0)
+                                      * s2_noise)
 
-    # Held-out check: the same columns fitted without every holdout_every-th block of the path; the improvement the
-    # fit predicts on its own points must show on the points it did not see.
     block = (np.arange(uniq.size) * holdout_blocks) // max(uniq.size, 1)
     out_pt = (block[inv] % holdout_every) == holdout_every // 2
-    heldout = {}
     params_chosen = chosen[chosen >= na]
-    if params_chosen.size and (out_pt.sum() < MIN_HELDOUT_POINTS or (~out_pt).sum() <= chosen.size):
-        # no check, no acceptance: a fit that cannot be tried on points it did not see is not confirmed
-        heldout = {"points": int(out_pt.sum()), "confirmed": False,
-                   "not_run": f"the held-out check could not run: {int(out_pt.sum())} of the {idx.size} points used "
-                              f"lie in every {holdout_every}th of {holdout_blocks} blocks of the tool path (at least "
-                              f"{MIN_HELDOUT_POINTS} needed, and more than the {chosen.size} fitted columns left to "
-                              "fit): the changes are not confirmed; probe the part over more of its tool path"}
-    elif params_chosen.size:
-        sys_fit = _assemble(jac, inv, w, b, omega * ~out_pt, g)
-        try:
-            theta_fit = _least_squares(sys_fit, _independent(sys_fit, chosen))[0]
-        except np.linalg.LinAlgError:
-            theta_fit = np.zeros_like(theta)
-        r_fit = _residual(jac, inv, w, g, b, theta_fit, na)
-
-        def wrms(r, m):
-            return float(np.sqrt(np.sum(omega[m] * r[m] ** 2) / max(np.sum(omega[m]), 1e-300)))
-
-        heldout = {"points": int(out_pt.sum()), "blocks": f"every {holdout_every}th of {holdout_blocks} blocks of "
-                                                           "the tool path (program order)",
-                   "fit_before_rms_um": wrms(b, ~out_pt), "fit_after_rms_um": wrms(r_fit, ~out_pt),
-                   "before_rms_um": wrms(b, out_pt), "after_rms_um": wrms(r_fit, out_pt)}
-        predicted = heldout["fit_before_rms_um"] ** 2 - heldout["fit_after_rms_um"] ** 2
-        realised = heldout["before_rms_um"] ** 2 - heldout["after_rms_um"] ** 2
-        heldout["confirmed"] = bool(realised > 0 and realised >= 0.5 * predicted)
-        heldout = {k: (_r(v) if isinstance(v, float) else v) for k, v in heldout.items()}
+    heldout = _heldout_check(jac, inv, w, b, omega, g, ridge, chosen, setup_cols, na, out_pt,
+                             f"every {holdout_every}th of {holdout_blocks} blocks of the tool path") \
+        if params_chosen.size else {}
 
     # The combinations the part cannot see, named by their largest loadings (in typical sizes).
     unseen = []
@@ -961,6 +1024,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     std = np.full(len(names), np.nan)
     std_noise = np.full(len(names), np.nan)
     std_alias = np.full(len(names), np.nan)
+    std_setup = np.full(len(names), np.nan)
     identified = np.zeros(len(names), bool)
     no_effect = np.ones(len(names), bool)
     no_effect[cols[active[na:]]] = False
@@ -970,6 +1034,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         c = cols[j - na]
         value[c] = prior[c] + theta[j]
         std[c], std_noise[c], std_alias[c] = std_all[j], std_noise_all[j], std_alias_all[j]
+        std_setup[c] = std_setup_all[j]
         identified[c] = True
     confounded = {}
     if params_chosen.size:
@@ -984,34 +1049,46 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
             confounded[col_names[j]] = [(col_names[params_chosen[o]], float(coef[o])) for o in order
                                         if abs(coef[o]) * typical[params_chosen[o]] > 1e-3 * typical[j]]
     poorly = {col_names[j]: (rel, rel * typical[j]) for j, rel in dropped.items()}
-    align = {}
-    for i in range(na):
-        u = "um" if ALIGNMENT_NAMES[i].startswith("T") else "urad"
-        fitted = i in set(chosen.tolist())
-        align[f"{ALIGNMENT_NAMES[i]}_{u}"] = _r(theta[i]) if fitted else None  # None: the part does not fix it
-        align[f"{ALIGNMENT_NAMES[i]}_std_{u}"] = _r(std_all[i]) if fitted else None
-
     residual_all = np.full(x.shape[0], np.nan)
     residual_all[idx] = residual
     dev_rms = float(np.sqrt(np.mean(dev[idx] ** 2)))
     before = float(np.sqrt(np.mean(b**2)))
+    placed = float(np.sqrt(np.mean(placed_residual**2)))
     after = float(np.sqrt(np.mean(residual**2)))
-    explained = math.sqrt(max(before**2 - after**2, 0.0))
-    verdict, reasons = _verdict(params_chosen.size, dev_rms, before, after, heldout, significance,
+    explained = math.sqrt(max(placed**2 - after**2, 0.0))
+    verdict, reasons = _verdict(params_chosen.size, dev_rms, placed, after, heldout, significance,
                                 hidden=(hidden_rms, hidden_bound, list(hidden_by_alignment)))
     if verdict != "no change" and explained < min_explained * noise:
         # Statistically significant but too small to matter: a few tenths of a micrometre that the first-order
         # model and the envelope's discretisation leave; not worth a new twin.
         verdict, reasons = "no change", [
             f"the changes would explain {explained:.2f} um RMS, below {min_explained:g} x the noise ({noise:.2f} um): "
-            f"the twin's values stand (residual {before:.2f} um, deviation {dev_rms:.2f} um)"]
+            f"the twin's values stand (residual {placed:.2f} um, deviation {dev_rms:.2f} um)"]
+    nuisance_fit = (theta, std_all)
     if verdict == "no change":
         for i in np.nonzero(identified)[0]:
-            not_significant[names[i]] = (float(value[i] - prior[i]), float(std_noise[i]))
+            not_significant[names[i]] = (float(value[i] - prior[i]), float(np.hypot(std_noise[i], std_setup[i])))
         value = prior.copy()
         identified[:] = False
-        after = before                                           # the twin as it is
-        residual_all[idx] = b
+        after = placed                                           # the twin as it is (the part placed)
+        residual_all[idx] = placed_residual
+        nuisance_fit = (placed_fit[0], np.sqrt(np.maximum(np.diag(placed_fit[1]), 0.0) * placed_fit[2]))
+    align, setup_offset = {}, {}
+    fitted = set(nuisance.tolist())
+    for i in range(na):
+        u = "um" if ALIGNMENT_NAMES[i].startswith("T") else "urad"
+        into = align if rigid else setup_offset
+        into[f"{ALIGNMENT_NAMES[i]}_{u}"] = _r(nuisance_fit[0][i]) if i in fitted else None  # None: not fixed
+        into[f"{ALIGNMENT_NAMES[i]}_std_{u}"] = _r(nuisance_fit[1][i]) if i in fitted else None
+    if setup_offset:
+        setup_offset["prior_sigma_um"] = _r(setup_sigma_um) if math.isfinite(setup_sigma_um) else None
+        setup_offset["fitted_with_the_changes"] = not setup_held
+        if setup_held:
+            setup_offset["note"] = (
+                f"fitted with the changes it came to {', '.join(f'{v:+.1f}' for v in implausible)} um, beyond "
+                f"{SETUP_PLAUSIBLE:g} x its prior: no set-up offset of a clamped part but the machine's translation "
+                "of the part; held at zero while the changes were fitted (it is in their std), fitted after them "
+                "here")
     return Identification(
         names=names, prior=prior, value=value, std=std, identified=identified, seen_share=seen,
         no_effect=no_effect, confounded_with=confounded, poorly_determined=poorly, alignment=align,
@@ -1022,10 +1099,11 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         options={"robust": bool(robust), "loss": loss if robust else None, "alignment": alignment,
                  "max_relative_std": max_relative_std, "min_share": min_share, "parameters": parameters,
                  "significance": significance, "alias_prior": bool(alias_prior),
-                 "min_explained": min_explained},
+                 "min_explained": min_explained, "setup_sigma_um": setup_sigma_um},
         std_noise=std_noise, std_alias=std_alias, not_significant=not_significant, verdict=verdict,
         reasons=reasons, heldout=heldout, considered=considered, hidden_by_alignment=hidden_by_alignment,
         hidden_rms_um=hidden_rms if rigid and verdict != "no change" else (0.0 if rigid else None),
+        setup_offset=setup_offset, std_setup=std_setup, placed_rms_um=placed,
     )
 
 
@@ -1050,19 +1128,137 @@ def _hidden_by_alignment(system: _System, chosen, theta, na):
     return each, float(math.sqrt(max(float(t @ H @ t), 0.0) / wsum))
 
 
-def _variances(system: _System, chosen, held, typical, s2):
-    """Variances (S,) of the fitted columns ``chosen``: noise s^2 diag(N_ff^-1), and aliasing diag(C Sigma C^T)
-    with C = N_ff^-1 N_fh the bias each held column (``held``) leaves per unit of its error and Sigma its prior
-    (typical size squared)."""
+@dataclass
+class _Significant:
+    """What the significance loop kept: the columns ``chosen``, their fit ``theta`` (Q,), and per chosen column the
+    variances of noise, set-up and aliasing; the changes dropped (name -> (change, std)) and, under a best fit, those
+    held because the alignment hides them, with the hidden RMS of the rest."""
+
+    chosen: np.ndarray
+    theta: np.ndarray
+    var_noise: np.ndarray
+    var_setup: np.ndarray
+    var_alias: np.ndarray
+    not_significant: dict
+    hidden: dict
+    hidden_rms: float
+
+
+def _significant(system: _System, chosen, held_all, typical, setup_cols, *, na: int, rigid: bool,
+                 hidden_bound: float, significance: float, names) -> _Significant:
+    """Drop the least significant change until every kept one is ``significance`` times its noise and set-up std.
+
+    chosen : the columns fitted (the set-up offset's among them when it is fitted, with its prior).  held_all : the
+    parameter columns whose aliasing the std covers (those not chosen).  setup_cols : the set-up offset's columns
+    (in the std's set-up part, fitted or held).  na : the nuisance columns in front (the parameters' follow).
+    rigid : they are a best fit's rigid motions: the changes whose effect the alignment hides are dropped too, until
+    the rest hide at most ``hidden_bound`` (um RMS).  names : every column's name."""
+    not_significant, hidden = {}, {}
+    while True:
+        theta, _, s2 = _least_squares(system, chosen)
+        held = np.setdiff1d(held_all, chosen)
+        var_noise, var_setup, var_alias = _variances(system, chosen, held, typical, s2, setup_cols)
+        pos = np.nonzero(chosen >= na)[0]
+        if pos.size == 0:
+            return _Significant(chosen, theta, var_noise, var_setup, var_alias, not_significant, hidden, 0.0)
+        var_judged = var_noise[pos] + var_setup[pos]
+        zval = np.abs(theta[chosen[pos]]) / np.sqrt(np.maximum(var_judged, 1e-300))
+        worst = int(np.argmin(zval))
+        if zval[worst] < significance:
+            c = int(chosen[pos[worst]])
+            not_significant[names[c]] = (float(theta[c]), float(math.sqrt(var_judged[worst])))
+            chosen = chosen[chosen != c]
+            continue
+        hidden_each, hidden_rms = _hidden_by_alignment(system, chosen, theta, na if rigid else 0)
+        if hidden_rms <= hidden_bound:
+            return _Significant(chosen, theta, var_noise, var_setup, var_alias, not_significant, hidden, hidden_rms)
+        c = int(chosen[pos[int(np.argmax(hidden_each))]])
+        hidden[names[c]] = (float(theta[c]), float(np.max(hidden_each)))
+        chosen = chosen[chosen != c]
+
+
+def _placed(system: _System, chosen, setup_cols) -> np.ndarray:
+    """The fit over ``chosen`` (Q,), and the set-up offset ``setup_cols`` fitted on top of it (its prior) where it is
+    not among them: the changes with the part placed."""
+    theta = _least_squares(system, chosen)[0]
+    rest = np.setdiff1d(setup_cols, chosen)
+    if rest.size == 0:
+        return theta
+    A = system.regularised(rest)
+    theta[rest] = np.linalg.solve(A, system.rhs[rest] - system.N[np.ix_(rest, chosen)] @ theta[chosen])
+    return theta
+
+
+def _heldout_check(jac: _Jacobians, inv, w, b, omega, g, ridge, chosen, setup_cols, na: int, out_pt,
+                   blocks: str) -> dict:
+    """The same columns ``chosen`` fitted without the points ``out_pt`` (N,) bool (``blocks`` says which blocks of
+    the tool path they are); the improvement must show on the points it did not see: their mean square must fall at
+    least half way to the fit's residual on its own points. Before and after are both with the part placed (the set-up
+    offset ``setup_cols`` fitted, on top of the changes where it is not among ``chosen``; a best fit's motion among
+    ``chosen``): what the changes add. Returns the report's "heldout" dict ("confirmed"; "not_run" when too few points
+    are held out)."""
+    if out_pt.sum() < MIN_HELDOUT_POINTS or (~out_pt).sum() <= chosen.size:
+        # no check, no acceptance: a fit that cannot be tried on points it did not see is not confirmed
+        return {"points": int(out_pt.sum()), "confirmed": False,
+                "not_run": f"the held-out check could not run: {int(out_pt.sum())} of the {out_pt.size} points used "
+                           f"lie in {blocks} (at least {MIN_HELDOUT_POINTS} needed, and more than the {chosen.size} "
+                           "fitted columns left to fit): the changes are not confirmed; probe the part over more of "
+                           "its tool path"}
+    sys_fit = _assemble(jac, inv, w, b, omega * ~out_pt, g, ridge)
+
+    def fitted(cols):
+        try:
+            return _residual(jac, inv, w, g, b, _placed(sys_fit, _independent(sys_fit, cols), setup_cols), na)
+        except np.linalg.LinAlgError:
+            return b
+
+    r_base = fitted(chosen[chosen < na])
+    r_fit = fitted(chosen)
+
+    def wrms(r, m):
+        return float(np.sqrt(np.sum(omega[m] * r[m] ** 2) / max(np.sum(omega[m]), 1e-300)))
+
+    heldout = {"points": int(out_pt.sum()), "blocks": f"{blocks} (program order)",
+               "fit_before_rms_um": wrms(r_base, ~out_pt), "fit_after_rms_um": wrms(r_fit, ~out_pt),
+               "before_rms_um": wrms(r_base, out_pt), "after_rms_um": wrms(r_fit, out_pt)}
+    # The held-out mean square must fall at least half way to the level the fit reaches on its own points: the parts
+    # of the path differ in how much of the errors they show (the slot block's held-out blocks hold 1.6 um of what
+    # the set-up offset leaves, its fitted ones 2.1 um), so the fall is judged on the held-out points' own scale.
+    expected = heldout["before_rms_um"] ** 2 - heldout["fit_after_rms_um"] ** 2
+    realised = heldout["before_rms_um"] ** 2 - heldout["after_rms_um"] ** 2
+    heldout["confirmed"] = bool(realised > 0 and realised >= 0.5 * expected)
+    return {k: (_r(v) if isinstance(v, float) else v) for k, v in heldout.items()}
+
+
+def _variances(system: _System, chosen, held, typical, s2, setup=()):
+    """Variances (S,) of the fitted columns ``chosen``: noise, set-up offset and aliasing of the held parameters.
+
+    The fit is theta = (N + R)^-1 rhs, R the set-up offset's prior precision (``system.ridge``; zero elsewhere).
+    Noise: s^2 diag((N + R)^-1 N (N + R)^-1). Set-up, where its columns ``setup`` are among ``chosen``: the bias a
+    set-up offset of its prior size leaves, s^2 diag((N + R)^-1 R (N + R)^-1) (the two add to the posterior
+    s^2 (N + R)^-1); where they are held at zero, diag(C Sigma C^T) over them as below. Aliasing: diag(C Sigma C^T)
+    with C = (N + R)_ff^-1 N_fh the bias each held column (``held``) leaves per unit of its error and Sigma its
+    prior (typical size squared)."""
     if chosen.size == 0:
-        return np.zeros(0), np.zeros(0)
+        return np.zeros(0), np.zeros(0), np.zeros(0)
     d = 1.0 / system.scale[chosen]
-    fac = cho_factor(system.N[np.ix_(chosen, chosen)] * d[:, None] * d[None, :])
-    inv_diag = np.diag(cho_solve(fac, np.eye(chosen.size))) * d * d
-    if held.size == 0:
-        return s2 * inv_diag, np.zeros(chosen.size)
-    C = cho_solve(fac, system.N[np.ix_(chosen, held)] * d[:, None]) * d[:, None]     # (S, H)
-    return s2 * inv_diag, np.sum(C**2 * typical[held][None, :] ** 2, axis=1)
+    fac = cho_factor(system.regularised(chosen) * d[:, None] * d[None, :])
+    inv = cho_solve(fac, np.eye(chosen.size)) * d[:, None] * d[None, :]
+    var_noise = s2 * np.diag(inv)
+    var_setup = np.zeros(chosen.size)
+    if system.ridge is not None and np.any(system.ridge[chosen] > 0):
+        var_post = var_noise
+        var_noise = s2 * np.einsum("ij,jk,ki->i", inv, system.N[np.ix_(chosen, chosen)], inv)
+        var_setup = np.maximum(var_post - var_noise, 0.0)
+
+    def bias(cols):
+        cols = np.asarray(cols, int)
+        if cols.size == 0:
+            return np.zeros(chosen.size)
+        C = cho_solve(fac, system.N[np.ix_(chosen, cols)] * d[:, None]) * d[:, None]     # (S, H)
+        return np.sum(C**2 * typical[cols][None, :] ** 2, axis=1)
+
+    return var_noise, var_setup + bias(np.setdiff1d(setup, chosen)), bias(held)
 
 
 def _verdict(n_changed: int, dev_rms: float, before: float, after: float, heldout: dict, significance: float,
@@ -1077,7 +1273,8 @@ def _verdict(n_changed: int, dev_rms: float, before: float, after: float, heldou
                              f"deviation {dev_rms:.2f} um); identify them from a cloud aligned with --align none or "
                              "datum"]
     if n_changed == 0:
-        return "no change", [f"no parameter changes by {significance:g} noise std or more: the twin's values stand "
+        return "no change", [f"no parameter changes by {significance:g} std (noise and set-up) or more: the twin's "
+                             "values stand "
                              f"(residual {before:.2f} um, deviation {dev_rms:.2f} um)"]
     reasons = []
     if not hidden_rms <= hidden_bound:
@@ -1175,14 +1372,16 @@ def part_normals(points, part: dict) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------------- the CLI ----
 def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, program: str | Path,
                        write: str | Path | None = None, alignment: str = "none", robust: bool = False,
-                       parameters=None, max_relative_std: float = 0.2) -> tuple[dict, Identification]:
+                       parameters=None, max_relative_std: float = 0.2,
+                       setup_sigma_um: float | None = None) -> tuple[dict, Identification]:
     """``inspect CLOUD --part P --identify --machine TWIN.toml --program prog.ngc [--align A] [--write NEW.toml]``.
 
     cloud : ``trueaxis.inspect.cloud.Cloud`` (points mm, normals or None, part frame, after the alignment).
     deviation_um : (N,) signed deviation, um (+ = material outside).  part : the part JSON dict.
     machine : the twin's machine file.  program : the program that cut the part.  write : where to write the
     identified machine file (atomically), only when the verdict is not "refused".  alignment : the inspection's
-    alignment ("none" | "bestfit" | "datum").  robust, parameters, max_relative_std : see ``identify``.
+    alignment ("none" | "bestfit" | "datum").  robust, parameters, max_relative_std, setup_sigma_um : see
+    ``identify`` (None: its default, ``SETUP_TYPICAL_UM``).
     Returns (the report's "identification" dict, the Identification).
     """
     from .fileio import atomic_write
@@ -1202,7 +1401,8 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     parsed = parse_program(text, str(program_path))
     check_axes(placed, parsed)  # a program posted for another machine: refused before any work, as the diagnosis
     result = identify(cloud.points, normals, deviation_um, parsed, placed,
-                      parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std)
+                      parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std,
+                      setup_sigma_um=SETUP_TYPICAL_UM if setup_sigma_um is None else setup_sigma_um)
     result = dataclasses.replace(result, normals_flipped=flipped)
     report = result.as_report()
     report["machine_file"] = str(machine)

@@ -218,7 +218,8 @@ class Round:
 
 
 def user_loop(folder, part: str, twin_file, true_file, *, rounds: int = 3, compensate: str | None = "geometric",
-              points: int = 4000, noise_um: float = 0.5, program_args=(), seed: int = 0) -> list[Round]:
+              points: int = 4000, noise_um: float = 0.5, program_args=(), seed: int = 0,
+              inspect_args=()) -> list[Round]:
     """The closed loop as a user runs it, command by command (``trueaxis.cli.main``), in ``folder``:
 
         trueaxis program PART --machine TWIN_k.toml [--compensate MODE] -o rK.ngc
@@ -228,7 +229,8 @@ def user_loop(folder, part: str, twin_file, true_file, *, rounds: int = 3, compe
     and the next round programs with the written twin (the same twin again when the identification refused).
     compensate : the program's mode for the cone (none | geometric | comprehensive); None for the slot block (its
     slots are posted none, geometric and comprehensive). program_args : more ``program`` options (e.g. a coarser
-    ``--step-deg``). Returns one :class:`Round` per round. A command that fails for bad input raises RuntimeError.
+    ``--step-deg``). inspect_args : more ``inspect`` options (e.g. ``--setup-sigma-um 0``: the virtual shop sets the
+    part up exactly). Returns one :class:`Round` per round. A command that fails for bad input raises RuntimeError.
     """
     import json
     from pathlib import Path
@@ -250,7 +252,7 @@ def user_loop(folder, part: str, twin_file, true_file, *, rounds: int = 3, compe
             if main(c) != 0:
                 raise RuntimeError(f"trueaxis {' '.join(c)} failed")
         code = main(["inspect", str(cloud), "--part", part, "--identify", "--machine", twin, "--program", str(prog),
-                     "--write", str(new), "-o", str(rep)])
+                     "--write", str(new), "-o", str(rep), *map(str, inspect_args)])
         if code not in (0, EXIT_REFUSED):
             raise RuntimeError(f"trueaxis inspect {cloud} failed (exit {code})")
         r = json.loads((rep / "report.json").read_text())

@@ -1139,6 +1139,13 @@ def _identification_html(identification: dict) -> str:
                         f"<td>{_value(p.get('std_' + unit), unit)}</td><td>{html.escape(unit)}</td></tr>")
         out.append(f"<h3>{title}</h3><table><tr><th>parameter</th><th>value</th><th>change</th>"
                    "<th>standard deviation</th><th>unit</th></tr>" + "".join(rows) + "</table>")
+    setup = identification.get("setup_offset") or {}
+    if setup.get("TX_um") is not None:
+        out.append("<p>Set-up offset of the part (a translation of the part in its frame, fitted with the changes "
+                   "and never written to the twin): " + html.escape(", ".join(
+                       f"{a} {_value(setup.get(a + '_um'), 'um')} +- {_value(setup.get(a + '_std_um'), 'um')}"
+                       for a in ("TX", "TY", "TZ") if setup.get(a + "_um") is not None)) + " um"
+                   + (f" ({html.escape(str(setup['note']))})" if setup.get("note") else "") + ".</p>")
     not_significant = identification.get("not_significant") or []
     if not_significant:
         def change(entry):
