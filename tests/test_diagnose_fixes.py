@@ -1,0 +1,47 @@
+"""Checks of what the diagnosis says about its verdict (a QA pass): a verdict among the candidates the user gave, a
+probe noise given far from the data's, a program another twin compensated, the report's page and pictures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import MACHINES
+from trueaxis.diagnose.report import RESTRICTED_CONF_CAP, run_diagnosis, summary_lines
+from trueaxis.machine import load_machine
+from trueaxis.postproc.programs import nas979_program
+from trueaxis.sim.effects import parse_effects
+from trueaxis.sim.shop import simulate
+
+
+@pytest.fixture(scope="module")
+def backlash_cone():
+    """nmv1500dcg's lean cone program cut with an 8 um backlash of X, 300 points at 1 um noise."""
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    prog = nas979_program(m, compensation="none", step_deg=4.0, chord_tol_um=None)
+    eff = parse_effects({"backlash": {"X": {"amplitude": 8.0, "transition": 0.02}}}, machine=prog.machine)
+    r = simulate(prog.text, prog.machine, eff, part="nas979", points=300, noise_um=1.0, seed=2)
+    return m, prog, r
+
+
+def test_a_verdict_among_the_candidates_given_is_said_so_and_its_confidence_capped(backlash_cone):
+    # Backlash on X diagnosed among backlash_y, servo_lag and thermal_x: servo lag was named at 0.77 (no rival left,
+    # the separation saturated), leaving twice the noise; now "among the candidates given", at most 0.5, and the
+    # residual it leaves is said.
+    m, prog, r = backlash_cone
+    diag, _ = run_diagnosis(r.measured, r.normals, "nas979", m, prog.text,
+                            candidates="backlash_y,servo_lag,thermal_x")
+    assert diag.chosen == ["servo_lag"]
+    assert diag.confidence <= RESTRICTED_CONF_CAP < diag.confidence_basis["uncapped_confidence"]
+    assert diag.confidence_basis["restricted_to"] == ["backlash_y", "servo_lag", "thermal_x"]
+    line = summary_lines(diag, "rep")[0]
+    assert line.startswith("rep: servo_lag, among the candidates given (confidence 0.50)")
+    assert any("the verdict is the best among the candidates given" in n for n in diag.notes)
+    assert any(n.startswith("servo_lag leaves") and "diagnose with all candidates" in n for n in diag.notes)
+    # None of those given: said so.
+    none, _ = run_diagnosis(r.measured, r.normals, "nas979", m, prog.text, candidates="backlash_y,thermal_x")
+    assert none.chosen == [] and summary_lines(none, "rep")[0].startswith("rep: none of the candidates given (")
+    # The whole library: the verdict as it was, uncapped.
+    full, _ = run_diagnosis(r.measured, r.normals, "nas979", m, prog.text, candidates="all")
+    assert full.chosen == ["backlash_x"] and full.confidence > 0.9 and "restricted_to" not in full.confidence_basis
+    assert summary_lines(full, "rep")[0].startswith("rep: backlash_x (confidence")
