@@ -45,3 +45,25 @@ def test_a_verdict_among_the_candidates_given_is_said_so_and_its_confidence_capp
     full, _ = run_diagnosis(r.measured, r.normals, "nas979", m, prog.text, candidates="all")
     assert full.chosen == ["backlash_x"] and full.confidence > 0.9 and "restricted_to" not in full.confidence_basis
     assert summary_lines(full, "rep")[0].startswith("rep: backlash_x (confidence")
+
+
+def test_a_noise_given_far_from_the_datas_or_above_the_residual_is_said(backlash_cone):
+    # --noise-um 1.9 for 1 um: "127 % above the noise" at 1.00 and no warning (the 0.5-2 band); 0.5 for 1 um on a
+    # control: "none of the candidates (0.60)", no word. Said now, with the data's estimate; no share above 100 %.
+    from trueaxis.diagnose.report import input_warnings
+
+    m, prog, r = backlash_cone
+    diag, state = run_diagnosis(r.measured, r.normals, "nas979", m, prog.text, candidates="backlash_x,servo_lag",
+                                noise_um=1.9)
+    assert diag.chosen == ["backlash_x"] and diag.shrink_above_noise > 1.0
+    (said,) = input_warnings(state, 1.9, diag)
+    assert said.startswith("--noise-um 1.9 um, but the data show a probe noise of about 1.")
+    assert "below the noise given" in said
+    assert " 100 % above the noise (sigma 1.90 um)" in summary_lines(diag, "rep")[0]
+    control = simulate(prog.text, prog.machine, None, part="nas979", points=300, noise_um=1.0, seed=5)
+    none, st = run_diagnosis(control.measured, control.normals, "nas979", m, prog.text,
+                             candidates="backlash_x,servo_lag", noise_um=0.5)
+    assert none.chosen == []
+    (said,) = input_warnings(st, 0.5, none)
+    assert said.startswith("--noise-um 0.5 um, but the data show a probe noise of about ")
+    assert input_warnings(state, 1.0, diag) == [] and input_warnings(st, 1.0, none) == []  # the right noise
