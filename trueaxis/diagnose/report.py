@@ -706,9 +706,16 @@ def program_machine_warnings(machine, programs: list) -> list[str]:
                        f"{name!r}: a diagnosis against another machine's twin names that machine's differences")
             continue
         said = program_compensation(program_text, machine)
-        if said["same_twin"] is False:  # compensated by another twin: what the twins differ by is in the gap
-            out.append(f"{program}: {said['note'].split(';')[0]}: the gap holds what the two twins differ by as well "
-                       "(diagnose with the twin that compensated it, or expect twin_parameters)")
+        if said["same_twin"] is False:
+            # Compensated by another twin: the part departs from nominal by what the twins differ by, but the gap is
+            # the part against this twin's cut of the program as written (docs/identification.md), whoever
+            # compensated it. (It said the gap held the twins' difference, and to diagnose with the other twin: a
+            # QA pass, XOC 20 um apart, gap 1.01 um = the noise with the machine's twin; 21 um and a wrong verdict
+            # with the other.)
+            out.append(f"{program}: {said['note'].split(';')[0]}: the part's deviation from nominal holds what the "
+                       "two twins differ by, the gap diagnosed here does not (it is the part against this twin's cut "
+                       "of the program as written, whoever compensated it): give the twin of the machine that cut "
+                       "the part, as here")
         if said["mode"] == "comprehensive" and models:
             out.append(f"{program}: compensated for the cutting force with the twin's force model ("
                        f"{', '.join(models)}), while the twin's cut here is made without force (as the virtual shop's "
@@ -759,7 +766,8 @@ def summary_lines(diag: Diagnosis, output, named_candidates: bool = False, next_
     the report's plan of a separating part, or None."""
     b, a = diag.gap_before, diag.gap_after
     out = [f"{output}: {verdict_words(diag.verdict, diag.confidence_basis)} (confidence {diag.confidence:.2f}); "
-           f"held-out gap rms {b['rms']:.2f} -> {a['rms']:.2f} um, max {b['max']:.2f} -> {a['max']:.2f} um; shrink {diag.shrink_raw * 100:.0f} % raw, "
+           f"held-out gap rms {b['rms']:.2f} -> {a['rms']:.2f} um, max {b['max']:.2f} -> {a['max']:.2f} um; "
+           f"shrink {diag.shrink_raw * 100:.0f} % raw, "
            f"{shown_share(diag.shrink_above_noise)} above the noise (sigma {diag.noise_um:.2f} um)"]
     if diag.alternatives:
         out.append(f"  almost as good: {', '.join(diag.alternatives)}; to separate: "
