@@ -67,3 +67,52 @@ def test_a_noise_given_far_from_the_datas_or_above_the_residual_is_said(backlash
     (said,) = input_warnings(st, 0.5, none)
     assert said.startswith("--noise-um 0.5 um, but the data show a probe noise of about ")
     assert input_warnings(state, 1.0, diag) == [] and input_warnings(st, 1.0, none) == []  # the right noise
+
+
+def test_the_page_gives_the_confidence_of_none_and_the_pictures_say_what_their_colours_mean(backlash_cone, tmp_path):
+    # diagnosis.html left out the confidence of "none" (the terminal prints it); candidates.png coloured the fits the
+    # rules set aside like the others, with no legend; before_after.png had no y label.
+    from types import SimpleNamespace
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from trueaxis.diagnose.report import candidate_kind, pictures, write_report
+
+    m, prog, r = backlash_cone
+    none, state = run_diagnosis(r.measured, r.normals, "nas979", m, prog.text, candidates="backlash_y,thermal_x")
+    assert none.chosen == []
+    write_report(none, state, tmp_path / "rep")
+    page = (tmp_path / "rep" / "diagnosis.html").read_text()
+    assert f"explains the gap (confidence {none.confidence:.2f})" in page
+    diag, state = run_diagnosis(r.measured, r.normals, "nas979", m, prog.text, candidates="all")
+    kinds = {f.name: candidate_kind(f, diag) for f in diag.fits}
+    assert kinds["backlash_x"] == "verdict"
+    for f in diag.fits:
+        assert kinds[f.name] == ("verdict" if f.name == "backlash_x" else "not significant" if not f.significant else
+                                 "significant" if f.plausible and not f.extra.get("not_beyond_constrained") else
+                                 "set aside (at its bounds, or a spline no better than the drift)")
+    at_bound = SimpleNamespace(name="rotary_radial_c", significant=True, plausible=False, extra={})
+    assert candidate_kind(at_bound, diag).startswith("set aside")
+    drawn = []
+    import trueaxis.diagnose.report as rep_mod
+
+    real_png = rep_mod._png
+
+    def keep(fig):
+        drawn.append([(ax.get_ylabel(), [t.get_text() for t in (ax.get_legend().get_texts() if ax.get_legend()
+                                                                 else [])]) for ax in fig.axes])
+        return real_png(fig)
+
+    rep_mod._png = keep
+    try:
+        names = list(pictures(diag, state))
+    finally:
+        rep_mod._png = real_png
+    by_name = dict(zip(names, drawn))
+    legend = by_name["candidates.png"][0][1]
+    assert "verdict" in legend and "before" in legend and "noise sigma" in legend
+    assert by_name["before_after.png"][0][0] == "measured points"
+    plt.close("all")

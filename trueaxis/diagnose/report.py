@@ -455,6 +455,23 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
+#: candidates.png: a bar's colour by what the rules made of the fit (the legend names those shown).
+CANDIDATE_COLOURS = {"verdict": "tab:blue", "significant": "tab:green",
+                     "set aside (at its bounds, or a spline no better than the drift)": "tab:orange",
+                     "not significant": "tab:gray"}
+
+
+def candidate_kind(f, diag: Diagnosis) -> str:
+    """What the rules made of a single candidate's fit: a key of ``CANDIDATE_COLOURS``."""
+    if diag.chosen_fit is not None and f.name in diag.chosen:
+        return "verdict"
+    if not f.significant:
+        return "not significant"
+    if not f.plausible or f.extra.get("not_beyond_constrained"):
+        return "set aside (at its bounds, or a spline no better than the drift)"
+    return "significant"
+
+
 def pictures(diag: Diagnosis, state: TwinState) -> dict:
     """name -> PNG bytes: gap map, gap vs the top state variables, candidates, before/after."""
     import matplotlib
@@ -494,12 +511,15 @@ def pictures(diag: Diagnosis, state: TwinState) -> dict:
     fig, ax = plt.subplots(figsize=(9, 0.35 * max(4, len(diag.fits)) + 1))
     names = [f.name for f in diag.fits][::-1]
     rms = [f.rms_after_um for f in diag.fits][::-1]
-    colors = ["tab:green" if f.significant else "tab:gray" for f in diag.fits][::-1]
-    ax.barh(names, rms, color=colors)
+    kinds = [candidate_kind(f, diag) for f in diag.fits][::-1]
+    ax.barh(names, rms, color=[CANDIDATE_COLOURS[k] for k in kinds])
     ax.axvline(diag.gap_before["rms"], color="k", ls="--", label="before")
     ax.axvline(diag.noise_um, color="tab:red", ls=":", label="noise sigma")
+    from matplotlib.patches import Patch
+
     ax.set_xlabel("held-out gap RMS after adding the candidate, um")
-    ax.legend()
+    ax.legend(handles=ax.get_legend_handles_labels()[0] + [Patch(color=CANDIDATE_COLOURS[k], label=k)
+                                                          for k in CANDIDATE_COLOURS if k in kinds])
     out["candidates.png"] = _png(fig)
 
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -508,6 +528,7 @@ def pictures(diag: Diagnosis, state: TwinState) -> dict:
     ax.hist(g, bins=bins, alpha=0.5, label=f"before (rms {diag.gap_before['rms']:.2f} um)")
     ax.hist(after, bins=bins, alpha=0.5, label=f"after {diag.verdict} (rms {diag.gap_after['rms']:.2f} um)")
     ax.set_xlabel("held-out gap, um")
+    ax.set_ylabel("measured points")
     ax.legend()
     out["before_after.png"] = _png(fig)
     return out
@@ -523,7 +544,8 @@ def _html(data: dict, pngs: dict) -> str:
     basis = data.get("confidence_basis") or {}
     given = " given" if basis.get("restricted_to") else ""
     chosen = "".join(f"<p><b>{e(c['effect'])}</b> (confidence {c['confidence']:.2f}): {e(parameters_text(c))}</p>"
-                     for c in data["chosen"]) or f"<p><b>none of the candidates{given}</b> explains the gap.</p>"
+                     for c in data["chosen"]) or (f"<p><b>none of the candidates{given}</b> explains the gap "
+                                                  f"(confidence {data['confidence_in_verdict']:.2f}).</p>")
     if data["chosen"] and ("indistinguishable" in data.get("verdict", "") or given):  # as the terminal says it
         chosen = f"<p>Verdict: {e(verdict_words(data['verdict'], basis))}</p>" + chosen
     if given:
