@@ -478,7 +478,7 @@ def cmd_inspect(args) -> int:
     # inspection's BLAS runs on one thread (trueaxis.inspect.workers: same numbers, faster on a busy machine)
     keep_freed_memory()  # fewer page faults for the large temporary arrays (same values)
     # imported before the worker forks: the child then has the report module (and its kernels) without importing it
-    from .inspect.report import inspect_cloud, inspection_warnings, write_report
+    from .inspect.report import identification_input, inspect_cloud, inspection_warnings, write_report
 
     with FigureWorker() as figures:
 
@@ -490,10 +490,11 @@ def cmd_inspect(args) -> int:
         if args.identify:
             from .identify import run_identification
 
-            report, identification = run_identification(result.aligned_cloud(), result.deviation_um, result.part,
-                                                        machine=args.machine, program=args.program, write=args.write,
-                                                        alignment=args.align, setup_sigma_um=args.setup_sigma_um)
-            result.report["identification"] = report
+            cloud, deviation_um, flyers = identification_input(result)  # the flyers set apart, as the diagnosis does
+            report, identification = run_identification(cloud, deviation_um, result.part, machine=args.machine,
+                                                        program=args.program, write=args.write, alignment=args.align,
+                                                        setup_sigma_um=args.setup_sigma_um)
+            result.report["identification"] = {**report, **flyers}
         with single_blas_thread():
             write_report(result, out_dir, figure_worker=figures)
     r = result.report

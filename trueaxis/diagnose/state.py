@@ -68,6 +68,8 @@ class TwinState:
         of; None for one cut.  machines : each cut's twin as its program places it (by ``piece``; empty: ``machine``).
     t_datum_s : (N,) program time at which the row's part was set up (its datum probed, so a drift is seen from
         there), s; None: 0 (one cut).  pauses_s : the pauses between the cuts' programs (s, as given; one cut: ()).
+    flyers : per cut, the measured points set apart as flyers before the diagnosis (``FlyerScreen.as_dict`` with the
+        cloud's name; ``trueaxis.inspect.flyers``); their rows are not in the state.
     """
 
     points: np.ndarray
@@ -101,6 +103,7 @@ class TwinState:
     machines: tuple = ()
     t_datum_s: np.ndarray | None = None
     pauses_s: tuple = ()
+    flyers: tuple = ()
     timings: dict = field(default_factory=dict)
     memo: dict = field(default_factory=dict)
 
@@ -178,6 +181,7 @@ def combine_states(states: list, pauses_s=()) -> TwinState:
     out["machines"] = tuple(st.machine for st in states)
     out["t_datum_s"] = np.repeat(offsets, n)
     out["pauses_s"] = tuple(float(w) for w in pauses)
+    out["flyers"] = tuple(x for st in states for x in st.flyers)
     out["timings"] = {k: sum(st.timings.get(k, 0.0) for st in states) for k in first.timings}
     out["memo"] = {}
     return TwinState(**out)

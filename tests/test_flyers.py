@@ -1,0 +1,126 @@
+"""Flyers (points that are no measurement of the surface) are set apart by one rule (``trueaxis.inspect.flyers``)
+before the diagnosis and before ``inspect --identify``'s identification, and said: a few flyers turned a backlash
+named at 1.00 into "none of the candidates" and an XOC change of +20 um into "NO CHANGE", silently (a QA pass)."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+
+from conftest import MACHINES
+from trueaxis.inspect.flyers import LOCAL_K, screen_flyers
+from trueaxis.machine import load_machine
+from trueaxis.machine.machine_file import dump_machine
+
+
+def _plane(n_side=60, noise=1.0, seed=0, step_um=0.0):
+    """A 60 x 60 grid (1 mm pitch) on a plane, its deviation the noise plus a smooth ramp and, with step_um, a step
+    along a line across it (a backlash reversal)."""
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.arange(n_side, dtype=float), np.arange(n_side, dtype=float))
+    pts = np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]
+    normals = np.tile([0.0, 0.0, 1.0], (x.size, 1))
+    dev = rng.normal(0.0, noise, x.size) + 0.1 * pts[:, 0] + step_um * (pts[:, 0] + 0.3 * pts[:, 1] > 30.0)
+    return pts, normals, dev
+
+
+@pytest.mark.parametrize("step_um", [0.0, 3.0, 10.0, 30.0])
+@pytest.mark.parametrize("noise", [1.0, 0.0])
+def test_a_clean_cloud_loses_no_point_steps_included(step_um, noise):
+    pts, normals, dev = _plane(noise=noise, step_um=step_um, seed=int(step_um))
+    screen = screen_flyers(pts, normals, dev)
+    assert screen.n_apart == 0 and screen.sentence() is None
+
+
+def test_flyers_beyond_the_gate_and_within_it_are_set_apart_and_said():
+    pts, normals, dev = _plane(seed=7, step_um=10.0)
+    rng = np.random.default_rng(1)
+    far = rng.choice(dev.size, 3, replace=False)
+    near = rng.choice(np.setdiff1d(np.arange(dev.size), far), 60, replace=False)
+    near[1] = near[0] + 1  # two flyers side by side (a QA cloud's random ones held such pairs)
+    dev[far] += 1000.0
+    dev[near] += 20.0 * rng.choice([-1.0, 1.0], near.size)
+    screen = screen_flyers(pts + (dev / 1000.0)[:, None] * normals, normals, dev)
+    assert set(np.flatnonzero(screen.beyond_gate)) == set(far)
+    assert set(np.flatnonzero(screen.local)) == set(near)
+    info = screen.as_dict()
+    n = len(set(near)) + 3
+    assert info["set_apart"] == n and info["beyond_gate_largest_um"] > 990 and abs(info["local_largest_um"]) > 15
+    said = screen.sentence("the diagnosis")
+    assert said.startswith(f"{n} of 3600 points set apart as flyers and left out of the diagnosis: 3 beyond the 0.5 mm "
+                           "gate") and f"more than {LOCAL_K:g} robust sigma" in said
+
+
+@pytest.fixture(scope="module")
+def cone_cut(tmp_path_factory):
+    """nmv1500dcg's cone program (geometric), cut with an 8 um backlash of X and on a machine whose XOC is 20 um
+    from the twin's, 1500 points at 1 um noise each."""
+    from trueaxis.cli import main
+
+    d = tmp_path_factory.mktemp("flyers")
+    twin = load_machine(MACHINES / "nmv1500dcg.toml")
+    v = twin.parameter_values().copy()
+    v[twin.parameter_names().index("XOC")] += 20.0
+    (d / "xoc.toml").write_text(dump_machine(twin.with_parameters(v)))
+    (d / "bx.toml").write_text("[backlash.X]\namplitude = 8.0\ntransition = 0.02\n")
+    twin_file = str(MACHINES / "nmv1500dcg.toml")
+    assert main(["program", "nas979", "--machine", twin_file, "-o", str(d / "cone.ngc")]) == 0
+    for name, machine, effects in (("bx", twin_file, ["--effects", str(d / "bx.toml")]),
+                                   ("xoc", str(d / "xoc.toml"), [])):
+        assert main(["simulate", str(d / "cone.ngc"), "--machine", machine, *effects, "--part", "nas979", "-o",
+                     str(d / f"{name}.ply"), "--points", "1500", "--noise-um", "1", "--seed", "3"]) == 0
+    return d
+
+
+def _with_flyers(src, dst, n_far=3, n_near=30, seed=0):
+    """The cloud with n_far points moved 1 mm and n_near 0.3 mm (within the inspection's gate) along their normals."""
+    from trueaxis.inspect.cloud import read_cloud, write_cloud_ply
+
+    c = read_cloud(src)
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(len(c.points), n_far + n_near, replace=False)
+    pts = c.points.copy()
+    pts[idx[:n_far]] += 1.0 * c.normals[idx[:n_far]]
+    pts[idx[n_far:]] += 0.3 * c.normals[idx[n_far:]]
+    write_cloud_ply(dst, pts, c.normals)
+
+
+def test_the_diagnosis_sets_flyers_apart_and_says_so(cone_cut, tmp_path, capsys):
+    from trueaxis.cli import main
+
+    d = cone_cut
+    _with_flyers(d / "bx.ply", tmp_path / "fly.ply")
+    capsys.readouterr()
+    assert main(["diagnose", "--cloud", str(tmp_path / "fly.ply"), "--part", "nas979", "--machine",
+                 str(MACHINES / "nmv1500dcg.toml"), "--program", str(d / "cone.ngc"), "-o", str(tmp_path / "rep"),
+                 "--candidates", "backlash_x,backlash_y,servo_lag,thermal_x,twin_parameters"]) == 0
+    cap = capsys.readouterr()
+    data = json.loads((tmp_path / "rep" / "diagnosis.json").read_text())
+    # "none" (0.60) with them; (the candidates given: the confidence the whole library's rules give is recorded)
+    assert data["verdict"] == "backlash_x" and data["confidence_basis"]["uncapped_confidence"] > 0.9
+    said = re.search(r"33 of (\d+) points set apart as flyers and left out of the diagnosis: 3 beyond the 0.5 mm gate",
+                     cap.err)
+    (flyers,) = data["flyers_set_apart"]
+    assert said and flyers["beyond_gate"] == 3 and flyers["local"] == 30 and data["points"] == int(said.group(1)) - 33
+    assert any("set apart as flyers" in w for w in data["warnings"])
+    assert "set apart as flyers" in (tmp_path / "rep" / "diagnosis.html").read_text()
+
+
+def test_inspect_identify_sets_flyers_apart_and_says_so(cone_cut, tmp_path, capsys):
+    from trueaxis.cli import main
+
+    d = cone_cut
+    _with_flyers(d / "xoc.ply", tmp_path / "fly.ply", n_far=10, n_near=0)
+    capsys.readouterr()
+    assert main(["inspect", str(tmp_path / "fly.ply"), "--part", "nas979", "--identify", "--machine",
+                 str(MACHINES / "nmv1500dcg.toml"), "--program", str(d / "cone.ngc"), "-o", str(tmp_path / "rep")]) == 0
+    cap = capsys.readouterr()
+    rep = json.loads((tmp_path / "rep" / "report.json").read_text())["identification"]
+    assert rep["verdict"]["status"] == "accepted", rep["verdict"]  # "NO CHANGE", noise 173 um, with the flyers
+    xoc = next(p for p in rep["parameters"] if p["name"] == "XOC")
+    assert xoc["change_um"] == pytest.approx(20.0, abs=3 * xoc["std_um"] + 1.0)
+    assert rep["flyers_set_apart"]["beyond_gate"] == 10
+    assert re.search(r"10 of \d+ points set apart as flyers and left out of the identification", cap.err)
