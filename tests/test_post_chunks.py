@@ -149,23 +149,3 @@ def test_the_output_written_as_the_chunks_come_is_the_one_written_at_the_end(xh7
                 assert figures == pytest.approx(whole["correction"][axis], rel=1e-12)
             assert rep == {k: v for k, v in whole.items() if k != "correction"}
             assert len([n for n in seen if n > 0]) > 3  # written in pieces, not at the end
-
-
-def test_an_error_in_the_writing_stops_the_chunks_not_started(xh714_wide, monkeypatch):
-    # The writer writes each chunk's lines as they come: its refusal (an incremental canned cycle, near the start
-    # here) is raised while most chunks are still to run; they are not run, and no chunk thread is left behind.
-    import threading
-
-    monkeypatch.setattr(compiled, "numba_imported", lambda: False)
-    monkeypatch.setattr(post_module, "ROW_CHUNK", 5)
-    monkeypatch.setattr(post_module, "CHUNK_THREADS", True)
-    started = []
-    chunk = post_module._Poster._chunk
-    monkeypatch.setattr(post_module._Poster, "_chunk", lambda self, *a, **k: started.append(1) or chunk(self, *a, **k))
-    lines = ["G21 G90 G17 G94 F500", "G0 X0 Y0 Z-100"] + [f"G1 X{i % 50} Y{i % 7} Z-100" for i in range(20)]
-    lines += ["G98 G91 G81 X1 Y1 Z-3 R-8", "G90 G80"] + [f"G1 X{i % 50} Y{i % 7} Z-100" for i in range(2000)]
-    text = "\n".join(lines + ["M2"]) + "\n"
-    with pytest.raises(PostError, match="incremental \\(G91\\) canned cycles"):
-        compensate(text, xh714_wide, "geometric", offsets_zero=True)
-    assert 0 < len(started) < 405 // 4  # (405 chunks of 5 moves)
-    assert not [t for t in threading.enumerate() if t.name.startswith("trueaxis-chunk")]

@@ -1119,14 +1119,18 @@ class _Poster:
         # thread, while the chunks after it are compensated on the others), not after the last one. A lathe program
         # in diameter mode (G7) is written at the end: its words are doubled back first (``diameter_words``).
         writer = None if p.diameter.any() else _Writer(self, rows, delta_prog, pieces, arc_mode)
-        # (closed on leaving, an error of the writing included: the chunks not started yet are not started)
-        with contextlib.closing(self._compensate_chunks(rows, chunks)) as results:
-            for sl, (d_prog, dq, pcs, (kept, modes)) in zip(chunks, results):
-                self._take_chunk(sl, (d_prog, pcs, kept, modes), (delta_prog, pieces, arc_mode, writer))
-                sq += np.sum(dq**2, axis=0)
-                mx = np.maximum(mx, np.abs(dq).max(axis=0, initial=0.0))
-                bar.update(sl.stop - sl.start)
-                if writer is not None and sl.stop < rows.size:
+        for sl, (d_prog, dq, pcs, (kept, modes)) in zip(chunks, self._compensate_chunks(rows, chunks)):
+            delta_prog[sl] = d_prog
+            pcs = {sl.start + k: v for k, v in pcs.items()}
+            pieces.update(pcs)
+            arc_mode.kept[sl.start + kept] = True
+            arc_mode.split.update((sl.start + k, v) for k, v in modes.items())
+            sq += np.sum(dq**2, axis=0)
+            mx = np.maximum(mx, np.abs(dq).max(axis=0, initial=0.0))
+            bar.update(sl.stop - sl.start)
+            if writer is not None:
+                writer.pending.update(pcs)
+                if sl.stop < rows.size:
                     writer.upto(sl.stop)
         bar.close()
         self._summarise(mx, np.sqrt(sq / max(rows.size, 1)))
@@ -1137,20 +1141,6 @@ class _Poster:
             self.p, delta_prog, pieces = diameter_words(p, rows, delta_prog, pieces)
             writer = _Writer(self, rows, delta_prog, pieces, arc_mode)
         return writer.finish(), self.rep
-
-    @staticmethod
-    def _take_chunk(sl, result, into):
-        """A chunk's results (corrections, split pieces, arcs kept and split, by index into the chunk) into the run's
-        (``into``: corrections, pieces and arc modes by index into the compensated rows, and the writer, or None)."""
-        d_prog, pcs, kept, modes = result
-        delta_prog, pieces, arc_mode, writer = into
-        delta_prog[sl] = d_prog
-        pcs = {sl.start + k: v for k, v in pcs.items()}
-        pieces.update(pcs)
-        arc_mode.kept[sl.start + kept] = True
-        arc_mode.split.update((sl.start + k, v) for k, v in modes.items())
-        if writer is not None:
-            writer.pending.update(pcs)
 
     def _refuse_position_sets_from_unknown(self, missing):
         """PostError for a G92 / G10 L20 that sets its offset from the position of an axis the program has not given
