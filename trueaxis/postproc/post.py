@@ -628,10 +628,10 @@ class _WrittenEnd:
     others. Asked for the rows it is asked for, not made for every row (a copy of the program's ends, 48 MB at a
     million rows)."""
 
-    def __init__(self, end, n_rows, rows, delta, at=None):
+    def __init__(self, end, n_rows, rows, delta):
         self.end, self.delta = end, delta
         self.k = np.full(n_rows, -1, np.int64)
-        self.k[rows] = np.arange(rows.size) if at is None else at  # (at: the rows' indices into delta)
+        self.k[rows] = np.arange(rows.size)
 
     def __getitem__(self, r):
         r = np.asarray(r)
@@ -653,93 +653,6 @@ class _ChunkEnd(threading.Event):
 
 class _ChunkAborted(Exception):
     """A chunk whose chunk before stopped with an error (which is the one raised)."""
-
-
-class _Writer:
-    """The output text of a compensation, written as its moves come: ``upto(k)`` writes the lines whose rows are all
-    among the first k compensated rows (``rows[:k]``: their corrections in ``delta_prog``, split pieces in ``pieces``,
-    arc modes in ``arc_mode``, the arrays and dicts the compensation fills), ``finish()`` the rest and returns the
-    whole text. Every line goes through the same writers (the compiled one, ``_fast_lines``; the Python one,
-    ``_write_lines``) with the same numbers whichever lines a call takes, so the text is the same however the
-    program is cut: the lines of the input, the compensated motion blocks rewritten, the extra pieces of split moves
-    after them. Warnings the writing gives are added to the report at ``finish`` (after those of the compensation,
-    as when the text was written after the last move)."""
-
-    def __init__(self, poster, rows, delta_prog, pieces, arc_mode):
-        p = poster.p
-        self.po, self.rows, self.delta_prog, self.arc_mode = poster, rows, delta_prog, arc_mode
-        self.pending = dict(pieces)  # the split moves' pieces not written yet (the run adds each chunk's)
-        self.axes_out = poster._axes_out()
-        self.numbers = _Numbers(p.format_info)
-        self.is_cycle = p.kind[rows] == ROW_CYCLE
-        self.ends_written = poster._written_ends(rows, delta_prog, self.is_cycle)
-        self.target = np.empty((rows.size, 6))  # each compensated move's corrected end, filled as they are written
-        self.inch_rows = p.inch[rows]
-        line_of = p.line_index[rows]
-        self.starts = np.r_[0, np.nonzero(np.diff(line_of))[0] + 1]  # the groups of rows of one line each
-        self.ends = np.r_[self.starts[1:], rows.size]
-        self.group_line = line_of[self.starts]
-        self.group, self.line, self.extra = 0, 0, 0  # the next group and line to write; blocks added so far
-        self.texts, self.warnings = [], []
-        poster._write_warnings = self.warnings  # (the writing's own: ``_note_cycle_deviation``)
-
-    def upto(self, k_done: int):
-        """Write the lines before the line of row ``rows[k_done]`` (every row before it compensated)."""
-        line = int(self.po.p.line_index[self.rows[k_done]])
-        self._segment(int(np.searchsorted(self.group_line, line)), line)
-
-    def finish(self) -> str:
-        """The whole text (the lines not written yet written now); the report's block count and warnings."""
-        po = self.po
-        self._segment(self.starts.size, len(po.p.lines))
-        po.rep.blocks_out = len(po.p.lines) + self.extra
-        po.rep.warnings.extend(self.warnings)
-        return "".join(self.texts)
-
-    def _segment(self, g_hi: int, line_hi: int):
-        """Write the groups [self.group, g_hi) and the lines [self.line, line_hi) (the groups' lines among them)."""
-        po, p = self.po, self.po.p
-        g_lo, line_lo = self.group, self.line
-        if line_hi <= line_lo:
-            return
-        starts, ends = self.starts[g_lo:g_hi], self.ends[g_lo:g_hi]
-        rows, delta_prog, arc_mode, numbers, axes_out = self.rows, self.delta_prog, self.arc_mode, self.numbers, \
-            self.axes_out
-        target, inch_rows, is_cycle = self.target, self.inch_rows, self.is_cycle
-        written_end, first_row_of_line = self.ends_written
-        if starts.size:
-            # (the same sum as over every row at once, row by row)
-            k_lo, k_hi = int(starts[0]), int(ends[-1])
-            np.add(p.end[rows[k_lo:k_hi]], delta_prog[k_lo:k_hi], out=target[k_lo:k_hi])
-            pieces = {k: v for k, v in self.pending.items() if k < k_hi}
-            for k in pieces:
-                del self.pending[k]
-        else:
-            pieces = {}
-        split = po._piece_words(pieces, arc_mode, target, inch_rows, axes_out, numbers)
-        fast = po._fast_lines(rows, starts, ends, target, inch_rows, split.first, arc_mode, axes_out, numbers,
-                              delta_prog, written_end, first_row_of_line)
-        extra = 0
-        if fast is not None:
-            keep = ~fast["handled"]
-            starts, ends = starts[keep], ends[keep]
-            # split moves and fitted arcs: the compiled writer too, where their lines are plain (fast_write.pieces)
-            fast["pieces"], taken, extra = po._fast_pieces(rows, starts, ends, is_cycle, arc_mode, split, axes_out,
-                                                           numbers, self.ends_written, fast)
-            starts, ends = starts[~taken], ends[~taken]
-        out = {}
-        split = po._piece_texts(split, (ends - 1).tolist(), inch_rows, axes_out, numbers)
-        extra += po._write_lines(out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out,
-                                 numbers, self.ends_written)
-        if p.position_sets:
-            po._shift_position_sets(out, written_end, numbers, (line_lo, line_hi))
-        if fast is None:
-            text = "".join([out.get(li, p.lines[li]) for li in range(line_lo, line_hi)])
-        else:
-            text = po._fast_assemble(fast, out, (line_lo, line_hi))
-        self.texts.append(text)
-        self.extra += extra
-        self.group, self.line = g_hi, line_hi
 
 
 class _Poster:
@@ -1115,32 +1028,22 @@ class _Poster:
         # A bar on long programs, on a terminal only (tqdm's disable=None).
         bar = tqdm(total=rows.size, unit="move", desc="compensating", disable=None if len(chunks) > 2 else True,
                    leave=False)
-        # The output is written as the chunks come (a chunk's lines once every row of them is compensated: on this
-        # thread, while the chunks after it are compensated on the others), not after the last one. A lathe program
-        # in diameter mode (G7) is written at the end: its words are doubled back first (``diameter_words``).
-        writer = None if p.diameter.any() else _Writer(self, rows, delta_prog, pieces, arc_mode)
         for sl, (d_prog, dq, pcs, (kept, modes)) in zip(chunks, self._compensate_chunks(rows, chunks)):
             delta_prog[sl] = d_prog
-            pcs = {sl.start + k: v for k, v in pcs.items()}
-            pieces.update(pcs)
+            pieces.update((sl.start + k, v) for k, v in pcs.items())
             arc_mode.kept[sl.start + kept] = True
             arc_mode.split.update((sl.start + k, v) for k, v in modes.items())
             sq += np.sum(dq**2, axis=0)
             mx = np.maximum(mx, np.abs(dq).max(axis=0, initial=0.0))
             bar.update(sl.stop - sl.start)
-            if writer is not None:
-                writer.pending.update(pcs)
-                if sl.stop < rows.size:
-                    writer.upto(sl.stop)
         bar.close()
         self._summarise(mx, np.sqrt(sq / max(rows.size, 1)))
         self._residual_check()
-        if writer is None:
+        if p.diameter.any():
             from .turning import diameter_words  # G7: X written as a diameter again
 
             self.p, delta_prog, pieces = diameter_words(p, rows, delta_prog, pieces)
-            writer = _Writer(self, rows, delta_prog, pieces, arc_mode)
-        return writer.finish(), self.rep
+        return self._write(rows, delta_prog, pieces, arc_mode)
 
     def _refuse_position_sets_from_unknown(self, missing):
         """PostError for a G92 / G10 L20 that sets its offset from the position of an axis the program has not given
@@ -1657,21 +1560,60 @@ class _Poster:
                 self.stats["singular_lines"].update(int(x) for x in self.p.line_no[np.asarray(rows)[held]])
 
     # --- writing -------------------------------------------------------------------------------------------------
-    def _shift_position_sets(self, out, written_end, numbers, line_range):
+    def _write(self, rows, delta_prog, pieces, arc_mode):
+        """The output text: every line of the input, the compensated motion blocks rewritten (plus the extra pieces
+        of split moves after them); returns (text, report)."""
+        p = self.p
+        axes_out = self._axes_out()
+        numbers = _Numbers(p.format_info)
+        is_cycle = p.kind[rows] == ROW_CYCLE
+        written_end, first_row_of_line = self._written_ends(rows, delta_prog, is_cycle)
+        # Each compensated move's corrected end; the axis words of the pieces of split moves and linearised arcs (the
+        # block's own end last), formatted in one pass per axis.
+        target = p.end[rows]  # (a new array: the sum in place)
+        target += delta_prog
+        inch_rows = p.inch[rows]
+        split = self._piece_words(pieces, arc_mode, target, inch_rows, axes_out, numbers)
+        line_of = p.line_index[rows]
+        starts = np.r_[0, np.nonzero(np.diff(line_of))[0] + 1]
+        ends = np.r_[starts[1:], rows.size]
+        # The compiled writer (fast_write) takes the plain blocks with absolute axis words, not split, not canned
+        # cycles; every other compensated line goes through ``_write_lines``.
+        fast = self._fast_lines(rows, starts, ends, target, inch_rows, split.first, arc_mode, axes_out, numbers,
+                                delta_prog, written_end, first_row_of_line)
+        ends_written = (written_end, first_row_of_line)
+        extra = 0
+        if fast is not None:
+            keep = ~fast["handled"]
+            starts, ends = starts[keep], ends[keep]
+            # split moves and fitted arcs: the compiled writer too, where their lines are plain (fast_write.pieces)
+            fast["pieces"], taken, extra = self._fast_pieces(rows, starts, ends, is_cycle, arc_mode, split, axes_out,
+                                                             numbers, ends_written, fast)
+            starts, ends = starts[~taken], ends[~taken]
+        out = list(p.lines) if fast is None else {}
+        split = self._piece_texts(split, (ends - 1).tolist(), inch_rows, axes_out, numbers)
+        extra += self._write_lines(out, rows, starts, ends, is_cycle, target, delta_prog, arc_mode, split, axes_out,
+                                   numbers, ends_written)
+        if p.position_sets:
+            self._shift_position_sets(out, written_end, numbers)
+        self.rep.blocks_out = len(p.lines) + extra
+        if fast is None:
+            return "".join(out), self.rep
+        return self._fast_assemble(fast, out), self.rep
+
+    def _shift_position_sets(self, out, written_end, numbers):
         """G92 and G10 L20 take their offset from the position the control holds, which the correction of the move
         before moved: their values move by that correction (program units), so that the control sets the offset the
         program means. Written as given, every later point was off by that correction (8-20 um, a QA pass)."""
         p = self.p
         for li, axes, what in p.position_sets:
-            if not line_range[0] <= li < line_range[1]:  # (the lines written now: ``_Writer``)
-                continue
             r = int(np.searchsorted(p.line_index, li, side="left")) - 1  # the last row before the block
             if r < 0:
                 continue
             c = written_end[np.array([r])][0] - p.end[r]
             if not np.any(c[axes]):
                 continue
-            text = out[li] if li in out else p.lines[li]
+            text = out[li] if isinstance(out, list) or li in out else p.lines[li]
             words = [t for t in tokenize_line(text) if t[0] == "word"]  # (comments, inline ones too, left alone)
             if any(re.fullmatch(r"(?i)G0*2[01]", w[1]) for w in words):
                 raise PostError(p.source, li + 1, f"{what} with a change of units on its block: write the G20 / G21 "
@@ -1713,11 +1655,10 @@ class _Poster:
         row before it."""
         p = self.p
         moves = ~is_cycle
-        # (delta_prog itself, not a copy of its rows: the writer reads it as the compensation fills it)
-        if moves.all():  # (as a rule: the same rows)
+        if moves.all():  # (as a rule: the same rows, not copied)
             written_end = _WrittenEnd(p.end, len(p), rows, delta_prog)
         else:
-            written_end = _WrittenEnd(p.end, len(p), rows[moves], delta_prog, np.flatnonzero(moves))
+            written_end = _WrittenEnd(p.end, len(p), rows[moves], delta_prog[moves])
         first_row_of_line = np.full(len(p.lines), -1)
         first_row_of_line[p.line_index[::-1]] = np.arange(len(p))[::-1]
         return written_end, first_row_of_line
@@ -1758,8 +1699,13 @@ class _Poster:
         p = self.p
         sep = p.format_info.separator
         written_end, first_row_of_line = ends_written
-        line_of, inch_rows, rows_l, motion_l, inch_l, inverse_l, r_form_l, cycle_l, incremental_l = \
-            self._row_lists(rows, is_cycle)
+        line_of = p.line_index[rows]
+        inch_rows = p.inch[rows]
+        # Python scalars for the per-line loop (numpy scalar access costs more than the rewrite itself).
+        rows_l, motion_l, inch_l = rows.tolist(), p.motion.tolist(), p.inch.tolist()
+        inverse_l, r_form_l = p.inverse_time.tolist(), (p.words & _R_BIT).astype(bool).tolist()
+        cycle_l = is_cycle.tolist()
+        incremental_l = p.incremental.tolist()
         formatters = {False: numbers.formatter(False), True: numbers.formatter(True)}
         piece_first = split.first
         extra = 0
@@ -1805,21 +1751,6 @@ class _Poster:
                 words += self._centre_words(r, delta_prog[k], last_written, fmt)
             out[li] = "".join([self._rewrite_motion(body, motion, words, arc_kept, r, sep), ending])
         return extra
-
-    def _row_lists(self, rows, is_cycle):
-        """What ``_write_lines`` reads per line, made once per program and compensated rows (the writer calls it
-        for every chunk's lines): the rows' line indices and inch flags, then Python lists (numpy scalar access costs
-        more than the rewrite itself) of the rows, and per program row its motion, inch flag, inverse time, R form,
-        then per compensated row whether it is a canned cycle, then per program row incremental."""
-        p = self.p
-        cached = getattr(self, "_row_lists_cache", None)
-        if cached is not None and cached[0] is p and cached[1] is rows:
-            return cached[2]
-        lists = (p.line_index[rows], p.inch[rows], rows.tolist(), p.motion.tolist(), p.inch.tolist(),
-                 p.inverse_time.tolist(), (p.words & _R_BIT).astype(bool).tolist(), is_cycle.tolist(),
-                 p.incremental.tolist())
-        self._row_lists_cache = (p, rows, lists)
-        return lists
 
     def _split_block(self, body, ending, k, r, motion, inc, inverse, last_written, arc_mode, split, axes_out, fmt,
                      sep):
@@ -1883,16 +1814,23 @@ class _Poster:
         sep = fast_write.separator_code(info.separator)
         if not FAST_WRITE or sep is None or starts.size == 0:
             return None
-        source = self._source_bytes()
-        if source is None:
-            return None
-        line_start, src = source
+        early = getattr(p, "_text_bytes", None)  # the reader's (line starts, bytes) of the same ASCII text
+        if early is not None and early[0].size == len(p.lines) + 1:
+            line_start, src = early
+        else:
+            text = "".join(p.lines)
+            if not text.isascii():
+                return None
+            src = np.frombuffer(text.encode("ascii"), np.uint8)
+            line_start = np.zeros(len(p.lines) + 1, np.int64)
+            np.cumsum(np.fromiter(map(len, p.lines), np.int64, len(p.lines)), out=line_start[1:])
         last = ends - 1
+        excluded = np.zeros(rows.size, bool)
+        excluded[list(piece_first)] = True
         kept = arc_mode.kept
         # (a kept arc outside the G17/G18/G19 planes is left to the Python path, which refuses it)
-        excluded = np.isin(last, np.fromiter(piece_first, np.int64, len(piece_first))) | (
-            kept[last] & ~np.isin(p.arc_plane[rows[last]], (17, 18, 19)))
-        cand = np.nonzero((p.kind[rows[starts]] != ROW_CYCLE) & ~p.incremental[rows[last]] & ~excluded)[0]
+        excluded |= kept & ~np.isin(p.arc_plane[rows], (17, 18, 19))
+        cand = np.nonzero((p.kind[rows[starts]] != ROW_CYCLE) & ~p.incremental[rows[last]] & ~excluded[last])[0]
         cand_r0 = rows[starts[cand]]
         cand_line = p.line_index[cand_r0].astype(np.int64)
         cand_k = last[cand].astype(np.int64)
@@ -1935,27 +1873,6 @@ class _Poster:
                 "inch": inch, "sep": sep, "letters": np.frombuffer("".join(axes_out).encode("ascii"), np.uint8),
                 "n_extra": n_extra, "extra_val": extra_val, "extra_letter": extra_letter, "extra_dec": extra_dec,
                 "keep_r": keep_r}
-
-    def _source_bytes(self):
-        """(line starts (lines + 1,), the bytes (uint8)) of the program's text for the compiled writer, or None (not
-        ASCII): the reader's where it kept them, else made once."""
-        p = self.p
-        cached = getattr(self, "_source_cache", None)
-        if cached is not None and cached[0] is p:
-            return cached[1]
-        early = getattr(p, "_text_bytes", None)  # the reader's (line starts, bytes) of the same ASCII text
-        if early is not None and early[0].size == len(p.lines) + 1:
-            out = early
-        else:
-            text = "".join(p.lines)
-            if text.isascii():
-                line_start = np.zeros(len(p.lines) + 1, np.int64)
-                np.cumsum(np.fromiter(map(len, p.lines), np.int64, len(p.lines)), out=line_start[1:])
-                out = (line_start, np.frombuffer(text.encode("ascii"), np.uint8))
-            else:
-                out = None
-        self._source_cache = (p, out)
-        return out
 
     def _fast_pieces(self, rows, starts, ends, is_cycle, arc_mode, split, axes_out, numbers, ends_written, fast):
         """The lines of split moves and fitted arcs the compiled writer takes (``fast_write.pieces``: absolute words,
@@ -2049,37 +1966,34 @@ class _Poster:
         out["val"][~use] = 0.0
         return out
 
-    def _fast_assemble(self, fast, texts, line_range):
-        """The text of the lines [lo, hi) = ``line_range``: the compiled writer's lines, the Python path's ``texts``
-        {line index: text}, every other line as it was (``"".join`` of them all, line by line)."""
-        lo, hi = line_range
-        n_lines = hi - lo
+    def _fast_assemble(self, fast, texts):
+        """The output text: the compiled writer's lines, the Python path's ``texts`` {line index: text}, every other
+        line as it was (``"".join`` of them all, line by line)."""
+        n_lines = len(self.p.lines)
         info = self.p.format_info
         mode = np.zeros(n_lines, np.int8)
         cand_of_line = np.zeros(n_lines, np.int64)
-        mode[fast["line"] - lo] = 1
-        cand_of_line[fast["line"] - lo] = fast["cand"]
+        mode[fast["line"]] = 1
+        cand_of_line[fast["line"]] = fast["cand"]
         blob_start = np.zeros(n_lines, np.int64)
         blob_end = np.zeros(n_lines, np.int64)
         lis = sorted(texts)
         parts = [texts[li].encode("utf-8") for li in lis]
         if lis:
-            at = np.asarray(lis, np.int64) - lo
             lengths = np.fromiter(map(len, parts), np.int64, len(parts))
-            mode[at] = 2
-            blob_end[at] = np.cumsum(lengths)
-            blob_start[at] = blob_end[at] - lengths
+            mode[lis] = 2
+            blob_end[lis] = np.cumsum(lengths)
+            blob_start[lis] = blob_end[lis] - lengths
         blob = np.frombuffer(b"".join(parts), np.uint8)
         pieces = fast.get("pieces")
         if pieces is not None and pieces["line"].size:  # the compiled writer's split moves and fitted arcs
-            at = pieces["line"] - lo
-            mode[at] = 2
-            blob_start[at] = blob.size + pieces["start"]
-            blob_end[at] = blob.size + pieces["end"]
+            mode[pieces["line"]] = 2
+            blob_start[pieces["line"]] = blob.size + pieces["start"]
+            blob_end[pieces["line"]] = blob.size + pieces["end"]
             blob = np.concatenate([blob, pieces["blob"]])
         # (each line is written alone: the lines shared among the kernels' threads, their bytes joined in order)
         shares = _shared(fast_write.assemble, n_lines, lambda sl: (
-            fast["src"], fast["line_start"][lo + sl.start : lo + sl.stop + 1], mode[sl], cand_of_line[sl], fast["k"],
+            fast["src"], fast["line_start"][sl.start : sl.stop + 1], mode[sl], cand_of_line[sl], fast["k"],
             fast["motion"], fast["spans"], fast["target"], fast["cols"], fast["letters"], fast["dec"], fast["inch"],
             fast["n_extra"], fast["extra_val"], fast["extra_letter"], fast["extra_dec"], fast["keep_r"],
             bool(info.leading_zero), bool(info.trailing_point), fast["sep"], blob, blob_start[sl], blob_end[sl]))
@@ -2175,7 +2089,7 @@ class _Poster:
         self.rep.max_cycle_deviation_um = max(self.rep.max_cycle_deviation_um, worst)
         if worst > 1e3 * self.tol_mm and not self._cycle_warned:
             self._cycle_warned = True
-            self._write_warnings.append(
+            self.rep.warnings.append(
                 f"{self.p.source}:{int(self.p.line_no[rr[0]])}: canned cycle: a hole's X Y is corrected at its bottom; "
                 f"at its R plane the twin asks for a correction {worst:.2f} um away (over the {1e3 * self.tol_mm:g} um "
                 "tolerance): the feed into the hole leaves its nominal axis by up to that; write the holes as G0 / G1 "
