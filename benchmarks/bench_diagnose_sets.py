@@ -1,4 +1,4 @@
-"""``make bench`` entry of the diagnosis benchmark (issue 14): every case set (tuning and the six held-out sets)
+"""``make bench`` entry of the diagnosis benchmark (issue 14): every case set (tuning and the seven held-out sets)
 through Dask, every figure of the issue's "Done when", and the diagnosis time of a cone probed as ``make demo`` probes
 it.
 

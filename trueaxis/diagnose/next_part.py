@@ -90,39 +90,54 @@ def _bounds(fit, cands: dict) -> list:
     return plausible_bounds([cands[m] for m in fit.members])
 
 
-def _misfit(options: list, bounds: list, target: np.ndarray, w: np.ndarray) -> float:
-    """The smallest weighted RSS (um^2) of ``target`` (N,) fitted by any of the column sets, bounded."""
-    sw = np.sqrt(w)
-    best = math.inf
-    for S in options:
-        theta = _solve_bounded(S * sw[:, None], target * sw, bounds)[0]
-        r = (target - S @ theta) * sw
-        best = min(best, float(r @ r))
-    return best
-
-
 def separation_z(here: np.ndarray, gap_um: np.ndarray, verdict, rival, cands: dict, sigma: float,
                  weight: np.ndarray) -> tuple[float, float]:
     """(z on the measured part alone, z over all rows) by which ``rival`` cannot reproduce ``verdict`` nor the
     other way round (the smaller of the two directions). here : (N,) bool, the measured part's rows (the others:
     the planned part's); gap_um : the measured part's gap; cands : name -> candidate built on all N rows (the
     joined state); weight : (N,) each row's weight (the planned part's rows scaled to the measured part's
-    density)."""
+    density).
+
+    For each direction (one taken as the truth, the other as what mimics it): the least cost, over the truth's
+    values the measured gap allows and the other's values, of the truth's misfit to the measured gap beyond its best
+    fit plus the other's weighted misfit to the truth's prediction on the rows compared (``_joint_extra``): z =
+    sqrt(cost) / sigma. The truth's values are not taken at their best fit alone: where the measured part leaves
+    them loose, the prediction on the planned part is whatever they allow, and a rival that matches one of those
+    predictions is not separated. (Until 2026-11-28 the truth's best fit was extrapolated: a C-line offset against a
+    once-per-turn radial motion, the same at any placement, was promised z 88 at a second placement from values of
+    std 8 and 21, and the second part did not separate them -- a QA pass.)"""
     zs_here, zs_all = [], []
     for true, other in ((verdict, rival), (rival, verdict)):
-        # the true one fitted to the measured gap in the shape that fits it best, then predicted on every row
-        best = None
-        for S in _fit_columns(true, cands):
-            theta = _solve_bounded(S[here], gap_um, _bounds(true, cands))[0]
-            r = gap_um - S[here] @ theta
-            if best is None or float(r @ r) < best[0]:
-                best = (float(r @ r), S @ theta)
-        signature = best[1]
+        b_true, b_other = _bounds(true, cands), _bounds(other, cands)
         others = _fit_columns(other, cands)
-        zs_here.append(math.sqrt(_misfit([S[here] for S in others], _bounds(other, cands), signature[here],
-                                         weight[here])) / sigma)
-        zs_all.append(math.sqrt(_misfit(others, _bounds(other, cands), signature, weight)) / sigma)
+        cost_here, cost_all = math.inf, math.inf
+        for S in _fit_columns(true, cands):
+            base = _solve_bounded(S[here], gap_um, b_true)[0]
+            r = gap_um - S[here] @ base
+            rss0 = float(r @ r)
+            for O in others:
+                cost_here = min(cost_here, _joint_extra(S, O, here, here, gap_um, (b_true, b_other), weight, rss0))
+                cost_all = min(cost_all, _joint_extra(S, O, here, np.ones_like(here), gap_um, (b_true, b_other),
+                                                      weight, rss0))
+        zs_here.append(math.sqrt(cost_here) / sigma)
+        zs_all.append(math.sqrt(cost_all) / sigma)
     return min(zs_here), min(zs_all)
+
+
+def _joint_extra(S, O, here, on, gap_um, bounds, weight, rss0) -> float:
+    """min over t (the truth's values, columns S) and o (the other's, columns O), within their bounds, of
+    |S[here] t - gap|^2 + sum over the rows ``on`` of weight (S t - O o)^2, less ``rss0`` (the first term alone at
+    its least): what it costs (um^2) for the other to mimic a truth the measured gap allows."""
+    sw = np.sqrt(weight[on])
+    p, q = S.shape[1], O.shape[1]
+    A = np.zeros((int(here.sum()) + int(on.sum()), p + q))
+    A[: int(here.sum()), :p] = S[here]
+    A[int(here.sum()):, :p] = S[on] * sw[:, None]
+    A[int(here.sum()):, p:] = -O[on] * sw[:, None]
+    b = np.r_[gap_um, np.zeros(int(on.sum()))]
+    theta = _solve_bounded(A, b, list(bounds[0]) + list(bounds[1]))[0]
+    r = b - A @ theta
+    return max(float(r @ r) - rss0, 0.0)
 
 
 def placements_to_try(current) -> list[tuple]:
