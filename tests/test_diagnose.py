@@ -266,8 +266,14 @@ def test_report_schema_and_cli(slots, tmp_path, capsys, monkeypatch):
     assert {"where", "chosen", "candidates", "gap_um", "shrink"} <= set(data)
     assert data["where"][0]["variable"] and "held_out_r2" in data["where"][0]
     assert data["chosen"][0]["effect"] == "backlash_y" and 0 < data["chosen"][0]["confidence"] <= 1
-    assert {"rms", "p95", "max"} <= set(data["gap_um"]["before"]) and data["gap_um"]["after"]["rms"] < \
+    assert {"rms", "p95", "max", "mean"} <= set(data["gap_um"]["before"]) and data["gap_um"]["after"]["rms"] < \
         data["gap_um"]["before"]["rms"]
+    # the gap's mean (a uniform offset, which the "where" ranking's R^2 about the mean cannot show; a QA pass read
+    # every variable at 0.000 for a 4.35 um RMS gap) on the terminal and the page
+    mean = data["gap_um"]["before"]["mean"]
+    assert abs(mean) <= data["gap_um"]["before"]["rms"]
+    assert f"(mean {mean:+.2f} -> {data['gap_um']['after']['mean']:+.2f})" in told.out
+    assert f"The gap's mean along the normal is {mean:+.3f} um" in html
     p = data["chosen"][0]["parameters"][0]
     assert p["value_um"] == pytest.approx(8.0, abs=1.5) and p["std_um"] > 0
 

@@ -598,7 +598,9 @@ def _html(data: dict, pngs: dict) -> str:
 <tr><td>after</td><td>{a['rms']:.3f}</td><td>{a['p95']:.3f}</td><td>{a['max']:.3f}</td></tr></table>
 <p>Shrink: raw RMS {data['shrink']['raw_rms_reduction'] * 100:.1f} %, above the noise
 {e(shown_share(data['shrink']['above_noise']))}.</p>
-<h2>Where</h2><table><tr><th>variable</th><th>held-out R2</th></tr>{rows}</table>
+<h2>Where</h2><p>The gap's mean along the normal is {b['mean']:+.3f} um (RMS {b['rms']:.3f} um): a uniform offset,
+which no variable below ranks (their R2 is about the mean).</p>
+<table><tr><th>variable</th><th>held-out R2</th></tr>{rows}</table>
 <h2>Candidates</h2><table><tr><th>effect</th><th>held-out RMS after, um</th><th>gain um2</th><th>z</th>
 <th>significant</th><th>plausible</th></tr>{cands}</table>
 {not_applicable}
@@ -788,7 +790,8 @@ def summary_lines(diag: Diagnosis, output, named_candidates: bool = False, next_
     the report's plan of a separating part, or None."""
     b, a = diag.gap_before, diag.gap_after
     out = [f"{output}: {verdict_words(diag.verdict, diag.confidence_basis)} (confidence {diag.confidence:.2f}); "
-           f"held-out gap rms {b['rms']:.2f} -> {a['rms']:.2f} um, max {b['max']:.2f} -> {a['max']:.2f} um; "
+           f"held-out gap rms {b['rms']:.2f} -> {a['rms']:.2f} um (mean {b['mean']:+.2f} -> {a['mean']:+.2f}), "
+           f"max {b['max']:.2f} -> {a['max']:.2f} um; "
            f"shrink {diag.shrink_raw * 100:.0f} % raw, "
            f"{shown_share(diag.shrink_above_noise)} above the noise (sigma {diag.noise_um:.2f} um)"]
     if diag.alternatives:
