@@ -116,3 +116,15 @@ def test_the_page_gives_the_confidence_of_none_and_the_pictures_say_what_their_c
     assert "verdict" in legend and "before" in legend and "noise sigma" in legend
     assert by_name["before_after.png"][0][0] == "measured points"
     plt.close("all")
+
+
+def test_one_cloud_and_two_programs_is_said_as_such_before_the_pause(tmp_path, capsys):
+    # (it said "--pause-s: one part given" when a pause was given: the parts were counted by their clouds alone)
+    from trueaxis.cli import main
+
+    for name in ("a.ply", "a.ngc", "b.ngc"):
+        (tmp_path / name).write_text("")
+    rc = main(["diagnose", "--cloud", str(tmp_path / "a.ply"), "--part", "nas979", "--machine", "nmv1500dcg",
+               "--program", str(tmp_path / "a.ngc"), "--program", str(tmp_path / "b.ngc"), "--pause-s", "0"])
+    assert rc == 2
+    assert "1 cloud(s) and 2 program(s): give one --program per --cloud" in capsys.readouterr().err

@@ -409,6 +409,9 @@ def cmd_diagnose(args) -> int:
     if args.noise_um is not None and not args.noise_um > 0:
         raise UsageError("--noise-um must be > 0")
     n_parts = len(args.cloud)
+    if len(args.program) != n_parts:  # (first: the --pause-s checks below count the parts by their clouds)
+        raise UsageError(f"{n_parts} cloud(s) and {len(args.program)} program(s): give one --program per --cloud, in "
+                         "the order the parts were cut")
     gaps = "one number" if n_parts == 2 else f"one number for all gaps, or {n_parts - 1} numbers (one per gap)"
     if n_parts > 1 and args.pause_s is None:
         raise UsageError(f"{n_parts} parts: give --pause-s, the pause between one part's cut and the next (s; 0 when "
