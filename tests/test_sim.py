@@ -430,3 +430,28 @@ def test_an_effects_file_that_switches_nothing_on_is_said(xh714):
     on = simulate(square_boss_program(), machine, parse_effects({"backlash": {"X": {"amplitude": 5.0}}},
                                                                 machine=machine), part="slots", probe=(pts, nrm))
     assert not on.info.get("notes")
+
+
+def test_the_smoothing_the_run_used_is_in_its_truth(xh714, tmp_path):
+    # "auto" smoothing is the interpolator's choice for the program: the truth file said "auto", so a servo lag could
+    # not be checked against it (a QA pass). The value used is in the run's info (and so in the truth file): the
+    # slot program's largest velocity step at a feed corner over the acceleration limit, in whole 1 ms periods.
+    from trueaxis.workpiece.parts import SlotBlockParams, slot_block_description
+    from trueaxis.postproc.programs import slots_program
+    from trueaxis.sim.shop import write_cmm
+
+    params = SlotBlockParams(slot_depth=0.6)
+    prog = slots_program(xh714, params)
+    axes = prog.machine.axis_names
+    eff = parse_effects({"servo": {"kv_per_s": {a: 40.0 for a in axes}, "accel": {a: 500.0 for a in axes},
+                                   "smoothing_ms": "auto"}}, machine=prog.machine)
+    r = simulate(prog.text, prog.machine, eff, part="slots", part_json=slot_block_description(params), points=200,
+                 force_stride=50)
+    used = r.info["servo_smoothing_ms"]
+    feed = r.trajectory.motion != 0
+    v = np.diff(r.trajectory.q, axis=0) / r.trajectory.dt
+    dv = np.abs(np.diff(v, axis=0))[feed[1:-1] | feed[2:]]
+    expect = math.ceil(dv.max() / 500.0 / r.trajectory.dt - 1e-9) * r.trajectory.dt * 1e3
+    assert used > 0 and used == pytest.approx(expect, abs=r.trajectory.dt * 1e3)
+    truth = json.loads(write_cmm(r, tmp_path / "cmm.ply").read_text())
+    assert truth["info"]["servo_smoothing_ms"] == used

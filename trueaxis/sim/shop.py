@@ -154,6 +154,9 @@ def simulate(
     ci = np.nonzero(cutting)[0]
     force_part = np.zeros((len(traj), 3))
     info = {"samples": len(traj), "cutting_samples": int(ci.size)}
+    if effects.servo is not None:  # the smoothing the run used ("auto" is the interpolator's choice for this program)
+        planned = effects.servo.plan_rapids(np.asarray(traj.q, float), machine, dt, traj)  # (as ``apply`` does)
+        info["servo_smoothing_ms"] = 1e3 * effects.servo.smoothing_s(planned, machine, dt, traj)
     notes = [n for n in (unapplied_force_note(machine, effects), _idle_effects_note(machine, effects)) if n]
     if notes:
         info["notes"] = notes
