@@ -1047,6 +1047,16 @@ def test_two_measured_parts_are_diagnosed_together_from_the_command_line(two_con
                                   "--pause-s", "0", "-o", str(d / "dup")]) == 3
     err = capsys.readouterr().err
     assert "cloud 2 is the same measurement as cloud 1" in err and "again.xyz" in err and not (d / "dup").exists()
+    # ... also with a few points left out (it passed as a second part: only the exact shape was compared; QA)
+    pts = read_cloud(d / "cmm0.ply").points
+    np.savetxt(d / "fewer.xyz", pts[: int(0.95 * len(pts))], fmt="%.9f")
+    assert main(args + two[:4] + ["--cloud", str(d / "fewer.xyz"), "--program", str(d / "cone0.ngc"),
+                                  "--pause-s", "0", "-o", str(d / "dup")]) == 3
+    assert "cloud 2 is the same measurement as cloud 1" in capsys.readouterr().err and not (d / "dup").exists()
+    from trueaxis.diagnose.report import shared_points
+
+    other = read_cloud(d / "cmm1.ply").points  # the second part, probed apart
+    assert shared_points(pts, pts[::3]) == 1.0 and shared_points(pts, other) < 0.01
     # One program for two clouds: refused before any work, exit 2, nothing written.
     assert main(args + two[:6] + ["--pause-s", "0", "-o", str(d / "bad")]) == 2
     assert "2 cloud(s) and 1 program(s)" in capsys.readouterr().err and not (d / "bad").exists()

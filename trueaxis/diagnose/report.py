@@ -132,9 +132,8 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
     for k, c in enumerate(cuts):
         for j, other in enumerate(cuts[:k]):
             # The same measurement, also when written again at another precision (0.1 um: far below any probe's
-            # noise, far above a re-export's rounding).
-            if np.shape(other.points) == np.shape(c.points) and np.allclose(other.points, c.points, rtol=0.0,
-                                                                            atol=1e-4):
+            # noise, far above a re-export's rounding), or with some points left out (``shared_points``).
+            if shared_points(other.points, c.points) >= SAME_CLOUD_SHARE:
                 raise CloudError(f"cloud {k + 1} is the same measurement as cloud {j + 1}{which(k, c)}: each part is "
                                  f"measured once (a cloud given twice would count its noise as signal)")
         pj = part_description(part, part_json if c.part_json is None else c.part_json)
@@ -272,6 +271,25 @@ def pause_the_data_prefer(states: list, pauses, diag: Diagnosis, gap_um: np.ndar
     said = ", ".join(f"{v:g} s" for v in p)
     return (f"the drift fits the parts better with {said} between them than with the pause given (chi-square "
             f"{gain:.0f} noise variances lower): check --pause-s; the drift's size and the verdict rest on it")
+
+
+# Two clouds of which this share of the smaller one's points are the other's (to 0.1 um) are one measurement: no two
+# probings of a part land on the same points to 0.1 um (a measurement given twice, once with a few points dropped,
+# passed as two parts).
+SAME_CLOUD_SHARE = 0.5
+
+
+def shared_points(a, b, tol_mm: float = 1e-4) -> float:
+    """The share of the smaller of the clouds a, b ((n, 3) mm) whose points are points of the other, to ``tol_mm``
+    (on a grid of that size: a point on a cell border may be missed, a share, not an exact count)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    if len(a) == 0 or len(b) == 0:
+        return 0.0
+    if len(a) > len(b):
+        a, b = b, a
+    key = lambda p: np.round(p / tol_mm).astype(np.int64)  # noqa: E731
+    inter = np.intersect1d(key(a).view([("", np.int64)] * 3).ravel(), key(b).view([("", np.int64)] * 3).ravel())
+    return inter.size / len(a)
 
 
 MAX_GAP_RMS_UM = 500.0  # the post's default correction bound: a larger gap is not a machine effect but a wrong input
