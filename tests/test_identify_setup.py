@@ -7,6 +7,7 @@ A0Z of 1000 urad. Run as a user does: program, simulate, inspect --identify --wr
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -176,3 +177,27 @@ def test_a_set_up_offset_of_the_cone_is_no_axis_error(tmp_path, capsys):
     setup = rep["setup_offset"]
     found = np.array([setup["TX_um"], setup["TY_um"], setup["TZ_um"]])
     assert np.all(np.abs(found - offset_um) < 0.5), found
+
+
+def test_a_part_the_twin_does_not_explain_is_said_so_beside_the_verdict(tmp_path, capsys):
+    # A backlash of 8 um on X, which no twin parameter describes: "no change" with a residual of 2.3 um against a
+    # probe noise of 1 um said nothing of it (a QA pass). The note compares the residual with the cloud's own noise,
+    # read from neighbouring points; the same part without the backlash gets no note.
+    twin = MACHINES / "nmv1500dcg.toml"
+    assert _cli("program", "nas979", "--machine", twin, "-o", tmp_path / "cone.ngc", "--step-deg", 2,
+                "--chord-tol-um", 0.2) == 0
+    (tmp_path / "bx.toml").write_text("[backlash.X]\namplitude = 8.0\ntransition = 0.02\n")
+    notes = {}
+    for name, effects in (("bx", ["--effects", tmp_path / "bx.toml"]), ("clean", [])):
+        assert _cli("simulate", tmp_path / "cone.ngc", "--machine", twin, *effects, "--part", "nas979", "-o",
+                    tmp_path / f"{name}.ply", "--points", 3000, "--noise-um", 1.0, "--seed", 4) == 0
+        (tmp_path / "twin.toml").write_text(twin.read_text())
+        capsys.readouterr()
+        code, _, rep = _inspect(tmp_path, tmp_path / f"{name}.ply", "nas979", tmp_path / "cone.ngc", name)
+        printed = capsys.readouterr().out
+        assert code == 0, printed
+        notes[name] = (rep.get("unexplained_note"), printed)
+    note, printed = notes["bx"]
+    noise = float(re.search(r"the cloud's own noise \(([\d.]+) um", note).group(1))
+    assert 0.85 < noise < 1.15 and "trueaxis diagnose" in note and f"  note: {note}" in printed
+    assert notes["clean"][0] is None and "note:" not in notes["clean"][1]

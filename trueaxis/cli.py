@@ -492,12 +492,17 @@ def cmd_inspect(args) -> int:
         identification = None
         if args.identify:
             from .identify import run_identification
+            from .inspect.flyers import residual_above_noise_note
 
             cloud, deviation_um, flyers = identification_input(result)  # the flyers set apart, as the diagnosis does
             report, identification = run_identification(cloud, deviation_um, result.part, machine=args.machine,
                                                         program=args.program, write=args.write, alignment=args.align,
                                                         setup_sigma_um=args.setup_sigma_um)
             result.report["identification"] = {**report, **flyers}
+            note = residual_above_noise_note(identification.residual_rms_um,
+                                             flyers["flyers_set_apart"]["local_sigma_um"])
+            if note:
+                result.report["identification"]["unexplained_note"] = note
         with single_blas_thread():
             write_report(result, out_dir, figure_worker=figures)
     r = result.report
@@ -520,6 +525,8 @@ def cmd_inspect(args) -> int:
         return 0
     for text in identification.verdict_lines():
         print(text)
+    if r["identification"].get("unexplained_note"):
+        print(f"  note: {r['identification']['unexplained_note']}")
     print(f"  program: {r['identification']['program_compensation']['note']}")
     if args.write and not identification.accepted:
         print(f"trueaxis inspect: {args.write} not written: identification refused ("

@@ -742,7 +742,8 @@ class Identification:
     def verdict_lines(self) -> list[str]:
         """The verdict as a few terminal lines: status and why, residual before / after, the changes with std."""
         head = {"accepted": "ACCEPTED", "no change": "NO CHANGE", "refused": "REFUSED"}[self.verdict]
-        out = [f"identification {head}: " + ("; ".join(self.reasons) if self.reasons else "the fit explains the part")]
+        out = [f"identification {head}: " + ("; ".join(self.reasons) if self.reasons else
+                                                   "the changes are significant and hold on held-out points")]
         h = self.heldout
         ho = (f"; held-out points {h['before_rms_um']:.2f} -> {h['after_rms_um']:.2f} um (fit predicted "
               f"{h['fit_before_rms_um']:.2f} -> {h['fit_after_rms_um']:.2f})" if "before_rms_um" in h else "")

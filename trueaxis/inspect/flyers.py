@@ -30,6 +30,7 @@ normals are known), so a flyer's own offset does not change them.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,6 +89,24 @@ class FlyerScreen:
                          f"{info['local_largest_um']:+.1f} um)")
         return (f"{self.n_apart} of {self.keep.size} points set apart as flyers and left out of {what}: "
                 f"{'; '.join(parts)}")
+
+
+# The local differences' sigma over the probe noise's, for Gaussian noise: a point less the median of its NEIGHBOURS
+# (8) neighbours has variance sigma^2 (1 + pi / (2 x 8)) (the median's asymptotic variance), a factor sqrt(1.196).
+LOCAL_TO_NOISE = math.sqrt(1.0 + math.pi / (2.0 * NEIGHBOURS))
+#: A residual above this multiple of the cloud's own noise is a part the fitted model does not explain.
+UNEXPLAINED_FACTOR = 1.5
+
+
+def residual_above_noise_note(residual_um: float, local_sigma_um: float,
+                              what: str = "the identification") -> str | None:
+    """A sentence when a fit's residual RMS (um) stays above ``UNEXPLAINED_FACTOR`` x the cloud's own noise, read from
+    neighbouring points (``local_sigma_um`` / ``LOCAL_TO_NOISE``: independent of any model); else None."""
+    noise = local_sigma_um / LOCAL_TO_NOISE
+    if not (math.isfinite(noise) and noise > 0 and residual_um > UNEXPLAINED_FACTOR * noise):
+        return None
+    return (f"{what} leaves {residual_um:.2f} um RMS, above the cloud's own noise ({noise:.2f} um, from neighbouring "
+            "points): the part holds an effect the twin's parameters do not describe; `trueaxis diagnose` looks for it")
 
 
 def rule_text(gate_mm: float = GATE_MM) -> str:
