@@ -44,9 +44,10 @@ deliberately poorer, so that a fit is a test and not an identity):
   harmonics, a linear term per turn) as a transform at the axis, at the axis' actual angle.
 - ``twin_parameters``: re-identification of the twin's own location errors (``machine.location_names()``) through
   the exact parameter Jacobian (``ErrorTwin.parameter_jacobian``) projected on the normals, so that a wrong value in
-  the machine file is not mistaken for a missing effect; only the location errors this part resolves (a pivoted QR
-  of the columns: two offsets that move the surface alike are one parameter here). Component tables are left out
-  (too many columns for one part; the identification command handles them).
+  the machine file is not mistaken for a missing effect; only the location errors this part resolves
+  (``resolved_columns``: of offsets that move the surface alike, one parameter here, the one that reaches furthest
+  within its bound). Component tables are left out (too many columns for one part; the identification command
+  handles them).
 
 Parameter units are given per parameter in ``Candidate.units``; values stay in those units throughout the reports.
 """
@@ -400,7 +401,8 @@ def rotary_error_motion(state: TwinState, axis: str, motion: str) -> Candidate |
                      f"harmonics 1-4 per turn plus a term linear in the angle")
 
 
-#: Share of the strongest column's independent part (pivoted QR) a twin location error needs to be re-identified.
+#: Share of its own size a twin location error's column must keep independent of the columns kept (``resolved_columns``)
+#: to be re-identified.
 TWIN_RESOLVED = 0.1
 # A re-mounted table or a collision moves location errors by a few hundred um / urad, not by millimetres.
 TWIN_SPAN = 300.0

@@ -10,12 +10,13 @@ before anything is cut:
    the part's probe pattern (``trueaxis.sim.cmm.probe_pattern``): the machine state there.
 2. The two parts are joined as one run of the machine (``combine_states``; the second cut right after the first, as
    the pause is not known yet) and every candidate's columns are built on both.
-3. The verdict's effect is fitted on the measured part (the same columns, bounded as the diagnosis fits), and its
-   signature predicted on both parts. Each rival is then fitted to that signature over both parts (every variant of
-   its shape tried), and the other way round. What the rival cannot reproduce, ``sqrt(RSS) / sigma`` with the second
-   part counted at the measured part's density, is the expected z by which the two parts together tell them apart
-   (the quantity the benchmark's identifiability uses: below 3, a rival passes for the truth). The same on the
-   measured part alone says how far apart they are now.
+3. For the verdict and each rival, each taken in turn as the truth (every variant of their shapes tried, bounded as
+   the diagnosis fits): the least cost, over the truth's values the measured gap allows and the other's values, of
+   the truth's misfit to the measured gap beyond its best fit plus the other's misfit to the truth's prediction on
+   both parts, the second counted at the measured part's density (``separation_z``: one joint bounded fit, not the
+   truth's best fit extrapolated to the other placement). ``sqrt(cost) / sigma``, the smaller of the two ways round,
+   is the expected z by which the two parts together tell them apart (below 3, a rival passes for the truth). The
+   same on the measured part alone says how far apart they are now.
 
 The placement with the largest z for the worst-separated rival is suggested when it separates them (z >= 3) and does
 better than the part measured; else the report says that no placement tried does, and the separating measurement
