@@ -556,7 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "written); 2 usage (an option, a value, a path), nothing written; 3 an "
                        "input refused (a program, CL data, a machine file, a setup, a cloud, "
                        "tolerances; a --strict warning) or a computed result refused (an "
-                       "identification that does not explain the part), nothing written; "
+                       "identification refused: its changes do not hold), nothing written; "
                        "130 / 143 interrupted (SIGINT / SIGTERM); 141 the reader of standard "
                        "output went away (a pipe closed).")
     p.add_argument("--version", action="version", version=f"trueaxis {__version__}")
