@@ -12,7 +12,7 @@ import re
 import numpy as np
 import pytest
 
-from conftest import MACHINES
+from conftest import CUTTING_C45, MACHINES, mill_toml
 from trueaxis.machine import load_machine
 
 NOISE_UM = 1.0
@@ -21,24 +21,7 @@ NOISE_UM = 1.0
 # = 3 um at X = 0: the machine files' convention holds every component error at 0 at its axis' zero (its gauge), so
 # in the twin's terms this truth is EYX@400 = -3 um plus a constant 3 um along Y, which no parameter may take: a
 # set-up offset of the part.
-VMC = """[machine]
-name = "shop VMC-1"
-kind = "mill"
-format = 1
-
-[kinematics]
-bed_to_workpiece = ["Y", "X"]
-bed_to_tool = ["Z"]
-
-[axes]
-X = { type = "linear", travel = [-400.0, 400.0] }
-Y = { type = "linear", travel = [-250.0, 250.0] }
-Z = { type = "linear", travel = [-400.0, 50.0] }
-
-[tool]
-length = 100.0
-radius = 5.0
-flutes = 4
+VMC = mill_toml("shop VMC-1", ((-400.0, 400.0), (-250.0, 250.0), (-400.0, 50.0)), """flutes = 4
 flute_length = 30.0
 
 [workpiece]
@@ -60,15 +43,7 @@ legendre = { EYY = [%(EYY)s] }
 at = [-400.0, 50.0]
 EZZ = [%(EZZ)s, 0.0]
 
-[cutting]
-material = "C45"
-Ktc = 2000.0
-Krc = 750.0
-Kac = 400.0
-Kte = 30.0
-Kre = 45.0
-Kae = 5.0
-"""
+""" + CUTTING_C45)
 TWIN = dict(C0Y=0.0, B0Z=0.0, EXX="0.0, 0.0, 0.0", EYX="0.0, 0.0, 0.0", EYY="0.0, 0.0", EZZ=0.0)
 # the twin plus a constant 3 um along Y (the Legendre series' constant term, a gauge value): a pure set-up offset
 SHIFTED = dict(TWIN, EYY="3.0, 0.0")
@@ -110,15 +85,21 @@ def _inspect(folder, cloud, part, program, name):
     return code, out, _identification(folder / f"rep_{name}")
 
 
+def _slots_identified(vmc, name, seed, capsys):
+    """The slot program cut on the machine ``name``.toml of the folder (4000 points, NOISE_UM, ``seed``), inspected
+    and identified against the twin: (exit code, written twin, report's identification, what the terminal said)."""
+    assert _cli("simulate", vmc / "slots.ngc", "--machine", vmc / f"{name}.toml", "--part", "slots", "-o",
+                vmc / f"{name}.ply", "--noise-um", NOISE_UM, "--points", 4000, "--seed", seed) == 0
+    capsys.readouterr()
+    code, out, rep = _inspect(vmc, vmc / f"{name}.ply", "slots", vmc / "slots.ngc", name)
+    return code, out, rep, capsys.readouterr().out
+
+
 @pytest.mark.filterwarnings("ignore::UserWarning")
 def test_a_set_up_offset_of_the_slot_block_is_no_axis_error(vmc, capsys):
     # The QA's reproduction: the true machine is the twin plus a constant 3 um along Y. Nothing about the axes
     # changed: the written twin is the twin, and the offset is reported as the part's set-up offset.
-    assert _cli("simulate", vmc / "slots.ngc", "--machine", vmc / "shifted.toml", "--part", "slots", "-o",
-                vmc / "shifted.ply", "--noise-um", NOISE_UM, "--points", 4000, "--seed", 2) == 0
-    capsys.readouterr()
-    code, out, rep = _inspect(vmc, vmc / "shifted.ply", "slots", vmc / "slots.ngc", "shifted")
-    printed = capsys.readouterr().out
+    code, out, rep, printed = _slots_identified(vmc, "shifted", 2, capsys)
     assert code == 0, printed
     assert rep["verdict"]["status"] == "no change" and rep["parameters"] == []
     assert _values(out) == _values(vmc / "twin.toml")
@@ -137,11 +118,8 @@ def test_real_axis_errors_beside_a_constant_are_identified_and_the_constant_is_t
     # um, truth 10, and another run wrote A0Z = 1014 urad: the constant taken by axis errors); the constant is the
     # set-up offset; and what the part cannot tell from a set-up offset (EZZ@-400: a constant along Z at the slots'
     # depth) is not written.
-    assert _cli("simulate", vmc / "slots.ngc", "--machine", vmc / "true.toml", "--part", "slots", "-o",
-                vmc / "true.ply", "--noise-um", NOISE_UM, "--points", 4000, "--seed", 3) == 0
-    capsys.readouterr()
-    code, out, rep = _inspect(vmc, vmc / "true.ply", "slots", vmc / "slots.ngc", "true")
-    assert code == 0, capsys.readouterr().out
+    code, out, rep, printed = _slots_identified(vmc, "true", 3, capsys)
+    assert code == 0, printed
     assert rep["verdict"]["status"] == "accepted"
     written, twin = _values(out), _values(vmc / "twin.toml")
     changed = {p["name"]: p for p in rep["parameters"]}
