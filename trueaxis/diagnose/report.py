@@ -307,9 +307,9 @@ def set_apart_flyers(st: TwinState, cloud_name: str = "") -> TwinState:
 
     screen = screen_flyers(st.points, st.normals, st.gap_um)
     kept = st.gap_um[screen.keep]
-    gap_rms = float(np.sqrt(np.mean(kept ** 2))) if kept.size else float(np.sqrt(np.mean(st.gap_um ** 2)))
+    all_rms = float(np.sqrt(np.mean(st.gap_um ** 2)))
+    gap_rms = float(np.sqrt(np.mean(kept ** 2))) if kept.size else all_rms
     if screen.beyond_gate.mean() > MAX_BEYOND_GATE or not gap_rms <= MAX_GAP_RMS_UM:
-        all_rms = float(np.sqrt(np.mean(st.gap_um ** 2)))
         raise CloudError(f"the cloud lies {all_rms:.0f} um (RMS) from the part this program cuts on this twin "
                          f"({screen.beyond_gate.sum()} of {len(st)} points beyond the {screen.gate_mm:g} mm gate): not "
                          f"a measurement of that cut (another part, another frame, another program?); a machine's "

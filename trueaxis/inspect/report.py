@@ -585,10 +585,9 @@ def identification_input(inspection: Inspection) -> tuple[Cloud, np.ndarray, dic
     gate_mm = (inspection.report.get("beyond_gate") or {}).get("gate_mm", 0.5)
     screen = screen_flyers(cloud.points, cloud.normals, inspection.deviation_um, gate_mm)
     entries = {"flyers_set_apart": screen.as_dict()}
-    if screen.n_apart:
-        entries["flyers_note"] = screen.sentence("the identification")
     if not screen.n_apart:
         return cloud, inspection.deviation_um, entries
+    entries["flyers_note"] = screen.sentence("the identification")
     keep = screen.keep
     kept = dataclasses.replace(cloud, points=cloud.points[keep],
                                normals=None if cloud.normals is None else cloud.normals[keep])

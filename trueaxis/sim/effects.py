@@ -257,11 +257,15 @@ class ServoLag:
             q[k0 : k1 + 1] = q[k0] + s[:, None] * d
         return q
 
-    def apply(self, q, machine: Machine, dt: float, traj=None):
+    def apply(self, q, machine: Machine, dt: float, traj=None, info: dict | None = None):
         """Commanded axes (T, n) -> actual axes (T, n); traj: the ``Trajectory`` of q (row, motion, line), which
-        lets the rapids be planned within the acceleration limits."""
+        lets the rapids be planned within the acceleration limits. ``info``: a dict that takes the smoothing used,
+        ``servo_smoothing_ms`` ("auto" is the interpolator's choice for this program)."""
         q = self.plan_rapids(np.asarray(q, float), machine, dt, traj)
-        q = smooth_command(q, self.smoothing_s(q, machine, dt, traj), dt)
+        smoothing = self.smoothing_s(q, machine, dt, traj)
+        if info is not None:
+            info["servo_smoothing_ms"] = 1e3 * smoothing
+        q = smooth_command(q, smoothing, dt)
         out = q.copy()
         for col, name in enumerate(machine.axis_names):
             if name not in self.kv_per_s:
@@ -757,12 +761,13 @@ class Effects:
     def needs_force(self) -> bool:
         return self.force is not None or self.tool_deflection is not None
 
-    def apply_axes(self, q, machine: Machine, dt: float, traj=None):
+    def apply_axes(self, q, machine: Machine, dt: float, traj=None, info: dict | None = None):
         """Commanded axes (T, n) -> actual axes (T, n): servo lag, then backlash, then rotary harmonics.
-        traj: the ``Trajectory`` of q (lets the servo plan the rapids within its acceleration limits)."""
+        traj: the ``Trajectory`` of q (lets the servo plan the rapids within its acceleration limits); info: a dict
+        that takes what the run chose (the servo's smoothing)."""
         out = np.asarray(q, float)
         if self.servo is not None:
-            out = self.servo.apply(out, machine, dt, traj=traj)
+            out = self.servo.apply(out, machine, dt, traj=traj, info=info)
         for b in self.backlash:
             out = b.apply(out, machine)
         for r in self.rotary_periodic:

@@ -139,7 +139,8 @@ def simulate(
     timings["interpolate_s"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()
-    q_act = effects.apply_axes(traj.q, machine, dt, traj=traj)
+    info = {}  # (what the run chose and found, for the truth file)
+    q_act = effects.apply_axes(traj.q, machine, dt, traj=traj, info=info)
     twin = ErrorTwin(machine)
 
     def geometric_pose(q, force=None):
@@ -153,10 +154,7 @@ def simulate(
     cutting = traj.motion != 0
     ci = np.nonzero(cutting)[0]
     force_part = np.zeros((len(traj), 3))
-    info = {"samples": len(traj), "cutting_samples": int(ci.size)}
-    if effects.servo is not None:  # the smoothing the run used ("auto" is the interpolator's choice for this program)
-        planned = effects.servo.plan_rapids(np.asarray(traj.q, float), machine, dt, traj)  # (as ``apply`` does)
-        info["servo_smoothing_ms"] = 1e3 * effects.servo.smoothing_s(planned, machine, dt, traj)
+    info.update(samples=len(traj), cutting_samples=int(ci.size))
     notes = [n for n in (unapplied_force_note(machine, effects), _idle_effects_note(machine, effects)) if n]
     if notes:
         info["notes"] = notes
