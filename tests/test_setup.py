@@ -475,6 +475,37 @@ def test_an_offset_set_from_the_current_position_carries_that_positions_correcti
     assert last_um * 1e3 < 0.15
 
 
+@pytest.mark.parametrize("change", [
+    "G92 X0 Y0", "G92 X10 Y10\nG1 X45 Y-25\nG92.1", "G10 L20 P1 X0 Y0", "G10 L2 P1 X10 Y20 Z-40",
+    "G55", "G43 H1", "G20", "G55 G91 G1 X-5 Y10 Z-2"])
+@pytest.mark.parametrize("arcs", [False, True])
+def test_an_incremental_move_after_a_frame_change_counts_from_the_new_frame(tmp_path, machine, files, change, arcs):
+    # A G91 move (or arc) right after anything that changes the program frame -- G92, G92.1, G10 L20, G10 L2 of the
+    # active system, another work system (G55 is turned 25 deg here), a tool length, a units switch -- took its
+    # increment from the corrected end in the OLD frame: 30 mm after G92 X0 Y0, a 63.5 mm plunge after G43 H1,
+    # exit 0 (a QA pass); an arc's start after it likewise (a G90 arc's I J count from it). rs274 reads the output:
+    # every point on the nominal path, and the same last point; the arcs kept as arcs or written as lines.
+    program = (f"G21 G90 G17 G94\nG54\nG0 X30 Y-40 Z-30\nG1 X40 Y-30 F500\n{change}\nG91 G1 X-5 Y10 Z-2\n"
+               "G2 X10 Y0 I5 J0\nG1 X3 Y-4\nG3 X-10 Y0 I-5 J0\nG90\nG92 X0 Y0\nG2 X10 Y0 I5 J0\nM2\n")
+    setup = _setup(files)
+    out = compensate(program, machine, "geometric", setup=setup, arcs=arcs)
+    theirs = run_rs274_setup(_write(tmp_path / "out.ngc", out), *files, tmp_path / "rs274")
+    assert theirs.returncode == 0, theirs.stderr
+    nominal_rs = run_rs274_setup(_write(tmp_path / "in.ngc", program), *files, tmp_path / "rs274_in")
+    twin = ErrorTwin(machine)
+    nominal = nominal_polyline(parse_program(program, setup=setup), machine)
+    # Our own reading of the output is exact; rs274 prints 4 decimals of the program's units (1.27 um in inch).
+    q, _ = machine_rows(parse_program(out, setup=setup), machine)
+    ours_um = distance_to_polyline(twin.actual_pose(q)[0], nominal) * 1e3
+    assert ours_um.max() < 0.15, ours_um.max()
+    print_um = 2e3 * INCH_PRINT_MM if change == "G20" else 0.15
+    moves = [k in ("feed", "arc", "traverse") for k in theirs.kind]
+    d_um = distance_to_polyline(twin.actual_pose(theirs.end[moves][:, :3])[0], nominal) * 1e3
+    assert d_um.max() < print_um, d_um.max()
+    last_um = np.linalg.norm(twin.actual_pose(theirs.end[-1:, :3])[0] - twin.nominal_pose(nominal_rs.end[-1:, :3])[0])
+    assert last_um * 1e3 < print_um
+
+
 def _write(path, text):
     path.write_text(text)
     return path

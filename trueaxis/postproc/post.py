@@ -1737,7 +1737,7 @@ class _Poster:
             is_split = k in piece_first
             inc = incremental_l[r]
             if inc or is_split or arc_kept:
-                last_written = _written_before(np.array([li]), written_end, first_row_of_line)[0]
+                last_written = _written_before(np.array([li]), written_end, first_row_of_line, p)[0]
             if is_split:
                 out[li], n_more = self._split_block(body, ending, k, r, motion, inc, inverse_l[r], last_written,
                                                     arc_mode, split, axes_out, fmt, sep)
@@ -1848,7 +1848,7 @@ class _Poster:
         extra_dec = np.zeros((cand.size, 2), np.int64)
         arcs = np.nonzero(keep_r & ((p.words[rows[cand_k]] & _R_BIT) == 0))[0]
         if arcs.size:
-            last_written = _written_before(cand_line[arcs], written_end, first_row_of_line)
+            last_written = _written_before(cand_line[arcs], written_end, first_row_of_line, p)
             which, values = self._centre_columns(rows[cand_k[arcs]], delta_prog[cand_k[arcs]], last_written)
             inch0 = p.inch[cand_r0[arcs]]
             n_extra[arcs] = 2
@@ -1944,7 +1944,7 @@ class _Poster:
         starts = np.empty((n_flat, 6))
         starts[1:] = flat[:-1]
         written_end, first_row_of_line = ends_written
-        starts[piece_first[:-1]] = _written_before(p.line_index[r], written_end, first_row_of_line)
+        starts[piece_first[:-1]] = _written_before(p.line_index[r], written_end, first_row_of_line, p)
         numbers = _Numbers(p.format_info)
         scale = {flag: 10.0 ** np.array([numbers.decimals(a, flag) for a in "XYZ"]) for flag in (False, True)}
         inch = p.inch[r][owner]
@@ -2250,12 +2250,36 @@ def _subdivide(owner, a, b, worst, bad):
     return owner[rep_], fr
 
 
-def _written_before(lines, written_end, first_row_of_line):
-    """(K, 6) the end point written before each line of ``lines`` (K,) (program coordinates, zeros before the first
-    move): the written end of the row before the line's first row."""
-    r_prev = first_row_of_line[lines] - 1
+def _written_before(lines, written_end, first_row_of_line, p):
+    """(K, 6) the end point written before each line of ``lines`` (K,) (program coordinates of the line's own work
+    system, zeros before the first move): the written end of the row before the line's first row, as the control
+    holds it in the line's frame.
+
+    Where the frame changed between the two rows (G92, G10 L2 / L20, another work system, a tool length, G20 / G21:
+    ``p.offset``, ``p.rotation`` or ``p.inch`` differ), the control's position is the line's nominal start plus the
+    correction written at the row before, turned and scaled into the new frame (the same machine point): a G91
+    increment or an arc's start counted from the old frame's numbers was off by the frame's change (30 mm after
+    ``G92 X0 Y0``, a 50 mm plunge after ``G43 H1``, a QA pass)."""
+    r = first_row_of_line[lines]
+    r_prev = r - 1
     out = written_end[np.maximum(r_prev, 0)]
     out[r_prev < 0] = 0.0
+    a, b = np.maximum(r_prev, 0), r
+    moved = (r_prev >= 0) & (np.any(p.offset[a] != p.offset[b], axis=1) | (p.inch[a] != p.inch[b]))
+    if p.rotation is not None:
+        moved |= (r_prev >= 0) & (p.rotation[a] != p.rotation[b])
+    if not moved.any():
+        return out
+    i = np.nonzero(moved)[0]
+    a, b = a[i], b[i]
+    d = out[i] - p.end[a]  # the correction written at the row before, its frame's program units
+    if p.rotation is not None:
+        turn = np.radians(p.rotation[a] - p.rotation[b])
+        c, s = np.cos(turn), np.sin(turn)
+        d[:, 0], d[:, 1] = c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1]
+    scale = np.where(p.inch[a] == p.inch[b], 1.0, np.where(p.inch[b], 1.0 / MM_PER_INCH, MM_PER_INCH))
+    d[:, :3] *= scale[:, None]
+    out[i] = p.start[b] + d
     return out
 
 
