@@ -23,7 +23,8 @@ EXPECTED ANSWERS. ``EXPECTED`` maps each effect kind to the answer the diagnosis
 ``backlash_x`` ... ``backlash_b``, ``servo_lag``, ``rotary_radial_c``, ``rotary_axial_c``, ``rotary_tilt_c``,
 ``rotary_angular_c``, ``thermal_x`` (its flexible spline ``thermal_spline_x`` counts as it), ``force_deflection``,
 ``tool_deflection``, ``twin_parameters``; out-of-library effects and controls: ``none``, i.e. nothing chosen).
-``normalise`` maps the diagnosis' answers onto these (the older ``rotary_periodic_c`` counts as the angular motion). ``TRUTH`` gives the true value of the parameters a fitted candidate reports, by parameter name,
+``normalise`` maps the diagnosis' answers onto these (the older ``rotary_periodic_c`` counts as the angular motion).
+``TRUTH`` gives the true value of the parameters a fitted candidate reports, by parameter name,
 for the std-coverage figure: adjust it there when the candidates' parameter names change.
 
 SCORES (each printed per set, and for all the sets run together):
@@ -750,8 +751,9 @@ Z_IDENTIFIABLE = 3.0
 def identifiability(clean, m, expected: str, noise_um: float) -> dict:
     """Can this part tell the true effect from the other candidates at all? On the noise-free cuts of the same
     machine (``clean``: [(shop result, program text, part description)], one per part), the candidate (or pair) of
-    the expected answer and every other plausible candidate and pair are fitted (held out, as the diagnosis fits them); a rival whose noise-free held-out residual the probe noise
-    cannot separate from the truth's -- expected paired z of the truth's advantage
+    the expected answer and every other plausible candidate and pair are fitted (held out, as the diagnosis fits
+    them); a rival whose noise-free held-out residual the probe noise cannot separate from the truth's -- expected
+    paired z of the truth's advantage
 
         z = sqrt(N) (ms_rival - ms_truth) / (2 sigma rms(pred_truth - pred_rival))
 
