@@ -85,6 +85,30 @@ def test_ascii_ply_written_by_hand_with_other_properties_and_faces(tmp_path):
     np.testing.assert_array_equal(back.normals, [[0, 0, 1], [0, 1, 0], [1, 0, 0]])
 
 
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+def test_ply_property_names_are_case_insensitive_as_a_csv_header_is(tmp_path, cloud, fmt):
+    """``property double X`` (some exporters write upper case) was refused as "no property x, y, z", where a CSV
+    header's X Y Z was read: both are read case-insensitively, normals (NX Ny nz) too; x and X both is refused."""
+    points, normals = cloud
+    names = ["X", "Y", "Z", "NX", "Ny", "nz"]
+    if fmt == "ascii":
+        body = "".join(" ".join(repr(float(v)) for v in row) + "\n" for row in np.hstack([points, normals]))
+        body = body.encode("ascii")
+    else:
+        table = np.zeros(len(points), dtype=[(n, "<f8") for n in names])
+        for i, n in enumerate(names):
+            table[n] = np.hstack([points, normals])[:, i]
+        body = table.tobytes()
+    path = tmp_path / "upper.ply"
+    path.write_bytes(ply_header(fmt, len(points), [("double", n) for n in names]) + body)
+    back = read_cloud(path)
+    np.testing.assert_array_equal(back.points, points)
+    np.testing.assert_allclose(back.normals, normals / np.linalg.norm(normals, axis=1)[:, None], rtol=0, atol=1e-15)
+    (tmp_path / "twice.ply").write_bytes(ply_header("ascii", 1, [("float", n) for n in ("x", "X", "y", "z")])
+                                         + b"1 2 3 4\n")
+    refused(tmp_path / "twice.ply", "property x twice (names read in any case: x, X)")
+
+
 def test_open3d_reads_the_same_points_from_our_binary_ply(tmp_path, cloud):
     import open3d as o3d  # a dependency of the package: missing, the test fails
 

@@ -65,9 +65,9 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
     Parameters
     ----------
     path : file name; the extension (case-insensitive) selects the format:
-        ``.ply``: ascii or binary (little or big endian); vertex properties ``x y z`` and optionally ``nx ny nz``, of any
-        numeric type; other properties and elements are ignored. Elements with list properties (faces) may follow the
-        vertices, not precede them in a binary file.
+        ``.ply``: ascii or binary (little or big endian); vertex properties ``x y z`` and optionally ``nx ny nz``
+        (case-insensitive: ``X Y Z`` too), of any numeric type; other properties and elements are ignored. Elements
+        with list properties (faces) may follow the vertices, not precede them in a binary file.
         ``.csv`` / ``.txt``: one point a line, the fields separated by ``,``, ``;``, tab or whitespace (the first
         data line decides); with ``;`` or tab a ``,`` inside a number is a decimal comma (``1,25``). An optional
         header line names the columns, case-insensitive, with an optional length unit of the coordinates in brackets,
@@ -223,23 +223,30 @@ def _read_ply(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
         raise CloudError(f"{name}: PLY header declares no 'vertex' element")
     vertex = elements[index]
     names = [p for p, _ in vertex.properties]
-    missing = [c for c in "xyz" if c not in names]
+    # the property names case-insensitive, as the CSV header's (some exporters write X Y Z, NX NY NZ)
+    lower = [n.lower() for n in names]
+    missing = [c for c in "xyz" if c not in lower]
     if missing:
-        raise CloudError(f"{name}: PLY vertex element has no property {', '.join(missing)}")
+        raise CloudError(f"{name}: PLY vertex element has no property {', '.join(missing)} (in any case)")
     if vertex.has_lists:
         raise CloudError(f"{name}: PLY vertex element has list properties, which a point cloud cannot have")
-    present = [n for n in _NORMAL_NAMES if n in names]
+    present = [n for n in _NORMAL_NAMES if n in lower]
     if present and len(present) != 3:
         raise CloudError(f"{name}: PLY vertex element has {' '.join(present)} but not all of nx ny nz")
+    wanted = ["x", "y", "z", *present]
+    repeated = [c for c in wanted if lower.count(c) > 1]
+    if repeated:
+        raise CloudError(f"{name}: PLY vertex element has property {repeated[0]} twice (names read in any case: "
+                         f"{', '.join(n for n in names if n.lower() == repeated[0])})")
     if vertex.count == 0:
         raise CloudError(f"{name}: the cloud has no points (PLY header declares 0 vertices)")
 
     if byte_order is None:
         table = _ply_ascii_vertices(body, elements, index, name)
-        columns = {n: table[:, names.index(n)] for n in names}
+        columns = {c: table[:, lower.index(c)] for c in wanted}
     else:
         table = _ply_binary_vertices(body, elements, index, byte_order, name)
-        columns = {n: table[n] for n in names}
+        columns = {c: table[names[lower.index(c)]] for c in wanted}
     points = np.column_stack([columns[c] for c in "xyz"]).astype(np.float64)
     normals = np.column_stack([columns[c] for c in _NORMAL_NAMES]).astype(np.float64) if present else None
     return points, normals
