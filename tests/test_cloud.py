@@ -225,6 +225,27 @@ def test_unknown_extension_garbage_and_missing_files_are_refused(tmp_path, cloud
     refused(tmp_path / "nxny.ply", "not all of nx ny nz")
 
 
+def test_duplicate_points_counts_exact_repeats_even_where_hashes_collide(monkeypatch):
+    """n minus the distinct rows: a cloud given three times has 2n repeats; points equal in two coordinates only
+    are not repeats; -0.0 is 0.0. With a hash that collides on purpose (|x| alone) the count is the same."""
+    from trueaxis.inspect import cloud as cloud_module
+    from trueaxis.inspect.cloud import duplicate_points
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-40.0, 40.0, (1000, 3))
+    points[500:600, 0] = points[:100, 0]  # x shared with another point, y and z not
+    tripled = np.vstack([points, points, points])
+    some = np.vstack([points, points[[3, 3, 7, 510]]])
+    signed = np.array([[0.0, 1.0, 2.0], [-0.0, 1.0, 2.0], [0.0, -1.0, 2.0], [0.0, 1.0, -0.0], [-0.0, 1.0, 0.0]])
+    expected = [(points, 0), (tripled, 2000), (some, 4), (points[:1], 0), (signed, 2)]
+    for cloud, count in expected:
+        assert duplicate_points(cloud) == count == len(cloud) - len(np.unique(cloud, axis=0))
+    # |x| alone: a hash that -0.0 and 0.0 share, as the real one, and different points share often
+    monkeypatch.setattr(cloud_module, "_row_hash", lambda bits: bits[:, 0] & ~np.uint64(1 << 63))
+    for cloud, count in expected:
+        assert duplicate_points(cloud) == count
+
+
 def test_zero_length_normals_are_refused(tmp_path):
     (tmp_path / "zero.xyz").write_text("1 2 3 0 0 1\n4 5 6 0 0 0\n")
     refused(tmp_path / "zero.xyz", "1 of 2 normals have zero length")
