@@ -353,6 +353,29 @@ def test_csv_exports_that_cannot_be_read_unambiguously_are_refused(tmp_path):
     refused(tmp_path / "four.csv", "4 numeric columns")
 
 
+def test_decimal_commas_with_comma_delimiters_are_refused_naming_them(tmp_path):
+    """Decimal commas and ',' between the fields: read as six numbers, 1,4240,34,9056,18,9010 was refused as "cloud
+    extent exceeds the part by 9947 mm in Y". Refused naming the decimal commas, with or without a header or a name
+    column, normals too; the same numbers with ';' are read; an integer cloud with normals is read as before."""
+    rows = ["1,4240,34,9056,18,9010", "-33,2581,20,1618,7,5060", "-0,0054,34,6489,19,0000"]
+    said = "1,4240,34,9056,18,9010': 6 fields, each second one 4 digits, no '.'), which cannot be told apart"
+    for file, text in (("plain.csv", rows), ("header.csv", ["x,y,z", *rows]),
+                       ("named.csv", ["Name,X,Y,Z", *(f"P{k},{r}" for k, r in enumerate(rows))])):
+        (tmp_path / file).write_text("\n".join(text) + "\n")
+        message = refused(tmp_path / file, said)
+        assert "looks written with decimal commas and ',' between the fields" in message
+        assert "export with ';' or tab between the fields (a ',' is then read as the decimal comma)" in message
+    (tmp_path / "normals.csv").write_text("".join(r + ",0,0000,-0,6000,0,8000\n" for r in rows))
+    refused(tmp_path / "normals.csv", "12 fields, each second one 4 digits")
+    (tmp_path / "semicolon.csv").write_text("1,4240;34,9056;18,9010\n-33,2581;20,1618;7,5060\n")
+    np.testing.assert_array_equal(read_cloud(tmp_path / "semicolon.csv").points,
+                                  [[1.424, 34.9056, 18.901], [-33.2581, 20.1618, 7.506]])
+    (tmp_path / "integers.csv").write_text("10,20,30,0,0,1\n-10,25,35,0,1,0\n")
+    back = read_cloud(tmp_path / "integers.csv")
+    np.testing.assert_array_equal(back.points, [[10, 20, 30], [-10, 25, 35]])
+    np.testing.assert_array_equal(back.normals, [[0, 0, 1], [0, 1, 0]])
+
+
 def test_e57_written_by_libe57format_reads_in_mm_with_its_pose(tmp_path):
     import pye57  # a dependency (pyproject): a missing one fails, never skips
     from scipy.spatial.transform import Rotation

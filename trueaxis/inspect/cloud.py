@@ -69,7 +69,8 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
         (case-insensitive: ``X Y Z`` too), of any numeric type; other properties and elements are ignored. Elements
         with list properties (faces) may follow the vertices, not precede them in a binary file.
         ``.csv`` / ``.txt``: one point a line, the fields separated by ``,``, ``;``, tab or whitespace (the first
-        data line decides); with ``;`` or tab a ``,`` inside a number is a decimal comma (``1,25``). An optional
+        data line decides); with ``;`` or tab a ``,`` inside a number is a decimal comma (``1,25``); with ``,``
+        between the fields, rows of decimal commas (``1,4240,34,9056,18,9010``) are refused, naming them. An optional
         header line names the columns, case-insensitive, with an optional length unit of the coordinates in brackets,
         parentheses or as a suffix (``X [in]``, ``x_um``: mm, um, cm, m, in; read into mm): ``x y z`` and optionally
         ``nx ny nz`` or ``i j k``; other named columns (a point name, an id, a deviation) are ignored, so the usual
@@ -468,6 +469,8 @@ def _read_csv(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
             raise CloudError(f"{name}: the cloud has no points (header only)")
     row = _split(lines[0], delimiter)
     width = len(row)
+    if delimiter == "," and (header is None or len(header) != width):
+        _refuse_decimal_commas(lines, row, name)
     if header is None:
         # no header: the numeric columns of the first row, in order (x y z or x y z nx ny nz); text columns
         # (a point name or id before the coordinates, as CMM exports have) are skipped
@@ -492,6 +495,31 @@ def _read_csv(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
     table = _parse_table(lines, delimiter, name, "CSV", [header.index(c) for c in wanted], width)
     # coordinates in the header's unit (mm when it names none), into mm; normals have none
     return table[:, :3] * _header_scale(first, name), (table[:, 3:] if present else None)
+
+
+def _refuse_decimal_commas(lines: list[str], row: list[str], name: str) -> None:
+    """Refuse a CSV written with decimal commas and ',' between the fields (``1,4240,34,9056,18,9010``): its numbers
+    cannot be told apart, and read as six numbers it was refused as a cloud 9947 mm beyond the part.
+
+    Said only where no other reading is possible: after any leading text fields (a point name), every row has 6 or
+    12 fields (3 or 6 numbers split in two), none with a point or an exponent, each pair an integer and the same
+    number (at least 2) of digits: a writer's fixed decimals. An integer cloud cannot look like that: its normals'
+    components are -1, 0 or 1, one digit. Checked on every row, and only when the first row has that form."""
+    lead = next((k for k, word in enumerate(row) if _is_number(word)), len(row))
+    numbers = row[lead:]
+    if len(numbers) not in (6, 12) or not all(re.fullmatch(r"-?\d+", w) for w in numbers[0::2]):
+        return
+    digits = len(numbers[1])
+    if digits < 2 or not all(re.fullmatch(rf"\d{{{digits}}}", w) for w in numbers[1::2]):
+        return
+    pair = rf"-?\d+,\d{{{digits}}}"
+    form = re.compile(rf"(?:[^,]*,){{{lead}}}{pair}(?:,{pair}){{{len(numbers) // 2 - 1}}}")
+    if all(form.fullmatch(line) for line in lines):
+        shown = ",".join(row) if len(",".join(row)) <= 60 else ",".join(row)[:57] + "..."
+        raise CloudError(f"{name}: the CSV looks written with decimal commas and ',' between the fields "
+                         f"({shown!r}: {len(numbers)} fields, each second one {digits} digits, no '.'), which "
+                         "cannot be told apart; export with ';' or tab between the fields (a ',' is then read as "
+                         "the decimal comma) or with decimal points")
 
 
 def _read_xyz(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
