@@ -18,6 +18,20 @@ def run(*args):
     return subprocess.run([sys.executable, "-m", "trueaxis.cli", *args], capture_output=True, text=True)
 
 
+def test_python_m_trueaxis_runs_the_console_script_entry_point():
+    """``python -m trueaxis`` failed ("No module named trueaxis.__main__"): it runs the same entry point as the
+    console script ``trueaxis`` (pyproject: trueaxis.cli:run), its help, version and exit statuses."""
+    r = subprocess.run([sys.executable, "-m", "trueaxis", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == run("--help").stdout and r.stdout.startswith("usage: trueaxis ") and "inspect" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "trueaxis", "--version"], capture_output=True, text=True)
+    from trueaxis import __version__
+
+    assert (r.returncode, r.stdout.strip()) == (0, f"trueaxis {__version__}")
+    r = subprocess.run([sys.executable, "-m", "trueaxis", "no-such-command"], capture_output=True, text=True)
+    assert r.returncode == 2 and "invalid choice: 'no-such-command'" in r.stderr
+
+
 def test_error_json_follows_design_conventions(tmp_path):
     machine = tmp_path / "m.toml"
     machine.write_text((DATA / "bc_table.toml").read_text().split("[location]")[0] + "[location]\nC0Y = 100.0\n")

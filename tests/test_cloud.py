@@ -85,6 +85,30 @@ def test_ascii_ply_written_by_hand_with_other_properties_and_faces(tmp_path):
     np.testing.assert_array_equal(back.normals, [[0, 0, 1], [0, 1, 0], [1, 0, 0]])
 
 
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+def test_ply_property_names_are_case_insensitive_as_a_csv_header_is(tmp_path, cloud, fmt):
+    """``property double X`` (some exporters write upper case) was refused as "no property x, y, z", where a CSV
+    header's X Y Z was read: both are read case-insensitively, normals (NX Ny nz) too; x and X both is refused."""
+    points, normals = cloud
+    names = ["X", "Y", "Z", "NX", "Ny", "nz"]
+    if fmt == "ascii":
+        body = "".join(" ".join(repr(float(v)) for v in row) + "\n" for row in np.hstack([points, normals]))
+        body = body.encode("ascii")
+    else:
+        table = np.zeros(len(points), dtype=[(n, "<f8") for n in names])
+        for i, n in enumerate(names):
+            table[n] = np.hstack([points, normals])[:, i]
+        body = table.tobytes()
+    path = tmp_path / "upper.ply"
+    path.write_bytes(ply_header(fmt, len(points), [("double", n) for n in names]) + body)
+    back = read_cloud(path)
+    np.testing.assert_array_equal(back.points, points)
+    np.testing.assert_allclose(back.normals, normals / np.linalg.norm(normals, axis=1)[:, None], rtol=0, atol=1e-15)
+    (tmp_path / "twice.ply").write_bytes(ply_header("ascii", 1, [("float", n) for n in ("x", "X", "y", "z")])
+                                         + b"1 2 3 4\n")
+    refused(tmp_path / "twice.ply", "property x twice (names read in any case: x, X)")
+
+
 def test_open3d_reads_the_same_points_from_our_binary_ply(tmp_path, cloud):
     import open3d as o3d  # a dependency of the package: missing, the test fails
 
@@ -201,6 +225,27 @@ def test_unknown_extension_garbage_and_missing_files_are_refused(tmp_path, cloud
     refused(tmp_path / "nxny.ply", "not all of nx ny nz")
 
 
+def test_duplicate_points_counts_exact_repeats_even_where_hashes_collide(monkeypatch):
+    """n minus the distinct rows: a cloud given three times has 2n repeats; points equal in two coordinates only
+    are not repeats; -0.0 is 0.0. With a hash that collides on purpose (|x| alone) the count is the same."""
+    from trueaxis.inspect import cloud as cloud_module
+    from trueaxis.inspect.cloud import duplicate_points
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-40.0, 40.0, (1000, 3))
+    points[500:600, 0] = points[:100, 0]  # x shared with another point, y and z not
+    tripled = np.vstack([points, points, points])
+    some = np.vstack([points, points[[3, 3, 7, 510]]])
+    signed = np.array([[0.0, 1.0, 2.0], [-0.0, 1.0, 2.0], [0.0, -1.0, 2.0], [0.0, 1.0, -0.0], [-0.0, 1.0, 0.0]])
+    expected = [(points, 0), (tripled, 2000), (some, 4), (points[:1], 0), (signed, 2)]
+    for cloud, count in expected:
+        assert duplicate_points(cloud) == count == len(cloud) - len(np.unique(cloud, axis=0))
+    # |x| alone: a hash that -0.0 and 0.0 share, as the real one, and different points share often
+    monkeypatch.setattr(cloud_module, "_row_hash", lambda bits: bits[:, 0] & ~np.uint64(1 << 63))
+    for cloud, count in expected:
+        assert duplicate_points(cloud) == count
+
+
 def test_zero_length_normals_are_refused(tmp_path):
     (tmp_path / "zero.xyz").write_text("1 2 3 0 0 1\n4 5 6 0 0 0\n")
     refused(tmp_path / "zero.xyz", "1 of 2 normals have zero length")
@@ -306,6 +351,29 @@ def test_csv_exports_that_cannot_be_read_unambiguously_are_refused(tmp_path):
     refused(tmp_path / "ragged.csv", "row 2")
     (tmp_path / "four.csv").write_text("1,2,3,4\n")
     refused(tmp_path / "four.csv", "4 numeric columns")
+
+
+def test_decimal_commas_with_comma_delimiters_are_refused_naming_them(tmp_path):
+    """Decimal commas and ',' between the fields: read as six numbers, 1,4240,34,9056,18,9010 was refused as "cloud
+    extent exceeds the part by 9947 mm in Y". Refused naming the decimal commas, with or without a header or a name
+    column, normals too; the same numbers with ';' are read; an integer cloud with normals is read as before."""
+    rows = ["1,4240,34,9056,18,9010", "-33,2581,20,1618,7,5060", "-0,0054,34,6489,19,0000"]
+    said = "1,4240,34,9056,18,9010': 6 fields, each second one 4 digits, no '.'), which cannot be told apart"
+    for file, text in (("plain.csv", rows), ("header.csv", ["x,y,z", *rows]),
+                       ("named.csv", ["Name,X,Y,Z", *(f"P{k},{r}" for k, r in enumerate(rows))])):
+        (tmp_path / file).write_text("\n".join(text) + "\n")
+        message = refused(tmp_path / file, said)
+        assert "looks written with decimal commas and ',' between the fields" in message
+        assert "export with ';' or tab between the fields (a ',' is then read as the decimal comma)" in message
+    (tmp_path / "normals.csv").write_text("".join(r + ",0,0000,-0,6000,0,8000\n" for r in rows))
+    refused(tmp_path / "normals.csv", "12 fields, each second one 4 digits")
+    (tmp_path / "semicolon.csv").write_text("1,4240;34,9056;18,9010\n-33,2581;20,1618;7,5060\n")
+    np.testing.assert_array_equal(read_cloud(tmp_path / "semicolon.csv").points,
+                                  [[1.424, 34.9056, 18.901], [-33.2581, 20.1618, 7.506]])
+    (tmp_path / "integers.csv").write_text("10,20,30,0,0,1\n-10,25,35,0,1,0\n")
+    back = read_cloud(tmp_path / "integers.csv")
+    np.testing.assert_array_equal(back.points, [[10, 20, 30], [-10, 25, 35]])
+    np.testing.assert_array_equal(back.normals, [[0, 0, 1], [0, 1, 0]])
 
 
 def test_e57_written_by_libe57format_reads_in_mm_with_its_pose(tmp_path):

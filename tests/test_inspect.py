@@ -878,6 +878,66 @@ def test_a_flyer_does_not_refuse_the_cloud_and_is_counted_beyond_the_gate():
     assert report["cone"]["half_angle_error_urad"] == pytest.approx(0.0, abs=1e-3)
 
 
+def test_a_cloud_turned_180_deg_about_z_is_refused_with_its_share_beyond_the_gate_and_nothing_written(tmp_path):
+    """A cone turned 180 deg about Z (--align none, the default) has 64 % of its points beyond the gate: it was
+    inspected (exit 0, a warning) with a half angle error of +3498 urad and a form of 1177 um as its figures. Refused
+    (exit 3, nothing written), saying the share and the alignments that bring such a cloud onto the part; the best
+    fit does."""
+    p, _ = deformed_cone(per_ring=90)
+    turned = p * np.array([-1.0, -1.0, 1.0])  # 180 deg about Z
+    beyond = np.abs(dv.analytic_deviation(turned, dv.analytic_surfaces(NAS)).deviation_mm) > 0.5
+    assert (beyond.sum(), len(p)) == (1090, 1710)
+    write_cloud_ply(tmp_path / "turned.ply", turned)
+    r = run("inspect", str(tmp_path / "turned.ply"), "--part", "nas979", "-o", str(tmp_path / "rep"))
+    assert r.returncode == 3 and r.stdout == ""
+    assert "1090 of 1710 points (63.7 %) lie more than 0.5 mm from every surface" in r.stderr
+    assert "more than the 10 % a measurement's flyers may take" in r.stderr
+    assert "try --align bestfit (a cloud in another frame) or --align datum" in r.stderr
+    assert not (tmp_path / "rep").exists()
+    fitted = inspect_cloud(_cloud(turned), "nas979", align="bestfit").report
+    assert fitted["beyond_gate"]["points"] == 0 and abs(fitted["cone"]["half_angle_error_urad"]) < 1e-3
+
+
+def test_inspect_and_diagnose_refuse_above_one_share_of_points_beyond_the_gate():
+    """One threshold for both commands (``flyers.MAX_BEYOND_GATE``, 10 %): 171 of 1710 points 1 mm off are flyers
+    (the figures those of the clean cone), 172 refuse the cloud."""
+    from trueaxis.diagnose import report as diagnose_report
+    from trueaxis.inspect import flyers
+
+    assert diagnose_report.MAX_BEYOND_GATE is flyers.MAX_BEYOND_GATE == 0.1
+    p, n = deformed_cone(per_ring=90)
+    off = np.arange(len(p)) % 10 == 3
+    assert off.sum() == 171
+    report = inspect_cloud(_cloud(p + np.where(off, 1.0, 0.0)[:, None] * n), "nas979").report
+    assert report["beyond_gate"]["points"] == 171 and report["beyond_gate"]["share"] == 0.1
+    assert abs(report["cone"]["half_angle_error_urad"]) < 1e-3 and report["deviation_um"]["rms"] < 1e-6
+    off[4] = True
+    with pytest.raises(dv.InspectionError, match=r"172 of 1710 points \(10\.1 %\) lie more than 0\.5 mm"):
+        inspect_cloud(_cloud(p + np.where(off, 1.0, 0.0)[:, None] * n), "nas979")
+
+
+def test_a_cloud_given_three_times_is_said_with_its_count_of_duplicates_and_the_same_figures(tmp_path):
+    """The same cloud concatenated three times was taken without a word: the figures stay those of the cloud (each
+    point as given), a warning counts the 2n points that repeat another exactly."""
+    from trueaxis.inspect.report import inspection_warnings
+
+    p, n = deformed_cone((0.010, 0.0), 0.002, per_ring=90)
+    once = inspect_cloud(_cloud(p), "nas979").report
+    assert once["duplicate_points"] == 0 and not any("repeat another point" in w for w in inspection_warnings(once))
+    write_cloud_ply(tmp_path / "thrice.ply", np.vstack([p, p, p]), np.vstack([n, n, n]))
+    r = run("inspect", str(tmp_path / "thrice.ply"), "--part", "nas979", "-o", str(tmp_path / "rep"))
+    assert r.returncode == 0, r.stderr
+    assert (f"warning: {2 * len(p)} of {3 * len(p)} points repeat another point exactly (the same x, y, z): kept in "
+            "the figures as given") in r.stderr
+    thrice = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert thrice["duplicate_points"] == 2 * len(p) == 3420
+    for key in ("rms", "min", "max", "mean"):
+        assert thrice["deviation_um"][key] == pytest.approx(once["deviation_um"][key], rel=1e-12, abs=1e-12)
+    # the same least-squares cone: the fit stops within 1e-4 of its standard error of the optimum
+    assert thrice["cone"]["half_angle_error_urad"] == pytest.approx(once["cone"]["half_angle_error_urad"],
+                                                                    abs=1e-4 * once["cone"]["half_angle_std_urad"])
+
+
 def test_flyers_are_counted_apart_from_the_headline_figures(tmp_path):
     """0.5 % of the points 500 mm off (flyers the product itself says belong to no feature) made the headline
     "deviation rms 33908.67 um" and a one-bar histogram. The headline, the by-surface figures and the pictures are

@@ -10,8 +10,8 @@ Layers, lowest first:
 5. the libraries ``postproc`` (compensation, the post), ``inspect``, ``sim``, ``identify``, ``diagnose``. Peers are
    ordered in that sequence and a peer may import only the peers before it (the virtual shop measures with the
    inspection's clouds and surfaces; the diagnosis runs the shop and reads clouds; nothing imports the diagnosis);
-6. the application: ``cli``, ``demo``, ``loop`` (the closed loop), ``warm`` and the host glue
-   ``postproc.hosts`` (FreeCAD post script, CadQuery plugin), which keeps its public import path.
+6. the application: ``cli`` (and ``__main__``, ``python -m trueaxis``), ``demo``, ``loop`` (the closed loop), ``warm``
+   and the host glue ``postproc.hosts`` (FreeCAD post script, CadQuery plugin), which keeps its public import path.
 
 The imports are read with ``ast`` (nothing is imported), so the test is quick and sees function-level imports too.
 """
@@ -44,6 +44,7 @@ UNITS = {
     "trueaxis.diagnose": ("diagnose", 5),
     "trueaxis.postproc.hosts": ("application", 6),
     "trueaxis.cli": ("application", 6),
+    "trueaxis.__main__": ("application", 6),  # python -m trueaxis: the command line
     "trueaxis.demo": ("application", 6),
     "trueaxis.loop": ("application", 6),
     "trueaxis.warm": ("application", 6),

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..inspect.cloud import CloudError
+from ..inspect.flyers import MAX_BEYOND_GATE
 from ..fileio import json_text
 from ..nc.gcode import parse_program
 from .analysis import EXPLAIN_SHARE, Diagnosis, diagnose_state
@@ -293,8 +294,6 @@ def shared_points(a, b, tol_mm: float = 1e-4) -> float:
 
 
 MAX_GAP_RMS_UM = 500.0  # the post's default correction bound: a larger gap is not a machine effect but a wrong input
-#: More than this share of a cloud's points beyond the gate: not flyers but a cloud of another cut, frame or unit.
-MAX_BEYOND_GATE = 0.1
 
 
 def set_apart_flyers(st: TwinState, cloud_name: str = "") -> TwinState:
