@@ -741,8 +741,9 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--write", help="with --identify: write the updated machine file here (only when the fit is "
                    "accepted or changes nothing; a refused fit writes nothing and exits 3)")
     i.add_argument("--setup-sigma-um", type=NON_NEGATIVE, default=None, metavar="UM",
-                   help="with --identify: the size of the part's set-up offset (how far it may sit off in its frame), "
-                        "fitted as nuisance and never written (default 5 um; 0: the set-up is known exactly)")
+                   help="with --identify: the accuracy of the part's set-up (how far it may sit off in its frame, "
+                        "um), fitted as nuisance and never written (default: not known, the set-up offset free, so no "
+                        "translation of the part is written into the twin; 0: the set-up is known exactly)")
     i.set_defaults(func=cmd_inspect)
     return p
 

@@ -82,15 +82,19 @@ planes) nothing the machine cut is moved and the model has no alignment nuisance
 
 The part's set-up offset. With "none" and "datum" the part may sit a few um off (clamped off in its fixture, its work
 offset set off; and the constant level of the axes' errors, which their gauge leaves out): a translation t of the
-part, deviation n . t. It is fitted with the changes as nuisance with a zero-mean Gaussian prior (``setup_sigma_um``,
-5 um per direction): the MAP fit (N + R)^-1 rhs, R = s^2 / sigma^2 on its columns. Reported (``setup_offset``), never
-written. A change counts as significant only against its noise and set-up std together (the set-up's share
+part, deviation n . t. It is fitted with the changes as nuisance: free by default (the set-up's accuracy is the
+user's to give: a translation of the part on one part is either its set-up or the machine's, and which one no data
+of that part tell, so by default none is written into the twin), or with a zero-mean Gaussian prior when the user
+gives its accuracy (``setup_sigma_um``, per direction): the MAP fit (N + R)^-1 rhs, R = s^2 / sigma^2 on its
+columns. Reported (``setup_offset``), never written. (Until 2026-11-28 a prior of 5 um was assumed when none was
+given: a part set up 15 um off in Y was ACCEPTED with YOC 8.9 um off, and the next part came out 10.7 um RMS instead
+of 3.4, a QA pass.) A change counts as significant only against its noise and set-up std together (the set-up's share
 s^2 diag((N + R)^-1 R (N + R)^-1), the bias a set-up offset of its prior size leaves): the next part is clamped
 again, and a change that a set-up offset could have made would write this clamping into the twin (a 3 um offset of
 the slot block along Y was written as EYY.P1 +11 um, EYX@400 +6 um, C0Y +6 urad, and a run of the full case as A0Z
-+1014 urad). Which parameters are seen is judged without it. A fit that puts more than ``SETUP_PLAUSIBLE`` (3) sigma
-in the set-up has found the machine's own translation of the part (the cone's C line offsets move it by tens of um),
-not a set-up: the set-up is then held at zero while the changes are fitted (in their std and significance as a held
++1014 urad). Which parameters are seen is judged without it. With an accuracy given, a fit that puts more than
+``SETUP_PLAUSIBLE`` (3) sigma in the set-up is taken as the machine's own translation of the part (the cone's C line
+offsets move it by tens of um), not a set-up, as the user's accuracy says: the set-up is then held at zero while the changes are fitted (in their std and significance as a held
 quantity at its prior) and fitted after them for the report. The verdict weighs what the changes explain beyond the
 twin as it is with the set-up offset fitted.
 
@@ -535,10 +539,6 @@ def _fit_identifiable(system: _System, chosen, typical, max_relative_std, na, no
 
 
 ALIGNMENT_TYPICAL = 1000.0  # um, urad: a best fit moves the part freely
-#: A part's set-up offset, um per direction (the prior's sigma; uncalibrated, as typical_magnitude's): a part clamped
-#: a few um off in its fixture, a work offset probed to a few um, and the constant level of the axes' component
-#: errors, which their gauge (``reference_parameters``) leaves to it. Fitted as nuisance, never written.
-SETUP_TYPICAL_UM = 5.0
 SETUP_NAMES = ("TX", "TY", "TZ")  # the set-up offset: a translation of the part in its frame, um
 SETUP_PLAUSIBLE = 3.0  # a set-up offset fitted beyond this many prior sigma is the machine's translation of the part
 #: Fewest held-out points for the held-out check of a fit (as for the points used at all): with fewer the check
@@ -754,9 +754,13 @@ class Identification:
                    f"{self.residual_rms_um:.2f} um after; deviation RMS {self.deviation_rms_um:.2f} um{ho}")
         if self.setup_offset:
             t = self.setup_offset
-            out.append("  set-up offset of the part (fitted, not written): " + ", ".join(
+            how = ("left after the changes" if t.get("fitted_with_the_changes") is False else
+                   "free" if t.get("prior_sigma_um") is None else f"within {t['prior_sigma_um']:g} um as given")
+            out.append(f"  set-up offset of the part ({how}; fitted, not written): " + ", ".join(
                 f"{a} {t[a + '_um']:+.2f} +- {t[a + '_std_um']:.2f}" for a in SETUP_NAMES
                 if t.get(a + "_um") is not None) + " um")
+            if t.get("note"):
+                out.append(f"  set-up: {t['note']}")
         if self.normals_flipped:
             out.append(f"  cloud normals: {self.normals_flipped} of {self.n_points} pointed into the part and were "
                        "flipped to its outward side")
@@ -803,7 +807,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
              weights=None, path: ToolPath | None = None, max_gap_mm: float = 0.5,
              irls_iterations: int = 10, significance: float = 3.0, alias_prior: bool = True,
              holdout_blocks: int = 20, holdout_every: int = 5, min_explained: float = 0.5,
-             setup_sigma_um: float = SETUP_TYPICAL_UM) -> Identification:
+             setup_sigma_um: float = math.inf) -> Identification:
     """Identify the twin's error parameters from a measured part.
 
     points : (N, 3) measured points, mm, part frame.  normals : (N, 3) unit outward normals of the nominal surface.
@@ -821,9 +825,10 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         as nuisance here too).
     setup_sigma_um : with "none" and "datum", the part's set-up offset (a translation of the part in its frame: how
         far it was clamped or its work offset set off, and the constant level of the axes' errors that their gauge
-        leaves out) is fitted as nuisance with a zero-mean Gaussian prior of this size per direction (um; inf: free,
-        0: none, the set-up known exactly). It is reported (``setup_offset``), never written; a change counts as
-        significant only against its noise and set-up std together, so no set-up offset of that size becomes an
+        leaves out) is fitted as nuisance with a zero-mean Gaussian prior of this size per direction (um; inf, the
+        default: free, the set-up's accuracy not known, so no translation of the part is ever written into the
+        twin; 0: none, the set-up known exactly). It is reported (``setup_offset``), never written; a change counts
+        as significant only against its noise and set-up std together, so no set-up offset of that size becomes an
         axis error. Not used with "bestfit" (its free translation covers it).
     max_relative_std : a combination of parameters (in typical sizes, ``typical_magnitude``) counts as seen when
         the data determine it to better than this share of a typical size; an identified parameter must be
@@ -1087,9 +1092,16 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         if setup_held:
             setup_offset["note"] = (
                 f"fitted with the changes it came to {', '.join(f'{v:+.1f}' for v in implausible)} um, beyond "
-                f"{SETUP_PLAUSIBLE:g} x its prior: no set-up offset of a clamped part but the machine's translation "
-                "of the part; held at zero while the changes were fitted (it is in their std), fitted after them "
-                "here")
+                f"{SETUP_PLAUSIBLE:g} x the set-up's accuracy given ({setup_sigma_um:g} um): taken as the machine's "
+                "translation of the part, so the changes hold it; the values here are what is left after them "
+                "(their std given the changes). A part set up further off than given writes its offset into the "
+                "changes")
+        elif not math.isfinite(setup_sigma_um):
+            setup_offset["note"] = (
+                "free: the set-up's accuracy was not given (--setup-sigma-um), so any translation of the part is "
+                "taken as its set-up and none is written into the twin, the machine's own (on one cone ZOB, most "
+                "of XOC and YOC) included; give the accuracy of the part's set-up (a work offset probed on the "
+                "machine: a few um) to identify those")
     return Identification(
         names=names, prior=prior, value=value, std=std, identified=identified, seen_share=seen,
         no_effect=no_effect, confounded_with=confounded, poorly_determined=poorly, alignment=align,
@@ -1382,7 +1394,7 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     machine : the twin's machine file.  program : the program that cut the part.  write : where to write the
     identified machine file (atomically), only when the verdict is not "refused".  alignment : the inspection's
     alignment ("none" | "bestfit" | "datum").  robust, parameters, max_relative_std, setup_sigma_um : see
-    ``identify`` (None: its default, ``SETUP_TYPICAL_UM``).
+    ``identify`` (None: not given, the set-up offset free).
     Returns (the report's "identification" dict, the Identification).
     """
     from .fileio import atomic_write
@@ -1403,7 +1415,7 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     check_axes(placed, parsed)  # a program posted for another machine: refused before any work, as the diagnosis
     result = identify(cloud.points, normals, deviation_um, parsed, placed,
                       parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std,
-                      setup_sigma_um=SETUP_TYPICAL_UM if setup_sigma_um is None else setup_sigma_um)
+                      setup_sigma_um=math.inf if setup_sigma_um is None else setup_sigma_um)
     result = dataclasses.replace(result, normals_flipped=flipped)
     report = result.as_report()
     report["machine_file"] = str(machine)
