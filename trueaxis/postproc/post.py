@@ -350,7 +350,7 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
 
     setup = setup if setup is not None else Setup()
     prog = parse_program(text, source, passthrough_unsupported=passthrough_unsupported, setup=setup,
-                         require_setup=True)
+                         require_setup=True, machine=machine)
     if setup.program_units is not None and prog.units != setup.program_units and len(prog):
         raise SetupError(f"{source}: the program is in {prog.units} ({'G20' if prog.units == 'inch' else 'G21'}), "
                          f"the setup ({setup.describe()}) is for programs in {setup.program_units}")
@@ -528,7 +528,9 @@ def header_lines(rep: PostReport, machine: Machine) -> list:
         rot = f" R{write_number(u['rotation_deg'], 4)}" if u.get("rotation_deg") else ""
         units = "mm, deg" if rot or any(vals[3:]) else "mm"
         how = f" by {u['applied_by']}" if u.get("applied_by") else ""
-        lines.append(f"(trueaxis setup: {u['what']} {words}{rot} {units}{how}, from {clean(u['source'])})")
+        absent = " ".join(u.get("zero_no_such_axis", ""))
+        absent = f"; {absent} not given, 0: the machine has no {absent} axis" if absent else ""
+        lines.append(f"(trueaxis setup: {u['what']} {words}{rot} {units}{how}, from {clean(u['source'])}{absent})")
     # Every comment's text without parentheses of its own (what and how words such as "tool offset (G43.1)" too):
     # LinuxCNC refuses a nested comment, the whole program.
     return [_fit("(" + clean(line[1:-1]) + ")") for line in lines]
@@ -956,10 +958,10 @@ class _Poster:
     def known_positions(self):
         """(end known (M,) bool, start known (M,) bool, the axes not known at each row's end (M,) bit mask) of the
         program's rows: an axis' position is known from its first absolute word (G90) on, and from a G28 / G30 that
-        homes every axis; before that the control is wherever it stands. Required are the machine's linear axes and
-        the rotary axes the program uses."""
+        homes every axis; before that the control is wherever it stands. Required are the machine's
+        ``required_axes``: its linear axes and the rotary axes the program uses (the rule of the work offsets too)."""
         p = self.p
-        need = [AXES.index(a) for a in self.names if not self.m.axes[a].is_rotary or a in p.axes_present]
+        need = [AXES.index(a) for a in self.m.required_axes(p.axes_present)]
         bits = sum(1 << c for c in need)
         given = np.where(p.incremental, 0, p.words.astype(np.int64) & bits)
         homing = (p.kind == ROW_REFERENCE) & (p.words == 0)
