@@ -909,6 +909,10 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         metas = list(meta_index)
         mid = meta_of_state[sid]
         rotation = np.array([mt[0] for mt in metas], float)[mid].reshape(m)
+        # the axes the rows' words name (the compiled runs' too), before the setup's check of what they require
+        words = np.array(self.r_words, np.uint16)
+        mask = int(np.bitwise_or.reduce(words)) if m else 0
+        used_axes.update(c for c in AXES if mask & _WORD_BIT[c])
         setup_used = self.setup_report(mid, np.array(self.r_kind, np.int64), np.array(r_line, np.int64), metas,
                                        self.hist, self.selects_work, used_axes)
         arc_center = np.full((m, 3), np.nan)
@@ -923,9 +927,6 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             arc_center[rows] = centres
             arc_plane[rows] = plane
             arc_turns[rows] = 1
-        words = np.array(self.r_words, np.uint16)
-        mask = int(np.bitwise_or.reduce(words)) if m else 0
-        used_axes.update(c for c in AXES if mask & _WORD_BIT[c])
         units_seen = self.units_seen
         units = "mixed" if len(units_seen) > 1 else ("inch" if units_seen == {"inch"} else "mm")
         # the accumulators' memory itself (array("d") is float64; no row is added to them after this): not copied
