@@ -268,6 +268,10 @@ class Program:
     position_sets: list = field(default_factory=list)
     # 1-based lines that start with '/' (block delete): read as executed (the switch off, as rs274 reads them)
     block_delete_lines: list = field(default_factory=list)
+    # (K,) int64, the G28 / G30 / G53 rows whose machine position rests on a value of the setup not given, taken as
+    # zero (a home position, a work offset component, a G92 shift, a tool length): they pass through a post, which
+    # refuses the program's own moves under such a value; None: none
+    machine_rows_not_given: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.motion.shape[0])
@@ -913,8 +917,9 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         words = np.array(self.r_words, np.uint16)
         mask = int(np.bitwise_or.reduce(words)) if m else 0
         used_axes.update(c for c in AXES if mask & _WORD_BIT[c])
-        setup_used = self.setup_report(mid, np.array(self.r_kind, np.int64), np.array(r_line, np.int64), metas,
-                                       self.hist, self.selects_work, used_axes)
+        kind = np.array(self.r_kind, np.int64)
+        setup_used = self.setup_report(mid, kind, np.array(r_line, np.int64), metas, self.hist, self.selects_work,
+                                       used_axes)
         arc_center = np.full((m, 3), np.nan)
         arc_plane = np.zeros(m, np.int8)
         arc_turns = np.zeros(m, np.int16)
@@ -954,6 +959,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             units=units, axes_present="".join(a for a in AXES if a in used_axes), warnings=self.warnings,
             unsupported=self.unsupported, rotation=rotation, setup_used=setup_used, position_sets=self.position_sets,
             block_delete_lines=self.block_delete_lines,
+            machine_rows_not_given=self.machine_rows_not_given(mid, kind, metas, self.required_axes(used_axes)),
         )
 
     def setup_report(self, sid, kind, line, st_meta, hist, selects_work, used_axes):
@@ -1025,6 +1031,18 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         if missing_home is not None:
             refuse(*missing_home)
         return out
+
+    def machine_rows_not_given(self, mid, kind, metas, required):
+        # mid: (M,) index of each row's setup in metas
+        """``Program.machine_rows_not_given``: the G28 / G30 / G53 rows under a setup with a value not given (a work
+        offset component of the ``required`` axes, a G92 shift, a tool length), and those ending at a home position
+        not given."""
+        machine_rows = np.nonzero((kind == ROW_REFERENCE) | (kind == ROW_MACHINE))[0]
+        if machine_rows.size == 0:
+            return None
+        lacking = np.array([any(a in required for a in mt[5]) or bool(mt[6]) or bool(mt[7]) for mt in metas], bool)
+        rows = np.union1d(machine_rows[lacking[mid[machine_rows]]], np.array(self.home_not_given_rows, np.int64))
+        return rows.astype(np.int64) if rows.size else None
 
     def required_axes(self, used_axes) -> str:
         """The axes whose work offset components a move needs (``Machine.required_axes``; without a machine, one with
