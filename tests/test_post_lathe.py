@@ -17,7 +17,7 @@ from conftest import MACHINES, ROOT
 from post_checks import actual_points, distance_to_polyline, nominal_polyline
 from rs274_helpers import assert_rs274_reads_as_we_do
 from trueaxis.machine import load_machine
-from trueaxis.nc.gcode import parse_program
+from trueaxis.nc.gcode import GcodeError, parse_program
 from trueaxis.postproc.post import PostError, compensate
 from trueaxis.postproc.solver import corrected_directions
 
@@ -316,3 +316,33 @@ def test_a_g95_feed_that_disagrees_with_the_conditions_comment_is_said(lathe):
     compensate(program.format(feed="100").replace("G95", "G94"), lathe, "comprehensive", report=report,
                offsets_zero=True)
     assert not any("per revolution (G95), its" in w for w in report["warnings"])
+
+
+# A lathe program that sets its work offset with G10 L2 in X and Z, the axes it has (a QA pass: refused for the G54 Y
+# component that was not given, the only way through --offsets-zero, which zeroes every missing value).
+LATHE_G10 = "G18 G21 G90 G94\nG10 L2 P1 X10 Z-100\nG54 G0 X40 Z-5\nG1 Z-50 F100\nG1 X60\nM30\n"
+
+
+def test_a_lathe_work_offset_needs_no_y_component_and_the_header_says_zero_was_taken(lathe):
+    from trueaxis.nc.setup import parse_setup
+
+    report = {}
+    out = compensate(LATHE_G10, lathe, report=report)
+    lines = out.splitlines()
+    assert lines[3] == ("(trueaxis setup: G54 X10 Z-100 mm, from <string>:2 [G10 L2]; Y not given, 0: the machine "
+                        "has no Y axis)")
+    assert report["setup_used"][0]["zero_no_such_axis"] == "Y"
+    # corrected at the machine positions X 50..70, Z -105..-150 (the offset applied): the twin's 3-7 um there
+    assert lines[6:9] == ["G54 G0 X40.00496 Z-4.99694", "G1 X40.00703 Z-49.99282 F100", "G1 X60.00683 Z-49.99227"]
+    # the same corrections as with the control's offset given in a setup file
+    shop = parse_setup({"setup": {"units": "mm"}, "work_offsets": {"G54": {"X": 10.0, "Z": -100.0}}}, "shop.toml")
+    given = compensate(LATHE_G10.replace("G10 L2 P1 X10 Z-100", "(offset in the control)"), lathe, setup=shop)
+    assert given.splitlines()[6:9] == lines[6:9]
+    # a component along an axis the lathe has is required as before
+    with pytest.raises(GcodeError, match=r"^<string>:3: work offset G54 \(X\) was not given"):
+        compensate(LATHE_G10.replace("X10 Z-100", "Z-100"), lathe)
+    # no G54 word (the system active at start), no setup: the offset is the program's G10, not "no work offset"
+    report = {}
+    out = compensate(LATHE_G10.replace("G54 G0", "G0"), lathe, report=report)
+    assert out.splitlines()[3] == lines[3] and out.splitlines()[6:9] == ["G0 X40.00496 Z-4.99694"] + lines[7:9]
+    assert not any("no work offset" in w for w in report["warnings"]), report["warnings"]

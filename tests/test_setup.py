@@ -308,6 +308,21 @@ def test_the_same_program_without_offsets_is_refused_and_accepted_with_offsets_z
     assert json.loads((tmp_path / "r.json").read_text())["setup_used"][0]["what"] == "G54"
 
 
+def test_a_rotary_offset_not_given_is_refused_when_only_plain_blocks_move_that_axis():
+    # A C moved only by plain G1 blocks (read by the compiled runs) were not among the axes the program uses when the
+    # setup was checked: G54's A and C, not given, were taken as 0 without a word and the program posted
+    from trueaxis.machine import load_machine
+
+    smart = load_machine(ROOT / "fixtures" / "machines" / "smartcnc500.toml")
+    text = "G17 G21 G90 G94\nG10 L2 P1 X10 Y5 Z0\nG54 G0 X0 Y0 Z0\nG1 X10 A10 C0 F100\nG1 X20 A20 C5\nG1 X30 A30\nM2\n"
+    with pytest.raises(GcodeError, match=r"^<string>:3: work offset G54 \(A C\) was not given"):
+        compensate(text, smart)
+    report = {}
+    compensate(text.replace("Y5 Z0", "Y5 Z0 A0 C0"), smart, report=report)  # given by the program: posts
+    assert report["setup_used"][0]["values_mm_deg"] == [10.0, 5.0, 0.0, 0.0, 0.0, 0.0]
+    assert report["setup_used"][0]["source"] == "<string>:2 (G10 L2)"
+
+
 def test_a_tool_length_not_given_is_refused_naming_the_tool(machine, files):
     text = "G21 G90\nG10 L2 P1 X0 Y0 Z0\nG54 G0 X0 Y0 Z0\nT7 M6\nG43 H7\nG1 X10 F100\nM2\n"
     with pytest.raises(GcodeError, match=r"^<string>:6: the length of tool 7 \(G43 H7\) was not given"):

@@ -166,6 +166,14 @@ class Machine:
     def is_five_axis(self) -> bool:
         return len(self.rotary_axes) == 2
 
+    def required_axes(self, commanded: str) -> tuple[str, ...]:
+        """The axes whose position a program for this machine must fix, and whose work offset it must be given, in
+        canonical order: every linear axis the machine has, and its rotary axes the program commands (``commanded``:
+        the letters of the axes the program's words name). An axis the machine lacks is never required: nothing
+        moves along it (a program that commands it is refused as such), so its offset component changes no position
+        (a lathe's Y). A rotary axis the program leaves alone stands where the control left it."""
+        return tuple(a for a in self.axis_names if not self.axes[a].is_rotary or a in commanded)
+
     def force_models(self) -> tuple[str, ...]:
         """What of the twin depends on the cutting force, as a machine file names it: "[force] compliance",
         "[loaded] parameter set", "[[force.surface]] response surfaces"; () when nothing does (the twin is the same

@@ -268,6 +268,10 @@ class Program:
     position_sets: list = field(default_factory=list)
     # 1-based lines that start with '/' (block delete): read as executed (the switch off, as rs274 reads them)
     block_delete_lines: list = field(default_factory=list)
+    # (K,) int64, the G28 / G30 / G53 rows whose machine position rests on a value of the setup not given, taken as
+    # zero (a home position, a work offset component, a G92 shift, a tool length): they pass through a post, which
+    # refuses the program's own moves under such a value; None: none
+    machine_rows_not_given: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.motion.shape[0])
@@ -499,6 +503,7 @@ def parse_program(
     reference_points: Mapping[str, Sequence[float]] | None = None,
     setup=None,
     require_setup: bool = False,
+    machine=None,
 ) -> Program:
     """Interpret RS-274 text as LinuxCNC does and return its motion table.
 
@@ -516,6 +521,9 @@ def parse_program(
         program gives, a G92.3 restore without the stored shift, a tool length (G43 H, or M6 when the setup applies
         lengths at the tool change) of a tool not given; unless ``setup.offsets_zero``. Without it such values are
         zero (LinuxCNC's defaults) and listed as "not given" in ``setup_used``.
+    machine : the :class:`~trueaxis.machine.Machine` the program is for (None: one with every axis): of a work
+        offset, only the components of its ``required_axes`` are required; a linear axis' component it lacks is taken
+        as 0 and ``setup_used`` says so (``zero_no_such_axis``)
     """
     if isinstance(text, (bytes, bytearray)):
         raise GcodeError(source, 1, "got bytes, expected text: decode the file first (or use parse_file)")
@@ -530,7 +538,8 @@ def parse_program(
     early = _EarlyScan.start_for(text)
 
     def interpret(t):
-        reader = _Interpreter(t, source, passthrough_unsupported, tool_table, reference_points, setup, require_setup)
+        reader = _Interpreter(t, source, passthrough_unsupported, tool_table, reference_points, setup, require_setup,
+                              machine)
         reader.early = early if t is text else None  # (a flattened program reads other text)
         prog = reader.run()
         styles = reader.early.styles() if reader.early is not None else None
@@ -604,12 +613,14 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
     (``interp_check``), the conversion by modal group (``interp_convert``), arcs (``interp_arc``) and canned cycles
     (``interp_cycles``); here the block loop with the fast path of plain moves, and the rows into a Program."""
 
-    def __init__(self, text, source, passthrough, tool_table, reference_points, setup=None, require_setup=False):
+    def __init__(self, text, source, passthrough, tool_table, reference_points, setup=None, require_setup=False,
+                 machine=None):
         self.text = text
         self.source = source
         self.passthrough = passthrough
         self.setup = setup
         self.require_setup = require_setup
+        self.machine = machine
         self.offsets_zero = bool(setup is not None and setup.offsets_zero)
         # tool number -> (6,) offsets X Y Z A B C in mm / deg (Z: the length), and where each came from
         self.tool_off_mm: dict = {}
@@ -902,8 +913,13 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         metas = list(meta_index)
         mid = meta_of_state[sid]
         rotation = np.array([mt[0] for mt in metas], float)[mid].reshape(m)
-        setup_used = self.setup_report(mid, np.array(self.r_kind, np.int64), np.array(r_line, np.int64), metas,
-                                       self.hist, self.selects_work, used_axes)
+        # the axes the rows' words name (the compiled runs' too), before the setup's check of what they require
+        words = np.array(self.r_words, np.uint16)
+        mask = int(np.bitwise_or.reduce(words)) if m else 0
+        used_axes.update(c for c in AXES if mask & _WORD_BIT[c])
+        kind = np.array(self.r_kind, np.int64)
+        setup_used = self.setup_report(mid, kind, np.array(r_line, np.int64), metas, self.hist, self.selects_work,
+                                       used_axes)
         arc_center = np.full((m, 3), np.nan)
         arc_plane = np.zeros(m, np.int8)
         arc_turns = np.zeros(m, np.int16)
@@ -916,9 +932,6 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             arc_center[rows] = centres
             arc_plane[rows] = plane
             arc_turns[rows] = 1
-        words = np.array(self.r_words, np.uint16)
-        mask = int(np.bitwise_or.reduce(words)) if m else 0
-        used_axes.update(c for c in AXES if mask & _WORD_BIT[c])
         units_seen = self.units_seen
         units = "mixed" if len(units_seen) > 1 else ("inch" if units_seen == {"inch"} else "mm")
         # the accumulators' memory itself (array("d") is float64; no row is added to them after this): not copied
@@ -946,6 +959,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             units=units, axes_present="".join(a for a in AXES if a in used_axes), warnings=self.warnings,
             unsupported=self.unsupported, rotation=rotation, setup_used=setup_used, position_sets=self.position_sets,
             block_delete_lines=self.block_delete_lines,
+            machine_rows_not_given=self.machine_rows_not_given(mid, kind, metas, self.required_axes(used_axes)),
         )
 
     def setup_report(self, sid, kind, line, st_meta, hist, selects_work, used_axes):
@@ -974,12 +988,12 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         setup_given_active = self.setup is not None and self.setup.active is not None
         moving = (kind == ROW_PROGRAMMED) | (kind == ROW_CYCLE)
         checked = set(np.unique(sid[moving]).tolist())
-        axes_used = "XYZ" + "".join(a for a in "ABC" if a in used_axes)
+        required = self.required_axes(used_axes)
         for s_id, row in sorted(zip(uniq.tolist(), first.tolist()), key=lambda t: t[1]):
             r, active, g5x_ver, g92_ver, tlo_ver, unknown, g92_reason, tlo_reason = st_meta[s_id]
             line_no = int(line[row]) + 1
             if self.require_setup and s_id in checked:
-                missing = "".join(a for a in unknown if a in axes_used)
+                missing = "".join(a for a in unknown if a in required)
                 if missing and (selects_work or setup_given_active):
                     refuse(line_no, f"work offset {_SYSTEM_NAMES[active - 1]} ({' '.join(missing)}) was not given")
                 for reason in (g92_reason, tlo_reason):
@@ -991,7 +1005,12 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                 rec = hist[key]
                 entry = {"what": _SYSTEM_NAMES[active - 1], "values_mm_deg": [float(v) for v in rec["values"]],
                          "rotation_deg": float(rec["rotation"]), "source": rec["source"], "first_line": line_no}
-                if not rec["known"][:3].all() and not (selects_work or setup_given_active):
+                # a linear axis the machine lacks: its component moves nothing, 0 whatever the control holds
+                absent = "".join(a for i, a in enumerate("XYZ") if a not in required and not rec["known"][i])
+                if absent:
+                    entry["zero_no_such_axis"] = absent
+                if not all(rec["known"][i] for i, a in enumerate("XYZ") if a in required) and not (
+                        selects_work or setup_given_active):
                     entry["source"] = ("the program selects no work system and the setup gives none: program "
                                        "coordinates are machine coordinates")
                     entry["assumed"] = True
@@ -1012,6 +1031,25 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         if missing_home is not None:
             refuse(*missing_home)
         return out
+
+    def machine_rows_not_given(self, mid, kind, metas, required):
+        # mid: (M,) index of each row's setup in metas
+        """``Program.machine_rows_not_given``: the G28 / G30 / G53 rows under a setup with a value not given (a work
+        offset component of the ``required`` axes, a G92 shift, a tool length), and those ending at a home position
+        not given."""
+        machine_rows = np.nonzero((kind == ROW_REFERENCE) | (kind == ROW_MACHINE))[0]
+        if machine_rows.size == 0:
+            return None
+        lacking = np.array([any(a in required for a in mt[5]) or bool(mt[6]) or bool(mt[7]) for mt in metas], bool)
+        rows = np.union1d(machine_rows[lacking[mid[machine_rows]]], np.array(self.home_not_given_rows, np.int64))
+        return rows.astype(np.int64) if rows.size else None
+
+    def required_axes(self, used_axes) -> str:
+        """The axes whose work offset components a move needs (``Machine.required_axes``; without a machine, one with
+        every axis: X Y Z and the rotary axes the program commands)."""
+        if self.machine is not None:
+            return "".join(self.machine.required_axes("".join(used_axes)))
+        return "XYZ" + "".join(a for a in "ABC" if a in used_axes)
 
     def resolve(self, text):
         """Value of ``#n`` / ``[#n]`` when #n was assigned a literal; None for anything else."""

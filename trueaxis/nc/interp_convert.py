@@ -237,13 +237,16 @@ class Conversion:
             return []
         if nonmodal in (280, 300):
             key = "G28" if nonmodal == 280 else "G30"
-            if not self.zero_ok and not self.ref_given[key] and self.ref_missing is None:
+            not_given = not self.zero_ok and not self.ref_given[key]
+            if not_given and self.ref_missing is None:
                 # the home position lives in the control (#5161-5166 / #5181-5186): zero would be an invented move
                 # (refused under require_setup with the program's other missing values, the first in line order)
                 first = 5161 if key == "G28" else 5181
                 self.ref_missing = (line_no, f"{key} moves to its home position (#{first}-{first + 5}, stored in "
                                              "the control), which was not given")
             self.reference_return(li, key, ax, words_mask)
+            if not_given:
+                self.home_not_given_rows.append(len(self.r_line) - 1)  # (the home's row, the block's last)
             return []
         if nonmodal in (281, 301):
             self.refs["G28" if nonmodal == 281 else "G30"] = np.array(self.machine_of(self.pos)) * self.u_scale

@@ -47,6 +47,7 @@ class InterpState:
         self.refs = {k: v.copy() for k, v in self.ref_mm.items()}  # machine coords, mm (converted on use)
         self.ref_given = dict(self.ref_given0)  # a home position given by the user, or set by G28.1 / G30.1
         self.ref_missing = None  # (line number, reason) of the first G28 / G30 to a home position not given
+        self.home_not_given_rows = []  # the rows of G28 / G30 that end at a home position not given (taken as zero)
         self.used_axes = set()
         self.units_seen = set()
         self.percent_seen = 0

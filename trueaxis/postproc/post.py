@@ -350,7 +350,7 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
 
     setup = setup if setup is not None else Setup()
     prog = parse_program(text, source, passthrough_unsupported=passthrough_unsupported, setup=setup,
-                         require_setup=True)
+                         require_setup=True, machine=machine)
     if setup.program_units is not None and prog.units != setup.program_units and len(prog):
         raise SetupError(f"{source}: the program is in {prog.units} ({'G20' if prog.units == 'inch' else 'G21'}), "
                          f"the setup ({setup.describe()}) is for programs in {setup.program_units}")
@@ -367,14 +367,6 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
                             "system and no setup was given (--var, --setup; --offsets-zero to confirm zero), so its "
                             "coordinates are taken as machine coordinates; with an offset in the control's active "
                             "system (G54 at start-up) every correction is computed at the wrong place")
-    machine_rows = np.nonzero(prog.kind == ROW_MACHINE)[0]
-    if mode != "none" and machine_rows.size:
-        # G53 positions are machine coordinates, written as given: say so, a feed move among them cuts uncorrected
-        lines = sorted({int(prog.line_no[r]) for r in machine_rows})
-        shown = ", ".join(str(n) for n in lines[:5]) + (f" and {len(lines) - 5} more" if len(lines) > 5 else "")
-        rep.warnings.append(f"{source}:{lines[0]}: {len(lines)} G53 move{'s' if len(lines) > 1 else ''} (machine "
-                            f"coordinates; lines {shown}) passed through uncompensated: the twin's error is not "
-                            "corrected there")
     _check_axes(prog, machine, source)
     if prog.units != "mm":
         rep.units_note = (f"program in {prog.units} (G20); converted to mm for the {machine.name} model and back to "
@@ -383,6 +375,9 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     if mode == "none" or not np.isin(prog.kind, (ROW_PROGRAMMED, ROW_CYCLE)).any():
         rep.blocks_out = rep.blocks_in
         out = text
+        if mode != "none":  # (the G28 / G30 / G53 moves said, none of them corrected)
+            poster = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep)
+            poster.note_passed_through(error=output_mode != "tcp")
     else:
         poster = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep)
         poster.fit_arcs = arcs_default(machine) if arcs is None else bool(arcs)
@@ -407,6 +402,38 @@ MAX_LINE = 255
 # A rewritten block grows by its axis words' digits (at most some 16 characters each, six axes): an input whose
 # lines are all shorter than MAX_LINE less this cannot give a longer line (the header lines are shortened to fit).
 _LINE_GROWTH = 100
+
+
+def passed_through_warnings(prog, rows, error_um=None) -> list[str]:
+    """The warnings for the moves a post passes through as written because their positions are the machine's, one
+    per kind, naming its lines: G53 moves (machine coordinates; a feed move among them cuts uncorrected) and G28 /
+    G30 returns (their intermediate point and the home position). ``rows`` (K,): those rows of ``prog``;
+    ``error_um`` (K,): how far each leaves the tool tip from its nominal position (NaN: not known; None: not said),
+    the largest said with its line."""
+    out = []
+    for kind in (ROW_MACHINE, ROW_REFERENCE):
+        pick = prog.kind[rows] == kind
+        if not pick.any():
+            continue
+        lines = sorted({int(n) for n in prog.line_no[rows[pick]]})
+        shown = ", ".join(str(n) for n in lines[:5]) + (f" and {len(lines) - 5} more" if len(lines) > 5 else "")
+        many = "s" if len(lines) > 1 else ""
+        if kind == ROW_MACHINE:
+            what = f"{len(lines)} G53 move{many} (machine coordinates; lines {shown})"
+        else:
+            codes = {c for li in np.unique(prog.line_index[rows[pick]])
+                     for c in re.findall(r"(?i)G0*(28|30)(?![.\d])", prog.lines[li])}
+            what = (f"{len(lines)} {' / '.join(f'G{c}' for c in sorted(codes)) or 'G28 / G30'} block{many} (moves "
+                    f"to an intermediate point and to the home position; lines {shown})")
+        tail = ""
+        err = None if error_um is None else error_um[pick]
+        if err is not None and np.isfinite(err).any():
+            k = int(np.nanargmax(err))
+            tail = f", up to {err[k]:.2f} um (line {int(prog.line_no[rows[pick][k]])})"
+            tail += "" if np.isfinite(err).all() else " where the position is known"
+        out.append((lines[0], f"{prog.source}:{lines[0]}: {what} passed through uncompensated: the twin's error is "
+                              f"not corrected there{tail}"))
+    return [text for _, text in sorted(out)]
 
 
 def _refuse_long_lines(out: str, prog, source: str):
@@ -528,7 +555,9 @@ def header_lines(rep: PostReport, machine: Machine) -> list:
         rot = f" R{write_number(u['rotation_deg'], 4)}" if u.get("rotation_deg") else ""
         units = "mm, deg" if rot or any(vals[3:]) else "mm"
         how = f" by {u['applied_by']}" if u.get("applied_by") else ""
-        lines.append(f"(trueaxis setup: {u['what']} {words}{rot} {units}{how}, from {clean(u['source'])})")
+        absent = " ".join(u.get("zero_no_such_axis", ""))
+        absent = f"; {absent} not given, 0: the machine has no {absent} axis" if absent else ""
+        lines.append(f"(trueaxis setup: {u['what']} {words}{rot} {units}{how}, from {clean(u['source'])}{absent})")
     # Every comment's text without parentheses of its own (what and how words such as "tool offset (G43.1)" too):
     # LinuxCNC refuses a nested comment, the whole program.
     return [_fit("(" + clean(line[1:-1]) + ")") for line in lines]
@@ -956,10 +985,10 @@ class _Poster:
     def known_positions(self):
         """(end known (M,) bool, start known (M,) bool, the axes not known at each row's end (M,) bit mask) of the
         program's rows: an axis' position is known from its first absolute word (G90) on, and from a G28 / G30 that
-        homes every axis; before that the control is wherever it stands. Required are the machine's linear axes and
-        the rotary axes the program uses."""
+        homes every axis; before that the control is wherever it stands. Required are the machine's
+        ``required_axes``: its linear axes and the rotary axes the program uses (the rule of the work offsets too)."""
         p = self.p
-        need = [AXES.index(a) for a in self.names if not self.m.axes[a].is_rotary or a in p.axes_present]
+        need = [AXES.index(a) for a in self.m.required_axes(p.axes_present)]
         bits = sum(1 << c for c in need)
         given = np.where(p.incremental, 0, p.words.astype(np.int64) & bits)
         homing = (p.kind == ROW_REFERENCE) & (p.words == 0)
@@ -1039,11 +1068,57 @@ class _Poster:
         bar.close()
         self._summarise(mx, np.sqrt(sq / max(rows.size, 1)))
         self._residual_check()
+        self.note_passed_through(rows, delta_prog, end_known, error=self.tcp is None)
         if p.diameter.any():
             from .turning import diameter_words  # G7: X written as a diameter again
 
             self.p, delta_prog, pieces = diameter_words(p, rows, delta_prog, pieces)
         return self._write(rows, delta_prog, pieces, arc_mode)
+
+    def note_passed_through(self, rows=None, delta_prog=None, end_known=None, error=True):
+        """The warnings for the G53 and G28 / G30 moves, passed through as written (``passed_through_warnings``), with
+        how far each leaves the tool tip from its nominal position (``error``; not in TCP output, where the
+        control's kinematics place those positions). ``delta_prog``: the corrections written for the compensated
+        ``rows`` (None: none); ``end_known``: ``known_positions``' first (None: made here)."""
+        p = self.p
+        special = np.nonzero((p.kind == ROW_REFERENCE) | (p.kind == ROW_MACHINE))[0]
+        if special.size == 0:
+            return
+        error_um = self._passed_through_error_um(special, rows, delta_prog, end_known) if error else None
+        self.rep.warnings += passed_through_warnings(p, special, error_um)
+
+    def _passed_through_error_um(self, special, rows, delta_prog, end_known):
+        """(K,) um, how far each of the G28 / G30 / G53 rows ``special`` (K,) leaves the tool tip from the nominal
+        position of its end, NaN where that position is not known (an axis not given yet, a setup value not given).
+        The axes the block sets in machine coordinates or by absolute words (a G53's words, the axes a home moves, a
+        G90 intermediate point's words) go where the program says, uncorrected; its other axes stay where the block
+        before left them, with the correction written there (carried on through a run of such blocks)."""
+        p = self.p
+        if end_known is None:
+            end_known = self.known_positions()[0]
+        written = None if delta_prog is None else self._written_ends(rows, delta_prog, p.kind[rows] == ROW_CYCLE)[0]
+        words = p.words[special].astype(np.int64) & 63  # (bits 0-5: X Y Z A B C)
+        exact = np.where((p.kind[special] == ROW_REFERENCE) & p.incremental[special], 0, words)
+        before = np.maximum(special - 1, 0)
+        after_point = (special > 0) & (p.kind[before] == ROW_REFERENCE) & (
+            p.line_index[before] == p.line_index[special])  # (a home after its block's intermediate point)
+        home = (p.kind[special] == ROW_REFERENCE) & (words == 0)
+        exact = np.where(home, np.where(after_point, p.words[before].astype(np.int64) & 63, 63), exact)
+        exact = (exact[:, None] >> np.arange(6) & 1).astype(bool)
+        carried, c = np.zeros((special.size, 6)), np.zeros(6)
+        for k, r in enumerate(special.tolist()):
+            if k == 0 or r != special[k - 1] + 1:  # after a row of the program's own: the correction written there
+                c = np.zeros(6) if written is None or r == 0 else written[np.array([r - 1])][0] - p.end[r - 1]
+            c = np.where(exact[k], 0.0, c)
+            carried[k] = c
+        inch = p.inch[special]
+        q_written = self.to_machine(p.to_machine(p.end[special] + carried, special), inch)
+        q_nominal = self.to_machine(p.to_machine(p.end[special], special), inch)
+        error_um = np.linalg.norm(self.twin.actual_pose(q_written)[0] - self.twin.nominal_pose(q_nominal)[0],
+                                  axis=1) * 1e3
+        not_given = p.machine_rows_not_given if p.machine_rows_not_given is not None else np.zeros(0, np.int64)
+        error_um[~end_known[special] | np.isin(special, not_given)] = np.nan
+        return error_um
 
     def _refuse_position_sets_from_unknown(self, missing):
         """PostError for a G92 / G10 L20 that sets its offset from the position of an axis the program has not given
