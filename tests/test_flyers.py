@@ -124,3 +124,19 @@ def test_inspect_identify_sets_flyers_apart_and_says_so(cone_cut, tmp_path, caps
     assert xoc["change_um"] == pytest.approx(20.0, abs=3 * xoc["std_um"] + 1.0)
     assert rep["flyers_set_apart"]["beyond_gate"] == 10
     assert re.search(r"10 of \d+ points set apart as flyers and left out of the identification", cap.err)
+
+
+def test_the_residual_note_names_the_parameters_kept_as_a_second_cause():
+    # A residual above the cloud's noise was always said to be an effect the twin's parameters do not describe; on a
+    # slot block whose parameters were only held back (not significant against a set-up offset, or the set-up's) the
+    # twin describes it, and the note sent the user to `diagnose` alone (a QA pass). With parameters kept, both causes.
+    from trueaxis.inspect.flyers import LOCAL_TO_NOISE, UNEXPLAINED_FACTOR, residual_above_noise_note
+
+    local = 1.0 * LOCAL_TO_NOISE  # a cloud noise of 1 um
+    assert residual_above_noise_note(UNEXPLAINED_FACTOR * 0.99, local) is None
+    plain = residual_above_noise_note(2.21, local)
+    assert plain.startswith("the identification leaves 2.21 um RMS, above the cloud's own noise (1.00 um")
+    assert plain.endswith("do not describe; `trueaxis diagnose` looks for it")
+    kept = residual_above_noise_note(2.21, local, kept=["EZZ@-300", "YOC"])
+    assert "either the part holds an effect" in kept and "changes of the parameters kept (EZZ@-300, YOC)" in kept
+    assert "--setup-sigma-um" in kept and "`trueaxis diagnose`" in kept

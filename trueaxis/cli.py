@@ -500,7 +500,8 @@ def cmd_inspect(args) -> int:
                                                         setup_sigma_um=args.setup_sigma_um)
             result.report["identification"] = {**report, **flyers}
             note = residual_above_noise_note(identification.residual_rms_um,
-                                             flyers["flyers_set_apart"]["local_sigma_um"])
+                                             flyers["flyers_set_apart"]["local_sigma_um"],
+                                             kept=[*identification.taken_by_setup, *identification.not_significant])
             if note:
                 result.report["identification"]["unexplained_note"] = note
         with single_blas_thread():

@@ -628,6 +628,7 @@ class Identification:
     setup_offset: dict = field(default_factory=dict)  # the part's set-up offset fitted as nuisance (never written)
     std_setup: np.ndarray | None = None  # (P,) the share of std_alias a set-up offset of its prior size leaves
     placed_rms_um: float | None = None  # residual RMS of the twin as is with the nuisance alone fitted, um
+    taken_by_setup: list = field(default_factory=list)  # parameters moving the part only as a free set-up does
 
     @property
     def accepted(self) -> bool:
@@ -674,6 +675,10 @@ class Identification:
                                "reason": f"change {ch:+.3g} {unit_of(name)} would move the part by {hid:.3g} um RMS "
                                          "in a way the best-fit alignment took out of the data (a rigid motion, on the "
                                          "cone its size): not checked by the data, kept at the twin's value"})
+            elif name in self.taken_by_setup:
+                detail.append({"name": name, "category": "taken_by_setup", "seen_share": _r(self.seen_share[i], 3),
+                               "reason": "moves this part only as a translation does, which the set-up offset (free: "
+                                         "its accuracy not given) takes: kept at the twin's value"})
             elif name in self.not_significant:
                 ch, sd = self.not_significant[name]
                 detail.append({"name": name, "category": "not_significant", "seen_share": _r(self.seen_share[i], 3),
@@ -775,6 +780,9 @@ class Identification:
             out.append("  hidden by the best fit, kept: " + ", ".join(
                 f"{k} {v[0]:+.2f} ({v[1]:.2f} um RMS hidden)" for k, v in list(self.hidden_by_alignment.items())[:8])
                 + (" ..." if len(self.hidden_by_alignment) > 8 else ""))
+        if self.taken_by_setup:
+            out.append("  a translation of this part, the set-up's (free), kept: " + ", ".join(self.taken_by_setup[:8])
+                       + (" ..." if len(self.taken_by_setup) > 8 else ""))
         if self.not_significant:
             out.append("  not significant, kept: " + ", ".join(
                 f"{k} {v[0]:+.2f} +- {v[1]:.2f}" for k, v in list(self.not_significant.items())[:8])
@@ -936,6 +944,14 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     share[act] = spec.share
     seen = act[(act >= na) & (spec.share >= min_share)]
     seen = seen[np.argsort(-spec.share[np.searchsorted(act, seen)], kind="stable")]
+    taken_by_setup = []
+    if setup and ridge is None:
+        # A free set-up offset takes every translation of the part: a parameter that moves this part only as a
+        # translation does (the squareness of Z at the slot block's one depth) is the set-up's, not fitted (with it
+        # the normal matrix is singular: the slot block's identification stopped at a Cholesky factorisation).
+        keep = _independent(system, np.r_[setup_cols, seen])
+        taken_by_setup = [col_names[c] for c in seen if c not in set(keep.tolist())]
+        seen = seen[np.isin(seen, keep)]
     candidates = _independent(system, np.r_[_independent(system, act[act < na]), seen])
     chosen, theta, cov, s2, dropped = _fit_identifiable(system, candidates, typical, max_relative_std, na,
                                                          s2_noise)
@@ -1099,9 +1115,9 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         elif not math.isfinite(setup_sigma_um):
             setup_offset["note"] = (
                 "free: the set-up's accuracy was not given (--setup-sigma-um), so any translation of the part is "
-                "taken as its set-up and none is written into the twin, the machine's own (on one cone ZOB, most "
-                "of XOC and YOC) included; give the accuracy of the part's set-up (a work offset probed on the "
-                "machine: a few um) to identify those")
+                "taken as its set-up and none is written into the twin, the machine's own included (on the cone "
+                "ZOB and most of XOC and YOC; on the slot block the squareness of Z at its one depth); give the "
+                "accuracy of the part's set-up (a work offset probed on the machine: a few um) to identify those")
     return Identification(
         names=names, prior=prior, value=value, std=std, identified=identified, seen_share=seen,
         no_effect=no_effect, confounded_with=confounded, poorly_determined=poorly, alignment=align,
@@ -1116,7 +1132,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         std_noise=std_noise, std_alias=std_alias, not_significant=not_significant, verdict=verdict,
         reasons=reasons, heldout=heldout, considered=considered, hidden_by_alignment=hidden_by_alignment,
         hidden_rms_um=hidden_rms if rigid and verdict != "no change" else (0.0 if rigid else None),
-        setup_offset=setup_offset, std_setup=std_setup, placed_rms_um=placed,
+        setup_offset=setup_offset, std_setup=std_setup, placed_rms_um=placed, taken_by_setup=taken_by_setup,
     )
 
 

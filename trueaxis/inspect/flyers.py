@@ -102,15 +102,25 @@ LOCAL_TO_NOISE = math.sqrt(1.0 + math.pi / (2.0 * NEIGHBOURS))
 UNEXPLAINED_FACTOR = 1.5
 
 
-def residual_above_noise_note(residual_um: float, local_sigma_um: float,
-                              what: str = "the identification") -> str | None:
+def residual_above_noise_note(residual_um: float, local_sigma_um: float, what: str = "the identification",
+                              kept=()) -> str | None:
     """A sentence when a fit's residual RMS (um) stays above ``UNEXPLAINED_FACTOR`` x the cloud's own noise, read from
-    neighbouring points (``local_sigma_um`` / ``LOCAL_TO_NOISE``: independent of any model); else None."""
+    neighbouring points (``local_sigma_um`` / ``LOCAL_TO_NOISE``: independent of any model); else None. ``kept``: the
+    parameters the fit held at the twin's values although the part sees them (not significant: this part cannot
+    determine them, from its set-up or from each other), a second cause of such a residual, named with the first."""
     noise = local_sigma_um / LOCAL_TO_NOISE
     if not (math.isfinite(noise) and noise > 0 and residual_um > UNEXPLAINED_FACTOR * noise):
         return None
-    return (f"{what} leaves {residual_um:.2f} um RMS, above the cloud's own noise ({noise:.2f} um, from neighbouring "
-            "points): the part holds an effect the twin's parameters do not describe; `trueaxis diagnose` looks for it")
+    head = (f"{what} leaves {residual_um:.2f} um RMS, above the cloud's own noise ({noise:.2f} um, from neighbouring "
+            "points)")
+    if not kept:
+        return (f"{head}: the part holds an effect the twin's parameters do not describe; `trueaxis diagnose` looks for "
+                "it")
+    names = ", ".join(list(kept)[:6]) + (" ..." if len(kept) > 6 else "")
+    return (f"{head}: either the part holds an effect the twin's parameters do not describe (`trueaxis diagnose` looks "
+            f"for it), or changes of the parameters kept ({names}) that this part cannot determine, from its set-up "
+            "or from each other (a second placement of the part, or the set-up's accuracy given with --setup-sigma-um, "
+            "separates them)")
 
 
 def rule_text(gate_mm: float = GATE_MM) -> str:
