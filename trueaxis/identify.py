@@ -94,9 +94,10 @@ again, and a change that a set-up offset could have made would write this clampi
 the slot block along Y was written as EYY.P1 +11 um, EYX@400 +6 um, C0Y +6 urad, and a run of the full case as A0Z
 +1014 urad). Which parameters are seen is judged without it. With an accuracy given, a fit that puts more than
 ``SETUP_PLAUSIBLE`` (3) sigma in the set-up is taken as the machine's own translation of the part (the cone's C line
-offsets move it by tens of um), not a set-up, as the user's accuracy says: the set-up is then held at zero while the changes are fitted (in their std and significance as a held
-quantity at its prior) and fitted after them for the report. The verdict weighs what the changes explain beyond the
-twin as it is with the set-up offset fitted.
+offsets move it by tens of um), not a set-up, as the user's accuracy says: the set-up is then held at zero while the
+changes are fitted (in their std and significance as a held quantity at its prior) and fitted after them for the
+report. Free, a parameter that moves the part only as a translation does is the set-up's (``taken_by_setup``). The
+verdict weighs what the changes explain beyond the twin as it is with the set-up offset fitted.
 
 Units: mm and rad inside, deviations and errors in um, angles in urad; reports name their units in their keys.
 """
