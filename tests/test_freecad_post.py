@@ -53,7 +53,8 @@ XDG = ("XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_CACHE_HOME")
 
 @pytest.fixture(scope="module")
 def freecad_job(tmp_path_factory):
-    """Outputs of make_job.py (see its docstring), as {name: text}, plus the job facts.
+    """Outputs of make_job.py (see its docstring), as {name: text}, plus the job facts and what FreeCAD's console
+    printed on stderr (its warnings and errors).
 
     FreeCAD runs with a private HOME (its settings and macro folder), where install_post puts the script, so FreeCAD
     loads it the way it loads any post processor and the user's own settings play no part.
@@ -79,7 +80,7 @@ def freecad_job(tmp_path_factory):
     files = {p.name: p.read_text() for p in out.glob("*.ngc")}
     facts = json.loads((out / "job.json").read_text())
     assert Path(facts["post_script"]).resolve() == installed.resolve()
-    return SimpleNamespace(dir=out, files=files, facts=facts)
+    return SimpleNamespace(dir=out, files=files, facts=facts, console=proc.stderr)  # FreeCAD's warnings and errors
 
 
 def setup_args(folder):
@@ -218,6 +219,19 @@ def test_an_option_nobody_knows_is_an_error_not_an_exit_of_freecad(freecad_job):
     assert said["--precision abc"].startswith("TrueaxisPostError: trueaxis post: ") and "--precision" in \
         said["--precision abc"], said
     assert not freecad_job.facts["bad_option_file_written"]
+
+
+@pytest.mark.external
+def test_what_trueaxis_says_of_the_job_reaches_freecads_console_naming_the_output_file(freecad_job):
+    # The job's G54 block moves Z alone before X and Y are known: trueaxis leaves it uncompensated and says so; the
+    # FreeCAD post kept that to itself when the post succeeded (a QA pass). Now a warning in FreeCAD's console.
+    out = freecad_job.dir / "trueaxis.ngc"
+    said = [line for line in freecad_job.console.splitlines() if line.startswith(f"{out}:")]
+    uncompensated = (r":\d+: block 'G0 Z-294\.000': the position of X Y is not known here \(no absolute move of it "
+                     r"before\): block left as written, uncompensated")
+    assert len(said) == 3 and all(re.fullmatch(re.escape(str(out)) + uncompensated, line) for line in said[:2]), said
+    assert "tool length offsets in force (tool 1 offset Z50.8 mm)" in said[2]
+    assert "trueaxis_post_" not in freecad_job.console
 
 
 # --- the script's pure parts, in this Python ----------------------------------------------------------------------
@@ -394,3 +408,78 @@ def test_macro_folder_follows_freecad_settings_then_its_data_folder(tmp_path, mo
     custom.rmdir()
     assert default_macro_dir(home) == custom
     assert install_post(default_macro_dir(home)) == custom / "trueaxis_post.py" and custom.is_dir()
+
+
+# --- what trueaxis says of a program it posted: the user's file names, FreeCAD's console ---------------------------
+
+SMALL_PROGRAM = "(begin preamble)\nG21 G90\nG0 Z-100\nG0 X10 Y10\nG1 X50 F500\nM2\n"  # FreeCAD's: a comment first
+
+
+def warning_lines(text):
+    return [line for line in text.splitlines() if line.strip()]
+
+
+def test_warnings_of_a_posted_program_are_shown_with_the_output_file_and_the_block(tmp_path, monkeypatch, capsys):
+    # trueaxis' warnings on stderr named the temporary copy (/tmp/trueaxis_post_.../part.ngc) and were dropped when
+    # the post succeeded: the user never heard of a block left uncompensated (a QA pass)
+    post = load_post_module()
+    exe = stand_in(tmp_path, """
+        shutil.copyfile(args[1], args[3])
+        sys.stderr.write(args[1] + ":3: the position of X Y is not known here (no absolute move of it before): "
+                         "block left as written, uncompensated\\n")
+        sys.stderr.write(args[1] + ":1: the program never commands B C: the corrections take them at 0, where "
+                         "they must stand when the program runs\\n")
+    """)
+    monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+    opts, _ = post.split_arguments("--machine m.toml")
+    out = post.compensate(SMALL_PROGRAM, opts, label="/jobs/part.ngc")
+    assert out == SMALL_PROGRAM
+    said = warning_lines(capsys.readouterr().err)
+    assert said[:2] == [
+        "/jobs/part.ngc:3: block 'G0 Z-100': the position of X Y is not known here (no absolute move of it before): "
+        "block left as written, uncompensated",
+        # a program-wide warning stands at line 1, here a comment: no block to quote
+        "/jobs/part.ngc:1: the program never commands B C: the corrections take them at 0, where they must stand "
+        "when the program runs"]
+    assert len(said) == 3 and "line numbers" in said[2] and "before compensation" in said[2]
+    assert "trueaxis_post_" not in "\n".join(said)
+
+
+def test_a_program_posted_without_a_word_shows_nothing(tmp_path, monkeypatch, capsys):
+    post = load_post_module()
+    echoing_stand_in(tmp_path, monkeypatch)
+    opts, _ = post.split_arguments("--machine m.toml")
+    post.compensate(SMALL_PROGRAM, opts, label="/jobs/part.ngc")
+    assert capsys.readouterr().err == ""
+
+
+def test_strict_reaches_the_command_and_its_refusal_names_the_output_file(tmp_path, monkeypatch):
+    post = load_post_module()
+    exe = stand_in(tmp_path, """
+        assert "--strict" in args
+        sys.stderr.write(args[1] + ":3: the position of X Y is not known here: block left as written, "
+                         "uncompensated\\n")
+        sys.stderr.write("trueaxis post: --strict: 1 warning; " + args[3] + " not written\\n")
+        sys.exit(3)
+    """)
+    monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+    opts, rest = post.split_arguments("--machine m.toml --strict --precision 4")
+    assert opts.strict and rest == "--precision 4 --no-show-editor"
+    with pytest.raises(post.TrueaxisPostError) as err:
+        post.compensate(SMALL_PROGRAM, opts, label="/jobs/part.ngc")
+    said = str(err.value)
+    assert "/jobs/part.ngc:3: block 'G0 Z-100': the position of X Y is not known here" in said
+    assert "trueaxis post: --strict: 1 warning; /jobs/part.ngc not written" in said
+    assert "compensated.ngc" not in said and "trueaxis_post_" not in said
+
+
+def test_the_real_command_warnings_reach_the_user_with_the_output_file(tmp_path, monkeypatch, capsys):
+    post = load_post_module()
+    monkeypatch.setenv("TRUEAXIS_BIN", trueaxis_exe())
+    opts, _ = post.split_arguments(f"--machine {XH714} --offsets-zero")
+    out = post.compensate(SMALL_PROGRAM, opts, label=str(tmp_path / "part.ngc"))
+    assert out.startswith("(trueaxis post: ")
+    said = warning_lines(capsys.readouterr().err)
+    assert said[0] == (f"{tmp_path / 'part.ngc'}:3: block 'G0 Z-100': the position of X Y is not known here (no "
+                       "absolute move of it before): block left as written, uncompensated")
+    assert len(said) == 2 and "trueaxis_post_" not in said[1]

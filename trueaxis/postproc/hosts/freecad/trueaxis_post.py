@@ -15,6 +15,8 @@
 # 2. runs `trueaxis post IN -o OUT --machine FILE --mode M --tol-um T [setup options]` on it (the command is $TRUEAXIS_BIN, or
 #    --trueaxis-bin, or `trueaxis` on PATH: FreeCAD's Python does not import trueaxis itself);
 # 3. writes the compensated program at the output file atomically (temporary file in the same folder, then rename).
+# What trueaxis says of a program it posted (a block left uncompensated, a value assumed) goes to FreeCAD's report
+# view as warnings, each naming the output file and quoting the block; --strict makes any of them an error.
 # If trueaxis refuses the program, export raises TrueaxisPostError naming the block and the reason, and nothing is
 # written at the output file.
 #
@@ -29,6 +31,7 @@ import re
 import shlex
 import shutil
 import subprocess
+import sys
 import tempfile
 
 TOOLTIP = """
@@ -89,6 +92,8 @@ def _build_parser():
                    help="arcs whose correction varies along them become straight pieces")
     p.add_argument("--output-mode", default=None, choices=("joint", "tcp"),
                    help="joint positions, or tool-centre-point positions (trueaxis' default: the machine file's)")
+    p.add_argument("--strict", action="store_true",
+                   help="every warning of trueaxis is an error: nothing is written (trueaxis post --strict)")
     for key, what in (("ap", "axial depth, mm"), ("ae", "radial engagement, mm"), ("fz", "feed per tooth, mm"),
                       ("n", "spindle speed, rpm"), ("d", "tool diameter, mm"), ("z", "flutes")):
         p.add_argument(f"--{key}", default=None, help=f"comprehensive mode: {what} for every operation (over what the "
@@ -313,60 +318,95 @@ def trueaxis_command(opts):
 
 
 _DIAGNOSTIC = re.compile(r"^(?P<file>.+?):(?P<line>\d+): (?P<reason>.*)$")
+_NOT_A_BLOCK = re.compile(r"^(?:N\d+\s*)?(?:\([^)]*\)\s*)*(?:;.*)?%?$")  # blank, comments only, or %
+LINE_NUMBERS_NOTE = ("trueaxis post: the line numbers are those of the program FreeCAD's linuxcnc post wrote, before "
+                     "compensation (post with the linuxcnc post processor to see it)")
 
 
-def _explain(stderr, program_path, program_lines, label):
-    """trueaxis' `file:line: reason` lines, with the block itself quoted (the user never sees the temporary file)."""
+def warn(message):
+    """A warning for the user: FreeCAD's report view (Console.PrintWarning) inside FreeCAD, else stderr."""
+    try:
+        import FreeCAD
+    except ImportError:
+        print(message, file=sys.stderr)
+        return
+    FreeCAD.Console.PrintWarning(message + "\n")
+
+
+def _explain(stderr, temporary, program_lines, label):
+    """trueaxis' messages as the user can read them: its ``file:line: reason`` lines about the program with the block
+    quoted, and every temporary path (``temporary``: the program and the output written in the post's temporary
+    folder, which the user never sees) named ``label``, the job's output file. A list of lines."""
+    program_path = temporary[0]
     out = []
     for line in stderr.strip().splitlines():
         m = _DIAGNOSTIC.match(line)
         if m and os.path.basename(m.group("file")) == os.path.basename(program_path):
             k = int(m.group("line"))
             block = program_lines[k - 1].strip() if 0 < k <= len(program_lines) else "?"
-            out.append(f"{label}:{k}: block '{block}': {m.group('reason')}")
-        else:
-            out.append(line.replace(program_path, label))
-    return "\n".join(out)
+            quoted = "" if _NOT_A_BLOCK.match(block) else f" block '{block}':"  # (line 1: the whole program's)
+            out.append(f"{label}:{k}:{quoted} {m.group('reason')}")
+            continue
+        for path in temporary:
+            line = line.replace(path, label)
+        out.append(line)
+    return out
+
+
+def _command(exe, program, output, opts):
+    """The `trueaxis post` command line for the post's options."""
+    machine = os.path.abspath(os.path.expanduser(opts.machine))
+    cmd = [exe, "post", program, "-o", output, "--machine", machine, "--mode", opts.mode, "--tol-um", str(opts.tol_um)]
+    if opts.max_correction_mm is not None:
+        cmd += ["--max-correction-mm", str(opts.max_correction_mm)]
+    if opts.report:
+        cmd += ["--report", os.path.abspath(os.path.expanduser(opts.report))]
+    for option, value in (("--var", opts.var), ("--tool-table", opts.tool_table), ("--setup", opts.setup)):
+        if value:
+            cmd += [option, os.path.abspath(os.path.expanduser(value))]
+    if opts.machine_units:
+        cmd += ["--machine-units", opts.machine_units]
+    for flag in ("offsets_zero", "strict"):
+        if getattr(opts, flag):
+            cmd.append("--" + flag.replace("_", "-"))
+    if opts.arcs is not None:
+        cmd.append("--arcs" if opts.arcs else "--no-arcs")
+    if opts.output_mode:
+        cmd += ["--output-mode", opts.output_mode]
+    for key in ("ap", "ae", "fz", "n", "d", "z", "cut_mode"):  # the cutting conditions, as `trueaxis post` takes them
+        if getattr(opts, key, None) is not None:
+            cmd += [f"--{key.replace('_', '-')}", str(getattr(opts, key))]
+    return cmd
 
 
 def compensate(gcode, opts, label="program.ngc"):
-    """The program compensated by `trueaxis post` (text); TrueaxisPostError with trueaxis' reasons on failure."""
+    """The program compensated by `trueaxis post` (text); TrueaxisPostError with trueaxis' reasons on failure.
+
+    label : the name the user knows the program by (the job's output file); trueaxis' messages name it, not the
+    temporary copy. What trueaxis says of a program it posted is shown (``warn``) before the text is returned.
+    """
     exe = trueaxis_command(opts)
-    machine = os.path.abspath(os.path.expanduser(opts.machine))
     with tempfile.TemporaryDirectory(prefix="trueaxis_post_") as work:
         src = os.path.join(work, os.path.basename(label) or "program.ngc")
         dst = os.path.join(work, "compensated.ngc")
         with open(src, "w", encoding="utf-8", newline="") as f:
             f.write(gcode)
-        cmd = [exe, "post", src, "-o", dst, "--machine", machine, "--mode", opts.mode, "--tol-um", str(opts.tol_um)]
-        if opts.max_correction_mm is not None:
-            cmd += ["--max-correction-mm", str(opts.max_correction_mm)]
-        if opts.report:
-            cmd += ["--report", os.path.abspath(os.path.expanduser(opts.report))]
-        for option, value in (("--var", opts.var), ("--tool-table", opts.tool_table), ("--setup", opts.setup)):
-            if value:
-                cmd += [option, os.path.abspath(os.path.expanduser(value))]
-        if opts.machine_units:
-            cmd += ["--machine-units", opts.machine_units]
-        if opts.offsets_zero:
-            cmd.append("--offsets-zero")
-        if opts.arcs is not None:
-            cmd.append("--arcs" if opts.arcs else "--no-arcs")
-        if opts.output_mode:
-            cmd += ["--output-mode", opts.output_mode]
-        for key in ("ap", "ae", "fz", "n", "d", "z", "cut_mode"):  # the cutting conditions, as `trueaxis post` takes them
-            if getattr(opts, key, None) is not None:
-                cmd += [f"--{key.replace('_', '-')}", str(getattr(opts, key))]
         try:
-            proc = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, text=True)
+            proc = subprocess.run(_command(exe, src, dst, opts), stdin=subprocess.DEVNULL, capture_output=True,
+                                  text=True)
         except OSError as exc:
             raise TrueaxisPostError(f"trueaxis post: could not run {exe}: {exc}") from None
+        said = _explain(proc.stderr or "", (src, dst), gcode.splitlines(), label)
         if proc.returncode != 0 or not os.path.exists(dst):
-            why = _explain(proc.stderr or proc.stdout, src, gcode.splitlines(), label)
+            why = "\n".join(said or _explain(proc.stdout or "", (src, dst), gcode.splitlines(), label))
             raise TrueaxisPostError(f"trueaxis refused the program (exit {proc.returncode}); nothing was written.\n"
                                     f"{why or '(no message)'}\n"
                                     f"Line numbers refer to the uncompensated program of FreeCAD's linuxcnc post "
                                     f"(post with the linuxcnc post processor to see it).")
+        for line in said:
+            warn(line)
+        if any(_DIAGNOSTIC.match(line) for line in said):
+            warn(LINE_NUMBERS_NOTE)
         with open(dst, "r", encoding="utf-8", newline="") as f:
             return f.read()
 
@@ -463,7 +503,7 @@ def export(objectslist, filename, argstring):
     except _ArgumentError as exc:
         raise TrueaxisPostError(f"trueaxis post: {exc}\n{TOOLTIP_ARGS}") from None
     gcode, lc = linuxcnc_gcode(objectslist, linuxcnc_args)
-    label = os.path.basename(filename) if filename and filename != "-" else "program.ngc"
+    label = filename if filename and filename != "-" else "program.ngc"  # the job's output file, as FreeCAD gave it
     try:
         final = compensate(gcode, opts, label)
     except TrueaxisPostError as exc:
@@ -471,7 +511,7 @@ def export(objectslist, filename, argstring):
         raise
     final, notes = honour_linuxcnc_options(final, linuxcnc_args)
     for note in notes:
-        FreeCAD.Console.PrintWarning(note + "\n")
+        warn(note)
     if FreeCAD.GuiUp and not opts.no_show_editor:
         final = _show_editor(lc, final)
     if filename and filename != "-":
