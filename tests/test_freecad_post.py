@@ -380,6 +380,34 @@ def test_files_are_written_atomically(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["part.ngc"]
 
 
+
+def test_the_output_gets_the_permissions_the_command_line_gives_it(tmp_path):
+    # mkstemp and a rename left the job's program 0600, readable by its owner alone (a QA pass); trueaxis' own
+    # outputs (fileio) get the umask's permissions when new and keep their own when replaced, and a symbolic link
+    # is written through: the post script does the same (it cannot import trueaxis: FreeCAD's Python)
+    from trueaxis.fileio import atomic_write
+
+    post = load_post_module()
+    mask = os.umask(0o027)
+    try:
+        for writer, folder in ((post.write_atomically, tmp_path / "post"), (atomic_write, tmp_path / "cli")):
+            folder.mkdir()
+            writer(str(folder / "new.ngc"), "G0 X1\n")
+            (folder / "kept.ngc").write_text("old\n")
+            (folder / "kept.ngc").chmod(0o604)
+            writer(str(folder / "kept.ngc"), "G0 X1\n")
+            (folder / "target.ngc").write_text("old\n")
+            (folder / "link.ngc").symlink_to("target.ngc")
+            writer(str(folder / "link.ngc"), "G0 X1\n")
+    finally:
+        os.umask(mask)
+    for folder in (tmp_path / "post", tmp_path / "cli"):
+        assert (folder / "new.ngc").stat().st_mode & 0o777 == 0o640, folder
+        assert (folder / "kept.ngc").stat().st_mode & 0o777 == 0o604, folder
+        assert (folder / "link.ngc").is_symlink() and (folder / "target.ngc").read_text() == "G0 X1\n", folder
+        assert sorted(p.name for p in folder.iterdir()) == ["kept.ngc", "link.ngc", "new.ngc", "target.ngc"]
+
+
 def test_install_copies_the_script_into_the_given_folder(tmp_path):
     installed = install_post(tmp_path / "Macro")
     assert installed == tmp_path / "Macro" / "trueaxis_post.py"

@@ -14,7 +14,8 @@
 #    job knows, e.g. `(trueaxis: ap=6 ae=3 fz=0.025 n=8000 d=6 z=3 mode=down)` (trueaxis DESIGN §5);
 # 2. runs `trueaxis post IN -o OUT --machine FILE --mode M --tol-um T [setup options]` on it (the command is $TRUEAXIS_BIN, or
 #    --trueaxis-bin, or `trueaxis` on PATH: FreeCAD's Python does not import trueaxis itself);
-# 3. writes the compensated program at the output file atomically (temporary file in the same folder, then rename).
+# 3. writes the compensated program at the output file atomically (temporary file in the same folder, then rename),
+#    with the permissions trueaxis gives its own outputs (a new file: the umask's; a replaced one: its own).
 # What trueaxis says of a program it posted (a block left uncompensated, a value assumed) goes to FreeCAD's report
 # view as warnings, each naming the output file and quoting the block; --strict makes any of them an error.
 # If trueaxis refuses the program, export raises TrueaxisPostError naming the block and the reason, and nothing is
@@ -30,6 +31,7 @@ import os
 import re
 import shlex
 import shutil
+import stat
 import subprocess
 import sys
 import tempfile
@@ -466,15 +468,26 @@ def honour_linuxcnc_options(text, linuxcnc_args):
 
 
 def write_atomically(filename, text):
-    """Write text at filename through a temporary file in the same folder and a rename."""
-    folder = os.path.dirname(os.path.abspath(filename))
-    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(filename) + ".", suffix=".tmp", dir=folder)
+    """Write text at filename through a temporary file in the same folder and a rename, as trueaxis writes its own
+    outputs (trueaxis/fileio.py's rule, replicated here: FreeCAD's Python does not import trueaxis): a symbolic link
+    is written through (its target replaced, the link kept); a new file gets the permissions the umask gives (mkstemp
+    alone leaves 0600, for its owner only), a replaced file keeps its own."""
+    target = os.path.realpath(filename)
+    if os.path.exists(target):
+        mode = stat.S_IMODE(os.stat(target).st_mode)
+    else:
+        umask = os.umask(0o022)  # read the umask: set one, put it back
+        os.umask(umask)
+        mode = 0o666 & ~umask
+    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(target) + ".", suffix=".tmp",
+                               dir=os.path.dirname(target))
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, filename)
+        os.chmod(tmp, mode)
+        os.replace(tmp, target)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
