@@ -102,6 +102,14 @@ def test_post_equals_linuxcnc_post_compensated_by_trueaxis(freecad_job, tmp_path
 
 
 @pytest.mark.external
+def test_the_job_posted_for_a_fixture_machine_by_its_short_name_is_the_same_program(freecad_job):
+    # '--machine xh714' in the job's arguments: FreeCAD's working folder/xh714, not found (a QA pass)
+    assert freecad_job.facts["short_name_refused"] is None
+    assert freecad_job.files["trueaxis_short.ngc"] == freecad_job.files["trueaxis.ngc"]
+    assert f"machine file {XH714} sha256" in freecad_job.files["trueaxis_short.ngc"]
+
+
+@pytest.mark.external
 def test_without_correction_the_post_is_the_linuxcnc_post_plus_conditions(freecad_job):
     assert without_header(COMMENT_LINE.sub("", freecad_job.files["trueaxis_none.ngc"])) == \
         freecad_job.files["linuxcnc.ngc"]
@@ -346,6 +354,41 @@ def test_cutting_conditions_given_to_the_post_reach_the_command_not_linuxcnc(tmp
     assert rest == "--precision 4 --no-show-editor"
     out = post.compensate("G0 X1\n", opts)
     assert out.endswith("--mode comprehensive --tol-um 1 --ap 1.5 --ae 2 --cut-mode up)\n"), out
+
+
+
+def test_a_fixture_machine_short_name_reaches_the_command_as_it_is(tmp_path, monkeypatch):
+    # '--machine xh714' was made /FreeCAD's working folder/xh714, which trueaxis could not read, and the error listed
+    # the short names as if they could be used (a QA pass): trueaxis post takes them, so the script passes them on
+    post = load_post_module()
+    echoing_stand_in(tmp_path, monkeypatch)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mill").write_text("")  # a file of that name in the working folder is the file (as for the CLI)
+    for given, passed in (("xh714", "xh714"), ("~/m.toml", os.path.expanduser("~/m.toml")),
+                          ("m.toml", str(tmp_path / "m.toml")), ("mill", str(tmp_path / "mill"))):
+        opts, _ = post.split_arguments(f"--machine {given}")
+        assert f"(--machine {passed} --mode geometric" in post.compensate("G0 X1\n", opts), given
+
+
+@pytest.mark.parametrize("name", ["xh714", "m.toml", "sub/m.toml", "mill", "sub/mill", "nothere", "a.b"])
+def test_the_script_tells_a_machine_path_from_a_short_name_as_trueaxis_does(name, tmp_path, monkeypatch):
+    from trueaxis.resources import names_a_path
+
+    post = load_post_module()
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sub").mkdir()
+    for existing in ("mill", "sub/mill"):
+        (tmp_path / existing).write_text("")
+    assert post.names_a_path(name) == names_a_path(name)
+
+
+def test_the_real_command_takes_a_fixture_machine_by_its_short_name(tmp_path, monkeypatch, capsys):
+    post = load_post_module()
+    monkeypatch.setenv("TRUEAXIS_BIN", trueaxis_exe())
+    monkeypatch.chdir(tmp_path)
+    by_name, by_path = (post.compensate(SMALL_PROGRAM, post.split_arguments(f"--machine {m} --offsets-zero")[0])
+                        for m in ("xh714", XH714))
+    assert by_name == by_path and f"machine file {XH714} sha256" in by_name
 
 
 def test_a_refusal_names_the_block_and_the_reason(tmp_path, monkeypatch):

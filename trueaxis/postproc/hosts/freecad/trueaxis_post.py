@@ -12,8 +12,9 @@
 # 1. writes the G-code exactly as FreeCAD's own `linuxcnc` post does (it runs a fresh copy of that module), with one
 #    addition: before each tool change and each operation a structured comment carrying the cutting conditions the
 #    job knows, e.g. `(trueaxis: ap=6 ae=3 fz=0.025 n=8000 d=6 z=3 mode=down)` (trueaxis DESIGN §5);
-# 2. runs `trueaxis post IN -o OUT --machine FILE --mode M --tol-um T [setup options]` on it (the command is $TRUEAXIS_BIN, or
-#    --trueaxis-bin, or `trueaxis` on PATH: FreeCAD's Python does not import trueaxis itself);
+# 2. runs `trueaxis post IN -o OUT --machine FILE --mode M --tol-um T [setup options]` on it (the command is
+#    $TRUEAXIS_BIN, or --trueaxis-bin, or `trueaxis` on PATH: FreeCAD's Python does not import trueaxis itself);
+#    --machine takes a machine file or a fixture machine's short name, as trueaxis post does;
 # 3. writes the compensated program at the output file atomically (temporary file in the same folder, then rename),
 #    with the permissions trueaxis gives its own outputs (a new file: the umask's; a replaced one: its own).
 # What trueaxis says of a program it posted (a block left uncompensated, a value assumed) goes to FreeCAD's report
@@ -39,8 +40,8 @@ import tempfile
 TOOLTIP = """
 trueaxis: LinuxCNC G-code from FreeCAD's linuxcnc post, with the job's cutting conditions as
 (trueaxis: ...) comments, compensated for the machine's geometric (and force-induced) errors by
-the trueaxis command line. Needs --machine FILE; the trueaxis command is taken from
---trueaxis-bin, $TRUEAXIS_BIN or PATH.
+the trueaxis command line. Needs --machine FILE (or a fixture machine's short name); the
+trueaxis command is taken from --trueaxis-bin, $TRUEAXIS_BIN or PATH.
 """
 
 UNITS = "G21"  # read by FreeCAD to label the post processor's units (metric unless --inches is passed on)
@@ -74,7 +75,8 @@ class _Parser(argparse.ArgumentParser):
 
 def _build_parser():
     p = _Parser(prog="trueaxis", add_help=False, allow_abbrev=False)
-    p.add_argument("--machine", help="machine file (TOML) of the machine that will run the program (required)")
+    p.add_argument("--machine", help="machine file (TOML) of the machine that will run the program, or a fixture "
+                   "machine's short name (xh714, nmv1500dcg, ...), as for trueaxis post (required)")
     p.add_argument("--mode", default="geometric", choices=MODES,
                    help="none | geometric | comprehensive (default geometric)")
     p.add_argument("--tol-um", default="1", help="path tolerance, um (default 1)")
@@ -355,9 +357,18 @@ def _explain(stderr, temporary, program_lines, label):
     return out
 
 
+def names_a_path(name):
+    """Whether trueaxis reads --machine ``name`` as a path (a ``.toml`` name, or a file that exists) rather than as a
+    fixture machine's short name ('xh714'): trueaxis.resources.names_a_path's rule, replicated (FreeCAD's Python does
+    not import trueaxis), after ``~`` is expanded."""
+    path = os.path.expanduser(name)
+    return os.path.splitext(path)[1] == ".toml" or os.path.exists(path)
+
+
 def _command(exe, program, output, opts):
-    """The `trueaxis post` command line for the post's options."""
-    machine = os.path.abspath(os.path.expanduser(opts.machine))
+    """The `trueaxis post` command line for the post's options: paths made absolute (FreeCAD's working folder is not
+    the user's), a fixture machine's short name passed as it is (trueaxis finds it)."""
+    machine = os.path.abspath(os.path.expanduser(opts.machine)) if names_a_path(opts.machine) else opts.machine
     cmd = [exe, "post", program, "-o", output, "--machine", machine, "--mode", opts.mode, "--tol-um", str(opts.tol_um)]
     if opts.max_correction_mm is not None:
         cmd += ["--max-correction-mm", str(opts.max_correction_mm)]
