@@ -405,6 +405,39 @@ def test_a_refusal_names_the_block_and_the_reason(tmp_path, monkeypatch):
     assert "exit 2" in str(err.value)
 
 
+
+@pytest.mark.parametrize("given, said", [
+    ("--tol-um abc", "argument --tol-um: a path tolerance in um is a number; got 'abc'"),
+    ("--max-correction-mm 0,2", "argument --max-correction-mm: a correction bound in mm is a number; got '0,2'")])
+def test_an_option_that_takes_a_number_says_which_and_what_it_got(given, said):
+    # '--tol-um abc' said "got 'abc', None" (a QA pass): the option, and only its value
+    post = load_post_module()
+    with pytest.raises(ValueError) as err:
+        post.split_arguments("--machine m.toml " + given)
+    assert str(err.value) == said
+
+
+@pytest.mark.parametrize("given, status, said", [
+    ("--machine {tmp}/nothere.toml", 2,
+     "trueaxis post: --machine {tmp}/nothere.toml: cannot read the file: no such file"),
+    ("--machine nothere", 2, "trueaxis post: no machine file 'nothere' (fixture machines: "),
+    ("--machine {tmp}/broken.toml", 3, "{tmp}/broken.toml: not valid TOML: "),
+    ("--machine xh714 --tol-um -1", 2, "trueaxis post: error: argument --tol-um: '-1' must be > 0"),
+    ("--machine xh714 --var {tmp}/none.var", 3, "{tmp}/none.var: parameter file not found")])
+def test_an_option_or_file_the_command_cannot_use_is_said_as_such(given, status, said, tmp_path, monkeypatch):
+    # a missing machine file was "trueaxis refused the program", with a note on the program's line numbers (a QA
+    # pass): what the command could not use is said as such (argparse's usage lines left out)
+    post = load_post_module()
+    monkeypatch.setenv("TRUEAXIS_BIN", trueaxis_exe())
+    (tmp_path / "broken.toml").write_text("[machine\n")
+    opts, _ = post.split_arguments(given.format(tmp=tmp_path))
+    with pytest.raises(post.TrueaxisPostError) as err:
+        post.compensate(SMALL_PROGRAM, opts, label=str(tmp_path / "part.ngc"))
+    lines = str(err.value).splitlines()
+    assert lines[0] == f"trueaxis post: trueaxis cannot use the options or the files given to the post (exit " \
+        f"{status}); nothing was written:"
+    assert len(lines) == 2 and lines[1].startswith(said.format(tmp=tmp_path)), lines
+
 def test_a_missing_command_says_how_to_point_at_it(monkeypatch):
     post = load_post_module()
     monkeypatch.delenv("TRUEAXIS_BIN", raising=False)

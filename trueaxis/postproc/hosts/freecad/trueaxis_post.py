@@ -73,14 +73,27 @@ class _Parser(argparse.ArgumentParser):
         raise _ArgumentError(message)
 
 
+def _numeric(what):
+    """An argparse type: the text of a number, kept as written (trueaxis checks its range); ``what`` the option
+    takes, for the message."""
+    def number(text):
+        try:
+            float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} is a number; got {text!r}") from None
+        return text
+    return number
+
+
 def _build_parser():
     p = _Parser(prog="trueaxis", add_help=False, allow_abbrev=False)
     p.add_argument("--machine", help="machine file (TOML) of the machine that will run the program, or a fixture "
                    "machine's short name (xh714, nmv1500dcg, ...), as for trueaxis post (required)")
     p.add_argument("--mode", default="geometric", choices=MODES,
                    help="none | geometric | comprehensive (default geometric)")
-    p.add_argument("--tol-um", default="1", help="path tolerance, um (default 1)")
-    p.add_argument("--max-correction-mm", default=None,
+    p.add_argument("--tol-um", default="1", type=_numeric("a path tolerance in um"),
+                   help="path tolerance, um (default 1)")
+    p.add_argument("--max-correction-mm", default=None, type=_numeric("a correction bound in mm"),
                    help="largest correction allowed, mm (trueaxis' default 0.5)")
     p.add_argument("--report", default=None, help="also write trueaxis' report (JSON) here")
     p.add_argument("--var", default=None, help="the control's setup: LinuxCNC parameter file (work offsets, G92)")
@@ -122,13 +135,6 @@ def split_arguments(argstring):
     if not ours.machine:
         raise TrueaxisPostError("trueaxis post: --machine FILE is required (the machine file of the machine that "
                                 "will run this program)")
-    try:
-        float(ours.tol_um)
-        if ours.max_correction_mm is not None:
-            float(ours.max_correction_mm)
-    except ValueError:
-        raise TrueaxisPostError(f"trueaxis post: --tol-um and --max-correction-mm take numbers; got "
-                                f"{ours.tol_um!r}, {ours.max_correction_mm!r}") from None
     return ours, " ".join(shlex.quote(a) for a in rest + ["--no-show-editor"])
 
 
@@ -392,6 +398,24 @@ def _command(exe, program, output, opts):
     return cmd
 
 
+def _failure(status, said, label):
+    """The message of a `trueaxis post` that wrote nothing (exit ``status``; ``said``: its lines from _explain, the
+    program named ``label``): a refused program names its blocks; a file or an option it cannot use (exit 2: usage,
+    3: a machine or setup file refused) is said as such, without argparse's usage lines."""
+    about_the_program = re.compile(re.escape(label) + r":\d+: ")
+    if any(about_the_program.match(line) for line in said):
+        return (f"trueaxis refused the program (exit {status}); nothing was written.\n" + "\n".join(said) + "\n"
+                "Line numbers refer to the uncompensated program of FreeCAD's linuxcnc post (post with the linuxcnc "
+                "post processor to see it).")
+    if any(line.startswith("usage: ") for line in said):
+        said = [line for line in said if not line.startswith(("usage: ", " "))]
+    why = "\n".join(said) or "(no message)"
+    if status in (2, 3):
+        return f"trueaxis post: trueaxis cannot use the options or the files given to the post (exit {status}); " \
+            f"nothing was written:\n{why}"
+    return f"trueaxis post: the trueaxis command failed (exit {status}); nothing was written:\n{why}"
+
+
 def compensate(gcode, opts, label="program.ngc"):
     """The program compensated by `trueaxis post` (text); TrueaxisPostError with trueaxis' reasons on failure.
 
@@ -411,11 +435,8 @@ def compensate(gcode, opts, label="program.ngc"):
             raise TrueaxisPostError(f"trueaxis post: could not run {exe}: {exc}") from None
         said = _explain(proc.stderr or "", (src, dst), gcode.splitlines(), label)
         if proc.returncode != 0 or not os.path.exists(dst):
-            why = "\n".join(said or _explain(proc.stdout or "", (src, dst), gcode.splitlines(), label))
-            raise TrueaxisPostError(f"trueaxis refused the program (exit {proc.returncode}); nothing was written.\n"
-                                    f"{why or '(no message)'}\n"
-                                    f"Line numbers refer to the uncompensated program of FreeCAD's linuxcnc post "
-                                    f"(post with the linuxcnc post processor to see it).")
+            said = said or _explain(proc.stdout or "", (src, dst), gcode.splitlines(), label)
+            raise TrueaxisPostError(_failure(proc.returncode, said, label))
         for line in said:
             warn(line)
         if any(_DIAGNOSTIC.match(line) for line in said):
