@@ -139,3 +139,18 @@ def test_the_hook_takes_the_arcs_and_output_mode_keywords():
     assert len(fitted.splitlines()) + 100 < len(lines.splitlines())
     with pytest.raises(ValueError, match="five-axis"):
         cq_host.compensate(program, machine, output_mode="tcp", offsets_zero=True)
+
+
+def test_the_hook_takes_a_machine_file_or_a_fixture_short_name_as_the_command_line_does():
+    # compensate(text, "xh714") failed with AttributeError: 'str' object has no attribute 'name' (a QA pass)
+    xh714 = ROOT / "fixtures" / "machines" / "xh714.toml"
+    program = "G21 G90\nG0 X0 Y0 Z-100\nG1 X50 Y20 F500\nM2\n"
+    by_machine = cq_host.compensate(program, load_machine(xh714), offsets_zero=True)
+    assert f"machine file {xh714} sha256" in by_machine and "G1 X50 Y20 F500" not in by_machine  # corrected
+    for given in ("xh714", str(xh714), xh714):
+        assert cq_host.compensate(program, given, offsets_zero=True) == by_machine, given
+    with pytest.raises(FileNotFoundError, match=r"no machine file 'nothere' \(fixture machines: .*xh714"):
+        cq_host.compensate(program, "nothere", offsets_zero=True)
+    with pytest.raises(TypeError, match="machine: a Machine .*, a machine file's path or a fixture machine's short "
+                                        "name .*; got dict"):
+        cq_host.compensate(program, {"name": "xh714"}, offsets_zero=True)
