@@ -595,3 +595,8 @@ def test_the_real_command_warnings_reach_the_user_with_the_output_file(tmp_path,
     assert said[0] == (f"{tmp_path / 'part.ngc'}:3: block 'G0 Z-100': the position of X Y is not known here (no "
                        "absolute move of it before): block left as written, uncompensated")
     assert len(said) == 2 and "trueaxis_post_" not in said[1]
+    strict, _ = post.split_arguments(f"--machine {XH714} --offsets-zero --strict")
+    with pytest.raises(post.TrueaxisPostError) as err:
+        post.compensate(SMALL_PROGRAM, strict, label=str(tmp_path / "part.ngc"))
+    assert str(err.value).splitlines()[1:3] == [said[0], f"trueaxis post: --strict: 1 warning; {tmp_path / 'part.ngc'} "
+                                                          "not written"]
