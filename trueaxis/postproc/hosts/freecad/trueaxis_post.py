@@ -329,8 +329,8 @@ def trueaxis_command(opts):
 
 _DIAGNOSTIC = re.compile(r"^(?P<file>.+?):(?P<line>\d+): (?P<reason>.*)$")
 _NOT_A_BLOCK = re.compile(r"^(?:N\d+\s*)?(?:\([^)]*\)\s*)*(?:;.*)?%?$")  # blank, comments only, or %
-LINE_NUMBERS_NOTE = ("trueaxis post: the line numbers are those of the program FreeCAD's linuxcnc post wrote, before "
-                     "compensation (post with the linuxcnc post processor to see it)")
+LINE_NUMBERS_NOTE = ("Line numbers refer to the uncompensated program of FreeCAD's linuxcnc post (post with the "
+                     "linuxcnc post processor to see it).")
 
 
 def warn(message):
@@ -354,7 +354,7 @@ def _explain(stderr, temporary, program_lines, label):
         if m and os.path.basename(m.group("file")) == os.path.basename(program_path):
             k = int(m.group("line"))
             block = program_lines[k - 1].strip() if 0 < k <= len(program_lines) else "?"
-            quoted = "" if _NOT_A_BLOCK.match(block) else f" block '{block}':"  # (line 1: the whole program's)
+            quoted = "" if _NOT_A_BLOCK.match(block) else f" block '{block}':"  # (a whole program's stand at line 1)
             out.append(f"{label}:{k}:{quoted} {m.group('reason')}")
             continue
         for path in temporary:
@@ -398,15 +398,19 @@ def _command(exe, program, output, opts):
     return cmd
 
 
+def _names_the_program(said, label):
+    """Whether any of the lines from _explain is about the program (``label:line: ...``)."""
+    about_the_program = re.compile(re.escape(label) + r":\d+: ")
+    return any(about_the_program.match(line) for line in said)
+
+
 def _failure(status, said, label):
     """The message of a `trueaxis post` that wrote nothing (exit ``status``; ``said``: its lines from _explain, the
     program named ``label``): a refused program names its blocks; a file or an option it cannot use (exit 2: usage,
     3: a machine or setup file refused) is said as such, without argparse's usage lines."""
-    about_the_program = re.compile(re.escape(label) + r":\d+: ")
-    if any(about_the_program.match(line) for line in said):
-        return (f"trueaxis refused the program (exit {status}); nothing was written.\n" + "\n".join(said) + "\n"
-                "Line numbers refer to the uncompensated program of FreeCAD's linuxcnc post (post with the linuxcnc "
-                "post processor to see it).")
+    if _names_the_program(said, label):
+        return f"trueaxis refused the program (exit {status}); nothing was written.\n" + "\n".join(said) + "\n" + \
+            LINE_NUMBERS_NOTE
     if any(line.startswith("usage: ") for line in said):
         said = [line for line in said if not line.startswith(("usage: ", " "))]
     why = "\n".join(said) or "(no message)"
@@ -439,8 +443,8 @@ def compensate(gcode, opts, label="program.ngc"):
             raise TrueaxisPostError(_failure(proc.returncode, said, label))
         for line in said:
             warn(line)
-        if any(_DIAGNOSTIC.match(line) for line in said):
-            warn(LINE_NUMBERS_NOTE)
+        if _names_the_program(said, label):
+            warn("trueaxis post: " + LINE_NUMBERS_NOTE)
         with open(dst, "r", encoding="utf-8", newline="") as f:
             return f.read()
 
