@@ -5,7 +5,8 @@
 1. ``import trueaxis.postproc.hosts.cadquery`` registers the test parts as CadQuery Workplane methods (CadQuery's
    plugin convention): ``cq.Workplane("XY").nas979()`` is the NAS 979 part on that workplane.
 2. A small three-axis program: one finishing pass of a 10 mm end mill around the part's bounding box (outside it by
-   the tool radius), at a depth taken from the model, with corner arcs. Any CAM that writes G-code text will do.
+   the tool radius), at a depth taken from the model, with corner arcs (on a five-axis machine, ``--machine
+   nmv1500dcg``, the rotary axes stand at 0 from the first block). Any CAM that writes G-code text will do.
 3. ``trueaxis.postproc.compensate(text, machine, mode="geometric")`` returns the program with every move corrected so
    that the machine, with its errors, puts the tool where the nominal program meant it; a ``PostError``
    (``file:line: reason``) says which block it refuses and why.
@@ -26,14 +27,17 @@ from trueaxis.resources import machine_file
 
 
 def contour_program(bbox, machine, depth_below_top: float = 5.0, feed: float = 800.0) -> str:
-    """Climb-milling pass around ``bbox`` (part frame, mm) for a three-axis machine, in machine-axis G-code.
+    """Climb-milling pass around ``bbox`` (part frame, mm) for a three-axis machine, in machine-axis G-code; on a
+    five-axis machine the same pass with the rotary axes at 0, commanded in the first block (a program that never
+    commands them leaves them wherever the control stands, and the post says so).
 
     The tool centre runs at the tool radius outside the box's XY outline (straight sides, quarter-circle corners)
     with its tip ``depth_below_top`` below the box's top. Machine axes are found from the twin's nominal kinematics:
-    on a three-axis machine the tip moves one for one with X, Y and Z, so the axes are the part coordinates minus
+    with the rotary axes at 0 the tip moves one for one with X, Y and Z, so the axes are the part coordinates minus
     the tip's part position at the machine zero.
     """
     r = machine.tool.radius
+    rotary_at_zero = "".join(f" {a}0" for a in machine.axis_names if machine.axes[a].is_rotary)
     tip_at_zero = ErrorTwin(machine).nominal_pose(np.zeros((1, len(machine.axis_names))))[0][0]
     x0, x1 = bbox.xmin - tip_at_zero[0], bbox.xmax - tip_at_zero[0]
     y0, y1 = bbox.ymin - tip_at_zero[1], bbox.ymax - tip_at_zero[1]
@@ -44,7 +48,7 @@ def contour_program(bbox, machine, depth_below_top: float = 5.0, feed: float = 8
         "%",
         "(trueaxis CadQuery example: contour around the part's bounding box)",
         "G21 G90 G17 G94",
-        f"G0 X{f(x0)} Y{f(y1 + r + 10)} Z{f(z_safe)}",
+        f"G0 X{f(x0)} Y{f(y1 + r + 10)} Z{f(z_safe)}{rotary_at_zero}",
         f"G0 Z{f(z_cut)}",
         f"G1 Y{f(y1 + r)} F{feed:.0f}",
         # clockwise seen from +Z around an outside contour: down (climb) milling with M3
@@ -75,9 +79,20 @@ def run(machine_name: str = "xh714", tol_um: float = 1.0):
     return part, machine, program, compensated, report
 
 
+def largest_corrections(correction: dict) -> str:
+    """'X 1.2 um, ..., B 0.5 urad': the largest correction of each axis at the block ends, from the post's report
+    (``max_abs_um`` for a linear axis, ``max_abs_urad`` for a rotary one)."""
+    out = []
+    for axis, stats in correction.items():
+        unit = "um" if "max_abs_um" in stats else "urad"
+        out.append(f"{axis} {stats['max_abs_' + unit]:.1f} {unit}")
+    return ", ".join(out)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--machine", default="xh714", help="machine file or fixture name (three-axis; default xh714)")
+    ap.add_argument("--machine", default="xh714", help="machine file or fixture name (default xh714; on a five-axis "
+                    "machine the rotary axes stand at 0)")
     ap.add_argument("-o", "--output", default="cadquery_example_out", help="output folder")
     args = ap.parse_args(argv)
     part, machine, program, compensated, report = run(args.machine)
@@ -86,7 +101,7 @@ def main(argv=None) -> int:
     cq.exporters.export(part, str(out / "nas979.step"))
     (out / "nas979_contour.ngc").write_text(program)
     (out / "nas979_contour_compensated.ngc").write_text(compensated)
-    corr = ", ".join(f"{a} {v['max_abs_um']:.1f} um" for a, v in report["correction"].items())
+    corr = largest_corrections(report["correction"])
     print(f"{out}: nas979.step, nas979_contour.ngc and its compensation for {machine.name} "
           f"({report['blocks_in']} blocks in, {report['blocks_out']} out; largest corrections {corr})")
     return 0

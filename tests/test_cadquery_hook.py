@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import re
 import runpy
+import warnings
 
 import cadquery as cq
 import numpy as np
 import pytest
 
 from conftest import ROOT
-from post_checks import actual_points, distance_to_polyline, nominal_polyline
+from post_checks import actual_points, distance_to_polyline, machine_rows, nominal_polyline
+from trueaxis.machine import load_machine
 from trueaxis.workpiece.parts import nas979_workplane, slot_block_workplane
 from trueaxis.nc.gcode import parse_program
 from trueaxis.postproc.hosts import cadquery as cq_host
@@ -91,9 +94,43 @@ def test_example_script_writes_its_files(tmp_path):
         assert (tmp_path / name).stat().st_size > 0
 
 
-def test_the_hook_takes_the_arcs_and_output_mode_keywords():
-    from trueaxis.machine import load_machine
+def test_example_script_runs_on_a_five_axis_machine_and_lands_on_the_nominal_pose(tmp_path, capsys):
+    # --machine nmv1500dcg wrote its files, then died on the rotary axes' report (max_abs_urad, not max_abs_um);
+    # its program never commanded B and C, which the post took at 0 with a warning (a QA pass)
+    from trueaxis.machine import ErrorTwin
+    from trueaxis.postproc.post import PostWarning
 
+    module = runpy.run_path(str(EXAMPLE), run_name="cadquery_example")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always", PostWarning)
+        assert module["main"](["--machine", "nmv1500dcg", "-o", str(tmp_path)]) == 0
+    assert not [w for w in said if "never commands" in str(w.message)]
+    printed = capsys.readouterr().out
+    corrections = re.search(r"largest corrections X (\S+) um, Y (\S+) um, Z (\S+) um, B (\S+) urad, C (\S+) urad\)",
+                            printed)
+    assert corrections, printed
+    assert all(float(v) > 0.5 for v in corrections.groups()[:4])  # X Y Z (um) and B (urad) correct; C is held
+    program = (tmp_path / "nas979_contour.ngc").read_text()
+    assert program.splitlines()[3].endswith(" B0 C0")
+    machine = load_machine(ROOT / "fixtures" / "machines" / "nmv1500dcg.toml")
+    compensated = (tmp_path / "nas979_contour_compensated.ngc").read_text()
+    actual, prog, _ = actual_points(compensated, machine)
+    nominal = nominal_polyline(parse_program(program), machine)
+    assert distance_to_polyline(actual, nominal).max() * 1e3 < 0.1  # as on the three-axis machine
+    uncompensated, _, _ = actual_points(program, machine)
+    assert distance_to_polyline(uncompensated, nominal).max() * 1e3 > 2.0
+    # the tool axis (nominal: upright): its tilt about Y is corrected through B, to the B words' fifth decimal of a
+    # degree (half of it: 0.087 urad) and the solver's 0.02 urad; its tilt about X is not reachable at B = 0, the
+    # singular pose of a B-C table, where C is held (the report's singular blocks): it keeps its largest value
+    twin = ErrorTwin(machine)
+    before = twin.actual_pose(machine_rows(parse_program(program), machine)[0])[1]
+    after = twin.actual_pose(machine_rows(prog, machine)[0])[1]
+    assert np.abs(before[:, 0]).max() * 1e6 > 5.0
+    assert np.abs(after[:, 0]).max() * 1e6 < 0.5e-5 * np.pi / 180 * 1e6 + 0.02
+    assert np.abs(after[:, 1]).max() == pytest.approx(np.abs(before[:, 1]).max(), abs=0.01e-6)  # (split moves)
+
+
+def test_the_hook_takes_the_arcs_and_output_mode_keywords():
     machine = load_machine(ROOT / "fixtures" / "machines" / "xh714.toml")
     program = (ROOT / "tests" / "data" / "post_arcs" / "inch_half_circle.ngc").read_text()
     fitted = cq_host.compensate(program, machine, arcs=True, offsets_zero=True)
@@ -102,3 +139,18 @@ def test_the_hook_takes_the_arcs_and_output_mode_keywords():
     assert len(fitted.splitlines()) + 100 < len(lines.splitlines())
     with pytest.raises(ValueError, match="five-axis"):
         cq_host.compensate(program, machine, output_mode="tcp", offsets_zero=True)
+
+
+def test_the_hook_takes_a_machine_file_or_a_fixture_short_name_as_the_command_line_does():
+    # compensate(text, "xh714") failed with AttributeError: 'str' object has no attribute 'name' (a QA pass)
+    xh714 = ROOT / "fixtures" / "machines" / "xh714.toml"
+    program = "G21 G90\nG0 X0 Y0 Z-100\nG1 X50 Y20 F500\nM2\n"
+    by_machine = cq_host.compensate(program, load_machine(xh714), offsets_zero=True)
+    assert f"machine file {xh714} sha256" in by_machine and "G1 X50 Y20 F500" not in by_machine  # corrected
+    for given in ("xh714", str(xh714), xh714):
+        assert cq_host.compensate(program, given, offsets_zero=True) == by_machine, given
+    with pytest.raises(FileNotFoundError, match=r"no machine file 'nothere' \(fixture machines: .*xh714"):
+        cq_host.compensate(program, "nothere", offsets_zero=True)
+    with pytest.raises(TypeError, match="machine: a Machine .*, a machine file's path or a fixture machine's short "
+                                        "name .*; got dict"):
+        cq_host.compensate(program, {"name": "xh714"}, offsets_zero=True)

@@ -13,6 +13,7 @@ import importlib.util
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -22,7 +23,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from conftest import MACHINES, ROOT, require_program
+from conftest import MACHINES, ROOT, missing, require_program
 from rs274_helpers import run_rs274, var_text
 from trueaxis.postproc.hosts.freecad import default_macro_dir, install_post, post_script_path
 from trueaxis.postproc.post import without_header
@@ -41,9 +42,16 @@ def load_post_module():
 
 
 def trueaxis_exe() -> str:
+    """The trueaxis command of this checkout: .venv/bin/trueaxis, which make's venv target installs (make test from a
+    fresh clone); else `trueaxis` on PATH (a checkout without its own .venv, a git worktree: put a command that runs
+    this tree's code first on PATH, or the tests check another tree's trueaxis)."""
     if TRUEAXIS.exists():
         return str(TRUEAXIS)
-    return require_program("trueaxis")
+    path = shutil.which("trueaxis")
+    if path is None:
+        missing(f"the trueaxis command is not here: no {TRUEAXIS} (make's venv target installs it) and no trueaxis on "
+                "PATH")
+    return path
 
 
 # --- the real thing: FreeCAD job -> trueaxis_post -> trueaxis post -> rs274 ----------------------------------------
@@ -53,7 +61,8 @@ XDG = ("XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_CACHE_HOME")
 
 @pytest.fixture(scope="module")
 def freecad_job(tmp_path_factory):
-    """Outputs of make_job.py (see its docstring), as {name: text}, plus the job facts.
+    """Outputs of make_job.py (see its docstring), as {name: text}, plus the job facts and what FreeCAD's console
+    printed on stderr (its warnings and errors).
 
     FreeCAD runs with a private HOME (its settings and macro folder), where install_post puts the script, so FreeCAD
     loads it the way it loads any post processor and the user's own settings play no part.
@@ -79,7 +88,7 @@ def freecad_job(tmp_path_factory):
     files = {p.name: p.read_text() for p in out.glob("*.ngc")}
     facts = json.loads((out / "job.json").read_text())
     assert Path(facts["post_script"]).resolve() == installed.resolve()
-    return SimpleNamespace(dir=out, files=files, facts=facts)
+    return SimpleNamespace(dir=out, files=files, facts=facts, console=proc.stderr)  # FreeCAD's warnings and errors
 
 
 def setup_args(folder):
@@ -98,6 +107,14 @@ def test_post_equals_linuxcnc_post_compensated_by_trueaxis(freecad_job, tmp_path
     assert COMMENT_LINE.sub("", posted) == direct.read_text()
     assert posted != freecad_job.files["linuxcnc.ngc"]  # the machine has errors: the program changed
     assert freecad_job.files["trueaxis_return.ngc"] == posted
+
+
+@pytest.mark.external
+def test_the_job_posted_for_a_fixture_machine_by_its_short_name_is_the_same_program(freecad_job):
+    # '--machine xh714' in the job's arguments: FreeCAD's working folder/xh714, not found (a QA pass)
+    assert freecad_job.facts["short_name_refused"] is None
+    assert freecad_job.files["trueaxis_short.ngc"] == freecad_job.files["trueaxis.ngc"]
+    assert f"machine file {XH714} sha256" in freecad_job.files["trueaxis_short.ngc"]
 
 
 @pytest.mark.external
@@ -220,6 +237,19 @@ def test_an_option_nobody_knows_is_an_error_not_an_exit_of_freecad(freecad_job):
     assert not freecad_job.facts["bad_option_file_written"]
 
 
+@pytest.mark.external
+def test_what_trueaxis_says_of_the_job_reaches_freecads_console_naming_the_output_file(freecad_job):
+    # The job's G54 block moves Z alone before X and Y are known: trueaxis leaves it uncompensated and says so; the
+    # FreeCAD post kept that to itself when the post succeeded (a QA pass). Now a warning in FreeCAD's console.
+    out = freecad_job.dir / "trueaxis.ngc"
+    said = [line for line in freecad_job.console.splitlines() if line.startswith(f"{out}:")]
+    uncompensated = (r":\d+: block 'G0 Z-294\.000': the position of X Y is not known here \(no absolute move of it "
+                     r"before\): block left as written, uncompensated")
+    assert len(said) == 3 and all(re.fullmatch(re.escape(str(out)) + uncompensated, line) for line in said[:2]), said
+    assert "tool length offsets in force (tool 1 offset Z50.8 mm)" in said[2]
+    assert "trueaxis_post_" not in freecad_job.console
+
+
 # --- the script's pure parts, in this Python ----------------------------------------------------------------------
 
 class Quantity:
@@ -334,6 +364,41 @@ def test_cutting_conditions_given_to_the_post_reach_the_command_not_linuxcnc(tmp
     assert out.endswith("--mode comprehensive --tol-um 1 --ap 1.5 --ae 2 --cut-mode up)\n"), out
 
 
+
+def test_a_fixture_machine_short_name_reaches_the_command_as_it_is(tmp_path, monkeypatch):
+    # '--machine xh714' was made /FreeCAD's working folder/xh714, which trueaxis could not read, and the error listed
+    # the short names as if they could be used (a QA pass): trueaxis post takes them, so the script passes them on
+    post = load_post_module()
+    echoing_stand_in(tmp_path, monkeypatch)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mill").write_text("")  # a file of that name in the working folder is the file (as for the CLI)
+    for given, passed in (("xh714", "xh714"), ("~/m.toml", os.path.expanduser("~/m.toml")),
+                          ("m.toml", str(tmp_path / "m.toml")), ("mill", str(tmp_path / "mill"))):
+        opts, _ = post.split_arguments(f"--machine {given}")
+        assert f"(--machine {passed} --mode geometric" in post.compensate("G0 X1\n", opts), given
+
+
+@pytest.mark.parametrize("name", ["xh714", "m.toml", "sub/m.toml", "mill", "sub/mill", "nothere", "a.b"])
+def test_the_script_tells_a_machine_path_from_a_short_name_as_trueaxis_does(name, tmp_path, monkeypatch):
+    from trueaxis.resources import names_a_path
+
+    post = load_post_module()
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sub").mkdir()
+    for existing in ("mill", "sub/mill"):
+        (tmp_path / existing).write_text("")
+    assert post.names_a_path(name) == names_a_path(name)
+
+
+def test_the_real_command_takes_a_fixture_machine_by_its_short_name(tmp_path, monkeypatch, capsys):
+    post = load_post_module()
+    monkeypatch.setenv("TRUEAXIS_BIN", trueaxis_exe())
+    monkeypatch.chdir(tmp_path)
+    by_name, by_path = (post.compensate(SMALL_PROGRAM, post.split_arguments(f"--machine {m} --offsets-zero")[0])
+                        for m in ("xh714", XH714))
+    assert by_name == by_path and f"machine file {XH714} sha256" in by_name
+
+
 def test_a_refusal_names_the_block_and_the_reason(tmp_path, monkeypatch):
     post = load_post_module()
     exe = stand_in(tmp_path, """
@@ -347,6 +412,39 @@ def test_a_refusal_names_the_block_and_the_reason(tmp_path, monkeypatch):
     assert "part.ngc:2: block 'G0 Z16.000': corrected Z = 16.0000 lies outside its travel" in str(err.value)
     assert "exit 2" in str(err.value)
 
+
+
+@pytest.mark.parametrize("given, said", [
+    ("--tol-um abc", "argument --tol-um: a path tolerance in um is a number; got 'abc'"),
+    ("--max-correction-mm 0,2", "argument --max-correction-mm: a correction bound in mm is a number; got '0,2'")])
+def test_an_option_that_takes_a_number_says_which_and_what_it_got(given, said):
+    # '--tol-um abc' said "got 'abc', None" (a QA pass): the option, and only its value
+    post = load_post_module()
+    with pytest.raises(ValueError) as err:
+        post.split_arguments("--machine m.toml " + given)
+    assert str(err.value) == said
+
+
+@pytest.mark.parametrize("given, status, said", [
+    ("--machine {tmp}/nothere.toml", 2,
+     "trueaxis post: --machine {tmp}/nothere.toml: cannot read the file: no such file"),
+    ("--machine nothere", 2, "trueaxis post: no machine file 'nothere' (fixture machines: "),
+    ("--machine {tmp}/broken.toml", 3, "{tmp}/broken.toml: not valid TOML: "),
+    ("--machine xh714 --tol-um -1", 2, "trueaxis post: error: argument --tol-um: '-1' must be > 0"),
+    ("--machine xh714 --var {tmp}/none.var", 3, "{tmp}/none.var: parameter file not found")])
+def test_an_option_or_file_the_command_cannot_use_is_said_as_such(given, status, said, tmp_path, monkeypatch):
+    # a missing machine file was "trueaxis refused the program", with a note on the program's line numbers (a QA
+    # pass): what the command could not use is said as such (argparse's usage lines left out)
+    post = load_post_module()
+    monkeypatch.setenv("TRUEAXIS_BIN", trueaxis_exe())
+    (tmp_path / "broken.toml").write_text("[machine\n")
+    opts, _ = post.split_arguments(given.format(tmp=tmp_path))
+    with pytest.raises(post.TrueaxisPostError) as err:
+        post.compensate(SMALL_PROGRAM, opts, label=str(tmp_path / "part.ngc"))
+    lines = str(err.value).splitlines()
+    assert lines[0] == f"trueaxis post: trueaxis cannot use the options or the files given to the post (exit " \
+        f"{status}); nothing was written:"
+    assert len(lines) == 2 and lines[1].startswith(said.format(tmp=tmp_path)), lines
 
 def test_a_missing_command_says_how_to_point_at_it(monkeypatch):
     post = load_post_module()
@@ -364,6 +462,34 @@ def test_files_are_written_atomically(tmp_path):
     post.write_atomically(str(target), "G0 X1\n")
     assert target.read_text() == "G0 X1\n"
     assert [p.name for p in tmp_path.iterdir()] == ["part.ngc"]
+
+
+
+def test_the_output_gets_the_permissions_the_command_line_gives_it(tmp_path):
+    # mkstemp and a rename left the job's program 0600, readable by its owner alone (a QA pass); trueaxis' own
+    # outputs (fileio) get the umask's permissions when new and keep their own when replaced, and a symbolic link
+    # is written through: the post script does the same (it cannot import trueaxis: FreeCAD's Python)
+    from trueaxis.fileio import atomic_write
+
+    post = load_post_module()
+    mask = os.umask(0o027)
+    try:
+        for writer, folder in ((post.write_atomically, tmp_path / "post"), (atomic_write, tmp_path / "cli")):
+            folder.mkdir()
+            writer(str(folder / "new.ngc"), "G0 X1\n")
+            (folder / "kept.ngc").write_text("old\n")
+            (folder / "kept.ngc").chmod(0o604)
+            writer(str(folder / "kept.ngc"), "G0 X1\n")
+            (folder / "target.ngc").write_text("old\n")
+            (folder / "link.ngc").symlink_to("target.ngc")
+            writer(str(folder / "link.ngc"), "G0 X1\n")
+    finally:
+        os.umask(mask)
+    for folder in (tmp_path / "post", tmp_path / "cli"):
+        assert (folder / "new.ngc").stat().st_mode & 0o777 == 0o640, folder
+        assert (folder / "kept.ngc").stat().st_mode & 0o777 == 0o604, folder
+        assert (folder / "link.ngc").is_symlink() and (folder / "target.ngc").read_text() == "G0 X1\n", folder
+        assert sorted(p.name for p in folder.iterdir()) == ["kept.ngc", "link.ngc", "new.ngc", "target.ngc"]
 
 
 def test_install_copies_the_script_into_the_given_folder(tmp_path):
@@ -394,3 +520,84 @@ def test_macro_folder_follows_freecad_settings_then_its_data_folder(tmp_path, mo
     custom.rmdir()
     assert default_macro_dir(home) == custom
     assert install_post(default_macro_dir(home)) == custom / "trueaxis_post.py" and custom.is_dir()
+
+
+# --- what trueaxis says of a program it posted: the user's file names, FreeCAD's console ---------------------------
+
+SMALL_PROGRAM = "(begin preamble)\nG21 G90\nG0 Z-100\nG0 X10 Y10\nG1 X50 F500\nM2\n"  # FreeCAD's: a comment first
+
+
+def warning_lines(text):
+    return [line for line in text.splitlines() if line.strip()]
+
+
+def test_warnings_of_a_posted_program_are_shown_with_the_output_file_and_the_block(tmp_path, monkeypatch, capsys):
+    # trueaxis' warnings on stderr named the temporary copy (/tmp/trueaxis_post_.../part.ngc) and were dropped when
+    # the post succeeded: the user never heard of a block left uncompensated (a QA pass)
+    post = load_post_module()
+    exe = stand_in(tmp_path, """
+        shutil.copyfile(args[1], args[3])
+        sys.stderr.write(args[1] + ":3: the position of X Y is not known here (no absolute move of it before): "
+                         "block left as written, uncompensated\\n")
+        sys.stderr.write(args[1] + ":1: the program never commands B C: the corrections take them at 0, where "
+                         "they must stand when the program runs\\n")
+    """)
+    monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+    opts, _ = post.split_arguments("--machine m.toml")
+    out = post.compensate(SMALL_PROGRAM, opts, label="/jobs/part.ngc")
+    assert out == SMALL_PROGRAM
+    said = warning_lines(capsys.readouterr().err)
+    assert said[:2] == [
+        "/jobs/part.ngc:3: block 'G0 Z-100': the position of X Y is not known here (no absolute move of it before): "
+        "block left as written, uncompensated",
+        # a program-wide warning stands at line 1, here a comment: no block to quote
+        "/jobs/part.ngc:1: the program never commands B C: the corrections take them at 0, where they must stand "
+        "when the program runs"]
+    assert len(said) == 3 and said[2].startswith("trueaxis post: Line numbers refer to the uncompensated program of "
+                                                 "FreeCAD's linuxcnc post")
+    assert "trueaxis_post_" not in "\n".join(said)
+
+
+def test_a_program_posted_without_a_word_shows_nothing(tmp_path, monkeypatch, capsys):
+    post = load_post_module()
+    echoing_stand_in(tmp_path, monkeypatch)
+    opts, _ = post.split_arguments("--machine m.toml")
+    post.compensate(SMALL_PROGRAM, opts, label="/jobs/part.ngc")
+    assert capsys.readouterr().err == ""
+
+
+def test_strict_reaches_the_command_and_its_refusal_names_the_output_file(tmp_path, monkeypatch):
+    post = load_post_module()
+    exe = stand_in(tmp_path, """
+        assert "--strict" in args
+        sys.stderr.write(args[1] + ":3: the position of X Y is not known here: block left as written, "
+                         "uncompensated\\n")
+        sys.stderr.write("trueaxis post: --strict: 1 warning; " + args[3] + " not written\\n")
+        sys.exit(3)
+    """)
+    monkeypatch.setenv("TRUEAXIS_BIN", str(exe))
+    opts, rest = post.split_arguments("--machine m.toml --strict --precision 4")
+    assert opts.strict and rest == "--precision 4 --no-show-editor"
+    with pytest.raises(post.TrueaxisPostError) as err:
+        post.compensate(SMALL_PROGRAM, opts, label="/jobs/part.ngc")
+    said = str(err.value)
+    assert "/jobs/part.ngc:3: block 'G0 Z-100': the position of X Y is not known here" in said
+    assert "trueaxis post: --strict: 1 warning; /jobs/part.ngc not written" in said
+    assert "compensated.ngc" not in said and "trueaxis_post_" not in said
+
+
+def test_the_real_command_warnings_reach_the_user_with_the_output_file(tmp_path, monkeypatch, capsys):
+    post = load_post_module()
+    monkeypatch.setenv("TRUEAXIS_BIN", trueaxis_exe())
+    opts, _ = post.split_arguments(f"--machine {XH714} --offsets-zero")
+    out = post.compensate(SMALL_PROGRAM, opts, label=str(tmp_path / "part.ngc"))
+    assert out.startswith("(trueaxis post: ")
+    said = warning_lines(capsys.readouterr().err)
+    assert said[0] == (f"{tmp_path / 'part.ngc'}:3: block 'G0 Z-100': the position of X Y is not known here (no "
+                       "absolute move of it before): block left as written, uncompensated")
+    assert len(said) == 2 and "trueaxis_post_" not in said[1]
+    strict, _ = post.split_arguments(f"--machine {XH714} --offsets-zero --strict")
+    with pytest.raises(post.TrueaxisPostError) as err:
+        post.compensate(SMALL_PROGRAM, strict, label=str(tmp_path / "part.ngc"))
+    assert str(err.value).splitlines()[1:3] == [said[0], f"trueaxis post: --strict: 1 warning; {tmp_path / 'part.ngc'} "
+                                                          "not written"]

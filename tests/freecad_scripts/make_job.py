@@ -20,7 +20,8 @@ Outputs in TRUEAXIS_TEST_OUT:
   trueaxis_return.ngc  what trueaxis_post's export returned for that file
   trueaxis_none.ngc    trueaxis_post with --mode none (no correction: the linuxcnc program plus the comments)
   trueaxis_numbered.ngc  trueaxis_post, geometric, with the linuxcnc post's --line-numbers --no-comments
-  job.json             what the job says (tool, speeds, operations) and the outcome of a refused post
+  trueaxis_short.ngc   trueaxis_post, as trueaxis.ngc, the machine given by its fixture short name (the file's stem)
+  job.json             what the job says (tool, speeds, operations) and the outcome of the posts refused
 freecadcmd exits 0 even when a script raises, so any failure here ends the process with status 1.
 """
 
@@ -94,6 +95,12 @@ try:
 
     trueaxis.export(postlist, os.path.join(OUT, "trueaxis_none.ngc"), args.replace("geometric", "none"))
     trueaxis.export(postlist, os.path.join(OUT, "trueaxis_numbered.ngc"), args + " --line-numbers --no-comments")
+    short_name = os.path.splitext(os.path.basename(MACHINE))[0]  # a fixture machine: trueaxis finds it by name
+    try:
+        trueaxis.export(postlist, os.path.join(OUT, "trueaxis_short.ngc"), args.replace(MACHINE, short_name, 1))
+        short_name_refused = None
+    except module.TrueaxisPostError as exc:
+        short_name_refused = str(exc)
 
     refused_path = os.path.join(OUT, "refused.ngc")
     try:
@@ -122,6 +129,7 @@ try:
         "pocket": {"CutMode": pocket.CutMode, "StepOver": pocket.StepOver, "StepDown": pocket.StepDown.Value},
         "conditions": {o.Label: module.conditions_comment(module.cutting_conditions(o)) for o in postlist},
         "refused_message": refused,
+        "short_name_refused": short_name_refused,
         "refused_file_written": os.path.exists(refused_path),
         "bad_options": bad_options,
         "bad_option_file_written": os.path.exists(os.path.join(OUT, "bad_option.ngc")),

@@ -6,6 +6,8 @@ The Python hook for CAM scripts (CadQuery, build123d, anything that writes G-cod
     from trueaxis.postproc import compensate
     compensated = compensate(gcode_text, machine, mode="geometric")  # raises PostError: "file:line: reason"
 
+``machine``: a ``Machine`` (``trueaxis.machine.load_machine``), a machine file's path or a fixture machine's short name.
+
 ``compensate`` and ``PostError`` are loaded on first use, so that importing this package alone stays light.
 """
 

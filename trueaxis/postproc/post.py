@@ -30,6 +30,7 @@ import contextlib
 import functools
 import gc
 import math
+import os
 import re
 import threading
 import warnings
@@ -41,7 +42,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..compiled import kernels_on_this_thread, run_twins, thread_slices
-from ..machine import ErrorTwin, Machine
+from ..machine import ErrorTwin, Machine, load_machine
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
 from ..machine.kinematics import machine_to_part_rotation
 from ..nc.flatten import program_start
@@ -65,6 +66,7 @@ from ..nc.gcode import (
     write_number,
 )
 from ..nc import fast_write
+from ..resources import machine_file
 from ..nc.grammar import NUMBER
 from .arcs import fit_arcs, full_turns_close
 from .solver import corrected_directions, solve_commanded
@@ -179,7 +181,7 @@ class PostReport:
 
 def compensate(
     program,
-    machine: Machine,
+    machine: Machine | str | os.PathLike,
     mode: str = "geometric",
     *,
     tol_um: float = 1.0,
@@ -202,7 +204,8 @@ def compensate(
     output_mode: str | None = None,
 ) -> str:
     """Compensated program text. ``program``: G-code text, CL data (CSV or APT, see ``cl``) or a path.
-    ``report``: a dict to fill with the report.
+    ``machine``: a :class:`Machine`, or a machine file's path or a fixture machine's short name ('xh714'), as the
+    command line's ``--machine`` (:func:`machine_of`). ``report``: a dict to fill with the report.
 
     The control's setup (DESIGN §5): ``var`` (LinuxCNC parameter file), ``tool_table`` (LinuxCNC tool table), both in
     ``machine_units``; ``setup`` a setup file (path) or a :class:`~trueaxis.nc.setup.Setup`; none of them: the
@@ -217,6 +220,7 @@ def compensate(
     Each of the report's warnings (a block left uncompensated, a value assumed) is also issued as a
     :class:`PostWarning` (``warnings.warn``): a host that passes no ``report`` sees them, and can turn them into
     errors with the ``warnings`` filters."""
+    machine = machine_of(machine)
     text, source = _read_input(program, source)
     the_setup = resolve_setup(machine, setup=setup, var=var, tool_table=tool_table, machine_units=machine_units,
                               offsets_zero=offsets_zero)
@@ -230,6 +234,18 @@ def compensate(
     for said in rep.warnings:
         warnings.warn(said, PostWarning, stacklevel=2)
     return out
+
+
+def machine_of(machine) -> Machine:
+    """The machine a host names: a :class:`Machine` as it is; a machine file's path or a fixture machine's short name
+    (str or os.PathLike) read as the command line reads ``--machine`` (``resources.machine_file``, then
+    ``load_machine``). Raises TypeError naming what is accepted for anything else."""
+    if isinstance(machine, Machine):
+        return machine
+    if isinstance(machine, (str, os.PathLike)):
+        return load_machine(machine_file(os.fspath(machine)))
+    raise TypeError(f"machine: a Machine (trueaxis.machine.load_machine), a machine file's path or a fixture machine's "
+                    f"short name (str or Path); got {type(machine).__name__}")
 
 
 class PostWarning(UserWarning):

@@ -12,7 +12,8 @@ plugin module attaches it. Importing this module therefore registers:
 
 The hook for programs made from CadQuery models (by a CAM library, or by hand from the model's edges) is the API
 ``trueaxis.postproc.compensate(text, machine, mode="geometric")``: machine-axis G-code text in, compensated text out,
-``PostError`` (``file:line: reason``) when the post refuses. The control's setup goes in as keywords, as on the
+``PostError`` (``file:line: reason``) when the post refuses; ``machine`` a ``Machine``, a machine file's path or a
+fixture machine's short name, as the command line's ``--machine``. The control's setup goes in as keywords, as on the
 command line: ``var=``, ``tool_table=``, ``machine_units=``, ``setup=`` (a setup file), ``offsets_zero=``
 (docs/setup_file.md); ``arcs=`` (arcs fitted to the corrected path as G2/G3: True / False, default on for a
 three-axis mill) and ``output_mode=`` ("joint" or "tcp", default the machine file's), as ``--arcs`` / ``--no-arcs``

@@ -12,9 +12,13 @@
 # 1. writes the G-code exactly as FreeCAD's own `linuxcnc` post does (it runs a fresh copy of that module), with one
 #    addition: before each tool change and each operation a structured comment carrying the cutting conditions the
 #    job knows, e.g. `(trueaxis: ap=6 ae=3 fz=0.025 n=8000 d=6 z=3 mode=down)` (trueaxis DESIGN §5);
-# 2. runs `trueaxis post IN -o OUT --machine FILE --mode M --tol-um T [setup options]` on it (the command is $TRUEAXIS_BIN, or
-#    --trueaxis-bin, or `trueaxis` on PATH: FreeCAD's Python does not import trueaxis itself);
-# 3. writes the compensated program at the output file atomically (temporary file in the same folder, then rename).
+# 2. runs `trueaxis post IN -o OUT --machine FILE --mode M --tol-um T [setup options]` on it (the command is
+#    $TRUEAXIS_BIN, or --trueaxis-bin, or `trueaxis` on PATH: FreeCAD's Python does not import trueaxis itself);
+#    --machine takes a machine file or a fixture machine's short name, as trueaxis post does;
+# 3. writes the compensated program at the output file atomically (temporary file in the same folder, then rename),
+#    with the permissions trueaxis gives its own outputs (a new file: the umask's; a replaced one: its own).
+# What trueaxis says of a program it posted (a block left uncompensated, a value assumed) goes to FreeCAD's report
+# view as warnings, each naming the output file and quoting the block; --strict makes any of them an error.
 # If trueaxis refuses the program, export raises TrueaxisPostError naming the block and the reason, and nothing is
 # written at the output file.
 #
@@ -28,14 +32,16 @@ import os
 import re
 import shlex
 import shutil
+import stat
 import subprocess
+import sys
 import tempfile
 
 TOOLTIP = """
 trueaxis: LinuxCNC G-code from FreeCAD's linuxcnc post, with the job's cutting conditions as
 (trueaxis: ...) comments, compensated for the machine's geometric (and force-induced) errors by
-the trueaxis command line. Needs --machine FILE; the trueaxis command is taken from
---trueaxis-bin, $TRUEAXIS_BIN or PATH.
+the trueaxis command line. Needs --machine FILE (or a fixture machine's short name); the
+trueaxis command is taken from --trueaxis-bin, $TRUEAXIS_BIN or PATH.
 """
 
 UNITS = "G21"  # read by FreeCAD to label the post processor's units (metric unless --inches is passed on)
@@ -67,13 +73,27 @@ class _Parser(argparse.ArgumentParser):
         raise _ArgumentError(message)
 
 
+def _numeric(what):
+    """An argparse type: the text of a number, kept as written (trueaxis checks its range); ``what`` the option
+    takes, for the message."""
+    def number(text):
+        try:
+            float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} is a number; got {text!r}") from None
+        return text
+    return number
+
+
 def _build_parser():
     p = _Parser(prog="trueaxis", add_help=False, allow_abbrev=False)
-    p.add_argument("--machine", help="machine file (TOML) of the machine that will run the program (required)")
+    p.add_argument("--machine", help="machine file (TOML) of the machine that will run the program, or a fixture "
+                   "machine's short name (xh714, nmv1500dcg, ...), as for trueaxis post (required)")
     p.add_argument("--mode", default="geometric", choices=MODES,
                    help="none | geometric | comprehensive (default geometric)")
-    p.add_argument("--tol-um", default="1", help="path tolerance, um (default 1)")
-    p.add_argument("--max-correction-mm", default=None,
+    p.add_argument("--tol-um", default="1", type=_numeric("a path tolerance in um"),
+                   help="path tolerance, um (default 1)")
+    p.add_argument("--max-correction-mm", default=None, type=_numeric("a correction bound in mm"),
                    help="largest correction allowed, mm (trueaxis' default 0.5)")
     p.add_argument("--report", default=None, help="also write trueaxis' report (JSON) here")
     p.add_argument("--var", default=None, help="the control's setup: LinuxCNC parameter file (work offsets, G92)")
@@ -89,6 +109,8 @@ def _build_parser():
                    help="arcs whose correction varies along them become straight pieces")
     p.add_argument("--output-mode", default=None, choices=("joint", "tcp"),
                    help="joint positions, or tool-centre-point positions (trueaxis' default: the machine file's)")
+    p.add_argument("--strict", action="store_true",
+                   help="every warning of trueaxis is an error: nothing is written (trueaxis post --strict)")
     for key, what in (("ap", "axial depth, mm"), ("ae", "radial engagement, mm"), ("fz", "feed per tooth, mm"),
                       ("n", "spindle speed, rpm"), ("d", "tool diameter, mm"), ("z", "flutes")):
         p.add_argument(f"--{key}", default=None, help=f"comprehensive mode: {what} for every operation (over what the "
@@ -113,13 +135,6 @@ def split_arguments(argstring):
     if not ours.machine:
         raise TrueaxisPostError("trueaxis post: --machine FILE is required (the machine file of the machine that "
                                 "will run this program)")
-    try:
-        float(ours.tol_um)
-        if ours.max_correction_mm is not None:
-            float(ours.max_correction_mm)
-    except ValueError:
-        raise TrueaxisPostError(f"trueaxis post: --tol-um and --max-correction-mm take numbers; got "
-                                f"{ours.tol_um!r}, {ours.max_correction_mm!r}") from None
     return ours, " ".join(shlex.quote(a) for a in rest + ["--no-show-editor"])
 
 
@@ -313,60 +328,123 @@ def trueaxis_command(opts):
 
 
 _DIAGNOSTIC = re.compile(r"^(?P<file>.+?):(?P<line>\d+): (?P<reason>.*)$")
+_NOT_A_BLOCK = re.compile(r"^(?:N\d+\s*)?(?:\([^)]*\)\s*)*(?:;.*)?%?$")  # blank, comments only, or %
+LINE_NUMBERS_NOTE = ("Line numbers refer to the uncompensated program of FreeCAD's linuxcnc post (post with the "
+                     "linuxcnc post processor to see it).")
 
 
-def _explain(stderr, program_path, program_lines, label):
-    """trueaxis' `file:line: reason` lines, with the block itself quoted (the user never sees the temporary file)."""
+def warn(message):
+    """A warning for the user: FreeCAD's report view (Console.PrintWarning) inside FreeCAD, else stderr."""
+    try:
+        import FreeCAD
+    except ImportError:
+        print(message, file=sys.stderr)
+        return
+    FreeCAD.Console.PrintWarning(message + "\n")
+
+
+def _explain(stderr, temporary, program_lines, label):
+    """trueaxis' messages as the user can read them: its ``file:line: reason`` lines about the program with the block
+    quoted, and every temporary path (``temporary``: the program and the output written in the post's temporary
+    folder, which the user never sees) named ``label``, the job's output file. A list of lines."""
+    program_path = temporary[0]
     out = []
     for line in stderr.strip().splitlines():
         m = _DIAGNOSTIC.match(line)
         if m and os.path.basename(m.group("file")) == os.path.basename(program_path):
             k = int(m.group("line"))
             block = program_lines[k - 1].strip() if 0 < k <= len(program_lines) else "?"
-            out.append(f"{label}:{k}: block '{block}': {m.group('reason')}")
-        else:
-            out.append(line.replace(program_path, label))
-    return "\n".join(out)
+            quoted = "" if _NOT_A_BLOCK.match(block) else f" block '{block}':"  # (a whole program's stand at line 1)
+            out.append(f"{label}:{k}:{quoted} {m.group('reason')}")
+            continue
+        for path in temporary:
+            line = line.replace(path, label)
+        out.append(line)
+    return out
+
+
+def names_a_path(name):
+    """Whether trueaxis reads --machine ``name`` as a path (a ``.toml`` name, or a file that exists) rather than as a
+    fixture machine's short name ('xh714'): trueaxis.resources.names_a_path's rule, replicated (FreeCAD's Python does
+    not import trueaxis), after ``~`` is expanded."""
+    path = os.path.expanduser(name)
+    return os.path.splitext(path)[1] == ".toml" or os.path.exists(path)
+
+
+def _command(exe, program, output, opts):
+    """The `trueaxis post` command line for the post's options: paths made absolute (FreeCAD's working folder is not
+    the user's), a fixture machine's short name passed as it is (trueaxis finds it)."""
+    machine = os.path.abspath(os.path.expanduser(opts.machine)) if names_a_path(opts.machine) else opts.machine
+    cmd = [exe, "post", program, "-o", output, "--machine", machine, "--mode", opts.mode, "--tol-um", str(opts.tol_um)]
+    if opts.max_correction_mm is not None:
+        cmd += ["--max-correction-mm", str(opts.max_correction_mm)]
+    if opts.report:
+        cmd += ["--report", os.path.abspath(os.path.expanduser(opts.report))]
+    for option, value in (("--var", opts.var), ("--tool-table", opts.tool_table), ("--setup", opts.setup)):
+        if value:
+            cmd += [option, os.path.abspath(os.path.expanduser(value))]
+    if opts.machine_units:
+        cmd += ["--machine-units", opts.machine_units]
+    for flag in ("offsets_zero", "strict"):
+        if getattr(opts, flag):
+            cmd.append("--" + flag.replace("_", "-"))
+    if opts.arcs is not None:
+        cmd.append("--arcs" if opts.arcs else "--no-arcs")
+    if opts.output_mode:
+        cmd += ["--output-mode", opts.output_mode]
+    for key in ("ap", "ae", "fz", "n", "d", "z", "cut_mode"):  # the cutting conditions, as `trueaxis post` takes them
+        if getattr(opts, key, None) is not None:
+            cmd += [f"--{key.replace('_', '-')}", str(getattr(opts, key))]
+    return cmd
+
+
+def _names_the_program(said, label):
+    """Whether any of the lines from _explain is about the program (``label:line: ...``)."""
+    about_the_program = re.compile(re.escape(label) + r":\d+: ")
+    return any(about_the_program.match(line) for line in said)
+
+
+def _failure(status, said, label):
+    """The message of a `trueaxis post` that wrote nothing (exit ``status``; ``said``: its lines from _explain, the
+    program named ``label``): a refused program names its blocks; a file or an option it cannot use (exit 2: usage,
+    3: a machine or setup file refused) is said as such, without argparse's usage lines."""
+    if _names_the_program(said, label):
+        return f"trueaxis refused the program (exit {status}); nothing was written.\n" + "\n".join(said) + "\n" + \
+            LINE_NUMBERS_NOTE
+    if any(line.startswith("usage: ") for line in said):
+        said = [line for line in said if not line.startswith(("usage: ", " "))]
+    why = "\n".join(said) or "(no message)"
+    if status in (2, 3):
+        return f"trueaxis post: trueaxis cannot use the options or the files given to the post (exit {status}); " \
+            f"nothing was written:\n{why}"
+    return f"trueaxis post: the trueaxis command failed (exit {status}); nothing was written:\n{why}"
 
 
 def compensate(gcode, opts, label="program.ngc"):
-    """The program compensated by `trueaxis post` (text); TrueaxisPostError with trueaxis' reasons on failure."""
+    """The program compensated by `trueaxis post` (text); TrueaxisPostError with trueaxis' reasons on failure.
+
+    label : the name the user knows the program by (the job's output file); trueaxis' messages name it, not the
+    temporary copy. What trueaxis says of a program it posted is shown (``warn``) before the text is returned.
+    """
     exe = trueaxis_command(opts)
-    machine = os.path.abspath(os.path.expanduser(opts.machine))
     with tempfile.TemporaryDirectory(prefix="trueaxis_post_") as work:
         src = os.path.join(work, os.path.basename(label) or "program.ngc")
         dst = os.path.join(work, "compensated.ngc")
         with open(src, "w", encoding="utf-8", newline="") as f:
             f.write(gcode)
-        cmd = [exe, "post", src, "-o", dst, "--machine", machine, "--mode", opts.mode, "--tol-um", str(opts.tol_um)]
-        if opts.max_correction_mm is not None:
-            cmd += ["--max-correction-mm", str(opts.max_correction_mm)]
-        if opts.report:
-            cmd += ["--report", os.path.abspath(os.path.expanduser(opts.report))]
-        for option, value in (("--var", opts.var), ("--tool-table", opts.tool_table), ("--setup", opts.setup)):
-            if value:
-                cmd += [option, os.path.abspath(os.path.expanduser(value))]
-        if opts.machine_units:
-            cmd += ["--machine-units", opts.machine_units]
-        if opts.offsets_zero:
-            cmd.append("--offsets-zero")
-        if opts.arcs is not None:
-            cmd.append("--arcs" if opts.arcs else "--no-arcs")
-        if opts.output_mode:
-            cmd += ["--output-mode", opts.output_mode]
-        for key in ("ap", "ae", "fz", "n", "d", "z", "cut_mode"):  # the cutting conditions, as `trueaxis post` takes them
-            if getattr(opts, key, None) is not None:
-                cmd += [f"--{key.replace('_', '-')}", str(getattr(opts, key))]
         try:
-            proc = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, text=True)
+            proc = subprocess.run(_command(exe, src, dst, opts), stdin=subprocess.DEVNULL, capture_output=True,
+                                  text=True)
         except OSError as exc:
             raise TrueaxisPostError(f"trueaxis post: could not run {exe}: {exc}") from None
+        said = _explain(proc.stderr or "", (src, dst), gcode.splitlines(), label)
         if proc.returncode != 0 or not os.path.exists(dst):
-            why = _explain(proc.stderr or proc.stdout, src, gcode.splitlines(), label)
-            raise TrueaxisPostError(f"trueaxis refused the program (exit {proc.returncode}); nothing was written.\n"
-                                    f"{why or '(no message)'}\n"
-                                    f"Line numbers refer to the uncompensated program of FreeCAD's linuxcnc post "
-                                    f"(post with the linuxcnc post processor to see it).")
+            said = said or _explain(proc.stdout or "", (src, dst), gcode.splitlines(), label)
+            raise TrueaxisPostError(_failure(proc.returncode, said, label))
+        for line in said:
+            warn(line)
+        if _names_the_program(said, label):
+            warn("trueaxis post: " + LINE_NUMBERS_NOTE)
         with open(dst, "r", encoding="utf-8", newline="") as f:
             return f.read()
 
@@ -426,15 +504,26 @@ def honour_linuxcnc_options(text, linuxcnc_args):
 
 
 def write_atomically(filename, text):
-    """Write text at filename through a temporary file in the same folder and a rename."""
-    folder = os.path.dirname(os.path.abspath(filename))
-    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(filename) + ".", suffix=".tmp", dir=folder)
+    """Write text at filename through a temporary file in the same folder and a rename, as trueaxis writes its own
+    outputs (trueaxis/fileio.py's rule, replicated here: FreeCAD's Python does not import trueaxis): a symbolic link
+    is written through (its target replaced, the link kept); a new file gets the permissions the umask gives (mkstemp
+    alone leaves 0600, for its owner only), a replaced file keeps its own."""
+    target = os.path.realpath(filename)
+    if os.path.exists(target):
+        mode = stat.S_IMODE(os.stat(target).st_mode)
+    else:
+        umask = os.umask(0o022)  # read the umask: set one, put it back
+        os.umask(umask)
+        mode = 0o666 & ~umask
+    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(target) + ".", suffix=".tmp",
+                               dir=os.path.dirname(target))
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, filename)
+        os.chmod(tmp, mode)
+        os.replace(tmp, target)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -463,7 +552,7 @@ def export(objectslist, filename, argstring):
     except _ArgumentError as exc:
         raise TrueaxisPostError(f"trueaxis post: {exc}\n{TOOLTIP_ARGS}") from None
     gcode, lc = linuxcnc_gcode(objectslist, linuxcnc_args)
-    label = os.path.basename(filename) if filename and filename != "-" else "program.ngc"
+    label = filename if filename and filename != "-" else "program.ngc"  # the job's output file, as FreeCAD gave it
     try:
         final = compensate(gcode, opts, label)
     except TrueaxisPostError as exc:
@@ -471,7 +560,7 @@ def export(objectslist, filename, argstring):
         raise
     final, notes = honour_linuxcnc_options(final, linuxcnc_args)
     for note in notes:
-        FreeCAD.Console.PrintWarning(note + "\n")
+        warn(note)
     if FreeCAD.GuiUp and not opts.no_show_editor:
         final = _show_editor(lc, final)
     if filename and filename != "-":
