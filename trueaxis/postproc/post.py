@@ -1273,14 +1273,29 @@ class _Poster:
         self._local.publish.set()
 
         pieces, arc_kept, arc_mode = {}, np.zeros(0, np.int64), {}
-        # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
-        feed_rows = np.nonzero((p.motion[rows] == FEED) & self.start_known[rows])[0]
+        # straight feeds (and, in TCP output, rapids that turn a rotary axis) are split; one from a start the program
+        # has not fixed is not: its end is compensated, its path cannot be judged
+        straight = (p.motion[rows] == FEED) | self._tcp_rotary_rapids(rows, q_start, q_end)
+        feed_rows = np.nonzero(straight & self.start_known[rows])[0]
         pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd, end_poses))
         if np.any(arcs):
             arc_pieces, arc_kept, arc_mode = self._arcs(rows, np.nonzero(arcs)[0], q_start, (q_end, q_cmd), force,
                                                         inch, delta_prog)
             pieces.update(arc_pieces)
         return delta_prog, dq, pieces, (arc_kept, arc_mode)
+
+    def _tcp_rotary_rapids(self, rows, q_start, q_end):
+        """(K,) bool: the rapids of ``rows`` that turn a rotary axis, in TCP output (none in joint output), which are
+        split like feed moves. A control in TCP kinematics (LinuxCNC's trt kinematics, a G43.4) plans every move,
+        rapids too, as a straight line of the tool tip in the table's frame with the rotary axes linear; the input's
+        rapid is joint-interpolated. Written as one block, a rapid of C -300 deg took the joints up to 86 mm outside
+        the box of its ends and Z 35 mm below both (a QA pass); split, the tip follows the input's rapid path within
+        the tolerance, as a feed move's does. (A rapid does not cut, but it must not go where the input's does not:
+        clamps, the part, the table.)"""
+        if self.tcp is None:
+            return np.zeros(rows.size, bool)
+        rot = self.rotary_columns
+        return (self.p.motion[rows] == RAPID) & np.any(q_start[:, rot] != q_end[:, rot], axis=1)
 
     def _summarise(self, max_abs, rms):
         """Report the correction per axis: max and RMS over the move ends (um or urad)."""
@@ -1324,7 +1339,8 @@ class _Poster:
         return p.to_machine(tang6, arc_rows)[:, :3] - p.to_machine(np.zeros_like(tang6), arc_rows)[:, :3]
 
     def _split_lines(self, rows, feed_idx, q_start, q_end, force, inch, q_cmd_end, end_poses, max_rounds=10):
-        """Straight feed moves: split until the actual path stays within tolerance of the nominal path.
+        """Straight feed moves (and TCP output's rotary rapids, ``_tcp_rotary_rapids``): split until the actual path
+        stays within tolerance of the nominal path.
 
         The nominal path is the one the control makes of the programmed move: the axes interpolated linearly (in five
         axes a curve in the part frame). The compensated move is linear in the commanded axes between its pieces'
@@ -1843,7 +1859,9 @@ class _Poster:
         if centres is not None and np.isnan(centres[0, 0]):  # a fitted arc's first piece is straight
             motion = FEED
         # G93: each piece takes its share of the block's time (the control interpolates the axes linearly in time,
-        # so a piece over the fraction df of the move takes df of it): inverse time F / df.
+        # so a piece over the fraction df of the move takes df of it): inverse time F / df. A rapid (split in TCP
+        # output) has no feed: its pieces take none.
+        inverse = inverse and motion != RAPID
         if inverse:
             fractions = self.fractions.get(r)
             piece_f = p.feed[r] / np.diff(np.linspace(0.0, 1.0, n + 1) if fractions is None else fractions)
