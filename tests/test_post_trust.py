@@ -255,6 +255,25 @@ def test_tcp_g43_4_is_refused_with_its_line_unless_passed_through(tmp_path):
     assert "G43.4 H1" in out.read_text().splitlines()
 
 
+def test_g43_1_before_the_first_move_posts_and_rs274_reads_the_output_as_we_do(tmp_path):
+    # G43.1's axis words are its tool offset, not a move: refused before the first move as "axis words with no
+    # motion mode in force" (exit 3, a QA pass), where rs274 reads the program (USE_TOOL_LENGTH_OFFSET(0 0 0, ...))
+    from rs274_helpers import assert_rs274_reads_as_we_do
+
+    src, out = tmp_path / "g.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90 G17 G94\nG43.1 Z0\nG0 X10 Y20 Z-100\nG1 X20 F300\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero")
+    assert r.returncode == 0, r.stderr
+    text = out.read_text()
+    assert "G43.1 Z0" in text.splitlines()
+    moves = assert_rs274_reads_as_we_do(text, tmp_path / "rs274")
+    # the two moves, compensated (xh714's correction there: micrometres), G43.1's own words left alone
+    nominal = np.array([[10.0, 20.0, -100.0], [20.0, 20.0, -100.0]])
+    assert moves.kind == ["traverse", "feed"]
+    np.testing.assert_allclose(moves.end[:, :3], nominal, atol=0.02)
+    assert np.abs(moves.end[:, :3] - nominal).max() > 1e-3
+
+
 def test_an_unknown_modal_code_is_refused_unless_passed_through(tmp_path):
     m = load_machine(XH714)
     for code in ("G12.5", "M250", "G10 L3 P1"):
