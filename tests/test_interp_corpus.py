@@ -103,6 +103,15 @@ CORPUS = [
     ("g43_1_after_g80", OK, "G21\nG0 X0\nG80\nG43.1 Z5\nG0 X1\nM2\n"),
     ("g43_1_g91", OK, "G21 G91\nG43.1 Z5\nG0 X10 Z-10\nG43.1 Z7\nG0 X1\nM2\n"),
     ("g10_l1_first", OK, "G21\nG10 L1 P1 Z5\nT1 M6\nG43 H1\nG0 X1 Z0\nM2\n"),
+    # ... and the other codes of the block take them too: a motion code (the offset, then a move to the same words
+    # under it), G10, G28 / G30 (their intermediate point), G92
+    ("g43_1_with_g1", OK, "G21\nG0 X10 Y20 Z-100\nG1 G43.1 Z5 F300\nG1 X20\nM2\n"),
+    ("g43_1_with_g0_xz", OK, "G21\nG0 X10 Y20 Z-100\nG0 G43.1 X3 Z5\nG1 X20 F300\nM2\n"),
+    ("g43_1_with_g91_g1", OK, "G21\nG0 X10 Y20 Z-100\nG91 G1 G43.1 Z5 F300\nG1 X1\nM2\n"),
+    ("g43_1_with_g28", OK, "G21\nG0 X1 Y1 Z1\nG28 G43.1 Z5\nG0 X2\nM2\n"),
+    ("g43_1_with_g30", OK, "G21\nG0 X1 Y1 Z1\nG30 G43.1 Z5\nG0 X2\nM2\n"),
+    ("g43_1_with_g10_l2", OK, "G21\nG0 X1 Y1 Z1\nG10 L2 P1 G43.1 Z5\nG0 X2 Z0\nM2\n"),
+    ("g43_1_with_g92", OK, "G21\nG0 X1 Y1 Z1\nG92 G43.1 Z5\nG0 X2 Z0\nM2\n"),
     ("percent", OK, "%\nG21\n#1=3\nG0 X#1\n%\n"),
     # -- refused by rs274
     ("two_motion", REFUSED, "G21\nG1 G0 X10\nM2\n"),
