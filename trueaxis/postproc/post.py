@@ -379,6 +379,7 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
             poster = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep)
             poster.note_passed_through(error=output_mode != "tcp")
     else:
+        _refuse_rewritten_tool_offset_words(prog, source)
         poster = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep)
         poster.fit_arcs = arcs_default(machine) if arcs is None else bool(arcs)
         # the setup's tool diameters (mm): a cut's tool as the control knows it, before the machine file's tool
@@ -623,6 +624,28 @@ def _check_axes(prog: Program, machine: Machine, source: str):
             line = int(prog.line_no[rows[0]]) if rows.size else 1
             raise PostError(source, line, f"the program moves axis {letter}, which {machine.name} does not have "
                                           f"(its axes: {' '.join(machine.axis_names)})")
+
+
+def _refuse_rewritten_tool_offset_words(prog: Program, source: str):
+    """PostError at a block whose axis words are both G43.1's tool offset and words the post rewrites: a compensated
+    move's end (``G1 G43.1 Z-50``: the offset Z-50, then a move to Z-50 under it) or a G92 / G10 L20 it shifts with
+    the correction. Rewritten, the words would set the offset too: the block came out as ``G1 G43.1 X10.00275
+    Y19.99149 Z-49.99472``, which the control reads as an offset of X 10, Y 20 (the tip 10 and 20 mm off on every
+    later move; exit 0). Only programs that apply G43.1 are looked at (``setup_used``), and there only the lines the
+    post rewrites."""
+    if not any(u.get("applied_by") == "G43.1" for u in prog.setup_used):
+        return
+    g43_1 = re.compile(r"(?i)G[ \t]*0*43\.10*(?!\d)")
+    moved = np.unique(prog.line_index[np.isin(prog.kind, (ROW_PROGRAMMED, ROW_CYCLE))])
+    shifted = {li: what for li, _, what in prog.position_sets}
+    for li in sorted(set(moved.tolist()) | set(shifted)):
+        code, _ = _split_comment(_split_ending(prog.lines[li])[0])
+        if g43_1.search(code):
+            line = int(li + 1 if prog.source_line is None else prog.source_line[li])
+            other, what = (shifted[li], "the offset it sets") if li in shifted else ("a move", "the move's end")
+            raise PostError(source, line, f"G43.1 and {other} in one block: its axis words are G43.1's tool offset "
+                                          f"as well as {what}, which the post changes by the correction; so written "
+                                          "they would change the tool offset too: put G43.1 in a block of its own")
 
 
 # --------------------------------------------------------------------------------------------------- internals ---
