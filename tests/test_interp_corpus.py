@@ -95,6 +95,23 @@ CORPUS = [
     ("many_groups", OK, "G21 G90 G94 G17 G40 G49 G80 G54\nG0 G90 G54 X1 Y1 S1000 M3\nM8\nG4 P0.5\nG64 P0.01\n"
                         "M5 M9\nM2\n"),
     ("block_delete", OK, "G21\nG0 X0\n/G0 X1\nM2\n"),
+    # G43.1's axis words are its tool offset, not a move: no motion mode need be in force (a QA pass: refused before
+    # the first move), none moves after G1 or G80; absolute in G91 too
+    ("g43_1_first", OK, "G21 G90 G17 G94\nG43.1 Z0\nG0 X10 Y20 Z-100\nG1 X20 F300\nM2\n"),
+    ("g43_1_xyz_first", OK, "G21\nG43.1 X1 Y2 Z5\nG0 X10 Y20 Z-10\nM2\n"),
+    ("g43_1_in_g1", OK, "G21\nG0 X0 Y0 Z0\nG1 X1 F100\nG43.1 Z5\nX2\nM2\n"),
+    ("g43_1_after_g80", OK, "G21\nG0 X0\nG80\nG43.1 Z5\nG0 X1\nM2\n"),
+    ("g43_1_g91", OK, "G21 G91\nG43.1 Z5\nG0 X10 Z-10\nG43.1 Z7\nG0 X1\nM2\n"),
+    ("g10_l1_first", OK, "G21\nG10 L1 P1 Z5\nT1 M6\nG43 H1\nG0 X1 Z0\nM2\n"),
+    # ... and the other codes of the block take them too: a motion code (the offset, then a move to the same words
+    # under it), G10, G28 / G30 (their intermediate point), G92
+    ("g43_1_with_g1", OK, "G21\nG0 X10 Y20 Z-100\nG1 G43.1 Z5 F300\nG1 X20\nM2\n"),
+    ("g43_1_with_g0_xz", OK, "G21\nG0 X10 Y20 Z-100\nG0 G43.1 X3 Z5\nG1 X20 F300\nM2\n"),
+    ("g43_1_with_g91_g1", OK, "G21\nG0 X10 Y20 Z-100\nG91 G1 G43.1 Z5 F300\nG1 X1\nM2\n"),
+    ("g43_1_with_g28", OK, "G21\nG0 X1 Y1 Z1\nG28 G43.1 Z5\nG0 X2\nM2\n"),
+    ("g43_1_with_g30", OK, "G21\nG0 X1 Y1 Z1\nG30 G43.1 Z5\nG0 X2\nM2\n"),
+    ("g43_1_with_g10_l2", OK, "G21\nG0 X1 Y1 Z1\nG10 L2 P1 G43.1 Z5\nG0 X2 Z0\nM2\n"),
+    ("g43_1_with_g92", OK, "G21\nG0 X1 Y1 Z1\nG92 G43.1 Z5\nG0 X2 Z0\nM2\n"),
     ("percent", OK, "%\nG21\n#1=3\nG0 X#1\n%\n"),
     # -- refused by rs274
     ("two_motion", REFUSED, "G21\nG1 G0 X10\nM2\n"),
@@ -119,6 +136,11 @@ CORPUS = [
     ("axes_no_motion", REFUSED, "G21\nX1\nM2\n"),
     ("axes_after_g80", REFUSED, "G21\nG0 X0\nG81 X1 Z-1 R1 F100\nG80\nX2\nM2\n"),
     ("axes_with_g80", REFUSED, "G21\nG0 X0\nG80 X1\nM2\n"),
+    ("g43_1_with_g80", REFUSED, "G21\nG0 X0\nG80 G43.1 Z5\nM2\n"),
+    ("g43_1_then_axes", REFUSED, "G21\nG43.1 Z5\nX1\nM2\n"),
+    ("g43_axes_no_motion", REFUSED, "G21\nT1 M6\nG43 H1 Z5\nM2\n"),
+    ("g43_2_axes_no_motion", REFUSED, "G21\nG43.2 Z5\nM2\n"),
+    ("g43_1_i_word", REFUSED, "G21\nG0 X0\nG43.1 Z5 I1\nM2\n"),
     ("two_x_words", REFUSED, "G21\nG0 X1 X2\nM2\n"),
     ("no_feed", REFUSED, "G21\nG1 X1\nM2\n"),
     ("arc_off_circle", REFUSED, "G21 F100\nG0 X0 Y0\nG2 X10 Y0 I3 J0\nM2\n"),
@@ -167,22 +189,26 @@ def run_rs274_verdict(text, tmp_path):
 
 _MOVE = re.compile(r"^\s*\d+\s+N\S*\s+(STRAIGHT_TRAVERSE|STRAIGHT_FEED|ARC_FEED)\(")
 _OFFSET = re.compile(r"^\s*\d+\s+N\S*\s+SET_(G5X|G92)_OFFSET\((.*)\)")
+_TOOL = re.compile(r"^\s*\d+\s+N\S*\s+USE_TOOL_LENGTH_OFFSET\((.*)\)")
 
 
 def machine_ends(canon: str) -> np.ndarray:
-    """rs274's end points plus the G5x and G92 offsets in force at each move (machine coordinates)."""
+    """rs274's end points plus the G5x, G92 and tool length offsets in force at each move (machine coordinates)."""
     moves = parse_canon(canon)
-    g5x, g92, offsets = np.zeros(6), np.zeros(6), []
+    g5x, g92, tool, offsets = np.zeros(6), np.zeros(6), np.zeros(6), []
     for line in canon.splitlines():
         m = _OFFSET.match(line)
+        t = _TOOL.match(line)
         if m:
             vals = [float(v) for v in m.group(2).split(",")]
             if m.group(1) == "G5X":
                 g5x = np.array(vals[1:7])
             else:
                 g92 = np.array(vals[:6])
+        elif t:  # "x y z, a b c, u v w"
+            tool = np.array([float(v) for v in t.group(1).replace(",", " ").split()[:6]])
         elif _MOVE.match(line):
-            offsets.append(g5x + g92)
+            offsets.append(g5x + g92 + tool)
     return moves.end + np.array(offsets).reshape(-1, 6)
 
 

@@ -157,6 +157,74 @@ def test_tcp_output_through_linuxcnc_inverse_kinematics_lands_on_the_nominal_pos
     assert np.abs(parse_program(joint_out, setup=setup).end[-1, :3] - ours.end[-1, :3]).max() > 1.0
 
 
+# A QA pass's program: a rapid that turns C by -300 deg. Written as one block, the control (planning it as a straight
+# line of the tip in the table's frame) took the joints to X 116, Y -47.5..59 and Z 25.5, where the input's rapid
+# (joint-interpolated) stays within X 10..30, Y -15..20, Z 60..70.
+RAPID_TURN = ("G21 G90 G17 G94\nT1 M6\nG43 H1\nG0 X10 Y20 Z60 B20 C0\nG0 X30 Y-15 Z70 B25 C-300\nG0 X35\n"
+              "G1 X36 F300\nM2\n")
+
+
+def _rapid_path_deviation(m, twin, written, q_from, q_to, version="2.9"):
+    """(um, (3, 2) joint X Y Z range): how far the actual tip leaves the nominal tip's path along the input's
+    joint-interpolated move q_from -> q_to (model joints) when the control runs the written TCP blocks ``written``
+    (K, 6; the first at q_from) the TCP way (tip straight in the table's frame, rotary words linear); and the range of
+    the control's joints X Y Z along the way."""
+    from test_post_arcs import _distance_to_polyline
+
+    s = np.linspace(0.0, 1.0, 21)[:, None]
+    w = np.vstack([a + s * (b - a) for a, b in zip(written[:-1], written[1:])])
+    q = _control_joints(m, "B", version, w)
+    p_act, _ = twin.actual_pose(q)
+    f = np.linspace(0.0, 1.0, 40001)[:, None]
+    p_nom, _ = twin.nominal_pose(q_from + f * (q_to - q_from))
+    dev_um = float(_distance_to_polyline(p_act, p_nom).max() * 1e3)
+    return dev_um, np.column_stack([q[:, :3].min(axis=0), q[:, :3].max(axis=0)])
+
+
+def test_tcp_rapid_that_turns_the_table_is_split_to_follow_the_input_rapid(tmp_path):
+    base = load_machine(ROOT / "fixtures" / "machines" / "bc_offset.toml")
+    m = dataclasses.replace(base, rotary_sense="linuxcnc-trt", tcp_code="G43")
+    setup = Setup(offsets_zero=True)
+    out, rep = post_text(RAPID_TURN, m, "geometric", tol_um=1.0, setup=setup, output_mode="tcp", header=False)
+    lines = out.splitlines()
+    path = tmp_path / "out.ngc"
+    path.write_text(out)
+    moves = run_rs274(path, {1: TOOL_MM}, tmp_path / "rs274")
+    assert moves.returncode == 0, moves.stderr[-2000:]
+    ours = parse_program(out, setup=setup)
+    np.testing.assert_allclose(moves.end, ours.end, atol=5e-5)
+    # through LinuxCNC's inverse kinematics (written out above) and the twin: the tip follows the input's rapid (the
+    # blocks from the first rapid's end to the turning one's; G0 X35 and G1 X36 after them)
+    twin = ErrorTwin(m)
+    q_from = np.r_[10.0, 20.0, 60.0, np.radians([-20.0, 0.0])]
+    q_to = np.r_[30.0, -15.0, 70.0, np.radians([-25.0, 300.0])]
+    dev_um, box = _rapid_path_deviation(m, twin, ours.end[:-2], q_from, q_to)
+    assert dev_um <= 1.0 + 0.05, dev_um
+    # the joints stay in the box of the input's move (plus the correction, tens of um), not 86 mm outside it
+    np.testing.assert_allclose(box, [[10.0, 30.0], [-15.0, 20.0], [60.0, 70.0]], atol=0.1)
+    # the rapid is written as rapids (G0, no feed word), many of them; the XYZ-only rapid after it stays one block
+    assert lines[:3] == RAPID_TURN.splitlines()[:3] and lines[-1] == "M2"
+    blocks = lines[3:-1]  # one row of ``ours`` each: the first rapid, the turning one's pieces, G0 X35, G1 X36
+    assert len(blocks) == len(ours) and len(blocks) > 100
+    assert all(x.startswith("G0 ") and "F" not in x for x in blocks[:-1]) and blocks[-1].startswith("G1 ")
+    assert rep.moves_split == 1  # G0 X35 (X only) one block, as G1 X36
+    # joint output: the rapid stays one block (the control interpolates the joints as the input does)
+    joint_out, _ = post_text(RAPID_TURN, m, "geometric", tol_um=1.0, setup=setup, header=False)
+    assert len(joint_out.splitlines()) == len(RAPID_TURN.splitlines())
+
+
+def test_tcp_rapid_pieces_take_no_inverse_time_feed():
+    base = load_machine(ROOT / "fixtures" / "machines" / "bc_offset.toml")
+    m = dataclasses.replace(base, rotary_sense="linuxcnc-trt", tcp_code="G43")
+    src = RAPID_TURN.replace("G94", "G93").replace("F300", "F10")
+    out, _ = post_text(src, m, "geometric", tol_um=1.0, setup=Setup(offsets_zero=True), output_mode="tcp",
+                       header=False)
+    rapids = [x for x in out.splitlines() if x.startswith("G0 ")]
+    feeds = [x for x in out.splitlines() if x.startswith("G1 ")]
+    assert len(rapids) > 100 and not any("F" in x for x in rapids)
+    assert len(feeds) == 1 and feeds[0].endswith(" F10")
+
+
 def test_tcp_code_g43_4_replaces_the_programs_g43():
     m = load_machine(ROOT / "fixtures" / "machines" / "nmv1500dcg.toml")
     src = _program(m, "B", [(-20, 30), (-35, 120), (-10, 200), (-50, -40)])

@@ -12,6 +12,7 @@ import pytest
 
 from conftest import CUTTING_C45, MACHINES, mill_toml
 from trueaxis.machine import load_machine
+from trueaxis.nc.gcode import parse_program
 from trueaxis.nc.setup import Setup
 from trueaxis.postproc.post import compensate, without_header
 
@@ -253,6 +254,47 @@ def test_tcp_g43_4_is_refused_with_its_line_unless_passed_through(tmp_path):
     assert r.returncode == 0, r.stderr
     assert f"{src}:3: passed through uninterpreted: G43.4 / G43.5" in r.stderr
     assert "G43.4 H1" in out.read_text().splitlines()
+
+
+def test_g43_1_before_the_first_move_posts_and_rs274_reads_the_output_as_we_do(tmp_path):
+    # G43.1's axis words are its tool offset, not a move: refused before the first move as "axis words with no
+    # motion mode in force" (exit 3, a QA pass), where rs274 reads the program (USE_TOOL_LENGTH_OFFSET(0 0 0, ...))
+    from rs274_helpers import assert_rs274_reads_as_we_do
+
+    src, out = tmp_path / "g.ngc", tmp_path / "out.ngc"
+    src.write_text("G21 G90 G17 G94\nG43.1 Z0\nG0 X10 Y20 Z-100\nG1 X20 F300\nM2\n")
+    r = run_cli("post", src, "-o", out, "--machine", XH714, "--offsets-zero")
+    assert r.returncode == 0, r.stderr
+    text = out.read_text()
+    assert "G43.1 Z0" in text.splitlines()
+    moves = assert_rs274_reads_as_we_do(text, tmp_path / "rs274")
+    # the two moves, compensated (xh714's correction there: micrometres), G43.1's own words left alone
+    nominal = np.array([[10.0, 20.0, -100.0], [20.0, 20.0, -100.0]])
+    assert moves.kind == ["traverse", "feed"]
+    np.testing.assert_allclose(moves.end[:, :3], nominal, atol=0.02)
+    assert np.abs(moves.end[:, :3] - nominal).max() > 1e-3
+
+
+@pytest.mark.parametrize("block, said", [("G1 G43.1 Z-50 F300", "G43.1 and a move in one block"),
+                                         ("G92 G43.1 Z5", "G43.1 and G92 in one block")])
+def test_g43_1_sharing_its_axis_words_with_a_move_or_g92_is_refused(tmp_path, block, said):
+    # The post rewrites a move's end (and a G92's values) with the correction; in a G43.1 block the same words are
+    # the tool offset: written as G1 G43.1 X10.00275 Y19.99149 Z-49.99472, the control took an offset of X 10, Y 20
+    # (exit 0). Refused, naming the block; with G43.1 in a block of its own the program posts and keeps its offset.
+    from rs274_helpers import assert_rs274_reads_as_we_do
+    from trueaxis.postproc.post import PostError
+
+    m = load_machine(XH714)
+    text = f"G21 G90 G17 G94\nG0 X10 Y20 Z-100\n{block}\nG1 X20 F300\nM2\n"
+    with pytest.raises(PostError, match=rf"^p.ngc:3: {said}: its axis words are G43.1's tool offset"):
+        compensate(text, m, "geometric", setup=ZERO, source="p.ngc")
+    apart = text.replace("G1 G43.1 Z-50 F300", "G43.1 Z-50\nG1 Z-50 F300").replace("G92 G43.1 Z5", "G43.1 Z5\nG92 Z5")
+    out = compensate(apart, m, "geometric", setup=ZERO, source="p.ngc")
+    assert any(line.startswith("G43.1 Z") and " X" not in line for line in out.splitlines())
+    moves = assert_rs274_reads_as_we_do(out, tmp_path / "rs274")
+    nominal = parse_program(apart, setup=ZERO)
+    np.testing.assert_allclose(moves.end[:, :3], nominal.end[:, :3], atol=0.02)
+    assert np.abs(moves.end[:, :3] - nominal.end[:, :3]).max() > 1e-3
 
 
 def test_an_unknown_modal_code_is_refused_unless_passed_through(tmp_path):

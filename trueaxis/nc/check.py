@@ -6,7 +6,8 @@
   pass, as rs274 lets it: the other code moves), two M codes of one modal group (``M3 M4``), more than
   five M codes;
 - two G codes that both use the axis words (``G0 G28 X1``: a motion and G10 / G28 / G30 / G52 / G92);
-- words that nothing in the block uses: axis words with no motion mode (``G80 X1``, or ``X1`` before any G0 / G1),
+- words that nothing in the block uses: axis words with no motion mode (``G80 X1``, or ``X1`` before any G0 / G1;
+  not G43.1's, which are its tool offset: ``G43.1 Z0`` before the first move is read),
   an R word with no arc, canned cycle or G10 (``R5``), I / J / K with no arc, P with no code that takes it, Q with no
   peck cycle, L with no cycle or G10;
   (with ``--passthrough-unsupported``, axis words after G80 are read as Fanuc controls read them, with the motion
@@ -347,13 +348,16 @@ def _check_block(block: str, state, passthrough: bool, fail):
     if "F" in letters:
         state.feed_reset = False
 
+    # G43.1's axis words are its tool offset: with no motion code in the block they use no motion mode, so none need
+    # be in force (rs274's enhance_block: G43.1 Z0 before the first move, or after G80, is read)
+    offset_words = seen.get(8) == 431 and g1 is None
     if g1 is not None:
         to_be = g1
-    elif axes and g0 not in _AXIS_USERS:
+    elif axes and g0 not in _AXIS_USERS and not offset_words:
         to_be = motion
     else:
         to_be = None
-    if axes and g0 not in _AXIS_USERS and g0 != 530 or (axes and g0 == 530):
+    if axes and g0 not in _AXIS_USERS and not offset_words:
         if to_be is None or (to_be == 800 and not (passthrough and g1 is None)):
             fail(_no_motion(to_be if g1 is not None or motion == 800 else None))
     if state.feed_reset and (to_be in (10, 20, 30) or to_be in _CYCLES):

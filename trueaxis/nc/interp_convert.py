@@ -40,8 +40,13 @@ class Conversion:
         if mnums:
             meta_changed |= self.convert_m(line_no, mnums)
         if tlo_codes:
-            ax, changed = self.tool_length(line_no, gnums, fvals, ax)
-            meta_changed |= changed
+            meta_changed |= self.tool_length(line_no, gnums, fvals, ax)
+            if 431 in gnums and new_motion is None and nonmodal not in (100, 280, 300, 920):
+                # G43.1 took the axis words as its offset and nothing else in the block uses them: no move with the
+                # modal motion mode (rs274's enhance_block). A motion code, G10, G28, G30 or G92 in the block takes
+                # them too (``G1 G43.1 Z5``: the offset Z5, then a move to Z5 under it; ``G28 G43.1 Z5`` homes Z
+                # through Z5).
+                ax = []
         if new_motion in (0, 10, 20, 30, 800):
             self.cycle_words["il_flag"] = False
         if gnums or mnums or "F" in fvals:
@@ -174,8 +179,8 @@ class Conversion:
         return meta_changed
 
     def tool_length(self, line_no, gnums, fvals, ax):
-        """G43 / G43.1 / G43.2 / G49, after the tool change: (the axis words left for the motion, the setup
-        changed)."""
+        """G43 / G43.1 / G43.2 / G49, after the tool change (G43.1: the block's axis words ``ax`` are its offset):
+        whether the setup changed."""
         meta_changed = False
         zero_ok, u_scale = self.zero_ok, self.u_scale
         for g in gnums:
@@ -190,7 +195,6 @@ class Conversion:
                 new = tlo.copy()
                 for i, v in ax:
                     new[i] = v
-                ax = []
                 self.tlo_h, self.tlo_reason = -2, ""
                 rec = {"tool": -2, "source": f"{self.source}:{line_no} (G43.1)", "how": "G43.1"}
             elif g == 432:
@@ -214,7 +218,7 @@ class Conversion:
             meta_changed = True
             rec["values"] = self.tlo * u_scale
             self.hist[("tlo", self.tlo_ver)] = rec
-        return ax, meta_changed
+        return meta_changed
 
     def convert_nonmodal(self, li, line_no, nonmodal, fvals, ax, words_mask):
         """The non-modal group: G10, G28 / G30 (and their .1), G92 and its variants (G4 has no effect on

@@ -395,6 +395,7 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
             poster = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep)
             poster.note_passed_through(error=output_mode != "tcp")
     else:
+        _refuse_rewritten_tool_offset_words(prog, source)
         poster = _Poster(prog, machine, mode, tol_um, max_correction_mm, singular_deg, conditions, rep)
         poster.fit_arcs = arcs_default(machine) if arcs is None else bool(arcs)
         # the setup's tool diameters (mm): a cut's tool as the control knows it, before the machine file's tool
@@ -639,6 +640,28 @@ def _check_axes(prog: Program, machine: Machine, source: str):
             line = int(prog.line_no[rows[0]]) if rows.size else 1
             raise PostError(source, line, f"the program moves axis {letter}, which {machine.name} does not have "
                                           f"(its axes: {' '.join(machine.axis_names)})")
+
+
+def _refuse_rewritten_tool_offset_words(prog: Program, source: str):
+    """PostError at a block whose axis words are both G43.1's tool offset and words the post rewrites: a compensated
+    move's end (``G1 G43.1 Z-50``: the offset Z-50, then a move to Z-50 under it) or a G92 / G10 L20 it shifts with
+    the correction. Rewritten, the words would set the offset too: the block came out as ``G1 G43.1 X10.00275
+    Y19.99149 Z-49.99472``, which the control reads as an offset of X 10, Y 20 (the tip 10 and 20 mm off on every
+    later move; exit 0). Only programs that apply G43.1 are looked at (``setup_used``), and there only the lines the
+    post rewrites."""
+    if not any(u.get("applied_by") == "G43.1" for u in prog.setup_used):
+        return
+    g43_1 = re.compile(r"(?i)G[ \t]*0*43\.10*(?!\d)")
+    moved = np.unique(prog.line_index[np.isin(prog.kind, (ROW_PROGRAMMED, ROW_CYCLE))])
+    shifted = {li: what for li, _, what in prog.position_sets}
+    for li in sorted(set(moved.tolist()) | set(shifted)):
+        code, _ = _split_comment(_split_ending(prog.lines[li])[0])
+        if g43_1.search(code):
+            line = int(li + 1 if prog.source_line is None else prog.source_line[li])
+            other, what = (shifted[li], "the offset it sets") if li in shifted else ("a move", "the move's end")
+            raise PostError(source, line, f"G43.1 and {other} in one block: its axis words are G43.1's tool offset "
+                                          f"as well as {what}, which the post changes by the correction; so written "
+                                          "they would change the tool offset too: put G43.1 in a block of its own")
 
 
 # --------------------------------------------------------------------------------------------------- internals ---
@@ -1289,14 +1312,29 @@ class _Poster:
         self._local.publish.set()
 
         pieces, arc_kept, arc_mode = {}, np.zeros(0, np.int64), {}
-        # a straight feed from a start the program has not fixed: its end is compensated, its path cannot be judged
-        feed_rows = np.nonzero((p.motion[rows] == FEED) & self.start_known[rows])[0]
+        # straight feeds (and, in TCP output, rapids that turn a rotary axis) are split; one from a start the program
+        # has not fixed is not: its end is compensated, its path cannot be judged
+        straight = (p.motion[rows] == FEED) | self._tcp_rotary_rapids(rows, q_start, q_end)
+        feed_rows = np.nonzero(straight & self.start_known[rows])[0]
         pieces.update(self._split_lines(rows, feed_rows, q_start, q_end, force, inch, q_cmd, end_poses))
         if np.any(arcs):
             arc_pieces, arc_kept, arc_mode = self._arcs(rows, np.nonzero(arcs)[0], q_start, (q_end, q_cmd), force,
                                                         inch, delta_prog)
             pieces.update(arc_pieces)
         return delta_prog, dq, pieces, (arc_kept, arc_mode)
+
+    def _tcp_rotary_rapids(self, rows, q_start, q_end):
+        """(K,) bool: the rapids of ``rows`` that turn a rotary axis, in TCP output (none in joint output), which are
+        split like feed moves. A control in TCP kinematics (LinuxCNC's trt kinematics, a G43.4) plans every move,
+        rapids too, as a straight line of the tool tip in the table's frame with the rotary axes linear; the input's
+        rapid is joint-interpolated. Written as one block, a rapid of C -300 deg took the joints up to 86 mm outside
+        the box of its ends and Z 35 mm below both (a QA pass); split, the tip follows the input's rapid path within
+        the tolerance, as a feed move's does. (A rapid does not cut, but it must not go where the input's does not:
+        clamps, the part, the table.)"""
+        if self.tcp is None:
+            return np.zeros(rows.size, bool)
+        rot = self.rotary_columns
+        return (self.p.motion[rows] == RAPID) & np.any(q_start[:, rot] != q_end[:, rot], axis=1)
 
     def _summarise(self, max_abs, rms):
         """Report the correction per axis: max and RMS over the move ends (um or urad)."""
@@ -1340,7 +1378,8 @@ class _Poster:
         return p.to_machine(tang6, arc_rows)[:, :3] - p.to_machine(np.zeros_like(tang6), arc_rows)[:, :3]
 
     def _split_lines(self, rows, feed_idx, q_start, q_end, force, inch, q_cmd_end, end_poses, max_rounds=10):
-        """Straight feed moves: split until the actual path stays within tolerance of the nominal path.
+        """Straight feed moves (and TCP output's rotary rapids, ``_tcp_rotary_rapids``): split until the actual path
+        stays within tolerance of the nominal path.
 
         The nominal path is the one the control makes of the programmed move: the axes interpolated linearly (in five
         axes a curve in the part frame). The compensated move is linear in the commanded axes between its pieces'
@@ -1859,7 +1898,9 @@ class _Poster:
         if centres is not None and np.isnan(centres[0, 0]):  # a fitted arc's first piece is straight
             motion = FEED
         # G93: each piece takes its share of the block's time (the control interpolates the axes linearly in time,
-        # so a piece over the fraction df of the move takes df of it): inverse time F / df.
+        # so a piece over the fraction df of the move takes df of it): inverse time F / df. A rapid (split in TCP
+        # output) has no feed: its pieces take none.
+        inverse = inverse and motion != RAPID
         if inverse:
             fractions = self.fractions.get(r)
             piece_f = p.feed[r] / np.diff(np.linspace(0.0, 1.0, n + 1) if fractions is None else fractions)
