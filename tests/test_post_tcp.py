@@ -259,6 +259,25 @@ def test_tcp_output_refuses_what_it_cannot_write(tmp_path):
         post_text(src, m, "geometric", setup=load_setup(tool_table=tools, offsets_zero=True), output_mode="tcp")
 
 
+def test_tcp_output_refuses_machine_positions_where_the_table_is_turned():
+    # G53 / G28 / G30 words are joint positions; under TCP kinematics the control reads them as the tip in the table's
+    # frame, the same only with the rotary axes at zero (the trt kinematics are the identity there: checked with
+    # _control_joints). With the table turned they were passed through with a warning only (a QA pass).
+    m = load_machine(ROOT / "fixtures" / "machines" / "bc_offset.toml")
+    setup = Setup(offsets_zero=True)
+    src = _program(m, "B", [(-20, 30), (-35, 120), (-10, 200), (-50, -40)])
+    w = np.array([[10.0, 20.0, 30.0, 0.0, 0.0, 0.0], [-40.0, 5.0, 60.0, 0.0, 360.0, 720.0]])
+    np.testing.assert_allclose(_control_joints(m, "B", "2.9", w)[:, :3], w[:, :3], atol=1e-9)
+    turned = src.replace("M2\n", "G53 G0 Z90\nM2\n")
+    with pytest.raises(PostError, match=r":9: TCP output: a G53 move with a rotary axis off zero is not written"):
+        post_text(turned, m, "geometric", setup=setup, output_mode="tcp")
+    at_zero = src.replace("M2\n", "G0 B0 C360\nG53 G0 Z90\nM2\n")
+    out, _ = post_text(at_zero, m, "geometric", setup=setup, output_mode="tcp", header=False)
+    assert "G53 G0 Z90" in out.splitlines()
+    joint, _ = post_text(turned, m, "geometric", setup=setup, output_mode="joint", header=False)
+    assert "G53 G0 Z90" in joint.splitlines()  # joint output: the joints, as written
+
+
 def test_machine_file_output_mode_is_read_and_written_back(tmp_path):
     from trueaxis.machine.machine_file import dump_machine
 

@@ -103,6 +103,32 @@ def refuse_tool_length(prog, source: str) -> None:
                                                             "would miss by about L sin B); use --output-mode joint")
 
 
+def refuse_machine_positions_turned(prog, machine, source: str) -> None:
+    """PostError for a G53 move or a G28 / G30 return in TCP output where a rotary axis stands off zero (mod 360 deg)
+    at its start or end. Their words are the joints' positions, written as given; under TCP kinematics the control
+    reads them as the tip's position in the table's frame, which is the joints' only with the rotary axes at zero
+    (LinuxCNC's trt kinematics are the identity there): elsewhere the tool goes somewhere else entirely, on a straight
+    line of the tip while the table turns (a QA pass: passed through with a warning only)."""
+    from ..nc.gcode import AXES, ROW_MACHINE, ROW_REFERENCE
+    from .post import PostError
+
+    rows = np.nonzero(np.isin(prog.kind, (ROW_MACHINE, ROW_REFERENCE)))[0]
+    cols = [AXES.index(a) for a in machine.rotary_axes]
+    if rows.size == 0 or not cols:
+        return
+    ends = np.stack([prog.to_machine(prog.start[rows], rows), prog.to_machine(prog.end[rows], rows)])[..., cols]
+    off_zero = np.abs((ends + 180.0) % 360.0 - 180.0) > 1e-9  # deg
+    turned = np.nonzero(off_zero.any(axis=(0, 2)))[0]
+    if turned.size:
+        r = int(rows[turned[0]])
+        what = "G53 move" if prog.kind[r] == ROW_MACHINE else "G28 / G30 return"
+        raise PostError(source, int(prog.line_no[r]), f"TCP output: a {what} with a rotary axis off zero is not "
+                                                      "written (its words are joint positions; under TCP kinematics "
+                                                      "the control reads them as the tip's position in the table's "
+                                                      "frame, the same only with the rotary axes at zero): move it "
+                                                      "where the rotary axes stand at 0, or --output-mode joint")
+
+
 def tcp_lines(prog, machine, source: str) -> list:
     """The program's lines for TCP output: every ``G43`` (tool length compensation from the table, ``G43 H..``) made
     the machine's TCP code (``[kinematics] tcp_code``, default ``G43.4``: Fanuc-style tool centre point with the tool
@@ -115,6 +141,7 @@ def tcp_lines(prog, machine, source: str) -> list:
     from .post import PostError, _split_comment, _split_ending
 
     refuse_tool_length(prog, source)
+    refuse_machine_positions_turned(prog, machine, source)
     code = getattr(machine, "tcp_code", "G43.4")
     if np.any(prog.kind == ROW_CYCLE):
         r = int(np.argmax(prog.kind == ROW_CYCLE))
