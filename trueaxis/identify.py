@@ -542,6 +542,9 @@ def _fit_identifiable(system: _System, chosen, typical, max_relative_std, na, no
 ALIGNMENT_TYPICAL = 1000.0  # um, urad: a best fit moves the part freely
 SETUP_NAMES = ("TX", "TY", "TZ")  # the set-up offset: a translation of the part in its frame, um
 SETUP_PLAUSIBLE = 3.0  # a set-up offset fitted beyond this many prior sigma is the machine's translation of the part
+#: With the set-up offset free, a change beyond this many typical sizes (``typical_magnitude``) is refused (a drift of
+#: the machine that large between two parts is implausible; an unmodelled effect absorbed is not).
+IMPLAUSIBLE_TYPICAL = 6.0
 #: Fewest held-out points for the held-out check of a fit (as for the points used at all): with fewer the check
 #: cannot run, and an identification it cannot check is never accepted.
 MIN_HELDOUT_POINTS = 10
@@ -1087,6 +1090,22 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         verdict, reasons = "no change", [
             f"the changes would explain {explained:.2f} um RMS, below {min_explained:g} x the noise ({noise:.2f} um): "
             f"the twin's values stand (residual {placed:.2f} um, deviation {dev_rms:.2f} um)"]
+    if verdict == "accepted" and setup and ridge is None:
+        # With the set-up offset free, a change that moves the part mostly as a translation is fixed only by what
+        # else it does, and the set-up cancels its translation on this part while the written twin applies it to the
+        # next: an effect the twin does not describe (a 4 um backlash) then drives it far (YOC +103 um, truth 30, and
+        # EXC.sin2 -22 um, truth 0.7; the next cone 92 um RMS instead of 37, a QA pass). A change beyond
+        # IMPLAUSIBLE_TYPICAL typical sizes is not taken on one part with the set-up free.
+        far = [(col_names[j], float(theta[j]), typical[j]) for j in params_chosen
+               if abs(theta[j]) > IMPLAUSIBLE_TYPICAL * typical[j]]
+        if far:
+            verdict, reasons = "refused", [
+                "with the set-up offset free (its accuracy not given), changes beyond "
+                f"{IMPLAUSIBLE_TYPICAL:g} typical sizes are not taken from one part: "
+                + ", ".join(f"{n} {v:+.1f} ({abs(v) / t:.1f} x {t:g})" for n, v, t in far)
+                + "; the set-up offset cancels their translation here, and an effect the twin does not describe "
+                "(a backlash, a servo lag) can drive them: give the set-up's accuracy (--setup-sigma-um), measure a "
+                "second placement, or look with `trueaxis diagnose`"]
     nuisance_fit = (theta, std_all)
     if verdict == "no change":
         for i in np.nonzero(identified)[0]:
