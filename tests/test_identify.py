@@ -124,6 +124,10 @@ def test_identification_recovers_what_the_cone_sees_within_three_sigma(measured_
     # With the set-up known exactly (no set-up offset in the model) the part does identify it.
     known = identify(pts, nrm, dev, prog.text, prog.machine, parameters="location", setup_sigma_um=0.0)
     assert known.identified[names.index("ZOB")] and not known.setup_offset
+    # said on the terminal and in the report (a QA pass: nothing said what was assumed)
+    assert known.setup_known and not result.setup_known
+    assert "  set-up: known exactly, as given (--setup-sigma-um 0)" in "\n".join(known.verdict_lines())
+    assert known.as_report()["setup_note"].startswith("known exactly") and result.as_report()["setup_note"] is None
     _check_recovered(known, true)
     _check_recovered(result, true)
     # The fit leaves the probe noise (0.5 um) and the first-order model's few tenths.

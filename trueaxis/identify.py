@@ -542,6 +542,9 @@ def _fit_identifiable(system: _System, chosen, typical, max_relative_std, na, no
 ALIGNMENT_TYPICAL = 1000.0  # um, urad: a best fit moves the part freely
 SETUP_NAMES = ("TX", "TY", "TZ")  # the set-up offset: a translation of the part in its frame, um
 SETUP_PLAUSIBLE = 3.0  # a set-up offset fitted beyond this many prior sigma is the machine's translation of the part
+#: What the terminal and the report say when the set-up is given as known exactly (``setup_sigma_um`` 0).
+SETUP_KNOWN_NOTE = ("known exactly, as given (--setup-sigma-um 0): no set-up offset is fitted, so any offset of the "
+                    "part in its frame is taken as the machine's and written into the twin")
 #: With the set-up offset free, a change beyond this many typical sizes (``typical_magnitude``) is refused (a drift of
 #: the machine that large between two parts is implausible; an unmodelled effect absorbed is not).
 IMPLAUSIBLE_TYPICAL = 6.0
@@ -633,6 +636,11 @@ class Identification:
     std_setup: np.ndarray | None = None  # (P,) the share of std_alias a set-up offset of its prior size leaves
     placed_rms_um: float | None = None  # residual RMS of the twin as is with the nuisance alone fitted, um
     taken_by_setup: list = field(default_factory=list)  # parameters moving the part only as a free set-up does
+
+    @property
+    def setup_known(self) -> bool:
+        """The part's set-up said to be known exactly (``setup_sigma_um`` 0, alignment "none" or "datum")."""
+        return self.options.get("setup_sigma_um") == 0 and self.options.get("alignment") != "bestfit"
 
     @property
     def accepted(self) -> bool:
@@ -730,6 +738,7 @@ class Identification:
             # "none" / "datum": the part's set-up offset (a translation of the part in its frame), fitted as nuisance
             # with a prior of prior_sigma_um per direction; reported, never written to the twin
             "setup_offset": self.setup_offset,
+            "setup_note": SETUP_KNOWN_NOTE if self.setup_known else None,
             # bestfit: the changes' effect on the part that a rigid motion reproduces (the alignment hides it)
             "alignment_hidden_rms_um": None if self.hidden_rms_um is None else _r(self.hidden_rms_um),
             "deviation_rms_um": _r(self.deviation_rms_um),
@@ -770,6 +779,8 @@ class Identification:
                 if t.get(a + "_um") is not None) + " um")
             if t.get("note"):
                 out.append(f"  set-up: {t['note']}")
+        elif self.setup_known:
+            out.append(f"  set-up: {SETUP_KNOWN_NOTE}")
         if self.normals_flipped:
             out.append(f"  cloud normals: {self.normals_flipped} of {self.n_points} pointed into the part and were "
                        "flipped to its outward side")
