@@ -964,9 +964,9 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         # A free set-up offset takes every translation of the part: a parameter that moves this part only as a
         # translation does (the squareness of Z at the slot block's one depth) is the set-up's, not fitted (with it
         # the normal matrix is singular: the slot block's identification stopped at a Cholesky factorisation).
-        keep = _independent(system, np.r_[setup_cols, seen])
-        taken_by_setup = [col_names[c] for c in seen if c not in set(keep.tolist())]
-        seen = seen[np.isin(seen, keep)]
+        independent = np.isin(seen, _independent(system, np.r_[setup_cols, seen]))
+        taken_by_setup = [col_names[c] for c in seen[~independent]]
+        seen = seen[independent]
     candidates = _independent(system, np.r_[_independent(system, act[act < na]), seen])
     chosen, theta, cov, s2, dropped = _fit_identifiable(system, candidates, typical, max_relative_std, na,
                                                          s2_noise)

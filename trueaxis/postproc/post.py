@@ -701,6 +701,12 @@ class _WrittenEnd:
         self.k = np.full(n_rows, -1, np.int64)
         self.k[rows] = np.arange(rows.size)
 
+    def correction(self, r):
+        """(K, 6) the correction written at rows r (K,): ``self[r] - end[r]`` (zero for rows not compensated), as
+        the written end minus the nominal one, the numbers every user of it has taken."""
+        r = np.asarray(r)
+        return self[r] - self.end[r]
+
     def __getitem__(self, r):
         r = np.asarray(r)
         out = self.end[r]  # (a new array)
@@ -1147,7 +1153,7 @@ class _Poster:
         carried, c = np.zeros((special.size, 6)), np.zeros(6)
         for k, r in enumerate(special.tolist()):
             if k == 0 or r != special[k - 1] + 1:  # after a row of the program's own: the correction written there
-                c = np.zeros(6) if written is None or r == 0 else written[np.array([r - 1])][0] - p.end[r - 1]
+                c = np.zeros(6) if written is None or r == 0 else written.correction([r - 1])[0]
             c = np.where(exact[k], 0.0, c)
             carried[k] = c
         inch = p.inch[special]
@@ -1740,7 +1746,7 @@ class _Poster:
             r = int(np.searchsorted(p.line_index, li, side="left")) - 1  # the last row before the block
             if r < 0:
                 continue
-            c = written_end[np.array([r])][0] - p.end[r]
+            c = written_end.correction([r])[0]
             if not np.any(c[axes]):
                 continue
             text = out[li] if isinstance(out, list) or li in out else p.lines[li]
