@@ -220,6 +220,20 @@ def test_arcs_default_on_for_three_axis_mills_only(xh714):
     assert default == on
 
 
+def test_arcs_asked_for_where_the_orientation_is_corrected_are_lines_and_said(tmp_path):
+    # A five-axis program's arcs stay straight pieces with --arcs (the correction turns the rotary axes along the
+    # arc): that was silent; the output is the one without --arcs, and a warning says why. Not said when not asked.
+    m = load_machine(ROOT / "fixtures" / "machines" / "nmv1500dcg.toml")
+    text = "G21 G90 G17 G54\nG0 X10 Y0 Z5 B0 C0\nG1 Z-1 F500\nG2 X0 Y10 I-10 J0\nG1 X-5\nM2\n"
+    kw = dict(setup=Setup(offsets_zero=True), header=False)
+    on, rep_on = post_text(text, m, "geometric", arcs=True, **kw)
+    default, rep_default = post_text(text, m, "geometric", arcs=None, **kw)
+    assert on == default and rep_on.arcs_linearised == 1 and rep_on.arcs_fitted == 0
+    said = [w for w in rep_on.warnings if "--arcs" in w]
+    assert len(said) == 1 and "1 arc written as straight pieces" in said[0] and "orientation" in said[0]
+    assert not [w for w in rep_default.warnings if "--arcs" in w]
+
+
 def test_cli_arcs_flags(tmp_path):
     src = DATA / "inch_half_circle.ngc"
     cmd = [sys.executable, "-m", "trueaxis.cli", "post", str(src), "--machine",

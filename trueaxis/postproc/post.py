@@ -408,6 +408,10 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
             prog.lines = tcp_lines(prog, machine, source)  # the program's G43 H.. made the control's TCP code
         out, rep = poster.run()
         _refuse_long_lines(out, prog, source)
+        if arcs and rep.arcs_linearised and (poster.orientation or poster.tcp is not None):
+            # asked for and never done on such a program: said (it was silent); elsewhere the summary's count says
+            # how many arcs a check or the G91 / G93 rule left as lines
+            rep.warnings.append(_arcs_not_fitted_warning(source, rep.arcs_linearised, poster))
     if header:
         out = with_header(out, rep, machine)
     return out, rep
@@ -485,6 +489,17 @@ def arcs_default(machine: Machine) -> bool:
     (its programs' arcs may turn a rotary axis, which the fit does not model) nor on a lathe (its loads follow the
     direction of motion along the arc: fitted arcs there are an option, ``arcs=True``)."""
     return machine.kind == "mill" and not machine.rotary_axes
+
+
+def _arcs_not_fitted_warning(source: str, n: int, poster) -> str:
+    """The warning for ``n`` arcs written as straight pieces although fitted arcs were asked for (``arcs=True``)."""
+    if poster.tcp is not None:
+        why = "TCP output writes straight pieces only (the control turns an arc's plane with the table)"
+    else:
+        why = ("arcs are fitted only where the tool orientation is not corrected (on this machine the correction "
+               "turns the rotary axes along the arc, which a G2 / G3 block cannot carry)")
+    return (f"{source}:1: --arcs: {n} arc{'s' if n != 1 else ''} written as straight pieces: {why}; the output is "
+            "corrected all the same")
 
 
 def _refuse_posted(text: str, source: str):
