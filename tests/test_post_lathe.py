@@ -232,6 +232,23 @@ def test_diameter_mode_program_is_compensated_like_its_radius_mode_twin(lathe, t
     assert_rs274_reads_as_we_do(out_g7, tmp_path, name="lathe_g7.ngc")
 
 
+def test_the_summary_says_a_lathe_x_correction_is_a_radius_when_g7_words_are_diameters(lathe, tmp_path):
+    # The summary's X correction is a radius; in G7 the written X words change by twice it (a QA pass compared 7.51 um
+    # in the summary with 15 um in the words). Said in the report and on the terminal; not in G8.
+    report = {}
+    compensate(_in_diameter_mode(TURNING), lathe, "geometric", report=report)
+    assert "twice" in report["correction"]["X"]["diameter_words"]
+    report = {}
+    compensate(TURNING, lathe, "geometric", report=report)
+    assert "diameter_words" not in report["correction"]["X"]
+    src = tmp_path / "g7.ngc"
+    src.write_text(_in_diameter_mode(TURNING))
+    run = subprocess.run([sys.executable, "-m", "trueaxis", "post", str(src), "--machine", str(MACHINES / "lathe.toml"),
+                          "--offsets-zero", "-o", str(tmp_path / "out.ngc")], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert "(a radius: G7's X words change by twice it)" in run.stdout
+
+
 def test_arcs_in_diameter_mode_are_refused_with_the_block(lathe):
     with pytest.raises(PostError, match=r":6: arcs and canned cycles in lathe diameter mode \(G7\)"):
         compensate(_in_diameter_mode(PROGRAM), lathe, "geometric")

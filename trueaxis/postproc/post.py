@@ -1363,6 +1363,10 @@ class _Poster:
         for j, a in enumerate(self.names):
             scale, unit = (1e6, "urad") if self.m.axes[a].is_rotary else (1e3, "um")
             out[a] = {f"max_abs_{unit}": float(max_abs[j] * scale), f"rms_{unit}": float(rms[j] * scale)}
+        if "X" in out and self.m.kind == "lathe" and bool(np.any(self.p.diameter)):
+            # a lathe's X correction is a radius; G7's X words are diameters and change by twice it (a QA pass
+            # read 7.51 um in the summary against 15 um in the words)
+            out["X"]["diameter_words"] = "X words in diameter mode (G7) change by twice this radius"
         self.rep.correction = out
 
     def _residual_check(self):
