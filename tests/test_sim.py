@@ -75,6 +75,16 @@ def test_trajectory_refuses_bad_input(xh714):
         interpolate(parse_program("G1 X1 F10\n"), xh714, dt=0)
 
 
+def test_trajectory_refuses_a_feed_per_revolution_and_takes_it_back_under_g94(xh714):
+    # G95's F is per spindle revolution: read as per minute, F0.2 made this 10 mm cut last 50 minutes of the clock.
+    with pytest.raises(ValueError, match=r":2: feed per revolution \(G95\)"):
+        interpolate(parse_program("G0 X0 Y0 Z5\nG95 G1 X10 F0.2\nM2\n"), xh714)
+    tr = interpolate(parse_program("G95\nG94 G1 X10 F600\nM2\n"), xh714, dt=1e-3)  # G94 again: a time of 1 s
+    assert tr.t[-1] == pytest.approx(1.0, abs=2e-3)
+    tr = interpolate(parse_program("G0 X0 Y0 Z5 (G95 in a comment)\nG1 X10 F600\nM2\n"), xh714, dt=1e-3)
+    assert tr.t[-1] > 0.99
+
+
 # ----------------------------------------------------------------------------------------------------- envelope ----
 def _straight_pass(offset, n=4001, axis=(0, 0, 1)):
     x = np.linspace(-20, 20, n)

@@ -117,6 +117,22 @@ FAST_READ = True
 FAST_READ_BLOCK = 4096
 
 
+#: G94 / G95 in a line's code (not in its comment): the feed mode it sets.
+_FEED_MODE = re.compile(r"(?i)(?<![A-Z])G\s*0*9([45])(?![.\d])")
+
+
+def feed_per_revolution_lines(lines) -> np.ndarray:
+    """(L,) bool per line of ``lines``: the feed is per spindle revolution there (G95 in force; G94 at the start, as
+    LinuxCNC starts). G93 is the Program's ``inverse_time``."""
+    mode, out = 94, np.empty(len(lines), bool)
+    for i, line in enumerate(lines):
+        code = line.split("(", 1)[0].split(";", 1)[0]
+        for m in _FEED_MODE.finditer(code):
+            mode = 90 + int(m.group(1))
+        out[i] = mode == 95
+    return out
+
+
 def split_lines(text: str) -> list:
     """The lines of ``text`` with their endings (``"".join(split_lines(t)) == t``), split at \n, \r\n and \r only."""
     # (ASCII text: its five other breaks looked for one by one, faster than the class over all of it)

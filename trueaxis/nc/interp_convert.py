@@ -81,7 +81,8 @@ class Conversion:
                 self.inverse = True
             elif g in (940, 950):
                 if g == 950:
-                    self.warn(line_no, "G95 feed per revolution: feed values are per revolution")
+                    self.warn(line_no, "G95 feed per revolution: the post writes the F words as given; a time along "
+                              "the program (simulate, diagnose) needs G94 or G93")
                 self.inverse = False
             elif g in (170, 180, 190):
                 self.plane = g // 10

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..machine.model import Machine
+from .gcode import feed_per_revolution_lines
 
 AXES = "XYZABC"
 MM_PER_INCH = 25.4
@@ -118,6 +119,20 @@ def _arc_geometry(start, end, center, plane, motion, turns):
     return first, second, normal, a0, sweep, radius, dn
 
 
+def _refuse_feed_per_revolution(program, cut) -> None:
+    """ValueError naming the first feed move under G95: its F is per spindle revolution, and the spindle speed (and
+    under G96 the turned radius) that would make it a time is not read here. (It was read as per minute: F0.2 mm/rev
+    made a 100 mm cut last 500 minutes of the virtual shop's clock.)"""
+    if not program.lines:
+        return
+    per_rev = feed_per_revolution_lines(program.lines)[program.line_index] & cut
+    if np.any(per_rev):
+        i = int(np.argmax(per_rev))
+        raise ValueError(f"{program.source}:{program.line_index[i] + 1}: feed per revolution (G95): a time along the "
+                         "program needs the feed per minute, and the spindle speed is not read; give the program in "
+                         "G94 (or G93) to simulate or diagnose it")
+
+
 def _durations(program, delta, lin_len, rot_len_deg, dt, rapid_mm_min, rapid_deg_min, rapid_settle_s):
     """Each row's duration (s: whole interpolation periods, a rapid's settling time added), its moving time and its
     path speed (mm/min, or deg/min for a rotary-only move)."""
@@ -139,6 +154,7 @@ def _durations(program, delta, lin_len, rot_len_deg, dt, rapid_mm_min, rapid_deg
     if np.any(bad):
         i = int(np.argmax(bad))
         raise ValueError(f"{program.source}:{program.line_index[i] + 1}: feed move with zero feed rate")
+    _refuse_feed_per_revolution(program, cut)
     inv = program.inverse_time.astype(bool)
     with np.errstate(divide="ignore", invalid="ignore"):
         t_g94 = np.where(lin_len > 1e-12, lin_len / feed_mm, rot_len_deg / feed) * 60.0

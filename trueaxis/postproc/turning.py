@@ -21,12 +21,11 @@ array is (K, 3 + n_axes): the force on the tool (N, machine frame), then the dir
 
 from __future__ import annotations
 
-import re
 
 import numpy as np
 
 from ..machine.turning_force import TurningCoefficients, TurningConditions, force_on_tool, turning_force_components
-from ..nc.gcode import ARC_CCW, ARC_CW, RAPID
+from ..nc.gcode import ARC_CCW, ARC_CW, RAPID, feed_per_revolution_lines
 from .post import PostError, condition_marks
 
 __all__ = ["MotionTwin", "lathe_loads"]
@@ -168,9 +167,6 @@ def lathe_loads(poster, rows) -> np.ndarray:
     return np.hstack([force, signs[rows]])
 
 
-_FEED_MODE = re.compile(r"(?i)\bG\s*0*9([45])(?![.\d])")
-
-
 def _say_feed_disagreements(poster, rows, conditions, groups):
     """A warning, once, where the program feeds per revolution (G95) at another feed than its conditions comment's
     f: the force is computed from the comment's f, while the machine feeds at F (a QA pass: F0.4 under a comment
@@ -179,17 +175,11 @@ def _say_feed_disagreements(poster, rows, conditions, groups):
         return
     p = poster.p
     state = poster.__dict__.get("_feed_mode")
-    if state is None:  # per line: 95 under G95, else 94 (G94 at start, as LinuxCNC starts)
-        mode, modes = 94, np.empty(len(p.lines), np.int16)
-        for i, line in enumerate(p.lines):
-            code = line.split("(", 1)[0].split(";", 1)[0]
-            for m in _FEED_MODE.finditer(code):
-                mode = 90 + int(m.group(1))
-            modes[i] = mode
-        state = poster._feed_mode = modes
+    if state is None:  # per line: G95 in force
+        state = poster._feed_mode = feed_per_revolution_lines(p.lines)
     for c, ks in groups.items():
         r = np.asarray(rows)[ks]
-        per_rev = state[p.line_index[r]] == 95
+        per_rev = state[p.line_index[r]]
         feed_mm = p.feed[r] * np.where(p.inch[r], 25.4, 1.0)
         off = per_rev & (feed_mm > 0) & (np.abs(feed_mm - c.f_mm) > 0.01 * c.f_mm)
         if off.any():
