@@ -444,14 +444,13 @@ def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray, boun
     derived = []
     for c0 in cands:
         off = sum(c.n_parameters for c in cands[: cands.index(c0)])
-        for name, unit, idx in c0.derived:
-            w = np.zeros(p)
-            w[[off + i for i in idx]] = 1.0
+        for dv in c0.derived:
+            w = dv.vector(p, off)
             sd_ls = math.sqrt(max(float(w @ cov_unit @ w) * s2, 0.0))
             sd_jk = math.sqrt((k - 1) / k * float(np.sum((ft @ w - (ft @ w).mean()) ** 2))) if k > 1 else 0.0
-            derived.append({"name": name, "unit": unit, "value": float(w @ theta),
+            derived.append({"name": dv.name, "unit": dv.unit, "value": float(w @ theta),
                             "std": math.hypot(max(sd_ls, sd_jk), form_rel * float(w @ theta)),
-                            "std_stat": max(sd_ls, sd_jk)})
+                            "std_stat": max(sd_ls, sd_jk), "determined": dv.determined, "note": dv.note})
     if derived:
         extra["derived"] = derived
     return Fit(name="+".join(c.name for c in cands), members=[c.name for c in cands],
@@ -947,8 +946,10 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         conf_info = {"z_over_tool_wear_shadow": shadow_z}
         # How sure "none" is: the closest candidate's share of the gap above the noise against what a verdict needs.
         closest_share = max([f.explained_share for f in sig] or [0.0])
+        # (Nothing significant: the surer the further the best fit's z stays below Z_MIN; a z far above it with
+        # nothing significant, a noise given far too large, gives 0, not a negative number: -17.10 was printed.)
         confidence = float(np.clip(1.0 - closest_share / EXPLAIN_SHARE, 0.0, 1.0)) * 0.5 + 0.5 if sig else \
-            float(min(0.99, 0.5 + 0.5 * (1.0 - max(0.0, fits[0].z if fits else 0.0) / Z_MIN)))
+            float(np.clip(0.5 + 0.5 * (1.0 - max(0.0, fits[0].z if fits else 0.0) / Z_MIN), 0.0, 0.99))
         if shadowed is not None:
             # The wear-like shadow beat the best candidate on held-out points: the stronger, the surer.
             confidence = 0.5 + 0.3 * float(np.clip((-shadow_z - Z_SHADOW) / 4.0, 0.0, 1.0))
@@ -960,6 +961,12 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
             # The gap is well above the noise and nothing here explains it: an effect outside the library, or one
             # the library holds in a form too poor for it. "None" is then the honest answer, but not a sure one.
             confidence = min(confidence, 0.6)
+        elif not estimated and ms_before < sigma**2 * (1.0 - CHI_Z * math.sqrt(2.0 / max(g.size, 1))):
+            # A gap well below the noise given: the noise given is too large (not a part the twin predicts).
+            notes.append(f"the gap's RMS {math.sqrt(ms_before):.2f} um is below the probe noise given "
+                         f"({sigma:.2f} um) by more than its sampling allows: the noise given is too large, and no "
+                         f"candidate can be significant against it; give the probe's noise, or leave --noise-um out "
+                         f"to have it estimated")
         else:  # nothing to explain: said so, not as a gap no candidate explains (a control read like a failure)
             notes.append(f"no gap above the noise: its RMS {math.sqrt(ms_before):.2f} um is the probe noise "
                          f"({sigma:.2f} um) within its sampling; the twin predicts this part")

@@ -423,7 +423,8 @@ def _chosen_dicts(diag: Diagnosis) -> list[dict]:
         chosen.append({"effect": f.name, "members": f.members,
                        "parameters": _fit_dict(f)["parameters"],
                        "derived_parameters": [{"name": d["name"], f"value_{d['unit']}": d["value"],
-                                               f"std_{d['unit']}": d["std"], "unit": d["unit"]}
+                                               f"std_{d['unit']}": d["std"], "unit": d["unit"],
+                                               "determined": d.get("determined", True), "note": d.get("note", "")}
                                               for d in f.extra.get("derived", [])],
                        "variant": f.extra.get("variant"), "confidence": diag.confidence,
                        "plausible": f.plausible, "alternatives": diag.alternatives,
@@ -834,15 +835,28 @@ def verdict_words(verdict: str, confidence_basis: dict) -> str:
 
 def parameters_text(chosen: dict) -> str:
     """A verdict's parameters in words, from its JSON entry: the derived ones first where it has them (a servo axis'
-    lag, the sum of its loop's terms, which alone read as lags), then the fitted ones."""
+    lag less the axes' mean, which the part determines; the lags themselves, read but not determined), then the
+    fitted ones."""
     def said(p):
         value = p[next(k for k in p if k.startswith("value_"))]
         std = p[next(k for k in p if k.startswith("std_"))]
         return f"{p['name']} = {value:.4g} ± {std:.2g} {p['unit']}"
 
     fitted = ", ".join(said(p) for p in chosen["parameters"])
-    derived = ", ".join(said(p) for p in chosen.get("derived_parameters") or [])
-    return f"{derived} (the sums of the fitted terms {fitted})" if derived else fitted
+    derived = chosen.get("derived_parameters") or []
+    if not derived:
+        return fitted
+    known = [p for p in derived if p.get("determined", True)]
+    unknown = [p for p in derived if not p.get("determined", True)]
+    text = ", ".join(said(p) for p in known)
+    if unknown:
+        read = ", ".join(f"{p['name']} {p[next(k for k in p if k.startswith('value_'))]:.3g}" for p in unknown)
+        why = unknown[0].get("note") or "not determined"
+        text += f"{'; ' if text else ''}not determined: {read} {unknown[0]['unit']} as read ({why})"
+    notes = sorted({p["note"] for p in known if p.get("note")})
+    if notes:
+        text += f" ({'; '.join(notes)})"
+    return f"{text}; from the fitted terms {fitted}"
 
 
 def next_part_lines(plan: dict | None) -> list[str]:
