@@ -118,7 +118,8 @@ from .machine.model import ROTATION_LETTER, SQUARENESS, unit_of
 from .inspect.deviation import outward_normals
 from .nc.gcode import Program, parse_program
 from .nc.trajectory import AXES, MM_PER_INCH, interpolate
-from .postproc.programs import ProgramError, check_axes, placed_for, program_compensation  # noqa: F401 (re-exported)
+from .postproc.programs import (ProgramError, check_axes, check_cut_share, placed_for,  # noqa: F401 (re-exported)
+                                program_compensation)
 
 UM_PER_MM = 1e3
 LEVER = 1e-3  # um of contact displacement per (urad of tool-axis error x mm of lever)
@@ -906,9 +907,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     x0 = x - (dev * 1e-3)[:, None] * n
     contacts = find_contacts(x0, n, twin_path, machine.tool.radius, machine.tool.flute_length, max_gap_mm=max_gap_mm)
     use = contacts.found & (omega0 > 0)
-    if use.sum() < 10:
-        raise ProgramError(f"only {int(use.sum())} of {x.shape[0]} points lie on a surface the program cut "
-                         f"(within {max_gap_mm} mm): is it the program that made this part, with this placement?")
+    check_cut_share(int(use.sum()), int((omega0 > 0).sum()), f"measured points (within {max_gap_mm} mm of its cut)")
     idx = np.nonzero(use)[0]
     uniq, inv = np.unique(contacts.sample[idx], return_inverse=True)
     w = contact_weights(n[idx], contacts.lever_mm[idx])

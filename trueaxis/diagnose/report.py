@@ -26,7 +26,7 @@ from ..fileio import json_text
 from ..nc.gcode import parse_program
 from .analysis import EXPLAIN_SHARE, Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from ..postproc.programs import ProgramError, check_axes, check_part_against_program, placed_for
+from ..postproc.programs import ProgramError, check_axes, check_cut_share, check_part_against_program, placed_for
 from .state import TwinState, combine_states, pauses_between, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
@@ -163,6 +163,7 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
                             part_json=pj, program_name=c.program_name)
             if len(st) < 20:
                 raise CloudError(f"only {len(st)} measured points were cut by the program: too few to diagnose")
+            check_cut_share(len(st), len(st) + st.dropped)  # as the identification and the virtual shop
             return set_apart_flyers(st, c.cloud_name)
 
         states.append(for_cut(k, c, read))
