@@ -430,3 +430,20 @@ def test_simulate_refuses_a_program_that_cuts_almost_none_of_the_part(slot_sim, 
                         r"%; at least 10 % and 10 points needed\): is it the program that made this part, with this "
                         r"placement\?", err), err
     assert not out.exists() and not (d / "few.truth.json").exists()
+
+
+def test_simulate_refuses_a_turning_comment_in_a_milling_program_naming_its_line(slot_sim, capsys):
+    # The turning comment's f= was "structured comment: unknown field 'f'", a ValueError: exit 2, a usage error, for a
+    # refused program. Now the program's refusal (exit 3, file:line) naming the comment as the turning one.
+    d, machine, prog, part_dir = slot_sim
+    lines = prog.read_text().splitlines()
+    at = next(i for i, ln in enumerate(lines) if ln.startswith("(trueaxis:"))
+    turned = d / "turned.ngc"
+    turned.write_text("\n".join(lines[:at + 1] + ["(trueaxis: ap=2 f=0.2 vc=180)"] + lines[at + 1:]) + "\n")
+    out, effects = d / "turned.ply", d / "force.toml"  # (the conditions are read for the cutting force)
+    effects.write_text("[force]\ncompliance_um_per_n = [[0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.01]]\n")
+    assert main(["simulate", str(turned), "--machine", str(machine), "--part", "slots", "--part-dir", str(part_dir),
+                 "--effects", str(effects), "-o", str(out), "--points", "300"]) == 3
+    assert _one_line_error(capsys) == (f"{turned}:{at + 2}: structured comment: unknown milling field 'f' (f= and vc= "
+                                       "are the turning comment's: a lathe program? the virtual shop mills)")
+    assert not out.exists()
