@@ -1402,3 +1402,37 @@ def test_a_verdict_that_makes_the_max_grow_beyond_the_noise_is_said():
     assert len(said) == 1 and "max grows (14.09 -> 22.13 um) while its RMS goes 5.00 -> 1.50 um" in said[0]
     assert max_growth_warning(diag(6.10, 7.33)) == []  # within the noise's extremes: not said
     assert max_growth_warning(SimpleNamespace(**{**vars(diag(1.0, 9.0)), "chosen_fit": None})) == []
+
+
+def test_a_program_without_its_setup_comment_is_said_placed_where_assumed_also_in_a_refusal(slots, tmp_path,
+                                                                                             capsys):
+    # The diagnosis took the machine file's placement of a program with no trueaxis-setup comment without a word
+    # (inspect --identify said what it assumed); a part cut 40 mm off then read "the cloud lies 8141 um from the
+    # part ... another program?" with no hint (a QA pass). Said now on the terminal, in diagnosis.json and the page,
+    # and in the refusal, in the words of programs.placement_assumed (which the identification prints too).
+    from trueaxis.cli import main
+    from trueaxis.diagnose.report import program_machine_warnings
+    from trueaxis.inspect.cloud import write_cloud_ply
+    from trueaxis.postproc.programs import SETUP_TAG
+
+    m, prog, _ = slots
+    r = _cut(m, prog, {"backlash": {"Y": {"amplitude": 8.0}}}, noise=1.0, seed=5, points=300)
+    write_cloud_ply(tmp_path / "cmm.ply", r.measured, r.normals)
+    (tmp_path / "p.ngc").write_text("".join(ln for ln in prog.text.splitlines(True) if SETUP_TAG not in ln))
+    said = (f"{tmp_path / 'p.ngc'}: the program has no trueaxis-setup comment: assumed the part at the machine file's "
+            "[workpiece] origin, 0, 0, -300 mm in M (placement 0) and the machine file's tool, d 10 mm")
+    assert program_machine_warnings(m, [(prog.text, "p.ngc")]) == []  # the program says both
+    args = ["diagnose", "--cloud", str(tmp_path / "cmm.ply"), "--part", "slots", "--program", str(tmp_path / "p.ngc"),
+            "--candidates", "backlash_y", "--noise-um", "1.0"]
+    assert main([*args, "--machine", "xh714", "-o", str(tmp_path / "rep")]) == 0
+    assert f"trueaxis diagnose: warning: {said}\n" in capsys.readouterr().err
+    assert said in json.loads((tmp_path / "rep" / "diagnosis.json").read_text())["warnings"]
+    assert said.replace("'", "&#x27;") in (tmp_path / "rep" / "diagnosis.html").read_text()
+    # the machine file places the part 40 mm off where the program cut it: refused, the assumption said
+    moved = tmp_path / "moved.toml"
+    moved.write_text((MACHINES / "xh714.toml").read_text().replace("origin = [0.0, 0.0, -300.0]",
+                                                                   "origin = [40.0, 0.0, -300.0]"))
+    assert main([*args, "--machine", str(moved), "-o", str(tmp_path / "rep2")]) == 3
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("trueaxis diagnose: ") and len(err.splitlines()) == 1 and not (tmp_path / "rep2").exists()
+    assert err.endswith("; note: " + said.replace("origin, 0, 0", "origin, 40, 0")), err

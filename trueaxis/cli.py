@@ -532,6 +532,8 @@ def cmd_inspect(args) -> int:
     if r["identification"].get("unexplained_note"):
         print(f"  note: {r['identification']['unexplained_note']}")
     print(f"  program: {r['identification']['program_compensation']['note']}")
+    if r["identification"].get("placement_assumed"):  # the words the diagnosis says it in
+        print(f"  program: {r['identification']['placement_assumed']}")
     if args.write and not identification.accepted:
         print(f"trueaxis inspect: {args.write} not written: identification refused ("
               + "; ".join(identification.reasons) + f"); see {out_dir / 'report.json'}", file=sys.stderr)

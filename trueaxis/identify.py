@@ -119,7 +119,7 @@ from .inspect.deviation import outward_normals
 from .nc.gcode import Program, parse_program
 from .nc.trajectory import AXES, MM_PER_INCH, interpolate
 from .postproc.programs import (ProgramError, check_axes, check_cut_share, placed_for,  # noqa: F401 (re-exported)
-                                program_compensation)
+                                placement_assumed, program_compensation)
 
 UM_PER_MM = 1e3
 LEVER = 1e-3  # um of contact displacement per (urad of tool-axis error x mm of lever)
@@ -1459,14 +1459,19 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
         normals = part_normals(cloud.points, part)
     parsed = parse_program(text, str(program_path))
     check_axes(placed, parsed)  # a program posted for another machine: refused before any work, as the diagnosis
-    result = identify(cloud.points, normals, deviation_um, parsed, placed,
-                      parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std,
-                      setup_sigma_um=math.inf if setup_sigma_um is None else setup_sigma_um)
+    assumed = placement_assumed(text, original)  # None: the program's setup comment says (the diagnosis' words)
+    try:
+        result = identify(cloud.points, normals, deviation_um, parsed, placed,
+                          parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std,
+                          setup_sigma_um=math.inf if setup_sigma_um is None else setup_sigma_um)
+    except ProgramError as exc:  # a part the program did not cut: where it was assumed placed is the likely cause
+        raise ProgramError(f"{str(exc).rstrip('?')}; note: {assumed}" if assumed else str(exc)) from None
     result = dataclasses.replace(result, normals_flipped=flipped)
     report = result.as_report()
     report["machine_file"] = str(machine)
     report["program"] = str(program_path)
     report["program_compensation"] = program_compensation(text, original)
+    report["placement_assumed"] = assumed
     if write is not None:
         if result.accepted:
             out = dataclasses.replace(original.with_parameters(result.value), note=_identified_note(original, result))

@@ -26,7 +26,8 @@ from ..fileio import json_text
 from ..nc.gcode import parse_program
 from .analysis import EXPLAIN_SHARE, Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from ..postproc.programs import ProgramError, check_axes, check_cut_share, check_part_against_program, placed_for
+from ..postproc.programs import (ProgramError, check_axes, check_cut_share, check_part_against_program, placed_for,
+                                 refuse_lathe)
 from .state import TwinState, combine_states, pauses_between, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
@@ -688,6 +689,7 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
         raise ValueError(f"{len(each)} part descriptions for {len(clouds)} clouds: give one for all, or one per "
                          f"--cloud in the same order")
     m = load_machine(machine)
+    refuse_lathe(m, part)  # (before the notes on the programs' placement below, which a lathe's refusal needs not)
     texts = [p.read_text(encoding="utf-8", errors="replace") for p in programs]
     cuts = []
     for c, p, text, pj in zip(clouds, programs, texts, each):
@@ -734,14 +736,18 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
 
 
 def program_machine_warnings(machine, programs: list) -> list[str]:
-    """A program posted for another machine (its header names the machine), one line each; read before any
-    simulation. programs : [(text, path)], one per cut."""
-    from ..postproc.programs import header_name, program_compensation, written_for
+    """A program posted for another machine (its header names the machine), what was assumed of a program's setup
+    that it does not say (``programs.placement_assumed``, as the identification says it), one line each; read before
+    any simulation, and added to a refusal. programs : [(text, path)], one per cut."""
+    from ..postproc.programs import header_name, placement_assumed, program_compensation, written_for
 
     out = []
     name = header_name(machine)
     models = machine.force_models()
     for program_text, program in programs:
+        assumed = placement_assumed(program_text, machine)  # said as the identification says it
+        if assumed:
+            out.append(f"{program}: {assumed}")
         posted = written_for(program_text)
         if posted and posted[0] != name:
             out.append(f"{program} was written for the machine {posted[0]!r}, the twin given is "

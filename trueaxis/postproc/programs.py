@@ -313,6 +313,25 @@ def check_cut_share(n_cut: int, n_points: int, what: str = "measured points") ->
                        f"this part, with this placement?")
 
 
+def placement_assumed(program_text: str, machine: Machine) -> str | None:
+    """What ``placed_for`` takes from the machine file because the program's setup comment does not say it (no
+    comment, or one without ``origin_mm`` / ``tool_d_mm``): one sentence, said by the identification and the
+    diagnosis alike (and added to a refusal, where a part placed elsewhere is the likely cause), or None when the
+    program says both."""
+    setup = read_setup(program_text)
+    assumed = []
+    if "origin_mm" not in setup:
+        assumed.append("the part at the machine file's [workpiece] origin, "
+                       f"{', '.join(f'{v:g}' for v in machine.workpiece_origin)} mm in M (placement 0)")
+    if "tool_d_mm" not in setup:
+        assumed.append(f"the machine file's tool, d {2 * machine.tool.radius:g} mm")
+    if not assumed:
+        return None
+    missing = " or ".join(k for k in ("origin_mm", "tool_d_mm") if k not in setup)
+    why = "the program has no trueaxis-setup comment" if not setup else f"the program's setup comment gives no {missing}"
+    return f"{why}: assumed {' and '.join(assumed)}"
+
+
 def refuse_lathe(machine: Machine, part: str | None) -> None:
     """ProgramError for a lathe: the test parts (the NAS 979 cone, the slot block) are milled with a flat end mill,
     which is all the virtual shop cuts, so a lathe cannot have cut a measured part and its twin is not simulated,
