@@ -577,9 +577,8 @@ def _html(data: dict, pngs: dict) -> str:
     alt = "".join(f"<p style='border:2px solid #c0392b;background:#fdecea;padding:4px'>Warning: {e(w)}</p>"
                   for w in data.get("warnings", [])) + alt
     if not data["chosen"] and data.get("closest_candidates"):
-        alt += "<p>Closest candidates (none explains the gap): " + "; ".join(
-            f"{e(c['effect'])}: {c['explained_share_above_noise'] * 100:.0f} % of the gap above the noise, "
-            f"{e(c['why_not'] or '')}" for c in data["closest_candidates"]) + ".</p>"
+        said = closest_text(data["closest_candidates"])
+        alt += f"<p>{e(said[:1].upper() + said[1:])}.</p>"
     b, a = data["gap_um"]["before"], data["gap_um"]["after"]
     imgs = "".join(f'<h3>{e(k)}</h3><img src="data:image/png;base64,{base64.b64encode(v).decode()}">'
                    for k, v in pngs.items())
@@ -825,10 +824,20 @@ def summary_lines(diag: Diagnosis, output, named_candidates: bool = False, next_
         out.append(f"  parameters: {parameters_text(_chosen_dicts(diag)[0])}")
     for note in diag.notes:
         out.append(f"  note: {note}")
+    if diag.chosen_fit is None and diag.closest:  # the page's words, from the same list
+        out.append(f"  {closest_text(diag.closest)}")
     if diag.skipped and named_candidates:
         out.append(f"  not applicable here: {', '.join(str(s) for s in diag.skipped)}")
     out += next_part_lines(next_part)
     return out
+
+
+def closest_text(closest: list) -> str:
+    """The closest candidates of a diagnosis with no verdict (``analysis.closest_candidates``) in one line, as the
+    terminal and the page say them."""
+    return "closest candidates (none explains the gap): " + "; ".join(
+        f"{c['effect']}: {c['explained_share_above_noise'] * 100:.0f} % of the gap above the noise (held-out RMS "
+        f"{c['held_out_rms_after_um']:.2f} um), {c['why_not'] or ''}" for c in closest)
 
 
 def verdict_words(verdict: str, confidence_basis: dict) -> str:
