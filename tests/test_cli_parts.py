@@ -366,3 +366,84 @@ def test_every_command_takes_a_fixture_machine_by_its_short_name(tmp_path, capsy
     assert main(["post", str(prog), "-o", str(tmp_path / "x.ngc"), "--machine", "nosuch"]) == 2
     err = _one_line_error(capsys)
     assert "nosuch" in err and "nmv1500dcg" in err and "xh714" in err
+
+
+LATHE_PROGRAM = """%
+G18 G21 G90 G7 G40 G49
+G10 L2 P1 X0 Z-100
+G54
+T1 M6
+G96 D2500 S180 M3
+G95 F0.2
+(trueaxis: ap=2 f=0.2 vc=180)
+G0 X84 Z2
+G1 Z-60
+G1 X90
+G0 Z2
+M5
+M30
+%
+"""
+
+
+def test_a_lathe_is_refused_for_a_milled_part_by_every_command_that_reads_it_against_the_part(tmp_path, capsys):
+    # A QA pass: a lathe program on a cone cloud was identified (NO CHANGE, residual 204 um, the twin written) from
+    # the 250 of 8000 points its passes reached, diagnosed into "unknown field 'f'" (exit 2: the turning comment),
+    # and simulated for six minutes into 241 points (exit 0). One check (programs.placed_for), exit 3, nothing written.
+    from trueaxis.inspect.cloud import write_cloud_ply
+    from trueaxis.resources import machine_file
+    from trueaxis.sim.cmm import probe_pattern
+    from trueaxis.workpiece.part import load_part
+
+    pts, nrm = probe_pattern(load_part("nas979"), 2000)
+    cloud, prog, lathe = tmp_path / "cone.ply", tmp_path / "t1.ngc", str(machine_file("lathe"))
+    write_cloud_ply(cloud, pts, nrm)
+    prog.write_text(LATHE_PROGRAM)
+    said = ("Two-axis CNC lathe (caliper response-surface paper) is a lathe: it cannot have cut the nas979 part (the "
+            "test parts are milled with a flat end mill): a lathe's twin is not simulated, identified or diagnosed "
+            "from a measured part")
+    runs = {"inspect": ["inspect", str(cloud), "--part", "nas979", "--identify", "--machine", lathe, "--program",
+                        str(prog), "--write", str(tmp_path / "twin.toml"), "-o", str(tmp_path / "rep")],
+            "diagnose": ["diagnose", "--cloud", str(cloud), "--part", "nas979", "--machine", lathe, "--program",
+                         str(prog), "-o", str(tmp_path / "diag")],
+            "simulate": ["simulate", str(prog), "--machine", lathe, "--part", "nas979", "-o", str(tmp_path / "x.ply")]}
+    for command, argv in runs.items():
+        assert main(argv) == 3, command
+        assert _one_line_error(capsys) == f"trueaxis {command}: {said}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cone.ply", "t1.ngc"]
+
+
+def test_simulate_refuses_a_program_that_cuts_almost_none_of_the_part(slot_sim, capsys):
+    # A program that cut 241 of 200,000 probe points was written as a cloud, exit 0 with a warning: below
+    # programs.MIN_CUT_SHARE (10 %) it is refused, exit 3, nothing written (a third of the part, one slot: written).
+    d, machine, prog, part_dir = slot_sim
+    text = prog.read_text()
+    lines = text[:text.index("(slot 2 of 3")].splitlines()
+    first_cut = next(i for i, ln in enumerate(lines) if re.match(r"G0?1\b", ln))
+    short = d / "a_few.ngc"
+    short.write_text("\n".join(lines[:first_cut + 1]) + "\nM30\n%\n")  # the first feed move of slot 1
+    out = d / "few.ply"
+    assert main(["simulate", str(short), "--machine", str(machine), "--part", "slots", "--part-dir", str(part_dir),
+                 "-o", str(out), "--points", "600"]) == 3
+    err = _one_line_error(capsys)
+    assert re.fullmatch(r"trueaxis simulate: the program cuts only (\d+) of the 594 probe points of the part \(\d\.\d "
+                        r"%; at least 10 % and 10 points needed\): is it the program that made this part, with this "
+                        r"placement\?", err), err
+    assert not out.exists() and not (d / "few.truth.json").exists()
+
+
+def test_simulate_refuses_a_turning_comment_in_a_milling_program_naming_its_line(slot_sim, capsys):
+    # The turning comment's f= was "structured comment: unknown field 'f'", a ValueError: exit 2, a usage error, for a
+    # refused program. Now the program's refusal (exit 3, file:line) naming the comment as the turning one.
+    d, machine, prog, part_dir = slot_sim
+    lines = prog.read_text().splitlines()
+    at = next(i for i, ln in enumerate(lines) if ln.startswith("(trueaxis:"))
+    turned = d / "turned.ngc"
+    turned.write_text("\n".join(lines[:at + 1] + ["(trueaxis: ap=2 f=0.2 vc=180)"] + lines[at + 1:]) + "\n")
+    out, effects = d / "turned.ply", d / "force.toml"  # (the conditions are read for the cutting force)
+    effects.write_text("[force]\ncompliance_um_per_n = [[0.02, 0, 0], [0, 0.02, 0], [0, 0, 0.01]]\n")
+    assert main(["simulate", str(turned), "--machine", str(machine), "--part", "slots", "--part-dir", str(part_dir),
+                 "--effects", str(effects), "-o", str(out), "--points", "300"]) == 3
+    assert _one_line_error(capsys) == (f"{turned}:{at + 2}: structured comment: unknown milling field 'f' (f= and vc= "
+                                       "are the turning comment's: a lathe program? the virtual shop mills)")
+    assert not out.exists()

@@ -1448,3 +1448,82 @@ def test_a_verdict_that_makes_the_max_grow_beyond_the_noise_is_said():
     assert len(said) == 1 and "max grows (14.09 -> 22.13 um) while its RMS goes 5.00 -> 1.50 um" in said[0]
     assert max_growth_warning(diag(6.10, 7.33)) == []  # within the noise's extremes: not said
     assert max_growth_warning(SimpleNamespace(**{**vars(diag(1.0, 9.0)), "chosen_fit": None})) == []
+
+
+def test_a_program_without_its_setup_comment_is_said_placed_where_assumed_also_in_a_refusal(slots, tmp_path,
+                                                                                             capsys):
+    # The diagnosis took the machine file's placement of a program with no trueaxis-setup comment without a word
+    # (inspect --identify said what it assumed); a part cut 40 mm off then read "the cloud lies 8141 um from the
+    # part ... another program?" with no hint (a QA pass). Said now on the terminal, in diagnosis.json and the page,
+    # and in the refusal, in the words of programs.placement_assumed (which the identification prints too).
+    from trueaxis.cli import main
+    from trueaxis.diagnose.report import program_machine_warnings
+    from trueaxis.inspect.cloud import write_cloud_ply
+    from trueaxis.postproc.programs import SETUP_TAG
+
+    m, prog, _ = slots
+    r = _cut(m, prog, {"backlash": {"Y": {"amplitude": 8.0}}}, noise=1.0, seed=5, points=300)
+    write_cloud_ply(tmp_path / "cmm.ply", r.measured, r.normals)
+    (tmp_path / "p.ngc").write_text("".join(ln for ln in prog.text.splitlines(True) if SETUP_TAG not in ln))
+    said = (f"{tmp_path / 'p.ngc'}: the program has no trueaxis-setup comment: assumed the part at the machine file's "
+            "[workpiece] origin, 0, 0, -300 mm in M (placement 0) and the machine file's tool, d 10 mm")
+    assert program_machine_warnings(m, [(prog.text, "p.ngc")]) == []  # the program says both
+    args = ["diagnose", "--cloud", str(tmp_path / "cmm.ply"), "--part", "slots", "--program", str(tmp_path / "p.ngc"),
+            "--candidates", "backlash_y", "--noise-um", "1.0"]
+    assert main([*args, "--machine", "xh714", "-o", str(tmp_path / "rep")]) == 0
+    assert f"trueaxis diagnose: warning: {said}\n" in capsys.readouterr().err
+    assert said in json.loads((tmp_path / "rep" / "diagnosis.json").read_text())["warnings"]
+    assert said.replace("'", "&#x27;") in (tmp_path / "rep" / "diagnosis.html").read_text()
+    # the machine file places the part 40 mm off where the program cut it: refused, the assumption said
+    moved = tmp_path / "moved.toml"
+    moved.write_text((MACHINES / "xh714.toml").read_text().replace("origin = [0.0, 0.0, -300.0]",
+                                                                   "origin = [40.0, 0.0, -300.0]"))
+    assert main([*args, "--machine", str(moved), "-o", str(tmp_path / "rep2")]) == 3
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("trueaxis diagnose: ") and len(err.splitlines()) == 1 and not (tmp_path / "rep2").exists()
+    assert err.endswith("; note: " + said.replace("origin, 0, 0", "origin, 40, 0")), err
+
+
+def test_the_closest_candidates_are_one_list_with_the_one_the_rules_allow_in_it_and_said_alike():
+    # A cone shifted 50 um: the terminal said "servo_lag comes closest" (7 %), the page listed twin_parameters (99 %,
+    # at its bounds) and three more, servo_lag not among them (a QA pass). One list (closest_candidates): the four
+    # that remove most, the one the rules would name in place of the fourth, each with why it is not the answer;
+    # the terminal and the page say it in the words of closest_text.
+    from trueaxis.diagnose.analysis import closest_candidates
+    from trueaxis.diagnose.report import closest_text
+
+    fits = []
+    for name, share, plausible in [("twin_parameters", 0.99, False), ("rotary_radial_c", 0.93, False),
+                                   ("rotary_tilt_c", 0.70, False), ("thermal_spline_x", 0.33, False),
+                                   ("servo_lag", 0.07, True), ("backlash_x", 0.01, True)]:
+        f = _fake_fit(name, ["p"], [1.0], [[1.0]], None, 1)
+        f.gain_um2, f.explained_share, f.rms_after_um = share, share, 40.0 * (1.0 - share)
+        f.plausible, f.significant, f.explains = plausible, share > 0.05, share >= 0.7
+        fits.append(f)
+    closest = closest_candidates(fits, None, fits[4], None)
+    assert [c["effect"] for c in closest] == ["twin_parameters", "rotary_radial_c", "rotary_tilt_c", "servo_lag"]
+    assert [c["why_not"] for c in closest] == ["fit at or beyond its plausible bounds"] * 3 + [
+        "the best candidate the rules allow, but it does not explain the gap (needed: 70 % of the gap above the "
+        "noise, or a residual consistent with the noise)"]
+    assert closest_text(closest[3:]) == (
+        "closest candidates (none explains the gap): servo_lag: 7 % of the gap above the noise (held-out RMS 37.20 "
+        "um), the best candidate the rules allow, but it does not explain the gap (needed: 70 % of the gap above the "
+        "noise, or a residual consistent with the noise)")
+    assert [c["effect"] for c in closest_candidates(fits, None, None, None)][3] == "thermal_spline_x"
+
+
+def test_a_diagnosis_with_no_verdict_says_its_closest_candidates_alike_on_the_terminal_and_the_page(slots, tmp_path):
+    from trueaxis.diagnose.report import closest_text, summary_lines, write_report
+
+    st, cands = _synthetic(slots, {})
+    z = st.points[:, 2] - st.points[:, 2].min()
+    x = st.points[:, 0]
+    st.gap_um = st.gap_um + 6.0 * np.cos(2 * np.pi * x / np.ptp(x) * 3) * z / max(z.max(), 1e-9)
+    diag = diagnose_state(st, cands, noise_um=1.0)
+    said = closest_text(diag.closest)
+    assert diag.chosen == [] and f"  {said}" in summary_lines(diag, "d")
+    assert not any("comes closest" in n for n in diag.notes)
+    data = write_report(diag, st, tmp_path / "rep", {"part": "slots"}, [])
+    assert data["closest_candidates"] == diag.closest
+    html = (tmp_path / "rep" / "diagnosis.html").read_text()
+    assert ("C" + said[1:]).replace("'", "&#x27;") in html

@@ -696,6 +696,12 @@ def test_foreign_program_posted_elsewhere_is_modelled_at_its_commanded_axes(shop
     # no setup comment, but the post's header says what it did (it was read as 'none' or unknown before)
     assert "compensation=geometric by this twin (its post header" in printed
     rep = _report(tmp_path / "rep")
+    # where the part was assumed placed, in the words the diagnosis says it (programs.placement_assumed)
+    origin = ", ".join(f"{v:g}" for v in load_machine(TWIN_FILE).workpiece_origin)
+    assert rep["placement_assumed"] == ("the program has no trueaxis-setup comment: assumed the part at the machine "
+                                        f"file's [workpiece] origin, {origin} mm in M (placement 0) and the machine "
+                                        "file's tool, d 10 mm")
+    assert f"\n  program: {rep['placement_assumed']}\n" in printed
     assert rep["verdict"]["status"] == "accepted" and rep["program_compensation"]["mode"] == "geometric"
     assert rep["verdict"]["residual_after_rms_um"] < 1.5 * NOISE_UM
     truth, written = _written_values(shop / "true.toml"), _written_values(out)

@@ -363,3 +363,43 @@ def test_a_lathe_work_offset_needs_no_y_component_and_the_header_says_zero_was_t
     out = compensate(LATHE_G10.replace("G54 G0", "G0"), lathe, report=report)
     assert out.splitlines()[3] == lines[3] and out.splitlines()[6:9] == ["G0 X40.00496 Z-4.99694"] + lines[7:9]
     assert not any("no work offset" in w for w in report["warnings"]), report["warnings"]
+
+
+# LinuxCNC's threading cycle with every word it reads (P Z I J R K Q H E L): rs274 reads it.
+G76_PROGRAM = """G18 G21 G90 G8 G40 G49
+G10 L2 P1 X0 Z-100
+G54
+T1 M6
+G97 S500 M3
+G0 X25 Z5
+G76 P1.5 Z-30 I-1 J0.1 K0.9 Q29.5 L2 E1 H3 R1.5
+G0 X30 Z10
+M30
+"""
+
+
+def test_a_g76_threading_cycle_is_refused_for_itself_and_passed_through_with_all_its_words(lathe, tmp_path):
+    # Its R word was refused as "R word with no G code that uses it", then its E word as "exponent notation", and
+    # --passthrough-unsupported did not help: G76's own reason comes first, and the block passes through as written.
+    from rs274_helpers import run_rs274
+
+    with pytest.raises(GcodeError, match=r"^g76.ngc:7: threading cycle G76 \(the moves it makes are not in the text; "
+                                         r"--passthrough-unsupported leaves the block as it is\)$"):
+        compensate(G76_PROGRAM, lathe, "geometric", source="g76.ngc")
+    out = compensate(G76_PROGRAM, lathe, "geometric", passthrough_unsupported=True)
+    assert "\nG76 P1.5 Z-30 I-1 J0.1 K0.9 Q29.5 L2 E1 H3 R1.5\n" in out
+    (tmp_path / "in.ngc").write_text(G76_PROGRAM)
+    (tmp_path / "out.ngc").write_text(out)
+    before = run_rs274(tmp_path / "in.ngc", {1: 0.0}, tmp_path / "a")
+    after = run_rs274(tmp_path / "out.ngc", {1: 0.0}, tmp_path / "b")
+    assert before.returncode == after.returncode == 0 and before.kind == after.kind and len(before.kind) == 153
+    # the cycle starts where the corrected G0 before it ends: its X moves by that correction everywhere, its Z where
+    # it returns to the start (Z > 0), and not where the thread ends (the programmed Z-30 and its taper): as written
+    shift = after.end[0] - before.end[0]
+    assert 1e-3 < np.abs(shift).max() < 0.01
+    cycle, moved = before.end[1:-1], after.end[1:-1] - before.end[1:-1]
+    at_start = cycle[:, 2] > 0
+    assert at_start.sum() == 60 and (~at_start).sum() == 91
+    np.testing.assert_allclose(moved[:, 0], shift[0], atol=1.5e-4)
+    np.testing.assert_allclose(moved[:, 2], np.where(at_start, shift[2], 0.0), atol=1.5e-4)
+    np.testing.assert_allclose(moved[:, [1, 3, 4, 5]], 0.0, atol=1e-12)

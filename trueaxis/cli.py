@@ -367,6 +367,7 @@ def cmd_simulate(args) -> int:
     import numpy as np
 
     from .machine import load_machine
+    from .postproc.programs import check_cut_share
     from .resources import machine_file
     from .sim.shop import simulate_program_file, write_cmm
 
@@ -377,8 +378,10 @@ def cmd_simulate(args) -> int:
     machine = load_machine(str(machine_file(args.machine)))
     res = simulate_program_file(args.program, machine, args.part, effects_path=args.effects, part_dir=args.part_dir,
                                 points=args.points or 200_000, noise_um=args.noise_um or 0.0, seed=args.seed or 0)
-    truth = write_cmm(res, args.output)
     cut = np.isfinite(res.deviations_um)
+    # a program that cuts almost none of the part (a lathe's, another placement's) is no cut of it: nothing written
+    check_cut_share(int(cut.sum()), int(res.info["points"]), "probe points of the part")
+    truth = write_cmm(res, args.output)
     d = res.deviations_um[cut]
     not_cut = int(res.info.get("not_cut", 0))
     if not_cut:
@@ -531,6 +534,8 @@ def cmd_inspect(args) -> int:
     if r["identification"].get("unexplained_note"):
         print(f"  note: {r['identification']['unexplained_note']}")
     print(f"  program: {r['identification']['program_compensation']['note']}")
+    if r["identification"].get("placement_assumed"):  # the words the diagnosis says it in
+        print(f"  program: {r['identification']['placement_assumed']}")
     if args.write and not identification.accepted:
         print(f"trueaxis inspect: {args.write} not written: identification refused ("
               + "; ".join(identification.reasons) + f"); see {out_dir / 'report.json'}", file=sys.stderr)

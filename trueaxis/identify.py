@@ -118,7 +118,8 @@ from .machine.model import ROTATION_LETTER, SQUARENESS, unit_of
 from .inspect.deviation import outward_normals
 from .nc.gcode import Program, parse_program
 from .nc.trajectory import AXES, MM_PER_INCH, interpolate
-from .postproc.programs import ProgramError, check_axes, placed_for, program_compensation  # noqa: F401 (re-exported)
+from .postproc.programs import (ProgramError, check_axes, check_cut_share, placed_for,  # noqa: F401 (re-exported)
+                                placement_assumed, program_compensation)
 
 UM_PER_MM = 1e3
 LEVER = 1e-3  # um of contact displacement per (urad of tool-axis error x mm of lever)
@@ -906,9 +907,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     x0 = x - (dev * 1e-3)[:, None] * n
     contacts = find_contacts(x0, n, twin_path, machine.tool.radius, machine.tool.flute_length, max_gap_mm=max_gap_mm)
     use = contacts.found & (omega0 > 0)
-    if use.sum() < 10:
-        raise ProgramError(f"only {int(use.sum())} of {x.shape[0]} points lie on a surface the program cut "
-                         f"(within {max_gap_mm} mm): is it the program that made this part, with this placement?")
+    check_cut_share(int(use.sum()), int((omega0 > 0).sum()), f"measured points (within {max_gap_mm} mm of its cut)")
     idx = np.nonzero(use)[0]
     uniq, inv = np.unique(contacts.sample[idx], return_inverse=True)
     w = contact_weights(n[idx], contacts.lever_mm[idx])
@@ -1460,14 +1459,19 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
         normals = part_normals(cloud.points, part)
     parsed = parse_program(text, str(program_path))
     check_axes(placed, parsed)  # a program posted for another machine: refused before any work, as the diagnosis
-    result = identify(cloud.points, normals, deviation_um, parsed, placed,
-                      parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std,
-                      setup_sigma_um=math.inf if setup_sigma_um is None else setup_sigma_um)
+    assumed = placement_assumed(text, original)  # None: the program's setup comment says (the diagnosis' words)
+    try:
+        result = identify(cloud.points, normals, deviation_um, parsed, placed,
+                          parameters=parameters, robust=robust, alignment=alignment, max_relative_std=max_relative_std,
+                          setup_sigma_um=math.inf if setup_sigma_um is None else setup_sigma_um)
+    except ProgramError as exc:  # a part the program did not cut: where it was assumed placed is the likely cause
+        raise ProgramError(f"{str(exc).rstrip('?')}; note: {assumed}" if assumed else str(exc)) from None
     result = dataclasses.replace(result, normals_flipped=flipped)
     report = result.as_report()
     report["machine_file"] = str(machine)
     report["program"] = str(program_path)
     report["program_compensation"] = program_compensation(text, original)
+    report["placement_assumed"] = assumed
     if write is not None:
         if result.accepted:
             out = dataclasses.replace(original.with_parameters(result.value), note=_identified_note(original, result))

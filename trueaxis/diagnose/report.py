@@ -26,7 +26,8 @@ from ..fileio import json_text
 from ..nc.gcode import parse_program
 from .analysis import EXPLAIN_SHARE, Diagnosis, diagnose_state
 from .candidates import LIBRARY, build_all
-from ..postproc.programs import ProgramError, check_axes, check_part_against_program, placed_for
+from ..postproc.programs import (ProgramError, check_axes, check_cut_share, check_part_against_program, placed_for,
+                                 refuse_lathe)
 from .state import TwinState, combine_states, pauses_between, twin_state
 
 FORCE_CANDIDATES = ("force_deflection", "tool_deflection")
@@ -163,6 +164,7 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
                             part_json=pj, program_name=c.program_name)
             if len(st) < 20:
                 raise CloudError(f"only {len(st)} measured points were cut by the program: too few to diagnose")
+            check_cut_share(len(st), len(st) + st.dropped)  # as the identification and the virtual shop
             return set_apart_flyers(st, c.cloud_name)
 
         states.append(for_cut(k, c, read))
@@ -576,9 +578,8 @@ def _html(data: dict, pngs: dict) -> str:
     alt = "".join(f"<p style='border:2px solid #c0392b;background:#fdecea;padding:4px'>Warning: {e(w)}</p>"
                   for w in data.get("warnings", [])) + alt
     if not data["chosen"] and data.get("closest_candidates"):
-        alt += "<p>Closest candidates (none explains the gap): " + "; ".join(
-            f"{e(c['effect'])}: {c['explained_share_above_noise'] * 100:.0f} % of the gap above the noise, "
-            f"{e(c['why_not'] or '')}" for c in data["closest_candidates"]) + ".</p>"
+        said = closest_text(data["closest_candidates"])
+        alt += f"<p>{e(said[:1].upper() + said[1:])}.</p>"
     b, a = data["gap_um"]["before"], data["gap_um"]["after"]
     imgs = "".join(f'<h3>{e(k)}</h3><img src="data:image/png;base64,{base64.b64encode(v).decode()}">'
                    for k, v in pngs.items())
@@ -688,6 +689,7 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
         raise ValueError(f"{len(each)} part descriptions for {len(clouds)} clouds: give one for all, or one per "
                          f"--cloud in the same order")
     m = load_machine(machine)
+    refuse_lathe(m, part)  # (before the notes on the programs' placement below, which a lathe's refusal needs not)
     texts = [p.read_text(encoding="utf-8", errors="replace") for p in programs]
     cuts = []
     for c, p, text, pj in zip(clouds, programs, texts, each):
@@ -734,14 +736,18 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
 
 
 def program_machine_warnings(machine, programs: list) -> list[str]:
-    """A program posted for another machine (its header names the machine), one line each; read before any
-    simulation. programs : [(text, path)], one per cut."""
-    from ..postproc.programs import header_name, program_compensation, written_for
+    """A program posted for another machine (its header names the machine), what was assumed of a program's setup
+    that it does not say (``programs.placement_assumed``, as the identification says it), one line each; read before
+    any simulation, and added to a refusal. programs : [(text, path)], one per cut."""
+    from ..postproc.programs import header_name, placement_assumed, program_compensation, written_for
 
     out = []
     name = header_name(machine)
     models = machine.force_models()
     for program_text, program in programs:
+        assumed = placement_assumed(program_text, machine)  # said as the identification says it
+        if assumed:
+            out.append(f"{program}: {assumed}")
         posted = written_for(program_text)
         if posted and posted[0] != name:
             out.append(f"{program} was written for the machine {posted[0]!r}, the twin given is "
@@ -819,10 +825,20 @@ def summary_lines(diag: Diagnosis, output, named_candidates: bool = False, next_
         out.append(f"  parameters: {parameters_text(_chosen_dicts(diag)[0])}")
     for note in diag.notes:
         out.append(f"  note: {note}")
+    if diag.chosen_fit is None and diag.closest:  # the page's words, from the same list
+        out.append(f"  {closest_text(diag.closest)}")
     if diag.skipped and named_candidates:
         out.append(f"  not applicable here: {', '.join(str(s) for s in diag.skipped)}")
     out += next_part_lines(next_part)
     return out
+
+
+def closest_text(closest: list) -> str:
+    """The closest candidates of a diagnosis with no verdict (``analysis.closest_candidates``) in one line, as the
+    terminal and the page say them."""
+    return "closest candidates (none explains the gap): " + "; ".join(
+        f"{c['effect']}: {c['explained_share_above_noise'] * 100:.0f} % of the gap above the noise (held-out RMS "
+        f"{c['held_out_rms_after_um']:.2f} um), {c['why_not'] or ''}" for c in closest)
 
 
 def verdict_words(verdict: str, confidence_basis: dict) -> str:

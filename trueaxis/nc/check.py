@@ -365,7 +365,8 @@ def _check_block(block: str, state, passthrough: bool, fail):
              "rs274; give an F word after it")
     if g0 == 530 and to_be not in (0, 10) and not (passthrough and to_be == 800 and g1 is None):
         fail("G53 (a move in machine coordinates) needs axis words and G0 or G1")
-    if "R" in letters and not (to_be in _ARCS or to_be in _CYCLES or g0 == 100 or 19 in mcodes):  # M19 R: orient
+    # (G76's R: the depth degression of LinuxCNC's threading cycle, which reads it)
+    if "R" in letters and not (to_be in _ARCS or to_be in _CYCLES or to_be == 760 or g0 == 100 or 19 in mcodes):
         fail(_ijkr_no_use("R"))
     for w in "IJK":
         if w in letters and not (to_be in (20, 30, 50, 51, 330, 331, 760, 870) or g0 == 100):

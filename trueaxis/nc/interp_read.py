@@ -63,7 +63,8 @@ def read_block(interp, raw: str, line_no: int, findall):
                 macro_nonmoving = macro_nonmoving or f"macro syntax '{other}'"
             else:
                 raise interp.err(line_no, f"unexpected character {other!r}")
-    if "E" in vals and not any(m.strip().lstrip("0")[:2] in ("66", "67", "68") for m in mcodes):
+    g76 = any(re.fullmatch(r"0*76(\.0*)?", g.strip()) for g in gcodes)  # its E: the taper's length (LinuxCNC)
+    if "E" in vals and not g76 and not any(m.strip().lstrip("0")[:2] in ("66", "67", "68") for m in mcodes):
         # LinuxCNC refuses an E word without G76/M66-M68 too; reading past it could misread "X1e2" as X1
         raise interp.err(line_no, f"E word 'E{vals['E']}': exponent notation (X1e2) is not RS-274, and E "
                          "words (thread lead, extruder) are not understood here")

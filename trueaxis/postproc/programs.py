@@ -275,7 +275,8 @@ def placed_for(machine: Machine, program_text: str, part: str | None = None) -> 
     and the tool the program was made for in the spindle (``tool_d_mm``: a flat end mill of that diameter; the
     machine file's tool length, flutes and flute length stay, as the program's axis words assume that length). What
     the comment does not say stays the machine file's. Raises ProgramError for a program of another part (``part``
-    given), a malformed origin or a tool diameter that is not a positive number."""
+    given), a malformed origin or a tool diameter that is not a positive number, and a lathe (``refuse_lathe``)."""
+    refuse_lathe(machine, part)
     setup = read_setup(program_text)
     if part is not None and setup.get("part") and setup["part"] != part:
         raise ProgramError(f"the program is for part {setup['part']!r}, not {part!r}")
@@ -295,6 +296,52 @@ def placed_for(machine: Machine, program_text: str, part: str | None = None) -> 
         if not math.isclose(diameter, 2 * machine.tool.radius, rel_tol=0.0, abs_tol=1e-9):
             machine = dataclasses.replace(machine, tool=dataclasses.replace(machine.tool, radius=diameter / 2))
     return machine
+
+
+# The least share of the measured (or probed) points a program must cut for its part to be read against its cut: a
+# program that reaches a few per cent of them did not make that part (a lathe program reached 250 of 8000 cone
+# points); a cloud may hold uncut surfaces besides (the stock's datum faces), so the bar is low.
+MIN_CUT_SHARE = 0.1
+
+
+def check_cut_share(n_cut: int, n_points: int, what: str = "measured points") -> None:
+    """ProgramError when the program cut fewer than ``MIN_CUT_SHARE`` of ``n_points`` (or fewer than 10)."""
+    if n_cut >= 10 and n_cut >= MIN_CUT_SHARE * n_points:
+        return
+    raise ProgramError(f"the program cuts only {n_cut} of the {n_points} {what} ({100 * n_cut / max(n_points, 1):.1f}"
+                       f" %; at least {100 * MIN_CUT_SHARE:g} % and 10 points needed): is it the program that made "
+                       f"this part, with this placement?")
+
+
+def placement_assumed(program_text: str, machine: Machine) -> str | None:
+    """What ``placed_for`` takes from the machine file because the program's setup comment does not say it (no
+    comment, or one without ``origin_mm`` / ``tool_d_mm``): one sentence, said by the identification and the
+    diagnosis alike (and added to a refusal, where a part placed elsewhere is the likely cause), or None when the
+    program says both."""
+    setup = read_setup(program_text)
+    assumed = []
+    if "origin_mm" not in setup:
+        assumed.append("the part at the machine file's [workpiece] origin, "
+                       f"{', '.join(f'{v:g}' for v in machine.workpiece_origin)} mm in M (placement 0)")
+    if "tool_d_mm" not in setup:
+        assumed.append(f"the machine file's tool, d {2 * machine.tool.radius:g} mm")
+    if not assumed:
+        return None
+    missing = " or ".join(k for k in ("origin_mm", "tool_d_mm") if k not in setup)
+    why = "the program has no trueaxis-setup comment" if not setup else f"the program's setup comment gives no {missing}"
+    return f"{why}: assumed {' and '.join(assumed)}"
+
+
+def refuse_lathe(machine: Machine, part: str | None) -> None:
+    """ProgramError for a lathe: the test parts (the NAS 979 cone, the slot block) are milled with a flat end mill,
+    which is all the virtual shop cuts, so a lathe cannot have cut a measured part and its twin is not simulated,
+    identified or diagnosed from one (a lathe program on a cone cloud had been identified from the 3 % of points its
+    passes happened to reach, and simulated for six minutes into 241 points)."""
+    if machine.kind != "lathe":
+        return
+    what = f"the {part} part" if part else "the measured part"
+    raise ProgramError(f"{machine.name} is a lathe: it cannot have cut {what} (the test parts are milled with a flat "
+                       f"end mill): a lathe's twin is not simulated, identified or diagnosed from a measured part")
 
 
 def check_part_against_program(part: str, part_json: dict, program_text: str, option: str = "--part-json") -> None:

@@ -37,38 +37,49 @@ import numpy as np
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
 from .envelope import envelope_deviation
 
+MILLING_FIELDS = ("ap", "ae", "fz", "n", "d", "z", "mode", "helix")
+TURNING_ONLY = ("f", "vc")  # the turning comment's own fields (DESIGN §5): a lathe's, which the shop does not cut
+
+
 def structured_conditions(program, machine) -> list[dict]:
     """Cutting conditions valid at each source line: list (one per line of ``program.lines``) of dicts with keys of
     DESIGN §5 (ap ae fz n d z mode), as floats (mode as str); the machine's tool fills d and z.
     A comment applies from its own line on. The comments are read by the post's reader (``condition_marks``); the
-    milling keys are checked here. Raises ValueError (file:line) for a malformed comment."""
-    from ..postproc.post import PostError, condition_marks
+    milling keys are checked here. Raises PostError (``file:line: reason``, a refused program) for a malformed
+    comment, and names a turning comment's field as one (the shop mills)."""
+    from ..postproc.post import condition_marks
 
-    try:
-        marks = condition_marks(program.lines, program.source)
-    except PostError as exc:
-        raise ValueError(str(exc)) from None
+    marks: dict[int, dict] = {}
+    for i, fields in condition_marks(program.lines, program.source):  # (several comments on a line: in order)
+        marks[i] = {**marks.get(i, {}), **fields}
     current = {"d": 2.0 * machine.tool.radius, "z": float(machine.tool.flutes)}
     out = []
-    k_mark = 0
     for i in range(len(program.lines)):
-        while k_mark < len(marks) and marks[k_mark][0] == i:
-            fields = dict(current)
-            for k, v in marks[k_mark][1].items():
-                if k not in ("ap", "ae", "fz", "n", "d", "z", "mode", "helix"):
-                    raise ValueError(f"{program.source}:{i + 1}: structured comment: unknown field {k!r}")
-                if k == "mode":
-                    if v not in ("down", "up"):
-                        raise ValueError(f"{program.source}:{i + 1}: mode must be down or up, got {v!r}")
-                    fields[k] = v
-                else:
-                    try:
-                        fields[k] = float(v)
-                    except ValueError:
-                        raise ValueError(f"{program.source}:{i + 1}: {k}={v!r} is not a number") from None
-            current = fields
-            k_mark += 1
+        if i in marks:
+            current = {**current, **_milling_fields(marks[i], program.source, i + 1)}
         out.append(current)
+    return out
+
+
+def _milling_fields(fields: dict, source: str, line: int) -> dict:
+    """One comment's milling conditions (mode as str, the others float); PostError for a field or value it refuses."""
+    from ..postproc.post import PostError
+
+    out = {}
+    for k, v in fields.items():
+        if k not in MILLING_FIELDS:
+            turning = (" (f= and vc= are the turning comment's: a lathe program? the virtual shop mills)"
+                       if k in TURNING_ONLY else "")
+            raise PostError(source, line, f"structured comment: unknown milling field {k!r}{turning}")
+        if k == "mode":
+            if v not in ("down", "up"):
+                raise PostError(source, line, f"mode must be down or up, got {v!r}")
+            out[k] = v
+            continue
+        try:
+            out[k] = float(v)
+        except ValueError:
+            raise PostError(source, line, f"{k}={v!r} is not a number") from None
     return out
 
 
