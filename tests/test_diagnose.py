@@ -1319,6 +1319,9 @@ def test_the_next_part_is_the_placement_that_separates_the_verdict_from_its_riva
                           noise_um=1.0)
     assert diag.chosen == ["backlash_y"]
     assert plan_next_part(diag, st, m, "slots", prog.part_json, prog.text) is None  # confident: nothing to plan
+    from trueaxis.diagnose.next_part import no_plan_reason  # what --plan-next says then (it was silent)
+
+    assert no_plan_reason(diag, prog.text).startswith("the verdict (backlash_y, confidence 1.00) has no rival")
     unsure = dataclasses.replace(diag, confidence=0.3, alternatives=["twin_parameters"])
     plan = plan_next_part(unsure, st, m, "slots", prog.part_json, prog.text, points=400)
     assert plan.placement_mm is None and plan.tried == [] and plan.z_here["twin_parameters"] > 6.0

@@ -140,3 +140,6 @@ def test_the_residual_note_names_the_parameters_kept_as_a_second_cause():
     kept = residual_above_noise_note(2.21, local, kept=["EZZ@-300", "YOC"])
     assert "either the part holds an effect" in kept and "changes of the parameters kept (EZZ@-300, YOC)" in kept
     assert "--setup-sigma-um" in kept and "`trueaxis diagnose`" in kept
+    # the set-up's accuracy given: not advised again (a QA pass read the advice after giving --setup-sigma-um 0)
+    given = residual_above_noise_note(2.21, local, kept=["EZZ@-300"], setup_given=True)
+    assert "--setup-sigma-um" not in given and "a second placement of the part separates them" in given

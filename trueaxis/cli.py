@@ -506,7 +506,8 @@ def cmd_inspect(args) -> int:
             result.report["identification"] = {**report, **flyers}
             note = residual_above_noise_note(identification.residual_rms_um,
                                              flyers["flyers_set_apart"]["local_sigma_um"],
-                                             kept=[*identification.taken_by_setup, *identification.not_significant])
+                                             kept=[*identification.taken_by_setup, *identification.not_significant],
+                                             setup_given=args.setup_sigma_um is not None)
             if note:
                 result.report["identification"]["unexplained_note"] = note
         with single_blas_thread():
@@ -570,7 +571,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"trueaxis {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
-    mach = sub.add_parser("machine", help="check or show a machine file")
+    mach = sub.add_parser("machine", help="check or show a machine file, or write a nominal (error-free) one")
     msub = mach.add_subparsers(dest="machine_command", required=True)
     c = msub.add_parser("check", help="validate a machine file (exit 3 and one line per problem if bad)")
     c.add_argument("file")
@@ -585,7 +586,7 @@ def build_parser() -> argparse.ArgumentParser:
     z.set_defaults(func=cmd_machine_nominal)
 
     e = sub.add_parser("error", help="volumetric error at one pose (um, urad; part frame)")
-    e.add_argument("--machine", required=True, help="machine file (TOML)")
+    e.add_argument("--machine", required=True, help="machine file (TOML) or a fixture's short name (e.g. xh714)")
     e.add_argument("--at", required=True, help="pose: every axis of the machine once, inside its travel, e.g. "
                    "X=10,Y=20,Z=-5,B=30,C=45 (mm, deg)")
     e.add_argument("--force-n", help="force of the workpiece on the tool, FX,FY,FZ in N (machine frame)")
@@ -600,8 +601,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "naming x,y,z,i,j,k[,f] or APT (GOTO/x,y,z,i,j,k, FEDRAT/f, RAPID); told apart by content; - for stdin")
     po.add_argument("-o", "--output", required=True, help="compensated program (written atomically); - for stdout "
                     "(messages stay on stderr)")
-    po.add_argument("--machine", required=True, help="machine file (TOML)")
-    po.add_argument("--mode", default="geometric", choices=["none", "geometric", "comprehensive"])
+    po.add_argument("--machine", required=True, help="machine file (TOML) or a fixture's short name (e.g. xh714)")
+    po.add_argument("--mode", default="geometric", choices=["none", "geometric", "comprehensive"],
+                    help="what is corrected: geometric (the twin's geometric errors; the default), comprehensive "
+                         "(and the deflection under the cutting force, from the program's cutting conditions), none")
     po.add_argument("--tol-um", type=_number(low=0.0, low_open=True), default=1.0,
                     help="path tolerance, um (default 1; at least 0.05, what a written program holds)")
     po.add_argument("--max-correction-mm", type=POSITIVE, default=0.5, help="largest correction allowed (default 0.5)")
@@ -680,7 +683,7 @@ def build_parser() -> argparse.ArgumentParser:
     sm = sub.add_parser("simulate", help="machine a program on a true machine and measure it on a virtual CMM")
     sm.add_argument("program", help="machine-axis NC program; its trueaxis-setup comment places the part and names "
                     "the tool it was made for (tool_d_mm), which the shop then cuts with (the summary says so)")
-    sm.add_argument("--machine", required=True, help="the true machine (TOML)")
+    sm.add_argument("--machine", required=True, help="the true machine (machine file, TOML, or a fixture's short name)")
     sm.add_argument("--effects", help="effects the twin may not have (TOML)")
     sm.add_argument("--part", required=True, choices=part_names())
     sm.add_argument("--part-dir", help="folder holding <part>.json (default: the default part parameters); a "
@@ -703,7 +706,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="measured CMM cloud (PLY/CSV/XYZ, part frame, mm); repeat with --program for several parts "
                     "cut one after another on the machine (a second placement), in the order they were cut")
     dg.add_argument("--part", required=True, choices=part_names())
-    dg.add_argument("--machine", required=True, help="the twin (machine file, TOML)")
+    dg.add_argument("--machine", required=True, help="the twin (machine file, TOML, or a fixture's short name)")
     dg.add_argument("--program", required=True, action="append",
                     help="the NC program that cut the part (one per --cloud, in the same order)")
     dg.add_argument("--part-json", default=None, action="append", help="the part's description (JSON written by "
@@ -744,7 +747,8 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--tolerances", metavar="FILE", help="tolerances of the part's features (TOML, see "
                    "docs/tolerances.md), over those of the part JSON; the report's feature table says pass or fail")
     i.add_argument("--identify", action="store_true", help="identify twin parameters from the deviations")
-    i.add_argument("--machine", help="with --identify: the machine's error twin (TOML)")
+    i.add_argument("--machine", help="with --identify: the machine's error twin (machine file, TOML, or a fixture's "
+                                     "short name)")
     i.add_argument("--program", help="with --identify: the program that cut the part")
     i.add_argument("--write", help="with --identify: write the updated machine file here (only when the fit is "
                    "accepted or changes nothing; a refused fit writes nothing and exits 3)")

@@ -202,7 +202,9 @@ class Round:
 
     rms_um / max_abs_um : the part's deviation (inspect's report).  slots_rms_um : per slot (slot block).
     misfit_rms_um : what the twin leaves unexplained on this part before the identification; residual_rms_um after.
-    verdict : accepted | no change | refused.  written : the twin file written (None when refused)."""
+    verdict : accepted | no change | refused.  written : the twin file written (None when refused).
+    misfit_placed_rms_um : the misfit with the part's set-up offset (a translation of the part) fitted alone: what
+    the twin can learn where the set-up is free (the default), the machine's translation being the set-up's."""
 
     round: int
     twin: str
@@ -215,11 +217,12 @@ class Round:
     verdict: str
     written: str | None
     exit_code: int
+    misfit_placed_rms_um: float | None = None
 
 
 def user_loop(folder, part: str, twin_file, true_file, *, rounds: int = 3, compensate: str | None = "geometric",
               points: int = 4000, noise_um: float = 0.5, program_args=(), seed: int = 0,
-              inspect_args=()) -> list[Round]:
+              inspect_args=(), simulate_args=()) -> list[Round]:
     """The closed loop as a user runs it, command by command (``trueaxis.cli.main``), in ``folder``:
 
         trueaxis program PART --machine TWIN_k.toml [--compensate MODE] -o rK.ngc
@@ -230,7 +233,8 @@ def user_loop(folder, part: str, twin_file, true_file, *, rounds: int = 3, compe
     compensate : the program's mode for the cone (none | geometric | comprehensive); None for the slot block (its
     slots are posted none, geometric and comprehensive). program_args : more ``program`` options (e.g. a coarser
     ``--step-deg``). inspect_args : more ``inspect`` options (e.g. ``--setup-sigma-um 0``: the virtual shop sets the
-    part up exactly). Returns one :class:`Round` per round. A command that fails for bad input raises RuntimeError.
+    part up exactly). simulate_args : more ``simulate`` options (e.g. ``--effects`` with the machine's force).
+    Returns one :class:`Round` per round. A command that fails for bad input raises RuntimeError.
     """
     import json
     from pathlib import Path
@@ -248,7 +252,8 @@ def user_loop(folder, part: str, twin_file, true_file, *, rounds: int = 3, compe
         if compensate is not None:
             cmd += ["--compensate", compensate]
         for c in (cmd, ["simulate", str(prog), "--machine", str(true_file), "--part", part, "-o", str(cloud),
-                        "--points", str(points), "--noise-um", str(noise_um), "--seed", str(seed + k)]):
+                        "--points", str(points), "--noise-um", str(noise_um), "--seed", str(seed + k),
+                        *map(str, simulate_args)]):
             if main(c) != 0:
                 raise RuntimeError(f"trueaxis {' '.join(c)} failed")
         code = main(["inspect", str(cloud), "--part", part, "--identify", "--machine", twin, "--program", str(prog),
@@ -261,7 +266,8 @@ def user_loop(folder, part: str, twin_file, true_file, *, rounds: int = 3, compe
         d = r["deviation_um"]
         out.append(Round(k, twin, str(prog), d["rms"], max(abs(d["min"]), abs(d["max"])), slots,
                          ident["verdict"]["residual_before_rms_um"], ident["verdict"]["residual_after_rms_um"],
-                         ident["verdict"]["status"], ident.get("written"), code))
+                         ident["verdict"]["status"], ident.get("written"), code,
+                         ident["verdict"].get("residual_placed_rms_um")))
         if code == 0:
             twin = str(new)
     return out

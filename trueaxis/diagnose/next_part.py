@@ -153,6 +153,22 @@ def placements_to_try(current) -> list[tuple]:
     return seen
 
 
+def no_plan_reason(diag, program_text: str) -> str:
+    """Why ``plan_next_part`` planned no second part for one measured part, in words (for --plan-next)."""
+    from ..postproc.programs import read_setup
+
+    verdict = diag.chosen_fit
+    if verdict is None:
+        return "there is no verdict to separate from rivals"
+    if not diag.alternatives or diag.confidence >= MAX_CONFIDENCE:
+        return f"the verdict ({diag.verdict}, confidence {diag.confidence:.2f}) has no rival this part leaves undecided"
+    if read_setup(program_text).get("placement_mm") is None:
+        return "the program's setup comment does not say where the part was placed"
+    if any(family(m) == "thermal" for m in verdict.members):
+        return "a drift is told apart by the same cut repeated at another time, not at another place"
+    return "no rival is another effect than the verdict's"
+
+
 def plan_next_part(diag: Diagnosis, state: TwinState, machine, part: str, part_json: dict, program_text: str, *,
                    search: bool = True, want_force: bool = False, points: int = PLAN_POINTS,
                    progress=None) -> NextPart | None:

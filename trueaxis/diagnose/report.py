@@ -727,6 +727,10 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
         found = plan_next_part(diag, state, m, part, part_description(part, each[0]), texts[0], search=plan_next,
                                want_force=bool(members & set(FORCE_CANDIDATES)), progress=progress)
         plan = None if found is None else found.as_dict(part, str(machine))
+        if found is None and plan_next:  # asked for, none planned: said why (it was silent, a QA pass)
+            from .next_part import no_plan_reason
+
+            warnings.append(f"--plan-next: no second part planned: {no_plan_reason(diag, texts[0])}")
     elif plan_next:  # (it was ignored without a word, a QA pass)
         warnings.append("--plan-next plans the next part from one measured part; with several given it plans none")
     if progress is not None:

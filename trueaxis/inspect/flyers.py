@@ -103,11 +103,12 @@ UNEXPLAINED_FACTOR = 1.5
 
 
 def residual_above_noise_note(residual_um: float, local_sigma_um: float, what: str = "the identification",
-                              kept=()) -> str | None:
+                              kept=(), setup_given: bool = False) -> str | None:
     """A sentence when a fit's residual RMS (um) stays above ``UNEXPLAINED_FACTOR`` x the cloud's own noise, read from
     neighbouring points (``local_sigma_um`` / ``LOCAL_TO_NOISE``: independent of any model); else None. ``kept``: the
     parameters the fit held at the twin's values although the part sees them (not significant: this part cannot
-    determine them, from its set-up or from each other), a second cause of such a residual, named with the first."""
+    determine them, from its set-up or from each other), a second cause of such a residual, named with the first.
+    ``setup_given``: the set-up's accuracy was given (the note then names only a second placement)."""
     noise = local_sigma_um / LOCAL_TO_NOISE
     if not (math.isfinite(noise) and noise > 0 and residual_um > UNEXPLAINED_FACTOR * noise):
         return None
@@ -117,10 +118,11 @@ def residual_above_noise_note(residual_um: float, local_sigma_um: float, what: s
         return (f"{head}: the part holds an effect the twin's parameters do not describe; `trueaxis diagnose` looks for "
                 "it")
     names = ", ".join(list(kept)[:6]) + (" ..." if len(kept) > 6 else "")
+    how = ("a second placement of the part separates them" if setup_given else
+           "a second placement of the part, or the set-up's accuracy given with --setup-sigma-um, separates them")
     return (f"{head}: either the part holds an effect the twin's parameters do not describe (`trueaxis diagnose` looks "
             f"for it), or changes of the parameters kept ({names}) that this part cannot determine, from its set-up "
-            "or from each other (a second placement of the part, or the set-up's accuracy given with --setup-sigma-um, "
-            "separates them)")
+            f"or from each other ({how})")
 
 
 def rule_text(gate_mm: float = GATE_MM) -> str:
