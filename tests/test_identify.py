@@ -291,6 +291,12 @@ def test_the_default_closed_loop_of_the_cone_leaves_the_translation_and_corrects
     before, after = result.before.metrics, result.after.metrics
     assert after["roundness_max_um"] < 0.2 * before["roundness_max_um"]
     assert result.identification.setup_offset["prior_sigma_um"] is None
+    # The changes' translation of this cone (the C line offsets), which the free set-up took out of the data, is
+    # written unchecked: said (on the slot block cut under its force such changes made the next part 17 um RMS
+    # instead of 9, without a word). Here it happens to be near the machine's own, and the next part is better.
+    ident = result.identification
+    assert ident.setup_hidden_rms_um > 10.0 and "no point checked it" in ident.setup_hidden_note
+    assert any("warning: the changes move this part by" in line for line in ident.verdict_lines())
 
 
 # ------------------------------------------------------------------------------- identification through the CLI ----
@@ -416,6 +422,10 @@ def test_changed_machine_is_identified_within_three_std_and_written(shop, tmp_pa
     page = _html_sections(tmp_path / "rep")
     assert "Identification ACCEPTED" in page["top"] and "<h3>Identified parameters</h3>" in page["identification"]
     _check_lists(rep, page["identification"])
+    # the translation of this cone that the written changes carry and the free set-up hid: said, whatever its size
+    assert rep["setup_hidden_rms_um"] > 0.0
+    if rep["setup_hidden_note"]:
+        assert "no point checked it" in page["top"] and "warning: the changes move this part" in printed
     truth, written = _written_values(shop / "true.toml"), _written_values(out)
     reported = {p["name"]: p for p in rep["parameters"]}
     assert {"AOC", "YOC"} <= set(reported)

@@ -1157,7 +1157,10 @@ def _verdict_html(identification: dict) -> str:
                        f"um ({'confirmed' if heldout.get('confirmed') else 'not confirmed'})")
     elif heldout.get("not_run"):
         figures.append("held-out check not run")
-    out.append("<p>" + html.escape("; ".join(figures)) + ".</p></div>")
+    out.append("<p>" + html.escape("; ".join(figures)) + ".</p>")
+    if identification.get("setup_hidden_note"):  # an accepted twin that moves the next part unchecked: in the box
+        out.append(f"<p><strong>Warning</strong>: {html.escape(identification['setup_hidden_note'])}.</p>")
+    out.append("</div>")
     return "".join(out)
 
 
