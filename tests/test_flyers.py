@@ -115,8 +115,11 @@ def test_inspect_identify_sets_flyers_apart_and_says_so(cone_cut, tmp_path, caps
     d = cone_cut
     _with_flyers(d / "xoc.ply", tmp_path / "fly.ply", n_far=10, n_near=0)
     capsys.readouterr()
+    # (the shop sets the part up exactly, and the user says so: with the set-up free, XOC's 20 um, mostly a
+    # translation of the cone that its value alone does not fix, is held since 2026-11-28)
     assert main(["inspect", str(tmp_path / "fly.ply"), "--part", "nas979", "--identify", "--machine",
-                 str(MACHINES / "nmv1500dcg.toml"), "--program", str(d / "cone.ngc"), "-o", str(tmp_path / "rep")]) == 0
+                 str(MACHINES / "nmv1500dcg.toml"), "--program", str(d / "cone.ngc"), "-o", str(tmp_path / "rep"),
+                 "--setup-sigma-um", "0"]) == 0
     cap = capsys.readouterr()
     rep = json.loads((tmp_path / "rep" / "report.json").read_text())["identification"]
     assert rep["verdict"]["status"] == "accepted", rep["verdict"]  # "NO CHANGE", noise 173 um, with the flyers

@@ -113,25 +113,32 @@ def test_identification_recovers_what_the_cone_sees_within_three_sigma(measured_
     prog, true, pts, nrm, dev = measured_cone
     result = identify(pts, nrm, dev, prog.text, prog.machine, parameters="location")
     names = result.names
+    # With the set-up free, a change the data do not determine alone whose translation of the part the set-up hides
+    # beyond a typical set-up error is held (its translation would reach the next part unchecked), and said so.
     for n in SEEN_TRUTH:
         if n != "ZOB":
-            assert result.identified[names.index(n)], f"{n} should be identified"
+            assert result.identified[names.index(n)] or n in result.hidden_by_alignment, f"{n} neither"
+    for n, (change, hidden) in result.hidden_by_alignment.items():  # (XOC here: -21.8, truth -22, 22.9 um hidden)
+        assert hidden > 5.0 and not result.identified[names.index(n)], (n, change, hidden)
+    assert result.identified[names.index("AOC")] and result.hidden_by == "the part's free set-up offset"
     # ZOB moves this cone as a whole along Z (its effect on the part is a translation, to a hundredth of a um): one
     # cone in one placement cannot tell it from the part's set-up offset, which takes it (free, its accuracy not
     # given: ZOB is the set-up's, kept); it was written as a measured ZOB before.
     assert not result.identified[names.index("ZOB")] and result.taken_by_setup == ["ZOB"]
-    assert result.setup_offset["TZ_um"] == pytest.approx(SEEN_TRUTH["ZOB"], abs=1.5)
+    # (its TZ was ZOB's -15 um; with XOC held, the set-up also takes XOC's translation of the tilted cone)
     # With the set-up known exactly (no set-up offset in the model) the part does identify it.
     known = identify(pts, nrm, dev, prog.text, prog.machine, parameters="location", setup_sigma_um=0.0)
     assert known.identified[names.index("ZOB")] and not known.setup_offset
+    assert all(known.identified[names.index(n)] for n in SEEN_TRUTH) and not known.hidden_by_alignment
     # said on the terminal and in the report (a QA pass: nothing said what was assumed)
     assert known.setup_known and not result.setup_known
     assert "  set-up: known exactly, as given (--setup-sigma-um 0)" in "\n".join(known.verdict_lines())
     assert known.as_report()["setup_note"].startswith("known exactly") and result.as_report()["setup_note"] is None
     _check_recovered(known, true)
     _check_recovered(result, true)
-    # The fit leaves the probe noise (0.5 um) and the first-order model's few tenths.
-    assert result.residual_rms_um < 0.7
+    # The fit leaves the probe noise (0.5 um) and the first-order model's few tenths; with the set-up free, also the
+    # form of the change held (XOC: 1.39 um left, said by the residual note as a kept parameter).
+    assert known.residual_rms_um < 0.7 and result.residual_rms_um < 1.5
     rep = result.as_report()
     # Says what it cannot see: the C axis' zero-angle offset turns the cone about its own axis (almost invisible on
     # a surface of revolution), and nothing outside the considered set changes.
@@ -139,7 +146,10 @@ def test_identification_recovers_what_the_cone_sees_within_three_sigma(measured_
     assert rep["unseen_combinations_total"] >= 1
     assert np.all(result.value[~result.identified] == result.prior[~result.identified])
     p = {d["name"]: d for d in rep["parameters"]}
-    assert set(p["XOC"]) >= {"value_um", "std_um"} and set(p["AOC"]) >= {"value_urad", "std_urad"}
+    assert set(p["YOC"]) >= {"value_um", "std_um"} and set(p["AOC"]) >= {"value_urad", "std_urad"}
+    held = {d["name"]: d for d in rep["not_identifiable_detail"]}
+    assert "XOC" not in p and held["XOC"]["category"] == "hidden_by_alignment"
+    assert "the part's free set-up offset took out of the data" in held["XOC"]["reason"]
     assert rep["condition_number"] > rep["condition_number_identified"] >= 1.0
 
 
@@ -289,7 +299,9 @@ def test_the_default_closed_loop_of_the_cone_leaves_the_translation_and_corrects
     assert result.identification.accepted
     assert 0.3 < result.rms_reduction < 0.8  # better, not as good as with the set-up known
     before, after = result.before.metrics, result.after.metrics
-    assert after["roundness_max_um"] < 0.2 * before["roundness_max_um"]
+    # (19.9 -> 2.6 um before the changes not determined alone were held for their unchecked translation, 2026-11-28;
+    # 19.9 -> 9.3 um since, the part's RMS 35.7 -> 12 um where it was 20)
+    assert after["roundness_max_um"] < 0.6 * before["roundness_max_um"]
     assert result.identification.setup_offset["prior_sigma_um"] is None
     # The changes' translation of this cone (the C line offsets), which the free set-up took out of the data, is
     # written unchecked: said (on the slot block cut under its force such changes made the next part 17 um RMS
@@ -543,7 +555,8 @@ def test_bestfit_alignment_is_fitted_as_nuisance_through_the_cli(shop, tmp_path,
                      placed_for(load_machine(TWIN_FILE), text))
     ident = np.nonzero(plain.identified)[0]
     off = np.abs(plain.value[ident] - np.array([truth[plain.names[i]] for i in ident])) / plain.std_noise[ident]
-    assert plain.verdict == "refused" or off.max() > 10.0
+    # refused, or every change held (the free set-up hides their translation), or written far from the truth
+    assert plain.verdict == "refused" or ident.size == 0 or off.max() > 10.0
 
 
 def load_part_normals(points):

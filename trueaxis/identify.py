@@ -542,6 +542,9 @@ def _fit_identifiable(system: _System, chosen, typical, max_relative_std, na, no
 
 ALIGNMENT_TYPICAL = 1000.0  # um, urad: a best fit moves the part freely
 SETUP_NAMES = ("TX", "TY", "TZ")  # the set-up offset: a translation of the part in its frame, um
+#: A translation of the part a written change may carry unchecked with the set-up free (um RMS): what a part clamped
+#: again is off by anyway; a change the data do not determine alone that carries more is held (``_doubtful_translation``)
+SETUP_TYPICAL_UM = 5.0
 SETUP_PLAUSIBLE = 3.0  # a set-up offset fitted beyond this many prior sigma is the machine's translation of the part
 #: What the terminal and the report say when the set-up is given as known exactly (``setup_sigma_um`` 0).
 SETUP_KNOWN_NOTE = ("known exactly, as given (--setup-sigma-um 0): no set-up offset is fitted, so any offset of the "
@@ -633,6 +636,7 @@ class Identification:
     normals_flipped: int | None = None  # cloud normals turned outward (``outward_normals``); None: the part's normals
     hidden_by_alignment: dict = field(default_factory=dict)  # name -> (change, hidden RMS um): held, see identify
     hidden_rms_um: float | None = None  # the written changes' effect a best fit hides, um RMS (None: no best fit)
+    hidden_by: str = "the best-fit alignment"  # what hid the held ones: the best fit, or the part's free set-up
     setup_offset: dict = field(default_factory=dict)  # the part's set-up offset fitted as nuisance (never written)
     std_setup: np.ndarray | None = None  # (P,) the share of std_alias a set-up offset of its prior size leaves
     placed_rms_um: float | None = None  # residual RMS of the twin as is with the nuisance alone fitted, um
@@ -690,8 +694,9 @@ class Identification:
                 ch, hid = self.hidden_by_alignment[name]
                 detail.append({"name": name, "category": "hidden_by_alignment", "seen_share": _r(self.seen_share[i], 3),
                                "reason": f"change {ch:+.3g} {unit_of(name)} would move the part by {hid:.3g} um RMS "
-                                         "in a way the best-fit alignment took out of the data (a rigid motion, on the "
-                                         "cone its size): not checked by the data, kept at the twin's value"})
+                                         f"in a way {self.hidden_by} took out of the data "
+                                         f"({_HIDDEN_WHAT[self.hidden_by]}): not checked by the data, kept at the "
+                                         "twin's value"})
             elif name in self.taken_by_setup:
                 detail.append({"name": name, "category": "taken_by_setup", "seen_share": _r(self.seen_share[i], 3),
                                "reason": "moves this part only as a translation does, which the set-up offset (free: "
@@ -801,7 +806,7 @@ class Identification:
                        + (f" of which set-up {self.std_setup[i]:.2f}" if self.setup_offset else "") + ")"
                        + ("" if alone else "  [in combination: not determined alone]"))
         if self.hidden_by_alignment:
-            out.append("  hidden by the best fit, kept: " + ", ".join(
+            out.append(f"  hidden by {self.hidden_by}, kept: " + ", ".join(
                 f"{k} {v[0]:+.2f} ({v[1]:.2f} um RMS hidden)" for k, v in list(self.hidden_by_alignment.items())[:8])
                 + (" ..." if len(self.hidden_by_alignment) > 8 else ""))
         if self.taken_by_setup:
@@ -1009,7 +1014,8 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     noise = float(math.sqrt(s2_noise))
     hidden_bound = min_explained * noise
     held_all = params_active if alias_prior else np.array([], int)
-    nuis = dict(na=na, rigid=rigid, hidden_bound=hidden_bound, significance=significance, names=col_names)
+    nuis = dict(na=na, rigid=rigid, free_setup=setup and ridge is None, hidden_bound=hidden_bound,
+                significance=significance, names=col_names)
     # The part's set-up offset first fitted with the changes (its prior: a few um). A fit that puts more than
     # SETUP_PLAUSIBLE sigma there has found no set-up offset of a clamped part but the machine's own translation of
     # the part (on the cone the C line's offsets move it by tens of um, and as a set-up offset the next part would
@@ -1102,22 +1108,27 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     placed = float(np.sqrt(np.mean(placed_residual**2)))
     after = float(np.sqrt(np.mean(residual**2)))
     explained = math.sqrt(max(placed**2 - after**2, 0.0))
+    hider = "the best-fit alignment" if rigid else "the part's free set-up offset"
     verdict, reasons = _verdict(params_chosen.size, dev_rms, placed, after, heldout, significance,
-                                hidden=(hidden_rms, hidden_bound, list(hidden_by_alignment)))
+                                hidden=(hidden_rms, hidden_bound, list(hidden_by_alignment)), hider=hider)
     if verdict != "no change" and explained < min_explained * noise:
         # Statistically significant but too small to matter: a few tenths of a micrometre that the first-order
         # model and the envelope's discretisation leave; not worth a new twin.
         verdict, reasons = "no change", [
             f"the changes would explain {explained:.2f} um RMS, below {min_explained:g} x the noise ({noise:.2f} um): "
             f"the twin's values stand (residual {placed:.2f} um, deviation {dev_rms:.2f} um)"]
-    if verdict == "accepted" and setup and ridge is None:
+    if verdict in ("accepted", "no change") and setup and ridge is None:
         # With the set-up offset free, a change that moves the part mostly as a translation is fixed only by what
         # else it does, and the set-up cancels its translation on this part while the written twin applies it to the
         # next: an effect the twin does not describe (a 4 um backlash) then drives it far (YOC +103 um, truth 30, and
         # EXC.sin2 -22 um, truth 0.7; the next cone 92 um RMS instead of 37, a QA pass). A change beyond
         # IMPLAUSIBLE_TYPICAL typical sizes is not taken on one part with the set-up free.
+        # (the changes held for their unchecked translation included: held, they still say the fit went far)
+        typical_of = dict(zip(col_names, typical))
         far = [(col_names[j], float(theta[j]), typical[j]) for j in params_chosen
                if abs(theta[j]) > IMPLAUSIBLE_TYPICAL * typical[j]]
+        far += [(n, v, typical_of[n]) for n, (v, _) in hidden_by_alignment.items()
+                if abs(v) > IMPLAUSIBLE_TYPICAL * typical_of[n]]
         if far:
             verdict, reasons = "refused", [
                 "with the set-up offset free (its accuracy not given), changes beyond "
@@ -1173,7 +1184,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         reasons=reasons, heldout=heldout, considered=considered, hidden_by_alignment=hidden_by_alignment,
         hidden_rms_um=hidden_rms if rigid and verdict != "no change" else (0.0 if rigid else None),
         setup_offset=setup_offset, std_setup=std_setup, placed_rms_um=placed, taken_by_setup=taken_by_setup,
-        setup_hidden_rms_um=setup_hidden,
+        setup_hidden_rms_um=setup_hidden, hidden_by=hider,
         setup_hidden_note=_setup_hidden_note(setup_hidden, hidden_bound) if verdict == "accepted" else None,
     )
 
@@ -1230,14 +1241,17 @@ class _Significant:
 
 
 def _significant(system: _System, chosen, held_all, typical, setup_cols, *, na: int, rigid: bool,
-                 hidden_bound: float, significance: float, names) -> _Significant:
+                 free_setup: bool, hidden_bound: float, significance: float, names) -> _Significant:
     """Drop the least significant change until every kept one is ``significance`` times its noise and set-up std.
 
     chosen : the columns fitted (the set-up offset's among them when it is fitted, with its prior).  held_all : the
     parameter columns whose aliasing the std covers (those not chosen).  setup_cols : the set-up offset's columns
     (in the std's set-up part, fitted or held).  na : the nuisance columns in front (the parameters' follow).
     rigid : they are a best fit's rigid motions: the changes whose effect the alignment hides are dropped too, until
-    the rest hide at most ``hidden_bound`` (um RMS).  names : every column's name."""
+    the rest hide at most ``hidden_bound`` (um RMS).  free_setup : they are a free set-up offset's translation: a
+    change whose effect it hides beyond ``SETUP_TYPICAL_UM`` is dropped too where the data do not determine it alone
+    (within 2 std, its aliasing included), until none is left (``_doubtful_translation``).  names : every column's
+    name."""
     not_significant, hidden = {}, {}
     while True:
         theta, _, s2 = _least_squares(system, chosen)
@@ -1254,12 +1268,32 @@ def _significant(system: _System, chosen, held_all, typical, setup_cols, *, na: 
             not_significant[names[c]] = (float(theta[c]), float(math.sqrt(var_judged[worst])))
             chosen = chosen[chosen != c]
             continue
-        hidden_each, hidden_rms = _hidden_by_alignment(system, chosen, theta, na if rigid else 0)
-        if hidden_rms <= hidden_bound:
+        hidden_each, hidden_rms = _hidden_by_alignment(system, chosen, theta, na if rigid or free_setup else 0)
+        if free_setup:
+            var_all = var_noise[pos] + var_setup[pos] + var_alias[pos]
+            worst = _doubtful_translation(hidden_each, theta[chosen[pos]], var_all, SETUP_TYPICAL_UM)
+            if worst is None:  # (the translation of determined changes: said, not held; see _setup_hidden_note)
+                return _Significant(chosen, theta, var_noise, var_setup, var_alias, not_significant, hidden, 0.0)
+        elif hidden_rms <= hidden_bound:
             return _Significant(chosen, theta, var_noise, var_setup, var_alias, not_significant, hidden, hidden_rms)
-        c = int(chosen[pos[int(np.argmax(hidden_each))]])
-        hidden[names[c]] = (float(theta[c]), float(np.max(hidden_each)))
+        else:
+            worst = int(np.argmax(hidden_each))
+        c = int(chosen[pos[worst]])
+        hidden[names[c]] = (float(theta[c]), float(hidden_each[worst]))
         chosen = chosen[chosen != c]
+
+
+def _doubtful_translation(hidden_each, change, var_all, bound: float) -> int | None:
+    """With the set-up free: of the changes (P,) whose translation of the part the set-up hides beyond ``bound`` (um
+    RMS each, ``hidden_each``), the index of the one hiding the most among those the data do not determine alone
+    (|change| within 2 std, ``var_all`` their variance with the aliasing): its translation, written, would move the
+    next part by what nothing here fixed. None when there is none. (The slot block cut under its force wrote A0Z +115
+    +- 160 and B0Z -91 +- 272 urad, truth +15 and -20, hiding 22 um of translation: the next block 9.3 -> 17.1 um
+    RMS. Changes the form determines, the cone's C line offsets, keep their translation, and it is said.)"""
+    doubtful = (hidden_each > bound) & (np.abs(change) <= 2.0 * np.sqrt(np.maximum(var_all, 0.0)))
+    if not doubtful.any():
+        return None
+    return int(np.argmax(np.where(doubtful, hidden_each, -np.inf)))
 
 
 def _placed(system: _System, chosen, setup_cols) -> np.ndarray:
@@ -1346,24 +1380,33 @@ def _variances(system: _System, chosen, held, typical, s2, setup=()):
     return var_noise, var_setup + bias(np.setdiff1d(setup, chosen)), bias(held)
 
 
+#: What each nuisance hides of a change's effect, and how the user lets the data judge it.
+_HIDDEN_WHAT = {"the best-fit alignment": "a rigid motion; on the cone, its size",
+                "the part's free set-up offset": "a translation of the part, its set-up's or the machine's, which "
+                                                 "the data do not determine the change alone to tell"}
+_HIDDEN_CURE = {"the best-fit alignment": "identify them from a cloud aligned with --align none or datum",
+                "the part's free set-up offset": "give the set-up's accuracy (--setup-sigma-um) to let the data judge "
+                                                 "a translation"}
+
+
 def _verdict(n_changed: int, dev_rms: float, before: float, after: float, heldout: dict, significance: float,
-             hidden: tuple = (0.0, math.inf, [])):
+             hidden: tuple = (0.0, math.inf, []), hider: str = "the best-fit alignment"):
     """accepted / no change / refused, with the reasons (one line each). ``hidden``: (RMS um of the changes' effect
-    that the best-fit alignment hides, the most it may be, the parameters held because of it)."""
+    that ``hider`` (the best-fit alignment, or the part's free set-up offset) hides, the most it may be, the
+    parameters held because of it)."""
     hidden_rms, hidden_bound, held_hidden = hidden
     if n_changed == 0 and held_hidden:
-        return "no change", [f"every change the part asks for would move it in a way the best-fit alignment took out "
-                             f"of the data (a rigid motion; on the cone, its size), which no point can check: "
-                             f"{', '.join(held_hidden)} held, the twin's values stand (residual {before:.2f} um, "
-                             f"deviation {dev_rms:.2f} um); identify them from a cloud aligned with --align none or "
-                             "datum"]
+        return "no change", [f"every change the part asks for would move it in a way {hider} took out of the data "
+                             f"({_HIDDEN_WHAT[hider]}), which no point can check: {', '.join(held_hidden)} held, the "
+                             f"twin's values stand (residual {before:.2f} um, deviation {dev_rms:.2f} um); "
+                             f"{_HIDDEN_CURE[hider]}"]
     if n_changed == 0:
         return "no change", [f"no parameter changes by {significance:g} std (noise and set-up) or more: the twin's "
                              "values stand "
                              f"(residual {before:.2f} um, deviation {dev_rms:.2f} um)"]
     reasons = []
     if not hidden_rms <= hidden_bound:
-        reasons.append(f"the changes move the part by {hidden_rms:.2f} um RMS in a way the best-fit alignment hides "
+        reasons.append(f"the changes move the part by {hidden_rms:.2f} um RMS in a way {hider} hides "
                        f"(above {hidden_bound:.2f} um): not confirmed by the data")
     if not after < dev_rms:
         reasons.append(f"residual {after:.2f} um is not below the deviation {dev_rms:.2f} um")
