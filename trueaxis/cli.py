@@ -390,7 +390,9 @@ def cmd_simulate(args) -> int:
     # The cut surface's deviation, then the cloud's (with the probe noise): the noise-free figure alone read as the
     # cloud's (rms 0.02 um for a cloud of 50 um noise, in a QA pass).
     measured = d + np.asarray(res.noise_um, float)[cut] if np.size(res.noise_um) == np.size(cut) else d
-    print(f"{args.output}: {d.size} points ({not_cut} not cut); the cut surface's deviation (noise-free) mean "
+    asked, pattern = args.points or 200_000, int(res.info["points"])
+    grid = f"; the probe pattern's grid holds {pattern} of the {asked} asked" if pattern != asked else ""
+    print(f"{args.output}: {d.size} points ({not_cut} not cut{grid}); the cut surface's deviation (noise-free) mean "
           f"{d.mean():+.2f} um, rms {np.sqrt(np.mean(d**2)):.2f} um, range {d.min():+.2f}..{d.max():+.2f} um; the "
           f"cloud's with the probe noise (sigma {args.noise_um or 0.0:g} um) rms {np.sqrt(np.mean(measured**2)):.2f} "
           f"um; truth in {truth}; {res.timings['total_s']:.1f} s{_tool_note(res.machine.tool, machine.tool)}")
