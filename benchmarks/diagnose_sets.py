@@ -755,17 +755,26 @@ def _run_case(case: dict, points: int, noise_um: float, second: str = "") -> dic
         out["parameters"] = [dict(name=n, unit=u, value=float(v), std=float(sd))
                              for n, u, v, sd in zip(f.parameters, f.units, f.value, f.std)]
     out["truth_checks"] = cover
-    if kinds and out["expected"] != "none":
+    if kinds:  # the noise-free cuts: can the part tell the effect from the candidates at all?
         clean = [(run(scales), prog.text, pj)]
         if second:
             clean.append((run(scales, cut_prog=prog_b, t_start_s=t_b, cut_pj=pj_b), prog_b.text, pj_b))
-        out["identifiable"] = identifiability(clean, m, out["expected"], noise_um)
-    elif kinds:  # an effect outside the library: can the part tell it from every candidate at all?
-        clean = [(run(scales), prog.text, pj)]
-        if second:
-            clean.append((run(scales, cut_prog=prog_b, t_start_s=t_b, cut_pj=pj_b), prog_b.text, pj_b))
-        out["distinguishable"] = distinguishability(clean, m, noise_um)
+        if out["expected"] != "none":
+            out["identifiable"] = identifiability(clean, m, out["expected"], noise_um)
+        else:  # an effect outside the library
+            out["distinguishable"] = distinguishability(clean, m, noise_um)
     return out
+
+
+def _diagnose_clean(clean, m, noise_um: float):
+    """(diagnosis, state) of the noise-free cuts ``clean`` ([(shop result, program text, part description)], one per
+    part, cut one after another without a pause), as the diagnosis reads measured ones."""
+    from trueaxis.diagnose.report import MeasuredCut, run_diagnosis_cuts
+
+    cuts = [MeasuredCut(c.measured[np.isfinite(c.deviations_um)], c.normals[np.isfinite(c.deviations_um)], text,
+                        part_json=pj) for c, text, pj in clean]
+    return run_diagnosis_cuts(cuts, "nas979", m, noise_um=noise_um,
+                              pauses_s=[0.0] * (len(cuts) - 1) if len(cuts) > 1 else None)
 
 
 #: A rival ties with the true effect's candidate when the paired z its held-out advantage is expected to reach at
@@ -787,12 +796,8 @@ def identifiability(clean, m, expected: str, noise_um: float) -> dict:
     part in this (only its candidates and fits)."""
     from trueaxis.diagnose.analysis import fit_candidate, make_folds
     from trueaxis.diagnose.candidates import LIBRARY, build_all
-    from trueaxis.diagnose.report import MeasuredCut, run_diagnosis_cuts
 
-    cuts = [MeasuredCut(c.measured[np.isfinite(c.deviations_um)], c.normals[np.isfinite(c.deviations_um)], text,
-                        part_json=pj) for c, text, pj in clean]
-    diag, state = run_diagnosis_cuts(cuts, "nas979", m, noise_um=noise_um,
-                                     pauses_s=[0.0] * (len(cuts) - 1) if len(cuts) > 1 else None)
+    diag, state = _diagnose_clean(clean, m, noise_um)
     g = state.gap_um
     want = sorted(expected.split("+"))
     fits = diag.fits + diag.pairs
@@ -829,12 +834,7 @@ def distinguishability(clean, m, noise_um: float) -> dict:
     ``Z_IDENTIFIABLE`` -- reproduces the effect within the noise, and no rule can answer "none of the candidates"
     there (a clamped part's spring-back on a cone cut with C turning is a function of the part's angle, as the C
     axis' error motions are). The diagnosis' own rules play no part in this."""
-    from trueaxis.diagnose.report import MeasuredCut, run_diagnosis_cuts
-
-    cuts = [MeasuredCut(c.measured[np.isfinite(c.deviations_um)], c.normals[np.isfinite(c.deviations_um)], text,
-                        part_json=pj) for c, text, pj in clean]
-    diag, state = run_diagnosis_cuts(cuts, "nas979", m, noise_um=noise_um,
-                                     pauses_s=[0.0] * (len(cuts) - 1) if len(cuts) > 1 else None)
+    diag, state = _diagnose_clean(clean, m, noise_um)
     g = state.gap_um
     best = (math.inf, None)
     for f in diag.fits + diag.pairs:

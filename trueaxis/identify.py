@@ -543,7 +543,8 @@ def _fit_identifiable(system: _System, chosen, typical, max_relative_std, na, no
 ALIGNMENT_TYPICAL = 1000.0  # um, urad: a best fit moves the part freely
 SETUP_NAMES = ("TX", "TY", "TZ")  # the set-up offset: a translation of the part in its frame, um
 #: A translation of the part a written change may carry unchecked with the set-up free (um RMS): what a part clamped
-#: again is off by anyway; a change the data do not determine alone that carries more is held (``_doubtful_translation``)
+#: again is off by anyway; a change the data do not determine alone that carries more is held
+#: (``_doubtful_translation``)
 SETUP_TYPICAL_UM = 5.0
 SETUP_PLAUSIBLE = 3.0  # a set-up offset fitted beyond this many prior sigma is the machine's translation of the part
 #: What the terminal and the report say when the set-up is given as known exactly (``setup_sigma_um`` 0).
@@ -971,8 +972,9 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     share[act] = spec.share
     seen = act[(act >= na) & (spec.share >= min_share)]
     seen = seen[np.argsort(-spec.share[np.searchsorted(act, seen)], kind="stable")]
+    free_setup = setup and ridge is None  # the set-up fitted without a prior: any translation is its own
     taken_by_setup = []
-    if setup and ridge is None:
+    if free_setup:
         # A free set-up offset takes every translation of the part: a parameter that moves this part only as a
         # translation does (the squareness of Z at the slot block's one depth) is the set-up's, not fitted (with it
         # the normal matrix is singular: the slot block's identification stopped at a Cholesky factorisation).
@@ -1014,7 +1016,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     noise = float(math.sqrt(s2_noise))
     hidden_bound = min_explained * noise
     held_all = params_active if alias_prior else np.array([], int)
-    nuis = dict(na=na, rigid=rigid, free_setup=setup and ridge is None, hidden_bound=hidden_bound,
+    nuis = dict(na=na, rigid=rigid, free_setup=free_setup, hidden_bound=hidden_bound,
                 significance=significance, names=col_names)
     # The part's set-up offset first fitted with the changes (its prior: a few um). A fit that puts more than
     # SETUP_PLAUSIBLE sigma there has found no set-up offset of a clamped part but the machine's own translation of
@@ -1029,7 +1031,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
     chosen, theta = sig.chosen, _placed(system, sig.chosen, setup_cols)
     not_significant, hidden_by_alignment, hidden_rms = sig.not_significant, sig.hidden, sig.hidden_rms
     setup_hidden = (_hidden_by_alignment(system, np.union1d(setup_cols, chosen).astype(int), theta, na)[1]
-                    if setup and ridge is None else None)
+                    if free_setup else None)
     residual = _residual(jac, inv, w, g, b, theta, na)
     # The twin as it is, the part placed: the nuisance (set-up offset, or the best fit's rigid motion) fitted alone.
     # The verdict weighs what the changes explain beyond it: a set-up offset explains the part without any change.
@@ -1117,7 +1119,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         verdict, reasons = "no change", [
             f"the changes would explain {explained:.2f} um RMS, below {min_explained:g} x the noise ({noise:.2f} um): "
             f"the twin's values stand (residual {placed:.2f} um, deviation {dev_rms:.2f} um)"]
-    if verdict in ("accepted", "no change") and setup and ridge is None:
+    if verdict in ("accepted", "no change") and free_setup:
         # With the set-up offset free, a change that moves the part mostly as a translation is fixed only by what
         # else it does, and the set-up cancels its translation on this part while the written twin applies it to the
         # next: an effect the twin does not describe (a 4 um backlash) then drives it far (YOC +103 um, truth 30, and
@@ -1193,9 +1195,8 @@ def _setup_hidden_note(hidden_rms: float | None, bound: float) -> str | None:
     """The warning for written changes whose translation of the part a free set-up offset took out of the data
     (``hidden_rms`` um RMS, above ``bound``): the data never judged it, and the next part, clamped again, gets it. (The
     slot block cut under its force: A0Z +115 and B0Z -91 urad, truth +15 and -20, ACCEPTED against a set-up of -22 /
-    -28 um, and the next block came out 17.1 um RMS instead of 9.3, without a word; on the cone the translation the
-    default loop writes happened to be near the machine's.) Held as under a best fit, every change on the cone was
-    held too: said, not yet a rule."""
+    -28 um, and the next block came out 17.1 um RMS instead of 9.3, without a word.) The changes the data do not
+    determine alone are held for it (``_doubtful_translation``); this says what the determined ones still carry."""
     if hidden_rms is None or not hidden_rms > bound:
         return None
     return (f"the changes move this part by {hidden_rms:.2f} um RMS as a translation, which its free set-up offset "

@@ -153,8 +153,9 @@ def placements_to_try(current) -> list[tuple]:
     return seen
 
 
-def no_plan_reason(diag, program_text: str) -> str:
-    """Why ``plan_next_part`` planned no second part for one measured part, in words (for --plan-next)."""
+def no_plan_reason(diag, program_text: str, several: bool = False) -> str | None:
+    """Why ``plan_next_part`` plans no second part, in words (also for --plan-next), before it looks at the rivals;
+    None when it goes on. ``several``: several parts were diagnosed already."""
     from ..postproc.programs import read_setup
 
     verdict = diag.chosen_fit
@@ -162,11 +163,13 @@ def no_plan_reason(diag, program_text: str) -> str:
         return "there is no verdict to separate from rivals"
     if not diag.alternatives or diag.confidence >= MAX_CONFIDENCE:
         return f"the verdict ({diag.verdict}, confidence {diag.confidence:.2f}) has no rival this part leaves undecided"
+    if several:
+        return "several parts were diagnosed already"
     if read_setup(program_text).get("placement_mm") is None:
         return "the program's setup comment does not say where the part was placed"
     if any(family(m) == "thermal" for m in verdict.members):
         return "a drift is told apart by the same cut repeated at another time, not at another place"
-    return "no rival is another effect than the verdict's"
+    return None
 
 
 def plan_next_part(diag: Diagnosis, state: TwinState, machine, part: str, part_json: dict, program_text: str, *,
@@ -184,12 +187,10 @@ def plan_next_part(diag: Diagnosis, state: TwinState, machine, part: str, part_j
     from ..sim.cmm import probe_pattern
     from ..workpiece.part import get_part
 
+    if no_plan_reason(diag, program_text, several=state.piece is not None) is not None:
+        return None  # nothing to separate, not placed by the program, or a drift's verdict (the module docstring)
     verdict = diag.chosen_fit
-    if verdict is None or not diag.alternatives or diag.confidence >= MAX_CONFIDENCE or state.piece is not None:
-        return None
-    current = read_setup(program_text).get("placement_mm")
-    if current is None or any(family(m) == "thermal" for m in verdict.members):
-        return None  # not placed by the program, or a drift's verdict (the module docstring)
+    current = read_setup(program_text)["placement_mm"]
     by_name = {f.name: f for f in diag.fits}
     # A rival is another effect: the flexible form of the verdict's own drift is the same effect (``effect_of``).
     own = {effect_of(m) for m in verdict.members}

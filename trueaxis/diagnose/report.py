@@ -730,7 +730,8 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
         if found is None and plan_next:  # asked for, none planned: said why (it was silent, a QA pass)
             from .next_part import no_plan_reason
 
-            warnings.append(f"--plan-next: no second part planned: {no_plan_reason(diag, texts[0])}")
+            why = no_plan_reason(diag, texts[0]) or "no rival is another effect than the verdict's"
+            warnings.append(f"--plan-next: no second part planned: {why}")
     elif plan_next:  # (it was ignored without a word, a QA pass)
         warnings.append("--plan-next plans the next part from one measured part; with several given it plans none")
     if progress is not None:
@@ -857,10 +858,11 @@ def parameters_text(chosen: dict) -> str:
     """A verdict's parameters in words, from its JSON entry: the derived ones first where it has them (a servo axis'
     lag less the axes' mean, which the part determines; the lags themselves, read but not determined), then the
     fitted ones."""
+    def of(p, key):  # its value_<unit> or std_<unit>
+        return p[next(k for k in p if k.startswith(key))]
+
     def said(p):
-        value = p[next(k for k in p if k.startswith("value_"))]
-        std = p[next(k for k in p if k.startswith("std_"))]
-        return f"{p['name']} = {value:.4g} ± {std:.2g} {p['unit']}"
+        return f"{p['name']} = {of(p, 'value_'):.4g} ± {of(p, 'std_'):.2g} {p['unit']}"
 
     fitted = ", ".join(said(p) for p in chosen["parameters"])
     derived = chosen.get("derived_parameters") or []
@@ -870,7 +872,7 @@ def parameters_text(chosen: dict) -> str:
     unknown = [p for p in derived if not p.get("determined", True)]
     text = ", ".join(said(p) for p in known)
     if unknown:
-        read = ", ".join(f"{p['name']} {p[next(k for k in p if k.startswith('value_'))]:.3g}" for p in unknown)
+        read = ", ".join(f"{p['name']} {of(p, 'value_'):.3g}" for p in unknown)
         why = unknown[0].get("note") or "not determined"
         text += f"{'; ' if text else ''}not determined: {read} {unknown[0]['unit']} as read ({why})"
     notes = sorted({p["note"] for p in known if p.get("note")})

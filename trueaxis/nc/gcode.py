@@ -124,6 +124,8 @@ _FEED_MODE = re.compile(r"(?i)(?<![A-Z])G\s*0*9([45])(?![.\d])")
 def feed_per_revolution_lines(lines) -> np.ndarray:
     """(L,) bool per line of ``lines``: the feed is per spindle revolution there (G95 in force; G94 at the start, as
     LinuxCNC starts). G93 is the Program's ``inverse_time``."""
+    if not any(m.group(1) == "5" for m in _FEED_MODE.finditer("".join(lines))):
+        return np.zeros(len(lines), bool)  # no G95 anywhere (the usual program): no per-line scan in Python
     mode, out = 94, np.empty(len(lines), bool)
     for i, line in enumerate(lines):
         code = line.split("(", 1)[0].split(";", 1)[0]
