@@ -141,3 +141,11 @@ def test_machine_nominal_writes_the_error_free_twin_a_loop_starts_from(tmp_path)
     pn, un = ErrorTwin(zero).nominal_pose(q)
     assert np.array_equal(p, pn) and np.array_equal(u, un)  # no error anywhere: the nominal chain itself
     assert np.linalg.norm(ErrorTwin(full).actual_pose(q)[0] - pn, axis=1).min() > 1e-3  # (the fixture's errors: um)
+
+
+def test_demo_takes_its_output_folder_as_o_like_every_other_command():
+    from trueaxis.cli import build_parser
+
+    ap = build_parser()
+    assert ap.parse_args(["demo", "-o", "here"]).out == "here" == ap.parse_args(["demo", "--out", "here"]).out
+    assert ap.parse_args(["demo"]).out == "demo_out"

@@ -729,7 +729,8 @@ def build_parser() -> argparse.ArgumentParser:
     dg.set_defaults(func=cmd_diagnose)
 
     d = sub.add_parser("demo", help="run the end-to-end demonstration on built-in defaults")
-    d.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
+    d.add_argument("-o", "--out", default="demo_out", help="output folder (default demo_out; -o as the other "
+                   "commands take it)")
     d.set_defaults(func=cmd_demo)
 
     i = sub.add_parser("inspect", help="compare a CMM cloud with the part: deviations, form, report folder")
