@@ -705,7 +705,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     dg = sub.add_parser("diagnose", help="the sim-to-real gap: where it lies, which effect explains it, how far it shrinks")
     dg.add_argument("--cloud", required=True, action="append",
-                    help="measured CMM cloud (PLY/CSV/XYZ, part frame, mm); repeat with --program for several parts "
+                    help="measured CMM cloud in the part frame, mm (the formats inspect reads: PLY, CSV/TXT, XYZ, E57, "
+                    "DMIS output .dmo); repeat with --program for several parts "
                     "cut one after another on the machine (a second placement), in the order they were cut")
     dg.add_argument("--part", required=True, choices=part_names())
     dg.add_argument("--machine", required=True, help="the twin (machine file, TOML, or a fixture's short name)")
