@@ -237,16 +237,18 @@ def test_the_summary_says_a_lathe_x_correction_is_a_radius_when_g7_words_are_dia
     # in the summary with 15 um in the words). Said in the report and on the terminal; not in G8.
     report = {}
     compensate(_in_diameter_mode(TURNING), lathe, "geometric", report=report)
-    assert "twice" in report["correction"]["X"]["diameter_words"]
+    x = report["correction"]["X"]
+    assert x["max_abs_diameter_um"] == 2.0 * x["max_abs_um"] > 0.0
+    assert all(isinstance(v, float) for axis in report["correction"].values() for v in axis.values())
     report = {}
     compensate(TURNING, lathe, "geometric", report=report)
-    assert "diameter_words" not in report["correction"]["X"]
+    assert "max_abs_diameter_um" not in report["correction"]["X"]
     src = tmp_path / "g7.ngc"
     src.write_text(_in_diameter_mode(TURNING))
     run = subprocess.run([sys.executable, "-m", "trueaxis", "post", str(src), "--machine", str(MACHINES / "lathe.toml"),
                           "--offsets-zero", "-o", str(tmp_path / "out.ngc")], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
-    assert "(a radius: G7's X words change by twice it)" in run.stdout
+    assert re.search(r"X \d+\.\d\d \(a radius: G7's X words change by twice it, \d+\.\d\d\)", run.stdout), run.stdout
 
 
 def test_arcs_in_diameter_mode_are_refused_with_the_block(lathe):

@@ -238,8 +238,9 @@ def cmd_post(args) -> int:
     _write_or_stdout(args.output, out)
     if args.report:
         _write_or_stdout(args.report, json_text(report.as_dict()))
-    corr = ", ".join(f"{a} {max(x for x in v.values() if isinstance(x, float)):.2f}"
-                     + (" (a radius: G7's X words change by twice it)" if "diameter_words" in v else "")
+    corr = ", ".join(f"{a} {v.get('max_abs_um', v.get('max_abs_urad', 0.0)):.2f}"
+                     + (f" (a radius: G7's X words change by twice it, {v['max_abs_diameter_um']:.2f})"
+                        if "max_abs_diameter_um" in v else "")
                      for a, v in report.correction.items())
     cl = (f"CL data ({report.input_format[3:]}, {report.cl_points} points, {report.cl_program_blocks} machine-axis "
           "blocks) -> " if report.input_format.startswith("cl-") else "")

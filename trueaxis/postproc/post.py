@@ -1366,7 +1366,8 @@ class _Poster:
         if "X" in out and self.m.kind == "lathe" and bool(np.any(self.p.diameter)):
             # a lathe's X correction is a radius; G7's X words are diameters and change by twice it (a QA pass
             # read 7.51 um in the summary against 15 um in the words)
-            out["X"]["diameter_words"] = "X words in diameter mode (G7) change by twice this radius"
+            # (a number, as every entry of the correction: the largest change of the X words as written)
+            out["X"]["max_abs_diameter_um"] = 2.0 * out["X"]["max_abs_um"]
         self.rep.correction = out
 
     def _residual_check(self):
