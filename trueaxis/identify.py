@@ -1176,7 +1176,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
         no_effect=no_effect, confounded_with=confounded, poorly_determined=poorly, alignment=align,
         residual_um=residual_all, deviation_rms_um=dev_rms, predicted_rms_um=before, residual_rms_um=after,
         noise_um=noise, singular_values_um=sv, condition_number=cond,
-        condition_number_identified=cond_s, unseen=unseen, machine=machine.with_parameters(value),
+        condition_number_identified=cond_s, unseen=unseen, machine=machine.with_parameter_changes(value),
         n_points=int(x.shape[0]), n_used=int(idx.size), n_instances=int(uniq.size),
         options={"robust": bool(robust), "loss": loss if robust else None, "alignment": alignment,
                  "max_relative_std": max_relative_std, "min_share": min_share, "parameters": parameters,
@@ -1544,7 +1544,8 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     report["placement_assumed"] = assumed
     if write is not None:
         if result.accepted:
-            out = dataclasses.replace(original.with_parameters(result.value), note=_identified_note(original, result))
+            out = dataclasses.replace(original.with_parameter_changes(result.value),
+                                      note=_identified_note(original, result))
             text, comments_kept = update_machine_text(Path(machine).read_text(encoding="utf-8-sig"), out)
             atomic_write(write, text)
             report["written"] = str(write)

@@ -228,6 +228,25 @@ class Machine:
                 i += n
         return replace(self, errors=ErrorSet(location=location, components=components))
 
+    def with_parameter_changes(self, values: np.ndarray) -> "Machine":
+        """A copy whose geometric parameters are ``values`` (as ``with_parameters``) and whose loaded set, where it
+        has one, moves by the same changes: the loaded set is the unloaded one plus the force-induced part
+        (``value(F) = unloaded + s (loaded - unloaded)``), so a change of the unloaded errors alone would change the
+        force-induced part by minus itself (a comprehensive post applying only (1 - s) of it). What an identification
+        writes."""
+        out = self.with_parameters(values)
+        if self.loaded is None:
+            return out
+        old, new = self.errors, out.errors
+        location = {k: v + new.location.get(k, 0.0) - old.location.get(k, 0.0) for k, v in self.loaded.location.items()}
+        components = {}
+        for axis, comps in self.loaded.components.items():
+            components[axis] = {}
+            for name, fl in comps.items():
+                f0, f1 = old.components.get(axis, {}).get(name), new.components.get(axis, {}).get(name)
+                components[axis][name] = fl if f0 is None else _shifted(fl, f0, f1)
+        return replace(out, loaded=ErrorSet(location=location, components=components))
+
     def error_free(self) -> "Machine":
         """The machine's layout with every error parameter zero and no force model: a nominal twin (the twin a shop
         starts its closed loop from)."""
@@ -240,6 +259,21 @@ class Machine:
         for axis in self.axis_names:
             comps = self.errors.components.get(axis, {})
             yield axis, [(c, comps[c]) for c in self.component_names(axis) if c in comps]
+
+
+def _shifted(loaded: ErrorFunction, before: ErrorFunction, after: ErrorFunction) -> ErrorFunction:
+    """``loaded`` plus the change ``after - before`` of the unloaded function: the values added where the two
+    functions share their form (kind, table positions, domain, harmonics), else a table's values moved by the change
+    at its own positions (exact for a linear change between shared positions)."""
+    same = (loaded.kind == before.kind and loaded.values.shape == before.values.shape
+            and all(np.array_equal(getattr(loaded, k), getattr(before, k)) for k in ("at", "harmonics"))
+            and loaded.domain == before.domain)
+    if same:
+        return replace(loaded, values=loaded.values + (after.values - before.values))
+    if loaded.kind in ("linear", "cubic"):
+        return replace(loaded, values=loaded.values + after(loaded.at) - before(loaded.at))
+    raise ValueError(f"the loaded set's {loaded.kind} function has another form than the unloaded one: the change "
+                     "cannot be carried into it")
 
 
 def rotary_location_names(axis: str, about: str) -> list[str]:
