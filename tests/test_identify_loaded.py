@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from trueaxis.machine import ErrorTwin, load_machine
-from trueaxis.machine.machine_file import update_machine_text
+from trueaxis.machine.machine_file import parse_machine, update_machine_text
 from trueaxis.resources import machine_file
 
 # X Y Z poses over the xh714's travel
@@ -44,7 +44,7 @@ def test_the_written_machine_file_carries_the_shifted_loaded_set():
     m = load_machine(machine_file("xh714"))
     new = m.with_parameter_changes(_changed(m))
     text, _ = update_machine_text(machine_file("xh714").read_text(encoding="utf-8"), new)
-    back = load_machine_text(text)
+    back = parse_machine(text)
     assert back.loaded.location["C0Y"] == m.loaded.location["C0Y"] + 25.0
     exx_old, exx_new = m.loaded.components["X"]["EXX"], back.loaded.components["X"]["EXX"]
     at = list(np.round(exx_old.at, 9))
@@ -53,12 +53,3 @@ def test_the_written_machine_file_carries_the_shifted_loaded_set():
     assert np.array_equal(np.delete(exx_new.values, i), np.delete(exx_old.values, i))
     assert np.array_equal(back.parameter_values(), new.parameter_values())
 
-
-def load_machine_text(text):
-    import tempfile
-    from pathlib import Path
-
-    with tempfile.TemporaryDirectory() as d:
-        p = Path(d) / "m.toml"
-        p.write_text(text, encoding="utf-8")
-        return load_machine(p)

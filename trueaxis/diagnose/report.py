@@ -656,9 +656,9 @@ def write_report(diag: Diagnosis, state: TwinState, out_dir, inputs: dict | None
 def diagnose_files(cloud, part: str, machine, program, output, *, candidates="all", split: str = "region",
                    noise_um: float | None = None, part_json=None, pauses_s=None, plan_next: bool = False,
                    progress=None) -> tuple[Diagnosis, dict]:
-    """``trueaxis diagnose`` on files: read the cloud (any format ``read_cloud`` reads), the twin (machine file) and the program, diagnose,
-    and write the report into ``output``. Returns (the diagnosis, the report's JSON dict). Errors raise ValueError;
-    nothing is written then.
+    """``trueaxis diagnose`` on files: read the cloud (any format ``read_cloud`` reads), the twin (machine file) and
+    the program, diagnose, and write the report into ``output``. Returns (the diagnosis, the report's JSON dict).
+    Errors raise ValueError; nothing is written then.
 
     cloud, program : a path each, or lists of paths of one length: several parts measured and the programs that
     cut them, in the order they were cut on the machine (diagnosed together, see ``run_diagnosis_cuts``); then
