@@ -78,3 +78,21 @@ def test_the_post_imports_no_scipy_interpolate_once_the_cache_is_filled(tmp_path
     runs = [subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
             for _ in range(2)]
     assert [r.stdout.strip() for r in runs] == ["True", "False"]
+
+
+def test_a_short_post_imports_no_progress_bar(tmp_path):
+    """tqdm (36 ms of a small post's start-up, its version read through importlib.metadata) only for a long program,
+    which shows a bar; the short one's output is still written."""
+    prog = tmp_path / "p.ngc"
+    prog.write_text("G21 G90 G94\nG0 X10 Y0 Z-100 B-5 C0\nG1 X11 Y1 Z-100 B-6 C10 F500\nX12 Y2 C20\nM30\n")
+    out = tmp_path / "p.out.ngc"
+    script = (
+        "import sys\n"
+        "from trueaxis.cli import main\n"
+        f"code = main(['post', {str(prog)!r}, '-o', {str(out)!r}, '--machine', 'nmv1500dcg', '--offsets-zero'])\n"
+        "print(code, 'tqdm' in sys.modules)\n"
+    )
+    res = subprocess.run([sys.executable, "-c", script], env={**os.environ, "PYTHONPATH": str(ROOT)},
+                         capture_output=True, text=True, check=True)
+    assert res.stdout.strip().splitlines()[-1] == "0 False", res.stdout + res.stderr
+    assert "G1" in out.read_text()

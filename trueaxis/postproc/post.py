@@ -39,7 +39,6 @@ from typing import NamedTuple
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from ..compiled import kernels_on_this_thread, run_twins, thread_slices
 from ..machine import ErrorTwin, Machine, load_machine
@@ -691,6 +690,16 @@ class _PieceWords(NamedTuple):
     # the others, which the compiled writer writes); None: none (``_Poster._piece_texts``)
 
 
+class _NoBar:
+    """The progress bar of a short program: none."""
+
+    def update(self, n):
+        pass
+
+    def close(self):
+        pass
+
+
 class _ArcModes:
     """How each compensated arc is written, by index k into the compensated rows: ``kept`` (K,) bool, the arcs kept as
     they are (their end and centre corrected), and ``split`` {k: "fit" | "lines"}, the others (fitted sub-arcs,
@@ -1114,9 +1123,13 @@ class _Poster:
         # Moves are independent once their nominal start and end are known: compensate them chunk by chunk, so
         # that memory stays bounded (arcs sample 17 points each) however long the program is.
         chunks = [slice(s, min(rows.size, s + ROW_CHUNK)) for s in range(0, rows.size, ROW_CHUNK)]
-        # A bar on long programs, on a terminal only (tqdm's disable=None).
-        bar = tqdm(total=rows.size, unit="move", desc="compensating", disable=None if len(chunks) > 2 else True,
-                   leave=False)
+        # A bar on long programs, on a terminal only (tqdm's disable=None); tqdm imported only then (36 ms of a small
+        # post's start-up, most of it its version look-up through importlib.metadata)
+        bar = _NoBar()
+        if len(chunks) > 2:
+            from tqdm import tqdm
+
+            bar = tqdm(total=rows.size, unit="move", desc="compensating", disable=None, leave=False)
         for sl, (d_prog, dq, pcs, (kept, modes)) in zip(chunks, self._compensate_chunks(rows, chunks)):
             delta_prog[sl] = d_prog
             pieces.update((sl.start + k, v) for k, v in pcs.items())
