@@ -137,9 +137,9 @@ def test_program_prints_the_posts_warnings_as_the_post_command_does(tmp_path):
                         str(tmp_path / "s.ngc")], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     assert r.stderr.splitlines() == [
-        "slots.ngc[slot 3]:1: comprehensive mode: the twin of perfect 3-axis mill (test) has no force model (no "
-        "[force] compliance, no [loaded] parameter set, no response surfaces): nothing is corrected for the cutting "
-        "force, the program is compensated as in geometric mode"]
+        "slots[slot 3 as generated, before the post]:1: comprehensive mode: the twin of perfect 3-axis mill (test) "
+        "has no force model (no [force] compliance, no [loaded] parameter set, no response surfaces): nothing is "
+        "corrected for the cutting force, the program is compensated as in geometric mode"]
     assert "PostWarning" not in r.stderr and "compensate(" not in r.stderr
 
 

@@ -576,8 +576,9 @@ def nas979_program(machine: Machine, params: Nas979Params | None = None, *, comp
         from .post import compensate
 
         # force: the raw program's setup comment already names the compensation it is being posted with
-        text = compensate(raw, placed, compensation, source="nas979.ngc", report=report,
-                          **{**(post_options or {}), "force": True})
+        # (source: the program the post reads, the one generated here; line numbers are that program's)
+        text = compensate(raw, placed, compensation, source="nas979[as generated, before the post]",
+                          report=report, **{**(post_options or {}), "force": True})
     return PartProgram(text, raw, cl, q, placed, safe_z,
                        {"placement_mm": placement.tolist(), "feed_mm_min": feed, "passes": cl.passes,
                         "chord_error_um": chord_um, "cut_blocks_per_pass": int((cl.kind == "cut").sum()) // len(cl.passes),
@@ -647,8 +648,9 @@ def slots_program(machine: Machine, params: SlotBlockParams | None = None, *, po
             continue
         rep = {}
         # force: the head's setup comment already says compensation=per-slot, of the program these sections make
-        out = compensate(head_text + sec_text, placed, mode, source=f"slots.ngc[slot {s + 1}]", report=rep,
-                         header=False, **{**(post_options or {}), "force": True})
+        out = compensate(head_text + sec_text, placed, mode,
+                         source=f"slots[slot {s + 1} as generated, before the post]", report=rep, header=False,
+                         **{**(post_options or {}), "force": True})
         if not out.startswith(head_text):
             raise RuntimeError("the post changed the program header; cannot splice the slot sections")
         posted.append(out[len(head_text):])
