@@ -242,10 +242,12 @@ def cmd_post(args) -> int:
                      + (f" (a radius: G7's X words change by twice it, {v['max_abs_diameter_um']:.2f})"
                         if "max_abs_diameter_um" in v else "")
                      for a, v in report.correction.items())
-    cl = (f"CL data ({report.input_format[3:]}, {report.cl_points} points, {report.cl_program_blocks} machine-axis "
-          "blocks) -> " if report.input_format.startswith("cl-") else "")
-    print(f"{'<stdout>' if args.output == '-' else args.output}: {cl}{report.blocks_in} blocks in, "
-          f"{report.blocks_out} out; {report.moves_split} moves split"
+    if report.input_format.startswith("cl-"):  # the input's lines, its points, the machine-axis blocks made of them
+        sizes = (f"CL data in ({report.input_format[3:]}: {report.blocks_in} lines, {report.cl_points} points) -> "
+                 f"{report.cl_program_blocks} machine-axis blocks -> {report.blocks_out} out")
+    else:
+        sizes = f"{report.blocks_in} blocks in, {report.blocks_out} out"
+    print(f"{'<stdout>' if args.output == '-' else args.output}: {sizes}; {report.moves_split} moves split"
           f"{f', {report.arcs_linearised} arcs as lines' if report.arcs_linearised else ''}; "
           f"{f'max correction at the block ends {corr} (um/urad)' if corr else 'no block compensated'}; "
           f"{len(report.singular_blocks)} singular blocks", file=sys.stderr if "-" in (args.output, args.report)
