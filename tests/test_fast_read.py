@@ -397,3 +397,25 @@ def test_a_post_is_the_same_with_the_early_scan(monkeypatch):
         monkeypatch.setattr(gcode, "EARLY_SCAN_MIN_BYTES", threshold)
         outs.append(post_text(text, machine, "geometric", source="t.ngc", setup=Setup(offsets_zero=True))[0])
     assert outs[0] == outs[1]
+
+
+G87_PIECES = st.sampled_from(["G", "g", "87", "087", "0087", "8", "7", " ", "\t", "\n", "\x1c", "\u00a0", "0", "1",
+                              ".", "X", "8787", "G87", "G 87", "G0 87", "(", ")"])
+
+
+@given(st.one_of(st.text("Gg0187. \t\n\x1c", max_size=40), st.lists(G87_PIECES, max_size=20).map("".join)))
+@SETTINGS
+def test_the_g87_scan_finds_what_its_pattern_finds(text):
+    """The post's G87 look (its "87"s first, then back to the G) gives the starts of the pattern's matches."""
+    from trueaxis.postproc.post import _G87, _g87_starts
+
+    assert _g87_starts(text) == [m.start() for m in _G87.finditer(text)], text
+
+
+def test_the_g87_scan_on_the_nist_programs():
+    from trueaxis.postproc.post import _G87, _g87_starts
+
+    for name in ("mtc_plate_1.nc", "mtc_cover_rev_a.nc", "d2mi_827-9999-904_op1.nc"):
+        text = (ROOT / "fixtures" / "programs" / "nist" / name).read_text(errors="replace")
+        text += "\nG87 X1\ng 0087Y2\nG\t87.\nG870\n"
+        assert _g87_starts(text) == [m.start() for m in _G87.finditer(text)] != []

@@ -165,7 +165,9 @@ def cl_format(text: str) -> str | None:
     """"apt" when a line starts with ``GOTO/``, "csv" when the first data line is a header naming x y z i j k (or a
     comma/semicolon separated header naming at least x y z), else None (G-code)."""
     # One search over the text, not a match per line: a G-code program of a million lines passes through here.
-    if "/" in text and _GOTO_LINE.search(text):  # (a fast look for the slash first: most G-code has none)
+    # (fast looks first: a slash and the word in any case, 0.04 s on a million lines, where the line-start pattern
+    # takes 0.15 s; G-code has slashes in comments and block deletes)
+    if "/" in text and "goto" in text.lower() and _GOTO_LINE.search(text):
         return "apt"
     head = next((s for s in (m.group().strip() for m in _TEXT_LINE.finditer(text)) if s and not s.startswith("#")),
                 None)

@@ -95,6 +95,25 @@ _MOTION_WORD = re.compile(r"^G0*([0-3])$", re.IGNORECASE)
 # the motion group's codes a line holds (its modal motion: moves, cycles and G80), for the modal cycle in force
 _G87 = re.compile(r"(?i)G\s*0*87(?![\d.])")
 _MOTION_CODE = re.compile(r"(?i)G\s*0*(0|1|2|3|33\.1|38\.[2-5]|73|76|8[0-9])(?![\d.])")
+_EIGHTY_SEVEN = re.compile(r"87(?![\d.])")
+
+
+def _g87_starts(text: str) -> list[int]:
+    """The start of every match of ``_G87`` in text: its "87"s found first (a literal the pattern engine skips to;
+    the whole pattern, starting with a letter of either case, is tried at every position: 0.17 s against 0.02 s on a
+    million NIST lines), each then read backwards over the zeros and the white space to its G."""
+    starts = []
+    for m in _EIGHTY_SEVEN.finditer(text):
+        j = m.start() - 1
+        while j >= 0 and text[j] == "0":
+            j -= 1
+        while j >= 0 and text[j].isspace():  # (re's \s on str is str.isspace)
+            j -= 1
+        if j >= 0 and text[j] in "Gg":
+            starts.append(j)
+    return starts
+
+
 _NUM = NUMBER  # the one number of nc/grammar.py
 # A plain motion block: N G X Y Z A B C I J K R F, each optional, in this order, nothing else (the writer's fast path)
 _PLAIN = re.compile(
@@ -2231,7 +2250,7 @@ class _Poster:
         # G87 is modal like every cycle: the motion code in force at each cycle line (the last one before it). Read
         # only when a line holds a G87 at all (a million-line program's lines are not scanned one by one for it).
         text = "".join(p.lines)
-        hits = [m.start() for m in _G87.finditer(text)]  # a G87 anywhere (one pass over the text)
+        hits = _g87_starts(text)  # a G87 anywhere (one pass over the text)
         if not hits:
             return
         line_start = np.cumsum([0] + [len(line) for line in p.lines])
