@@ -1949,6 +1949,9 @@ class _Poster:
         o = split.first[k]
         pts = split.pts[k]
         n = len(pts)
+        # A stop (M0 M1 M2 M30 M60) acts after the block's motion: it goes with the last piece (on the first, the
+        # machine stopped mid-cut, or the program ended with the rest of the move uncut, exit 0, in a QA pass)
+        body, stops = _stop_words_taken_out(body) if n > 1 else (body, [])
         if arc_mode.get(k) == "lines":
             motion = FEED
         centres = self.arc_centres.get(r) if arc_mode.get(k) == "fit" else None
@@ -1989,6 +1992,8 @@ class _Poster:
                 piece = [word] + [split.words[a][o + i_piece] for a in axes_out]
             if inverse:
                 piece.append(fmt("F", piece_f[i_piece], inch=False))
+            if i_piece == n - 1:
+                piece += stops
             texts += [skip + sep.join(piece), ending]
         return "".join(texts), n - 1
 
@@ -2494,6 +2499,28 @@ def _out_value(target6, last6, letter, incremental: bool, decimals: int):
 def _split_ending(line: str):
     stripped = line.rstrip("\r\n")
     return stripped, line[len(stripped):]
+
+
+_STOP_CODES = (0.0, 1.0, 2.0, 30.0, 60.0)  # M codes LinuxCNC (and RS-274/NGC) executes after the block's motion
+
+
+def _stop_words_taken_out(body: str):
+    """(body without its stop words, the stop words as written): the M0 M1 M2 M30 M60 words of a block's code (not
+    of its comments), which act after the block's motion."""
+    stops, spans = [], []
+    for m in TOKEN_PATTERN.finditer(body):
+        if m.group(3) in ("M", "m") and m.group(4):
+            try:
+                code = float(m.group(4))
+            except ValueError:  # (a parameter or an expression: flattened before the post; left where it is)
+                continue
+            if code in _STOP_CODES:
+                stops.append(m.group().replace(" ", "").replace("\t", ""))
+                spans.append(m.span())
+    for a, b in reversed(spans):  # (one space where the word was between two others)
+        before, after = body[:a].rstrip(" \t"), body[b:].lstrip(" \t")
+        body = before + (" " if before.strip() and after else "") + after
+    return body, stops
 
 
 def _split_comment(body: str):
