@@ -89,6 +89,19 @@ def test_report_naming_the_output_or_the_input_is_refused_and_the_input_kept(tmp
                                               "(--machine); name another output\n")
 
 
+@pytest.mark.parametrize("option, text", [
+    ("--var", "5221 -100.0\n5222 0.0\n5223 -300.0\n"), ("--tool-table", "T3 P3 Z50 D10 ;\n"),
+    ("--setup", '[setup]\nunits = "mm"\n[work_offsets]\nG54 = {X = -100, Z = -300}\n')])
+def test_the_controls_setup_files_are_inputs_the_output_may_not_overwrite(tmp_path, program, option, text):
+    """-o naming the --var, --tool-table or --setup file replaced the control's setup with G-code, exit 0 (QA pass)."""
+    setup = tmp_path / "setup.file"
+    setup.write_text(text)
+    r = run("post", str(program), "-o", str(setup), "--machine", BC, option, str(setup))
+    assert r.returncode == 2 and r.stderr == (f"trueaxis post: -o {setup} would overwrite the input {setup} "
+                                              f"({option}); name another output\n")
+    assert setup.read_text() == text
+
+
 def test_an_output_through_a_symbolic_link_replaces_the_target_and_keeps_the_link(tmp_path, program):
     target = tmp_path / "real.ngc"
     target.write_text("old")

@@ -815,7 +815,8 @@ def _paths(args) -> tuple[list, list]:
     g = lambda name: getattr(args, name, None)  # noqa: E731 (options a subcommand does not have are None)
     cmd = args.command
     if cmd == "post":
-        return [("input", g("input")), ("--machine", g("machine"))], \
+        return [("input", g("input")), ("--machine", g("machine")), ("--var", g("var")),
+                ("--tool-table", g("tool_table")), ("--setup", g("setup"))], \
             [("-o", g("output"), False), ("--report", g("report"), False)]
     if cmd == "program":
         return [("--machine", g("machine"))], [("-o", g("output"), False), ("--cl", g("cl"), False)]
