@@ -220,19 +220,14 @@ def part_translation(folder: Path, k: int, part: str) -> dict:
     from one worse in its form."""
     import csv
 
-    from scipy.spatial import cKDTree
-
-    from trueaxis.inspect.cloud import read_cloud
-    from trueaxis.inspect.deviation import outward_normals
+    from trueaxis.inspect.deviation import nominal_normals
     from trueaxis.sim.shop import load_part
 
-    cloud = read_cloud(folder / f"r{k}.ply")
     with open(folder / f"r{k}_report" / "deviations.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     x = np.array([[float(r["x_mm"]), float(r["y_mm"]), float(r["z_mm"])] for r in rows])
     d = np.array([float(r["deviation_um"]) for r in rows])
-    n = cloud.normals[cKDTree(cloud.points).query(x)[1]]
-    n = outward_normals(x, n, load_part(part))[0]
+    n = nominal_normals(x, load_part(part))[0]
     if part == "slots":
         use = np.array([r["surface"].startswith(("slot_geometric", "slot_comprehensive")) for r in rows])
         x, n, d = x[use], n[use], d[use]

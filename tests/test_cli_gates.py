@@ -304,3 +304,17 @@ def test_an_abbreviated_option_is_refused_not_taken_for_the_option_it_begins(arg
         main(argv)
     assert exc.value.code == 2
     assert said in capsys.readouterr().err
+
+
+def test_a_numerical_failure_on_the_data_is_a_refusal_not_a_usage_error(capsys):
+    """numpy's LinAlgError is a ValueError: "trueaxis inspect: Singular matrix" came out with exit 2, the usage status,
+    for cloud normals all pointing one way (QA pass). It is exit 3 (the data refused), one line that says what."""
+    import numpy as np
+
+    from trueaxis.cli import EXIT_REFUSED, _report_error
+
+    assert _report_error("inspect", np.linalg.LinAlgError("Singular matrix")) == EXIT_REFUSED == 3
+    err = capsys.readouterr().err
+    assert err == ("trueaxis inspect: the data given leave a computation without a unique solution (numpy: Singular "
+                   "matrix): nothing written\n")
+    assert _report_error("inspect", ValueError("--points must be positive")) == 2  # usage stays usage

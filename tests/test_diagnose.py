@@ -792,9 +792,10 @@ def test_a_cloud_of_another_part_or_far_from_the_cut_is_refused_before_a_verdict
         run_diagnosis(base.points - 0.8 * base.normals, base.normals, "slots", m, prog.text)
 
 
-def test_a_clouds_normals_pointing_into_the_part_are_turned_outward_and_said(slots):
+def test_a_clouds_own_normals_are_not_used_and_what_they_were_is_said(slots):
     # A CMM may export its probe's approach directions: every normal inward made the cloud read 10 mm off its part,
-    # and a third inward silently dropped a third of the points (a QA pass). Turned, counted, noted: the same answer.
+    # and a third inward silently dropped a third of the points (a QA pass); scattered normals changed the answer
+    # (another QA pass). The part's normals are used; the cloud's are counted and noted: the same answer.
     m, prog, _ = slots
     r = _cut(m, prog, {"backlash": {"Y": {"amplitude": 8.0}}}, noise=1.0, seed=5, points=300)
     flip = np.where((np.arange(len(r.normals)) % 3 == 0)[:, None], -r.normals, r.normals)
@@ -804,20 +805,29 @@ def test_a_clouds_normals_pointing_into_the_part_are_turned_outward_and_said(slo
     assert turned.chosen == straight.chosen == ["backlash_y"]
     np.testing.assert_allclose(turned.chosen_fit.value, straight.chosen_fit.value, rtol=1e-9)
     n = int(np.sum(np.arange(len(r.normals)) % 3 == 0))
-    assert f"{n} of the {len(r.normals)} normals of the cloud pointed into the part" in " ".join(turned.notes)
-    assert not any("pointed into" in note for note in straight.notes)
+    assert (f"the cloud: the cloud's own {len(r.normals)} normals are not used, the part's are ({n} point into the "
+            "part)") in turned.notes
+    assert not any("normals" in note for note in straight.notes)
+    # scattered by about 4 deg (estimated normals), or colours read as normals: the same answer, and said
+    scattered = r.normals + np.random.default_rng(1).normal(0.0, 0.05, r.normals.shape)
+    for normals in (scattered, np.full_like(r.normals, 200.0)):
+        other, _ = run_diagnosis(r.measured, normals, "slots", m, prog.text, **args)
+        assert other.chosen == ["backlash_y"]
+        np.testing.assert_allclose(other.chosen_fit.value, straight.chosen_fit.value, rtol=1e-9)
+        assert any("normals are not used" in note and "deg from the part's" in note for note in other.notes)
 
 
 def test_the_parts_own_description_gives_the_normals_of_a_cone_of_another_size():
-    from trueaxis.diagnose.report import cloud_normals, part_description
+    from trueaxis.diagnose.report import part_description
+    from trueaxis.inspect.deviation import nominal_normals
     from trueaxis.workpiece.parts import Nas979Params
     from trueaxis.sim.cmm import probe_pattern
 
     params = Nas979Params(base_diameter=64.0, height=16.0, half_angle_deg=18.0)
     pts, nrm = probe_pattern(part_description("nas979", params), 300)
-    own, _ = cloud_normals(pts, None, part_description("nas979", params))
-    default, _ = cloud_normals(pts, None, part_description("nas979"))
-    assert np.max(np.linalg.norm(own - nrm, axis=1)) < 0.01  # the nearest point of the part's own dense pattern
+    own, _ = nominal_normals(pts, part_description("nas979", params))
+    default, _ = nominal_normals(pts, part_description("nas979"))
+    assert np.max(np.linalg.norm(own - nrm, axis=1)) < 1e-9  # the part's own cone, exactly
     assert np.median(np.linalg.norm(default - nrm, axis=1)) > 0.04  # the default cone (15 deg) is 3 deg off
     with pytest.raises(ValueError, match="not 'nas979'"):
         part_description("nas979", slot_block_description())

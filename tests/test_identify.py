@@ -469,30 +469,44 @@ def test_write_into_the_report_folder_is_refused_before_any_work(shop, tmp_path,
     assert _cli(*args, "--write", tmp_path / "x.toml") == 0 and (tmp_path / "x.toml").exists()  # beside it: fine
 
 
-def test_cloud_normals_pointing_into_the_part_are_flipped_and_counted(shop, tmp_path, capsys):
-    """CMM exports give normals either way round. All normals flipped: "only 0 of 3000 points lie on a surface the
-    program cut"; every third flipped: a third of the points silently dropped. The normals are turned to the part's
-    outward side (the nearest analytic surface's), the count is said, and the fit is the one of the outward cloud."""
+def test_the_clouds_own_normals_are_not_used_and_what_they_were_is_said(shop, tmp_path, capsys):
+    """The identification projects the twin's error on the part's normals, along which the deviation is measured. A
+    cloud's own normals were used as given (only those pointing inward flipped): scattered by 1.4 deg the verdict
+    turned into a refusal, by 3.6 deg into "no change", exit 0 (QA pass). Now the points alone decide: every way the
+    cloud's normals are given (all inward, a third inward, scattered by about 4 deg, a CMM's approach direction across
+    the cone axis) gives the identification of the cloud without normals, and what they were is said."""
     from trueaxis.inspect.cloud import read_cloud, write_cloud_ply
 
     cloud = read_cloud(shop / "changed.ply")
     args = ("--part", "nas979", "--identify", "--machine", TWIN_FILE, "--program", shop / "cone.ngc")
-    assert _cli("inspect", shop / "changed.ply", *args, "-o", tmp_path / "rep") == 0
+    write_cloud_ply(tmp_path / "bare.ply", cloud.points)
+    assert _cli("inspect", tmp_path / "bare.ply", *args, "-o", tmp_path / "rep") == 0
     reference = _report(tmp_path / "rep")
-    for every in (1, 3):
-        flip = np.arange(len(cloud.points)) % every == 0
-        write_cloud_ply(tmp_path / f"flip{every}.ply", cloud.points, np.where(flip[:, None], -1, 1) * cloud.normals)
+    assert reference["cloud_normals"] is None and reference["verdict"]["status"] == "accepted"
+    rng = np.random.default_rng(3)
+    n = cloud.normals
+    scattered = n + rng.normal(0.0, 0.05, n.shape)  # about 4 deg
+    across = n - np.outer(n @ [0.0, 0.0, 1.0], [0.0, 0.0, 1.0])  # the part's z dropped (the cone's axis is near z)
+    every_third = np.where((np.arange(len(n)) % 3 == 0)[:, None], -n, n)
+    for name, normals, inward, departed in (("inward", -n, len(n), 0), ("third", every_third, (len(n) + 2) // 3, 0),
+                                            ("scattered", scattered, None, None), ("across", across, 0, None)):
+        write_cloud_ply(tmp_path / f"{name}.ply", cloud.points, normals)
         capsys.readouterr()
-        assert _cli("inspect", tmp_path / f"flip{every}.ply", *args, "-o", tmp_path / f"rep{every}") == 0
+        assert _cli("inspect", tmp_path / f"{name}.ply", *args, "-o", tmp_path / f"rep_{name}") == 0, name
         printed = capsys.readouterr().out
-        rep = _report(tmp_path / f"rep{every}")
-        assert rep["normals_flipped"] == int(flip.sum()) and f"{int(flip.sum())} of {len(flip)} pointed into" in printed
-        assert rep["points_used"] == reference["points_used"] and rep["verdict"]["status"] == "accepted"
+        rep = _report(tmp_path / f"rep_{name}")
+        given = rep["cloud_normals"]
+        assert given["given"] == len(n) and (inward is None or given["inward"] == inward), (name, given)
+        assert departed is None or given["departed"] == departed, (name, given)
+        if name == "scattered":
+            assert 0 < given["departed"] < len(n) and 5.0 < given["largest_deg"] < 20.0, given
+        if name == "across":  # (the cone's 15 deg half angle, tilted 10 deg)
+            assert given["departed"] > 0.9 * len(n) and 20.0 < given["largest_deg"] < 30.0, given
+        assert "normals are not used" in printed and "normals are not used" in rep["normals"]
+        assert rep["points_used"] == reference["points_used"] and rep["verdict"] == reference["verdict"], name
+        assert [p["name"] for p in rep["parameters"]] == [p["name"] for p in reference["parameters"]]
         for mine, theirs in zip(rep["parameters"], reference["parameters"]):
-            assert mine["name"] == theirs["name"]
-            assert mine.get("value_um", mine.get("value_urad")) == pytest.approx(
-                theirs.get("value_um", theirs.get("value_urad")), abs=1e-3)
-    assert reference["normals_flipped"] == 0
+            assert mine.get("value_um", mine.get("value_urad")) == theirs.get("value_um", theirs.get("value_urad"))
 
 
 def test_a_program_with_axes_the_twin_lacks_is_refused_with_exit_3(shop, tmp_path, capsys):
@@ -560,9 +574,9 @@ def test_bestfit_alignment_is_fitted_as_nuisance_through_the_cli(shop, tmp_path,
 
 
 def load_part_normals(points):
-    from trueaxis.identify import part_normals
+    from trueaxis.inspect.deviation import nominal_normals
 
-    return part_normals(points, load_part("nas979"))
+    return nominal_normals(points, load_part("nas979"))[0]
 
 
 def test_datum_alignment_of_a_misplaced_cloud_gives_the_fixture_frame_result(shop, tmp_path):

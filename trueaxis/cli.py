@@ -941,6 +941,10 @@ def _report_error(command: str, exc: Exception) -> int:
     if isinstance(exc, _refusal_errors()):  # an input the product refuses (a cloud, tolerances, effects)
         print(f"trueaxis {command}: {exc}", file=sys.stderr)
         return EXIT_REFUSED
+    if type(exc).__name__ == "LinAlgError":  # numpy's (a ValueError): degenerate data, not a usage error
+        print(f"trueaxis {command}: the data given leave a computation without a unique solution (numpy: {exc}): "
+              "nothing written", file=sys.stderr)
+        return EXIT_REFUSED
     if isinstance(exc, (UsageError, OutputPathError, ValueError, FileNotFoundError)):
         print(f"trueaxis {command}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

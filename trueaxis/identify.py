@@ -115,7 +115,7 @@ from scipy.spatial import cKDTree
 
 from .machine import ErrorTwin, Machine, forward_nominal, load_machine
 from .machine.model import ROTATION_LETTER, SQUARENESS, unit_of
-from .inspect.deviation import outward_normals
+from .inspect.deviation import cloud_normals_note, nominal_normals
 from .nc.gcode import Program, parse_program
 from .nc.trajectory import AXES, MM_PER_INCH, interpolate
 from .postproc.programs import (ProgramError, check_axes, check_cut_share, placed_for,  # noqa: F401 (re-exported)
@@ -634,7 +634,7 @@ class Identification:
     reasons: list = field(default_factory=list)
     heldout: dict = field(default_factory=dict)
     considered: np.ndarray | None = None
-    normals_flipped: int | None = None  # cloud normals turned outward (``outward_normals``); None: the part's normals
+    cloud_normals: dict | None = None  # the cloud's own normals against the part's (``nominal_normals``), not used
     hidden_by_alignment: dict = field(default_factory=dict)  # name -> (change, hidden RMS um): held, see identify
     hidden_rms_um: float | None = None  # the written changes' effect a best fit hides, um RMS (None: no best fit)
     hidden_by: str = "the best-fit alignment"  # what hid the held ones: the best fit, or the part's free set-up
@@ -730,10 +730,9 @@ class Identification:
             "std_method": STD_METHOD if self.options.get("alias_prior", True) else "noise only (s^2 (A^T W A)^-1)",
             "points": self.n_points,
             "points_used": self.n_used,
-            "normals": "the part's outward normals (the cloud has none)" if self.normals_flipped is None else (
-                f"the cloud's, {self.normals_flipped} of {self.n_points} flipped to the part's outward side (they "
-                "pointed into the material)" if self.normals_flipped else "the cloud's (all outward)"),
-            "normals_flipped": self.normals_flipped,
+            "normals": "the part's outward normals at the points" + (
+                "" if self.cloud_normals is None else f" ({cloud_normals_note(self.cloud_normals)})"),
+            "cloud_normals": self.cloud_normals,
             "tool_instances": self.n_instances,
             "alignment_mode": self.options.get("alignment", "none"),
             "parameters": params,
@@ -796,9 +795,8 @@ class Identification:
                 out.append(f"  warning: {self.setup_hidden_note}")
         elif self.setup_known:
             out.append(f"  set-up: {SETUP_KNOWN_NOTE}")
-        if self.normals_flipped:
-            out.append(f"  cloud normals: {self.normals_flipped} of {self.n_points} pointed into the part and were "
-                       "flipped to its outward side")
+        if self.cloud_normals is not None and (self.cloud_normals["inward"] or self.cloud_normals["departed"]):
+            out.append(f"  normals: {cloud_normals_note(self.cloud_normals)}")
         for i in np.nonzero(self.identified)[0]:
             u = unit_of(self.names[i])
             alone = abs(self.value[i] - self.prior[i]) > 2.0 * self.std[i]
@@ -1481,23 +1479,6 @@ def _rows(a, what):
     return a
 
 
-# --------------------------------------------------------------------------------------------- part normals ----
-def part_normals(points, part: dict) -> np.ndarray:
-    """Unit outward normals of the nominal surface at ``points`` for a cloud that has none (the NAS 979 cone)."""
-    cone = next((s for s in part["surfaces"] if s["id"] == "cone"), None)
-    if cone is None:
-        raise ValueError("the cloud has no normals and the part has no analytic normal field: give a cloud with "
-                         "normals (nx ny nz)")
-    a = np.asarray(cone["axis"], float)
-    a = a / np.linalg.norm(a)
-    c = np.asarray(cone["base_center"], float)
-    alpha = math.radians(cone["half_angle_deg"])
-    v = np.asarray(points, float) - c
-    radial = v - np.outer(v @ a, a)
-    radial /= np.maximum(np.linalg.norm(radial, axis=1, keepdims=True), 1e-300)
-    return math.cos(alpha) * radial + math.sin(alpha) * a
-
-
 # ---------------------------------------------------------------------------------------------------- the CLI ----
 def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, program: str | Path,
                        write: str | Path | None = None, alignment: str = "none", robust: bool = False,
@@ -1522,11 +1503,7 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
         raise ValueError(f"{program_path}: no such program file")
     text = program_path.read_text(encoding="utf-8", errors="replace")
     placed = placed_for(original, text, part.get("part"))
-    flipped = None
-    if cloud.normals is not None:
-        normals, flipped = outward_normals(cloud.points, cloud.normals, part)
-    else:
-        normals = part_normals(cloud.points, part)
+    normals, given = nominal_normals(cloud.points, part, cloud.normals)
     parsed = parse_program(text, str(program_path))
     check_axes(placed, parsed)  # a program posted for another machine: refused before any work, as the diagnosis
     assumed = placement_assumed(text, original)  # None: the program's setup comment says (the diagnosis' words)
@@ -1536,7 +1513,7 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
                           setup_sigma_um=math.inf if setup_sigma_um is None else setup_sigma_um)
     except ProgramError as exc:  # a part the program did not cut: where it was assumed placed is the likely cause
         raise ProgramError(f"{str(exc).rstrip('?')}; note: {assumed}" if assumed else str(exc)) from None
-    result = dataclasses.replace(result, normals_flipped=flipped)
+    result = dataclasses.replace(result, cloud_normals=given)
     report = result.as_report()
     report["machine_file"] = str(machine)
     report["program"] = str(program_path)

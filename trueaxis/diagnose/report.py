@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..inspect.cloud import CloudError
+from ..inspect.deviation import cloud_normals_note, nominal_normals
 from ..inspect.flyers import MAX_BEYOND_GATE
 from ..fileio import json_text
 from ..nc.gcode import parse_program
@@ -53,24 +54,6 @@ def part_description(part: str, part_json=None) -> dict:
     if part_json is not None and not isinstance(part_json, (dict, str, os.PathLike)):
         part_json = get_part(part).description(part_json)
     return load_part(part, part_json)
-
-
-def cloud_normals(points: np.ndarray, normals: np.ndarray | None, part_json: dict) -> tuple[np.ndarray, int]:
-    """(unit outward normals (N, 3), how many of the cloud's own were turned): the cloud's normals turned outward
-    where they point into the part (a CMM may export its probe's approach direction: with every normal inward the
-    cloud read 10 mm off its part, in a QA pass), or, without them, the normal of the nearest point of the part's
-    probe pattern (the part's analytic surfaces from its JSON description)."""
-    if normals is not None:
-        from ..inspect.deviation import outward_normals
-
-        return outward_normals(points, normals / np.linalg.norm(normals, axis=1, keepdims=True), part_json)
-    from scipy.spatial import cKDTree
-
-    from ..sim.cmm import probe_pattern
-
-    pts, nrm = probe_pattern(part_json, 200_000)
-    _, idx = cKDTree(pts).query(points)
-    return nrm[idx], 0
 
 
 def run_diagnosis(points, normals, part: str, machine, program_text: str, *, candidates="all", split="region",
@@ -145,10 +128,9 @@ def run_diagnosis_cuts(cuts: list, part: str, machine, *, candidates="all", spli
             placed = placed_for(machine, c.program_text, part)  # a program for the other part, a bad setup
             check_axes(placed, parse_program(c.program_text, c.program_name))  # posted for another machine
             check_part_against_program(part, pj, c.program_text)
-            normals, turned = cloud_normals(np.asarray(c.points, float), c.normals, pj)
-            if turned:
-                notes.append(f"{turned} of the {len(normals)} normals of {c.cloud_name or 'the cloud'} pointed into "
-                             f"the part (a probe's approach direction?): turned outward")
+            normals, given = nominal_normals(np.asarray(c.points, float), pj, c.normals)
+            if given is not None and (given["inward"] or given["departed"]):
+                notes.append(f"{c.cloud_name or 'the cloud'}: {cloud_normals_note(given)}")
             return normals
 
         checked.append((pj, for_cut(k, c, gate)))

@@ -784,16 +784,43 @@ def align_datum(points, part: dict, surfaces: list[dict], gate_mm: float = 1.0) 
     return RigidMotion(rotation, translation, "datum", [], info)
 
 
-def outward_normals(points, normals, part: dict) -> tuple[np.ndarray, int]:
-    """A cloud's normals turned to the outward side of the part: each normal pointing into the material (against the
-    outward normal of its nearest analytic surface of the part JSON) is flipped. CMM software and scanners export
-    normals either way round (towards the probe, or into the part), and the model's contact search, which looks for
-    the tool along the normal, finds nothing along an inward one.
+NORMAL_DEPARTURE_DEG = 5.0  # a cloud's own normal further than this from the part's is counted in what is said
 
-    points, normals : (N, 3) part frame. part : the part JSON dict. Returns (outward normals (N, 3), how many were
-    flipped).
+
+def nominal_normals(points, part: dict, cloud_normals=None) -> tuple[np.ndarray, dict | None]:
+    """The part's unit outward normals at the points (its nearest analytic patch's, at the foot point), and what the
+    cloud's own normals were against them.
+
+    The deviation is measured along the part's normal, and the model (identification, diagnosis) projects the
+    machine's error on it: a cloud's own normals are not used. Estimated or exported normals scatter by degrees, a
+    CMM may export its probe's approach direction, a colour column may be read as a normal: taken as given, 1.4 deg of
+    scatter turned an accepted identification into a refusal, 3.6 deg into "no change", exit 0 (QA pass).
+
+    points : (N, 3) part frame, mm. part : the part JSON dict. cloud_normals : (N, 3) or None.
+    Returns (normals (N, 3), None when the cloud has no normals, else {"given": N, "inward": how many point into the
+    part, "departed": how many lie further than NORMAL_DEPARTURE_DEG from the part's either way round,
+    "largest_deg": the largest such angle}).
     """
-    normals = np.asarray(normals, dtype=np.float64)
-    cad = analytic_deviation(points, analytic_surfaces(part)).normal
-    inward = np.einsum("ij,ij->i", normals, cad) < 0
-    return np.where(inward[:, None], -normals, normals), int(inward.sum())
+    nominal = analytic_deviation(points, analytic_surfaces(part)).normal
+    if cloud_normals is None:
+        return nominal, None
+    given = np.asarray(cloud_normals, dtype=np.float64)
+    length = np.linalg.norm(given, axis=1)
+    cos = np.einsum("ij,ij->i", given, nominal) / np.where(length > 0, length, 1.0)
+    cos = np.where(length > 0, cos, 0.0)  # (a zero normal: at right angles, counted)
+    angle = np.degrees(np.arccos(np.clip(np.abs(cos), 0.0, 1.0)))  # either way round
+    return nominal, {"given": int(len(given)), "inward": int(np.count_nonzero(cos < 0)),
+                     "departed": int(np.count_nonzero(angle > NORMAL_DEPARTURE_DEG)),
+                     "largest_deg": float(angle.max(initial=0.0))}
+
+
+def cloud_normals_note(info: dict | None) -> str | None:
+    """One sentence on a cloud's own normals (``nominal_normals``' dict), None when it has none."""
+    if info is None:
+        return None
+    said = [f"{info['inward']} point into the part"] if info["inward"] else []
+    if info["departed"]:
+        said.append(f"{info['departed']} lie more than {NORMAL_DEPARTURE_DEG:g} deg from the part's, the largest "
+                    f"{info['largest_deg']:.1f} deg")
+    return (f"the cloud's own {info['given']} normals are not used, the part's are" +
+            (f" ({'; '.join(said)})" if said else ""))
