@@ -290,6 +290,11 @@ class Program:
     # zero (a home position, a work offset component, a G92 shift, a tool length): they pass through a post, which
     # refuses the program's own moves under such a value; None: none
     machine_rows_not_given: np.ndarray | None = None
+    # (line index, what) of the blocks after which the control's position is not known from the text: a tool change
+    # (M6: a control may lift Z or go to a change position first, LinuxCNC's TOOL_CHANGE_QUILL_UP / _AT_G30 /
+    # _POSITION, a Fanuc or Hurco change macro), a block passed through whose moves are not in the text (probing
+    # G38.x, a macro call, ...). A post writes no axis word from a position held before one until the program gives it.
+    positions_lost: list = field(default_factory=list)
 
     def __len__(self) -> int:
         return int(self.motion.shape[0])
@@ -643,6 +648,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         # tool number -> (6,) offsets X Y Z A B C in mm / deg (Z: the length), and where each came from
         self.tool_off_mm: dict = {}
         self.tool_src: dict = {}
+        self.positions_lost: list = []  # (line index, what): see Program.positions_lost
         for k, v in (tool_table or {}).items():
             off = np.zeros(6)
             if np.ndim(v) == 0:
@@ -976,7 +982,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             diameter=st_diameter[sid].reshape(m), line_index=np.array(r_line, np.int32), words=words, lines=lines,
             units=units, axes_present="".join(a for a in AXES if a in used_axes), warnings=self.warnings,
             unsupported=self.unsupported, rotation=rotation, setup_used=setup_used, position_sets=self.position_sets,
-            block_delete_lines=self.block_delete_lines,
+            block_delete_lines=self.block_delete_lines, positions_lost=self.positions_lost,
             machine_rows_not_given=self.machine_rows_not_given(mid, kind, metas, self.required_axes(used_axes)),
         )
 

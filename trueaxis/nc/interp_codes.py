@@ -35,6 +35,8 @@ MOVING_G = {
     520: "local coordinate offset G52 (later positions read without it)",
     171: "plane G17.1", 181: "plane G18.1", 191: "plane G19.1",
 }
+# those of them after which the control's position is not known from the text (not G52's offset, not the planes)
+POSITION_LOST_G = frozenset(MOVING_G) - {520, 171, 181, 191}
 MOTION_G = (0, 10, 20, 30, 730, 740, 810, 820, 830, 840, 850, 860, 870, 880, 890)
 CYCLE_G = frozenset(MOTION_G[4:])
 

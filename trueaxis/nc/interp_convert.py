@@ -162,6 +162,7 @@ class Conversion:
         for m in mnums:
             if m == 6:
                 self.tool = tool = self.next_tool
+                self.positions_lost.append((line_no - 1, "the tool change M6"))
                 if self.tool_change_mode:
                     # the control applies the new tool's length at the change (Hurco, some Fanuc setups)
                     new, self.tlo_h, self.tlo_reason = self.tool_offsets(tool, self.u_scale, self.zero_ok, line_no,

@@ -1073,8 +1073,10 @@ class _Poster:
     def known_positions(self):
         """(end known (M,) bool, start known (M,) bool, the axes not known at each row's end (M,) bit mask) of the
         program's rows: an axis' position is known from its first absolute word (G90) on, and from a G28 / G30 that
-        homes every axis; before that the control is wherever it stands. Required are the machine's
-        ``required_axes``: its linear axes and the rotary axes the program uses (the rule of the work offsets too)."""
+        homes every axis; before that the control is wherever it stands, and so again after a block that may move it
+        where the text does not say (``Program.positions_lost``: a tool change, a probing move passed through). Required
+        are the machine's ``required_axes``: its linear axes and the rotary axes the program uses (the rule of the work
+        offsets too)."""
         p = self.p
         need = [AXES.index(a) for a in self.m.required_axes(p.axes_present)]
         bits = sum(1 << c for c in need)
@@ -1082,10 +1084,32 @@ class _Poster:
         homing = (p.kind == ROW_REFERENCE) & (p.words == 0)
         second = np.r_[False, (p.line_index[1:] == p.line_index[:-1]) & (p.kind[:-1] == ROW_REFERENCE)]
         given = np.where(homing & ~second, bits, given)
-        have = np.bitwise_or.accumulate(given) if given.size else given
+        # each row's last loss: the first row of its line or after (a move in the M6 block is made after the change)
+        lost_at = np.searchsorted(p.line_index, [li for li, _ in p.positions_lost], side="left")
+        since = np.zeros(given.size, np.int64)  # the first row counted for each row: 0, or its last loss' first row
+        if lost_at.size and given.size:
+            mark = np.zeros(given.size + 1, np.int64)
+            np.maximum.at(mark, lost_at, lost_at)
+            since = np.maximum.accumulate(mark[:-1])
+        have = np.zeros(given.size, np.int64)
+        rows = np.arange(given.size)
+        for c in need:  # an axis is known where its last absolute word is at or after the row's last loss
+            last = np.maximum.accumulate(np.where(given >> c & 1, rows, -1)) if given.size else rows
+            have |= np.where(last >= since, 1 << c, 0)
         missing = bits & ~have
         end_known = missing == 0
         return end_known, np.r_[False, end_known[:-1]], missing
+
+    def _lost_since(self, row: int) -> str | None:
+        """What made the control's position unknown before ``row`` (``Program.positions_lost``, with its source
+        line), or None (the program's start)."""
+        p = self.p
+        before = [(li, what) for li, what in p.positions_lost if li <= int(p.line_index[row])]
+        if not before:
+            return None
+        li, what = before[-1]
+        line = li + 1 if p.source_line is None else int(p.source_line[li])
+        return f"{what} at line {line}"
 
     def run(self):
         p = self.p
@@ -1098,10 +1122,12 @@ class _Poster:
         self._refuse_position_sets_from_unknown(missing)
         unknown = ~end_known[rows] | (np.isin(p.motion[rows], (ARC_CW, ARC_CCW)) & ~start_known[rows])
         if np.any(unknown) and self.tcp is not None:
-            li = int(p.line_index[rows[np.argmax(unknown)]])
-            raise PostError(p.source, li + 1, "TCP output: the position of an axis is not known here (no absolute "
-                                              "move of it before), so the block cannot be written as a tool-tip "
-                                              "position: give every axis' position first, or --output-mode joint")
+            r = rows[np.argmax(unknown)]
+            lost = self._lost_since(r)
+            raise PostError(p.source, int(p.line_no[r]), "TCP output: the position of an axis is not known here (no "
+                                                         f"absolute move of it {f'since {lost}' if lost else 'before'}),"
+                                                         " so the block cannot be written as a tool-tip position: give "
+                                                         "every axis' position first, or --output-mode joint")
         if np.any(unknown):
             bad_lines = np.unique(p.line_index[rows[unknown]])
             keep = ~np.isin(p.line_index[rows], bad_lines)
@@ -1111,9 +1137,12 @@ class _Poster:
                     continue
                 axes = "".join(a for i, a in enumerate(AXES) if int(missing[r]) >> i & 1) or \
                     "".join(a for i, a in enumerate(AXES) if int(missing[r - 1]) >> i & 1 if r > 0)
-                self.rep.uncompensated.append({"line": li + 1, "axes": axes})
-                self.rep.warnings.append(f"{p.source}:{li + 1}: the position of {' '.join(axes)} is not known here "
-                                         "(no absolute move of it before): block left as written, uncompensated")
+                lost = self._lost_since(r)
+                line = int(p.line_no[r])
+                self.rep.uncompensated.append({"line": line, "axes": axes, **({"since": lost} if lost else {})})
+                since = f"since {lost}" if lost else "before"
+                self.rep.warnings.append(f"{p.source}:{line}: the position of {' '.join(axes)} is not known here "
+                                         f"(no absolute move of it {since}): block left as written, uncompensated")
             rows = rows[keep]
             if rows.size == 0:  # not one move: no compensated program to write (its header would say one)
                 first = self.rep.uncompensated[0]
