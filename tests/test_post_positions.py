@@ -74,3 +74,14 @@ def test_tcp_output_refuses_a_block_whose_position_a_tool_change_left_unknown():
     with pytest.raises(PostError, match=r":6: TCP output: the position of an axis is not known here \(no absolute "
                                         r"move of it since the tool change M6 at line 5\)"):
         compensate(prog, bc, "geometric", offsets_zero=True, output_mode="tcp")
+
+
+def test_the_setups_provenance_names_the_source_lines_of_a_flattened_program():
+    """The header and the report named the flat program's lines (g10p.ngc:3 for a G10 at line 5; on the NIST d2mi
+    program :944 for :948), the error growing along the file (QA pass)."""
+    xh = load_machine(MACHINES / "xh714.toml")
+    prog = "G21 G90 G17\n#1 = 5\n#2 = 6\n#3 = 7\nG10 L2 P2 X-10 Y#1 Z-250\nG55 G0 X1 Y1 Z1\nM2\n"
+    report = {}
+    out = compensate(prog, xh, "geometric", report=report)
+    assert "(trueaxis setup: G55 X-10 Y5 Z-250 mm, from <string>:5 [G10 L2])" in out.splitlines()
+    assert [(u["source"], u["first_line"]) for u in report["setup_used"]] == [("<string>:5 (G10 L2)", 6)]

@@ -767,6 +767,14 @@ def read_flat(text: str, source: str, passthrough: bool, split, interpret):
     prefix = re.escape(source) + r":([0-9]+):"
     prog.warnings = [re.sub("^" + prefix, lambda m: f"{source}:{line_map[min(int(m.group(1)), len(line_map)) - 1]}:",
                             w) for w in prog.warnings]
+    # the setup's sources ("file:line (G10 L2)") and first uses (the header's and the report's provenance) too
+    at_line = re.compile("^" + re.escape(source) + r":([0-9]+)(?![0-9])")
+    for used in prog.setup_used:
+        if isinstance(used.get("source"), str):
+            used["source"] = at_line.sub(
+                lambda m: f"{source}:{line_map[min(int(m.group(1)), len(line_map)) - 1]}", used["source"])
+        if isinstance(used.get("first_line"), int):
+            used["first_line"] = line_map[min(max(used["first_line"], 1), len(line_map)) - 1]
     first = next((n for n, ln in enumerate(lines, 1) if _FEATURES.search(ln)), 1)  # the first line flattened
     prog.warnings.insert(0, f"{source}:{first}: flattened: parameters, expressions and O-word / M98 control flow "
                             f"evaluated ({len(flat.source_line)} flat blocks); the output is the flat program")
