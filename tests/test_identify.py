@@ -762,3 +762,6 @@ def test_a_program_a_trueaxis_post_wrote_is_read_as_compensated_by_its_header():
     assert said["mode"] == "geometric" and said["posted"] and said["same_twin"] is True
     other = program_compensation(posted, load_machine(MACHINES / "nmv1500dcg.toml"))
     assert other["same_twin"] is False and "by another twin (its post header" in other["note"]
+    # another twin: a warning besides the note (another round's program was accepted with twice the true errors,
+    # the note read as information; QA pass); none for this twin's own program
+    assert "make sure it is the program that cut this part" in other["warning"] and "warning" not in said

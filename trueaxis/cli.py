@@ -540,6 +540,8 @@ def cmd_inspect(args) -> int:
     if r["identification"].get("unexplained_note"):
         print(f"  note: {r['identification']['unexplained_note']}")
     print(f"  program: {r['identification']['program_compensation']['note']}")
+    if r["identification"]["program_compensation"].get("warning"):
+        print(f"trueaxis inspect: warning: {r['identification']['program_compensation']['warning']}", file=sys.stderr)
     if r["identification"].get("placement_assumed"):  # the words the diagnosis says it in
         print(f"  program: {r['identification']['placement_assumed']}")
     if args.write and not identification.accepted:

@@ -676,12 +676,20 @@ def part_program(part: str, machine: Machine, params=None, **options) -> PartPro
     return PROGRAMS[part](machine, params, **options)
 
 
+# A program compensated by another twin than the one given is legitimate (the model is the twin at the axes the program
+# commands), and the usual mix-up of a closed loop: another round's program fitted the part better than the right one
+# and was accepted with twice the true errors (QA pass). Said on stderr, not only in the notes.
+OTHER_TWIN_WARNING = ("the program was compensated by another twin than the one given: make sure it is the program "
+                      "that cut this part (not another round's); a wrong program's changes are wrong however well "
+                      "they fit")
+
+
 def program_compensation(program_text: str, twin: Machine) -> dict:
     """What the program says about its compensation (its ``trueaxis-setup`` comment: ``compensation`` and ``twin``,
     the twin's id, ``trueaxis.postproc.programs.twin_id``), compared with ``twin``. The identification does not
     depend on it (its model is the twin at the axes the program commands, whoever compensated them); the note says
     what was read or assumed (the diagnosis says it too: its twin's cut is the same model). Returns {"mode",
-    "twin_id", "same_twin" (bool or None), "note"}."""
+    "twin_id", "same_twin" (bool or None), "note"}, and "warning" (``OTHER_TWIN_WARNING``) where another twin did."""
     from .post import machine_fingerprint, read_post_header
 
     posted = read_post_header(program_text)
@@ -693,7 +701,8 @@ def program_compensation(program_text: str, twin: Machine) -> dict:
               None: "a trueaxis post whose header names no machine file"}[same]
         return {"mode": posted["mode"], "twin_id": posted["sha256"], "same_twin": same, "posted": True,
                 "note": f"compensation={posted['mode']} by {by}; a setup comment it carries is the program's before "
-                        "the post; the model is the twin at the axes the program commands"}
+                        "the post; the model is the twin at the axes the program commands",
+                **({"warning": OTHER_TWIN_WARNING} if same is False else {})}
     setup = read_setup(program_text)
     mode, tid = setup.get("compensation"), setup.get("twin")
     mine = twin_id(twin)
@@ -711,4 +720,6 @@ def program_compensation(program_text: str, twin: Machine) -> dict:
     else:
         note = (f"compensation={mode} by another twin ({tid}, this one is {mine}); the model is this twin at the "
                 "axes the program commands")
-    return {"mode": mode, "twin_id": tid, "same_twin": None if tid is None else tid == mine, "note": note}
+    same = None if tid is None else tid == mine
+    return {"mode": mode, "twin_id": tid, "same_twin": same, "note": note,
+            **({"warning": OTHER_TWIN_WARNING} if same is False else {})}
