@@ -318,3 +318,22 @@ def test_a_numerical_failure_on_the_data_is_a_refusal_not_a_usage_error(capsys):
     assert err == ("trueaxis inspect: the data given leave a computation without a unique solution (numpy: Singular "
                    "matrix): nothing written\n")
     assert _report_error("inspect", ValueError("--points must be positive")) == 2  # usage stays usage
+
+
+def test_a_latin1_program_is_written_back_in_latin1(tmp_path):
+    """A Latin-1 program's comment bytes (NIST d2mi: 0xB0 for the degree sign) came out as UTF-8 (0xC2 0xB0), which a
+    control reading Latin-1 shows as two characters (QA pass): the output keeps the input's encoding, file or stdin."""
+    prog = b"G21 G90 G17 G94\nG0 X10 Y10 Z-20\n( 1/4\" X 90\xb0 SPOT DRILL )\nG1 X20 F100\nM2\n"
+    src = tmp_path / "latin.ngc"
+    src.write_bytes(prog)
+    r = run("post", str(src), "-o", str(tmp_path / "out.ngc"), "--machine", BC, "--offsets-zero")
+    assert r.returncode == 0, r.stderr
+    out = (tmp_path / "out.ngc").read_bytes()
+    assert b"( 1/4\" X 90\xb0 SPOT DRILL )\n" in out and b"\xc2" not in out
+    piped = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", "-", "-o", "-", "--machine", BC,
+                            "--offsets-zero"], input=prog, capture_output=True, timeout=120, check=False)
+    assert piped.returncode == 0 and piped.stdout == out
+    utf8 = prog.replace(b"\xb0", "\u00b0".encode())  # a UTF-8 one stays UTF-8
+    src.write_bytes(utf8)
+    assert run("post", str(src), "-o", str(tmp_path / "u.ngc"), "--machine", BC, "--offsets-zero").returncode == 0
+    assert "90\u00b0 SPOT".encode() in (tmp_path / "u.ngc").read_bytes()

@@ -244,8 +244,9 @@ def test_what_trueaxis_says_of_the_job_reaches_freecads_console_naming_the_outpu
     out = freecad_job.dir / "trueaxis.ngc"
     said = [line for line in freecad_job.console.splitlines() if line.startswith(f"{out}:")]
     uncompensated = (r":\d+: block 'G0 Z-294\.000': the position of X Y is not known here \(no absolute move of it "
-                     r"before\): block left as written, uncompensated")
+                     r"(before|since the tool change M6 at line \d+)\): block left as written, uncompensated")
     assert len(said) == 3 and all(re.fullmatch(re.escape(str(out)) + uncompensated, line) for line in said[:2]), said
+    assert "before" in said[0] and "since the tool change M6" in said[1], said  # the second operation's, after M6
     assert "tool length offsets in force (tool 1 offset Z50.8 mm)" in said[2]
     assert "trueaxis_post_" not in freecad_job.console
 

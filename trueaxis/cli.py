@@ -201,7 +201,7 @@ def cmd_error(args) -> int:
 def cmd_post(args) -> int:
     from .machine import load_machine
     from .resources import machine_file  # a path, or a fixture machine's short name
-    from .postproc.post import post_text, _read_input, resolve_setup
+    from .postproc.post import decode_program, post_text, resolve_setup
 
     # options that would change nothing are refused, not ignored (a QA pass posted with --ap in geometric mode)
     cutting = [f"--{k.replace('_', '-')}" for k in ("ap", "ae", "fz", "n", "d", "z", "cut_mode")
@@ -216,12 +216,13 @@ def cmd_post(args) -> int:
                           machine_units=args.machine_units or "mm", offsets_zero=args.offsets_zero)
     if args.output == "-" and args.report == "-":
         raise UsageError("-o - and --report - both name stdout; name a file for one of them")
-    if args.input == "-":  # the program on stdin: read whole, refused as a file would be (NUL bytes, encoding)
-        text, source = _decode_program(sys.stdin.buffer.read(), "<stdin>")
-    else:
-        text, source = _read_input(Path(args.input), None) if Path(args.input).exists() else (None, args.input)
-    if text is None:
+    # the program (a file, or stdin read whole), refused as a file would be (NUL bytes); its encoding is the output's
+    # (a Latin-1 file's comments came out as UTF-8, which a control reading Latin-1 shows as two characters; QA pass)
+    source = "<stdin>" if args.input == "-" else args.input
+    if args.input != "-" and not Path(args.input).is_file():
         raise UsageError(f"{args.input}: no such file")
+    text, encoding = decode_program(sys.stdin.buffer.read() if args.input == "-" else Path(args.input).read_bytes(),
+                                    source)
     conditions = {k: getattr(args, k) for k in ("ap", "ae", "fz", "n", "d", "z")}
     conditions["mode"] = args.cut_mode
     branch = {"nearest": "nearest", "+1": 1, "-1": -1}[args.cl_branch]
@@ -235,7 +236,7 @@ def cmd_post(args) -> int:
         print(f"trueaxis post: --strict: {len(report.warnings)} warning{'s' if len(report.warnings) > 1 else ''}; "
               f"{args.output} not written", file=sys.stderr)
         return EXIT_REFUSED
-    _write_or_stdout(args.output, out)
+    _write_or_stdout(args.output, out.encode(encoding, errors="replace"))  # (a header character Latin-1 lacks: ?)
     if args.report:
         _write_or_stdout(args.report, json_text(report.as_dict()))
     corr = ", ".join(f"{a} {v.get('max_abs_um', v.get('max_abs_urad', 0.0)):.2f}"
@@ -281,23 +282,16 @@ def post_warnings():
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)
 
 
-def _decode_program(data: bytes, source: str) -> tuple[str, str]:
-    """Program bytes (stdin) as the post reads a file: NUL bytes refused, UTF-8 else Latin-1."""
-    from .postproc.post import PostError
-
-    if b"\x00" in data:
-        raise PostError(source, 1, "binary data (NUL bytes): not G-code")
-    try:
-        return data.decode("utf-8"), source
-    except UnicodeDecodeError:
-        return data.decode("latin-1"), source
-
-
-def _write_or_stdout(path: str, text: str) -> None:
-    """``-``: stdout (no atomic file then); else the file, written atomically."""
+def _write_or_stdout(path: str, text: str | bytes) -> None:
+    """``-``: stdout (no atomic file then); else the file, written atomically. Bytes as they are, text as UTF-8."""
     if path == "-":
-        sys.stdout.write(text)
-        sys.stdout.flush()
+        if isinstance(text, bytes):
+            sys.stdout.flush()
+            sys.stdout.buffer.write(text)
+            sys.stdout.buffer.flush()
+        else:
+            sys.stdout.write(text)
+            sys.stdout.flush()
         return
     from .fileio import atomic_write
 

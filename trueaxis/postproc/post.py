@@ -288,17 +288,21 @@ def resolve_setup(machine: Machine, *, setup=None, var=None, tool_table=None, ma
                       offsets_zero=offsets_zero)
 
 
+def decode_program(data: bytes, source: str) -> tuple[str, str]:
+    """(text, encoding) of a program file's bytes: NUL bytes refused; UTF-8, else Latin-1 (a byte per character: an
+    ISO 8859-1 or Windows file's comments read as written, and written back in it: ``encoding``)."""
+    if b"\x00" in data:
+        raise PostError(source, 1, "binary data (NUL bytes): not G-code")
+    try:
+        return data.decode("utf-8"), "utf-8"
+    except UnicodeDecodeError:
+        return data.decode("latin-1"), "latin-1"
+
+
 def _read_input(program, source):
     if isinstance(program, Path) or (isinstance(program, str) and "\n" not in program and Path(program).is_file()):
         path = Path(program)
-        data = path.read_bytes()
-        if b"\x00" in data:
-            raise PostError(str(path), 1, "binary file (NUL bytes): not G-code")
-        try:
-            text = data.decode("utf-8")
-        except UnicodeDecodeError:
-            text = data.decode("latin-1")
-        return text, source or str(path)
+        return decode_program(path.read_bytes(), str(path))[0], source or str(path)
     if not isinstance(program, str):
         raise TypeError(f"program must be G-code text or a path, got {type(program).__name__}")
     one_line = program.strip()
