@@ -238,12 +238,38 @@ def test_duplicate_points_counts_exact_repeats_even_where_hashes_collide(monkeyp
     some = np.vstack([points, points[[3, 3, 7, 510]]])
     signed = np.array([[0.0, 1.0, 2.0], [-0.0, 1.0, 2.0], [0.0, -1.0, 2.0], [0.0, 1.0, -0.0], [-0.0, 1.0, 0.0]])
     expected = [(points, 0), (tripled, 2000), (some, 4), (points[:1], 0), (signed, 2)]
+    def first_of_each(cloud):  # the reference: np.unique's first index of each distinct row (-0.0 as 0.0)
+        keep = np.zeros(len(cloud), bool)
+        keep[np.unique(cloud + 0.0, axis=0, return_index=True)[1]] = True
+        return ~keep
+
     for cloud, count in expected:
         assert duplicate_points(cloud) == count == len(cloud) - len(np.unique(cloud, axis=0))
+        np.testing.assert_array_equal(cloud_module.repeated_points(cloud), first_of_each(cloud))
     # |x| alone: a hash that -0.0 and 0.0 share, as the real one, and different points share often
     monkeypatch.setattr(cloud_module, "_row_hash", lambda bits: bits[:, 0] & ~np.uint64(1 << 63))
     for cloud, count in expected:
         assert duplicate_points(cloud) == count
+        np.testing.assert_array_equal(cloud_module.repeated_points(cloud), first_of_each(cloud))
+
+
+def test_read_cloud_drops_exact_repeats_keeping_the_first_of_each_in_order(tmp_path):
+    """A cloud written twice (and a few points three times) reads as the cloud written once, normals with their
+    points, and says how many it dropped; points equal in two coordinates only stay."""
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-40.0, 40.0, (500, 3))
+    points[100:110, :2] = points[:10, :2]  # x and y shared, z not: distinct points
+    normals = rng.normal(size=(500, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    again = [3, 3, 250, 499]
+    write_cloud_ply(tmp_path / "twice.ply", np.vstack([points, points, points[again]]),
+                    np.vstack([normals, -normals, normals[again]]))
+    back = read_cloud(tmp_path / "twice.ply")
+    np.testing.assert_array_equal(back.points, points)
+    np.testing.assert_allclose(back.normals, normals, rtol=0, atol=1e-15)  # the first of each, not the flipped copy
+    assert back.repeats_dropped == 504 and len(back) == 500
+    (tmp_path / "once.csv").write_text("".join("%.17g,%.17g,%.17g\n" % tuple(p) for p in points))
+    assert read_cloud(tmp_path / "once.csv").repeats_dropped == 0
 
 
 def test_zero_length_normals_are_refused(tmp_path):

@@ -55,8 +55,7 @@ import numpy as np
 
 from ..fileio import OutputPathError, json_ready as _clean, publish_folder, resolve_output, temp_folder_beside
 from . import deviation as dv
-from .cloud import (Cloud, CloudError, check_extent, duplicate_points, read_cloud, write_deviation_csv,
-                    write_deviation_ply)
+from .cloud import Cloud, CloudError, check_extent, read_cloud, write_deviation_csv, write_deviation_ply
 from .flyers import MAX_BEYOND_GATE
 from .tolerances import CHARACTERISTICS, feature_table, load_tolerances, summary
 from ..workpiece.part import get_part
@@ -538,11 +537,12 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
         },
         **features,
     }
-    duplicates = duplicate_points(cloud.points)
-    if duplicates:  # kept (each a measurement in the figures, as given), said: a file concatenated or exported twice?
+    duplicates = cloud.repeats_dropped  # dropped by the reader (read_cloud), said here
+    if duplicates:
         report.setdefault("warnings", []).append(
-            f"{duplicates} of {len(aligned)} points repeat another point exactly (the same x, y, z): kept in the "
-            "figures as given; a cloud concatenated with itself, or a measurement exported twice?")
+            f"{duplicates} of {duplicates + len(aligned)} points repeat another point exactly (the same x, y, z): "
+            f"dropped, the figures and any identification use the {len(aligned)} distinct points; a cloud "
+            "concatenated with itself, or a measurement exported twice?")
     report["duplicate_points"] = duplicates
     absorbed = None
     if align == "bestfit":
