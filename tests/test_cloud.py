@@ -402,6 +402,31 @@ def test_decimal_commas_with_comma_delimiters_are_refused_naming_them(tmp_path):
     np.testing.assert_array_equal(back.normals, [[0, 0, 1], [0, 1, 0]])
 
 
+def test_whitespace_separated_decimal_commas_are_read_as_decimal_commas(tmp_path):
+    """A European CMM text export with spaces between the fields and decimal commas (a QA pass's
+    '39,3006 0,0000 -5,9147') was refused as "CSV rows have 2 numeric columns" (',' taken as the delimiter). Every
+    ',' inside a field of digits, never between fields: read, with or without a header, a name column or normals,
+    as the same numbers written with points; a ',' CSV is read with ',' between the fields as before."""
+    rows = [(39.3006, 0.0, -5.9147), (39.2872, 1.1244, -5.9118), (39.2429, 2.248, -5.9032)]
+    normals = [(0.9659, 0.0, -0.2588), (0.9646, 0.0506, -0.2588), (0.9606, 0.1010, -0.2588)]
+    dc = _decimal_comma
+    files = {"plain.txt": ["39,3006 0,0000 -5,9147", "39,2872 1,1244 -5,9118", "39,2429 2,2480 -5,9032"],
+             "header.txt": ["X Y Z", *(" ".join(dc(v) for v in r) for r in rows)],
+             "named.csv": [f"P{k}  " + "  ".join(dc(v) for v in r) for k, r in enumerate(rows)],
+             "normals.txt": [" ".join(dc(v) for v in (*r, *n)) for r, n in zip(rows, normals)]}
+    for file, lines in files.items():
+        (tmp_path / file).write_text("\n".join(lines) + "\n")
+        back = read_cloud(tmp_path / file)
+        np.testing.assert_allclose(back.points, rows, rtol=0, atol=1e-12, err_msg=file)
+        if file == "normals.txt":
+            expected = np.array(normals) / np.linalg.norm(normals, axis=1)[:, None]
+            np.testing.assert_allclose(back.normals, expected, rtol=0, atol=1e-12)
+        else:
+            assert back.normals is None, file
+    (tmp_path / "spaced.csv").write_text("39.3006, 0.0, -5.9147\n39.2872, 1.1244, -5.9118\n")  # ', ' between
+    np.testing.assert_array_equal(read_cloud(tmp_path / "spaced.csv").points, rows[:2])
+
+
 def test_e57_written_by_libe57format_reads_in_mm_with_its_pose(tmp_path):
     import pye57  # a dependency (pyproject): a missing one fails, never skips
     from scipy.spatial.transform import Rotation

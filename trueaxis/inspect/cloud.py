@@ -73,7 +73,8 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
         (case-insensitive: ``X Y Z`` too), of any numeric type; other properties and elements are ignored. Elements
         with list properties (faces) may follow the vertices, not precede them in a binary file.
         ``.csv`` / ``.txt``: one point a line, the fields separated by ``,``, ``;``, tab or whitespace (the first
-        data line decides); with ``;`` or tab a ``,`` inside a number is a decimal comma (``1,25``); with ``,``
+        data line decides); with ``;``, tab or whitespace a ``,`` inside a number is a decimal comma (``1,25``;
+        whitespace is taken when every ``,`` of the line is inside a field such as ``-5,9147``); with ``,``
         between the fields, rows of decimal commas (``1,4240,34,9056,18,9010``) are refused, naming them. An optional
         header line names the columns, case-insensitive, with an optional length unit of the coordinates in brackets,
         parentheses or as a suffix (``X [in]``, ``x_um``: mm, um, cm, m, in; read into mm): ``x y z`` and optionally
@@ -423,6 +424,16 @@ def _csv_delimiter(line: str) -> str | None:
     return None
 
 
+def _decimal_commas_between_spaces(line: str) -> bool:
+    """True for a line of whitespace-separated fields with decimal commas (``39,3006 0,0000 -5,9147``, a European
+    CMM text export): every ',' inside a field of the form ``-12,345`` (digits on both sides), at least two such
+    fields, and the other fields without a ','. Read with ',' between the fields, such a line has a field with
+    whitespace inside a number, so no other reading is possible."""
+    fields = line.split()
+    with_comma = [w for w in fields if "," in w]
+    return len(with_comma) >= 2 and all(re.fullmatch(r"[+-]?\d+,\d+", w) for w in with_comma)
+
+
 def _split(line: str, delimiter: str | None) -> list[str]:
     return [word.strip().strip('"').strip("'").strip() for word in line.split(delimiter)]
 
@@ -482,9 +493,12 @@ def _read_csv(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
     lines = _text_lines(data, name)
     if not lines:
         raise CloudError(f"{name}: the cloud has no points")
-    delimiter = _csv_delimiter(lines[0] if len(lines) == 1 else lines[1])
-    if delimiter in (";", "\t"):
-        # with ';' or tab between the fields a ',' can only be a decimal comma (1,25 = 1.25)
+    sample = lines[0] if len(lines) == 1 else lines[1]
+    delimiter = _csv_delimiter(sample)
+    if delimiter == "," and _decimal_commas_between_spaces(sample):
+        delimiter = None  # whitespace between the fields, a ',' inside each number: '39,3006 0,0000 -5,9147'
+    if delimiter != ",":
+        # with ';', tab or whitespace between the fields a ',' can only be a decimal comma (1,25 = 1.25)
         lines = [line.replace(",", ".") for line in lines]
     first = _split(lines[0], delimiter)
     header = None
