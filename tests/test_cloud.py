@@ -238,12 +238,38 @@ def test_duplicate_points_counts_exact_repeats_even_where_hashes_collide(monkeyp
     some = np.vstack([points, points[[3, 3, 7, 510]]])
     signed = np.array([[0.0, 1.0, 2.0], [-0.0, 1.0, 2.0], [0.0, -1.0, 2.0], [0.0, 1.0, -0.0], [-0.0, 1.0, 0.0]])
     expected = [(points, 0), (tripled, 2000), (some, 4), (points[:1], 0), (signed, 2)]
+    def first_of_each(cloud):  # the reference: np.unique's first index of each distinct row (-0.0 as 0.0)
+        keep = np.zeros(len(cloud), bool)
+        keep[np.unique(cloud + 0.0, axis=0, return_index=True)[1]] = True
+        return ~keep
+
     for cloud, count in expected:
         assert duplicate_points(cloud) == count == len(cloud) - len(np.unique(cloud, axis=0))
+        np.testing.assert_array_equal(cloud_module.repeated_points(cloud), first_of_each(cloud))
     # |x| alone: a hash that -0.0 and 0.0 share, as the real one, and different points share often
     monkeypatch.setattr(cloud_module, "_row_hash", lambda bits: bits[:, 0] & ~np.uint64(1 << 63))
     for cloud, count in expected:
         assert duplicate_points(cloud) == count
+        np.testing.assert_array_equal(cloud_module.repeated_points(cloud), first_of_each(cloud))
+
+
+def test_read_cloud_drops_exact_repeats_keeping_the_first_of_each_in_order(tmp_path):
+    """A cloud written twice (and a few points three times) reads as the cloud written once, normals with their
+    points, and says how many it dropped; points equal in two coordinates only stay."""
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-40.0, 40.0, (500, 3))
+    points[100:110, :2] = points[:10, :2]  # x and y shared, z not: distinct points
+    normals = rng.normal(size=(500, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    again = [3, 3, 250, 499]
+    write_cloud_ply(tmp_path / "twice.ply", np.vstack([points, points, points[again]]),
+                    np.vstack([normals, -normals, normals[again]]))
+    back = read_cloud(tmp_path / "twice.ply")
+    np.testing.assert_array_equal(back.points, points)
+    np.testing.assert_allclose(back.normals, normals, rtol=0, atol=1e-15)  # the first of each, not the flipped copy
+    assert back.repeats_dropped == 504 and len(back) == 500
+    (tmp_path / "once.csv").write_text("".join("%.17g,%.17g,%.17g\n" % tuple(p) for p in points))
+    assert read_cloud(tmp_path / "once.csv").repeats_dropped == 0
 
 
 def test_zero_length_normals_are_refused(tmp_path):
@@ -374,6 +400,31 @@ def test_decimal_commas_with_comma_delimiters_are_refused_naming_them(tmp_path):
     back = read_cloud(tmp_path / "integers.csv")
     np.testing.assert_array_equal(back.points, [[10, 20, 30], [-10, 25, 35]])
     np.testing.assert_array_equal(back.normals, [[0, 0, 1], [0, 1, 0]])
+
+
+def test_whitespace_separated_decimal_commas_are_read_as_decimal_commas(tmp_path):
+    """A European CMM text export with spaces between the fields and decimal commas (a QA pass's
+    '39,3006 0,0000 -5,9147') was refused as "CSV rows have 2 numeric columns" (',' taken as the delimiter). Every
+    ',' inside a field of digits, never between fields: read, with or without a header, a name column or normals,
+    as the same numbers written with points; a ',' CSV is read with ',' between the fields as before."""
+    rows = [(39.3006, 0.0, -5.9147), (39.2872, 1.1244, -5.9118), (39.2429, 2.248, -5.9032)]
+    normals = [(0.9659, 0.0, -0.2588), (0.9646, 0.0506, -0.2588), (0.9606, 0.1010, -0.2588)]
+    dc = _decimal_comma
+    files = {"plain.txt": ["39,3006 0,0000 -5,9147", "39,2872 1,1244 -5,9118", "39,2429 2,2480 -5,9032"],
+             "header.txt": ["X Y Z", *(" ".join(dc(v) for v in r) for r in rows)],
+             "named.csv": [f"P{k}  " + "  ".join(dc(v) for v in r) for k, r in enumerate(rows)],
+             "normals.txt": [" ".join(dc(v) for v in (*r, *n)) for r, n in zip(rows, normals)]}
+    for file, lines in files.items():
+        (tmp_path / file).write_text("\n".join(lines) + "\n")
+        back = read_cloud(tmp_path / file)
+        np.testing.assert_allclose(back.points, rows, rtol=0, atol=1e-12, err_msg=file)
+        if file == "normals.txt":
+            expected = np.array(normals) / np.linalg.norm(normals, axis=1)[:, None]
+            np.testing.assert_allclose(back.normals, expected, rtol=0, atol=1e-12)
+        else:
+            assert back.normals is None, file
+    (tmp_path / "spaced.csv").write_text("39.3006, 0.0, -5.9147\n39.2872, 1.1244, -5.9118\n")  # ', ' between
+    np.testing.assert_array_equal(read_cloud(tmp_path / "spaced.csv").points, rows[:2])
 
 
 def test_e57_written_by_libe57format_reads_in_mm_with_its_pose(tmp_path):

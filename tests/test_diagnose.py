@@ -1096,6 +1096,32 @@ def test_a_pause_between_two_parts_shapes_the_drift_each_part_sees(two_cones, tm
         combine_states(states, [-1.0])
 
 
+def test_a_cloud_concatenated_with_itself_is_diagnosed_as_the_cloud(two_cones, tmp_path, capsys):
+    """Exact repeats of a point are dropped by the reader the inspection uses (they carried no information but
+    doubled the weight of their points): the doubled cloud gives the diagnosis of the cloud, and a warning says how
+    many points were dropped."""
+    from trueaxis.cli import main
+    from trueaxis.inspect.cloud import read_cloud, write_cloud_ply
+
+    _, _, d = two_cones
+    cloud = read_cloud(d / "cmm0.ply")
+    n = len(cloud)
+    write_cloud_ply(tmp_path / "twice.ply", np.vstack([cloud.points] * 2), np.vstack([cloud.normals] * 2))
+    args = ["diagnose", "--part", "nas979", "--machine", "nmv1500dcg", "--noise-um", "1.0", "--program",
+            str(d / "cone0.ngc"), "--candidates", "backlash_x,backlash_y"]
+    assert main(args + ["--cloud", str(d / "cmm0.ply"), "-o", str(tmp_path / "once")]) == 0
+    assert main(args + ["--cloud", str(tmp_path / "twice.ply"), "-o", str(tmp_path / "twice")]) == 0
+    once, twice = (json.loads((tmp_path / k / "diagnosis.json").read_text()) for k in ("once", "twice"))
+    assert twice["points"] == once["points"] == n - sum(f["set_apart"] for f in once["flyers_set_apart"])
+    assert [c["effect"] for c in twice["chosen"]] == [c["effect"] for c in once["chosen"]] == ["backlash_x"]
+    for mine, theirs in zip(twice["chosen"][0]["parameters"], once["chosen"][0]["parameters"]):
+        assert mine["value_um"] == pytest.approx(theirs["value_um"], rel=1e-9, abs=1e-9)
+    assert twice["warnings"][0] == (f"{tmp_path / 'twice.ply'}: {n} of {2 * n} points repeat another point exactly "
+                                    f"(the same x, y, z): dropped, the diagnosis uses the {n} distinct points; a "
+                                    "cloud concatenated with itself, or a measurement exported twice?")
+    assert not any("repeat another point" in w for w in once["warnings"])
+
+
 def test_two_measured_parts_are_diagnosed_together_from_the_command_line(two_cones, capsys):
     # Two clouds with their programs: one verdict over both, the report per part; the same cloud twice and a
     # program short are refused before anything is written.

@@ -492,7 +492,8 @@ def cmd_inspect(args) -> int:
         with single_blas_thread():
             result = inspect_cloud(args.cloud, args.part, part_dir=args.part_dir, cad=args.cad, align=args.align,
                                    tolerances=args.tolerances, program=args.program, machine=args.machine,
-                                   figure_worker=figures, progress=lambda line: print(line, file=sys.stderr))
+                                   figure_worker=figures, progress=lambda line: print(line, file=sys.stderr),
+                                   flyer_screen=True if args.identify else None)  # --identify screens in any case
         identification = None
         if args.identify:
             from .identify import run_identification
@@ -519,6 +520,11 @@ def cmd_inspect(args) -> int:
         line += f" over {d['points']} points on the part ({r['points'] - d['points']} beyond the gate apart)"
     if r.get("cone"):
         line += f"; half angle error {r['cone']['half_angle_error_urad']:+.1f} urad"
+        flyers = (r.get("flyers_within_gate") or {}).get("points")
+        without = next((row.get("without_flyers") for row in r["feature_table"] if row["key"] == "half_angle_urad"
+                        and row.get("without_flyers")), None)
+        if flyers and without and without["deviation"] is not None:  # the flyer warning gives the rest
+            line += f" ({without['deviation']:+.1f} without the {flyers} flyer{'s' if flyers > 1 else ''})"
     counts = r["feature_summary"]
     if counts["pass"] or counts["fail"]:
         line += f"; {counts['pass']} characteristics in tolerance, {counts['fail']} out"

@@ -673,10 +673,14 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
     m = load_machine(machine)
     refuse_lathe(m, part)  # (before the notes on the programs' placement below, which a lathe's refusal needs not)
     texts = [p.read_text(encoding="utf-8", errors="replace") for p in programs]
-    cuts = []
+    cuts, repeats = [], []
     for c, p, text, pj in zip(clouds, programs, texts, each):
-        pts = read_cloud(c)
+        pts = read_cloud(c)  # drops exact repeats of a point (said below, as inspect says it)
         cuts.append(MeasuredCut(pts.points, pts.normals, text, str(p), pj, cloud_name=str(c)))
+        if pts.repeats_dropped:
+            repeats.append(f"{c}: {pts.repeats_dropped} of {pts.repeats_dropped + len(pts)} points repeat another "
+                           f"point exactly (the same x, y, z): dropped, the diagnosis uses the {len(pts)} distinct "
+                           "points; a cloud concatenated with itself, or a measurement exported twice?")
     posted_for = program_machine_warnings(m, list(zip(texts, programs)))
     try:
         diag, state = run_diagnosis_cuts(cuts, part, m, candidates=names, split=split, noise_um=noise_um,
@@ -693,7 +697,7 @@ def diagnose_files(cloud, part: str, machine, program, output, *, candidates="al
               (str(part_json) if isinstance(part_json, (str, Path)) else None)}
     if not one:
         inputs["pauses_s"] = list(state.pauses_s)
-    warnings = flyer_warnings(state) + posted_for + input_warnings(state, noise_um, diag)
+    warnings = repeats + flyer_warnings(state) + posted_for + input_warnings(state, noise_um, diag)
     warnings += per_cut_warnings(diag, state)
     warnings += max_growth_warning(diag)
     if state.dropped:  # said on the terminal too, not only in the page's point count

@@ -1,10 +1,10 @@
 """CMM point clouds in and out: PLY (ascii, binary little/big endian), CSV, XYZ, E57 and DMIS output in; PLY (with
 the deviations as a scalar field) and CSV out (DESIGN.md §7).
 
-A cloud is in the part frame, in mm. Bad input is refused, never repaired: an empty, unreadable or truncated file,
-an unknown extension, NaN or infinite coordinates and normals of zero length each raise :class:`CloudError` with a
-one-line message naming the file. Writing is atomic (temporary file in the same folder, then ``os.replace``), so an
-error leaves nothing half-written behind.
+A cloud is in the part frame, in mm. Exact repeats of a point are dropped and counted (they carry no information).
+Bad input is refused, never repaired: an empty, unreadable or truncated file, an unknown extension, NaN or infinite
+coordinates and normals of zero length each raise :class:`CloudError` with a one-line message naming the file. Writing
+is atomic (temporary file in the same folder, then ``os.replace``), so an error leaves nothing half-written behind.
 
 The PLY reader is our own (numpy only): a general reader such as open3d's skips or zero-fills what it cannot parse,
 and an inspection must not measure a part against points that were never there.
@@ -24,7 +24,7 @@ from ..fileio import atomic_write
 from .kernels import csv_rows
 
 __all__ = ["Cloud", "CloudError", "read_cloud", "write_cloud_ply", "write_deviation_ply", "write_deviation_csv",
-           "check_extent", "duplicate_points"]
+           "check_extent", "duplicate_points", "repeated_points"]
 
 
 class CloudError(ValueError):
@@ -38,11 +38,15 @@ class Cloud:
     points : (n, 3) float64, mm, part frame
     normals : (n, 3) float64 unit vectors, or None when the file has none
     source : str, the file it was read from
+    repeats_dropped : int, the points of the file that repeated an earlier one exactly (same x, y, z), dropped by
+        :func:`read_cloud` (they carry no new information, and counted twice they would double the weight of their
+        part of the surface in every fit)
     """
 
     points: np.ndarray
     normals: np.ndarray | None
     source: str
+    repeats_dropped: int = 0
 
     def __len__(self) -> int:
         return len(self.points)
@@ -69,7 +73,8 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
         (case-insensitive: ``X Y Z`` too), of any numeric type; other properties and elements are ignored. Elements
         with list properties (faces) may follow the vertices, not precede them in a binary file.
         ``.csv`` / ``.txt``: one point a line, the fields separated by ``,``, ``;``, tab or whitespace (the first
-        data line decides); with ``;`` or tab a ``,`` inside a number is a decimal comma (``1,25``); with ``,``
+        data line decides); with ``;``, tab or whitespace a ``,`` inside a number is a decimal comma (``1,25``;
+        whitespace is taken when every ``,`` of the line is inside a field such as ``-5,9147``); with ``,``
         between the fields, rows of decimal commas (``1,4240,34,9056,18,9010``) are refused, naming them. An optional
         header line names the columns, case-insensitive, with an optional length unit of the coordinates in brackets,
         parentheses or as a suffix (``X [in]``, ``x_um``: mm, um, cm, m, in; read into mm): ``x y z`` and optionally
@@ -89,7 +94,10 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
 
     Returns
     -------
-    Cloud with points (n, 3) float64 mm and normals (n, 3) float64 normalised to unit length, or None.
+    Cloud with points (n, 3) float64 mm and normals (n, 3) float64 normalised to unit length, or None. A point
+    that repeats an earlier one exactly (the same x, y, z: a cloud concatenated with itself, an export taken twice)
+    is dropped, the first kept, and counted in ``repeats_dropped``: the same cloud given twice gives the same
+    figures, and the same identification, as given once.
 
     Raises
     ------
@@ -117,7 +125,9 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
 
 
 def _checked_cloud(points: np.ndarray, normals: np.ndarray | None, name: str) -> Cloud:
-    """Refuse empty clouds, non-finite values and zero normals; return float64 arrays with unit normals."""
+    """Refuse empty clouds, non-finite values and zero normals; return float64 arrays with unit normals, without the
+    points that repeat an earlier one exactly (the first of each kept, with its normal; counted in
+    ``Cloud.repeats_dropped``)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     if len(points) == 0:
         raise CloudError(f"{name}: the cloud has no points")
@@ -133,7 +143,10 @@ def _checked_cloud(points: np.ndarray, normals: np.ndarray | None, name: str) ->
             raise CloudError(f"{name}: {int(zero.sum())} of {len(normals)} normals have zero length "
                              f"(first at point {first}, counting from 0)")
         normals = normals / length[:, None]
-    return Cloud(points=points, normals=normals, source=name)
+    repeated = repeated_points(points)
+    if repeated.any():  # a cloud concatenated with itself, an export taken twice: the same figures as once
+        points, normals = points[~repeated], None if normals is None else normals[~repeated]
+    return Cloud(points=points, normals=normals, source=name, repeats_dropped=int(repeated.sum()))
 
 
 def _refuse_non_finite(values: np.ndarray, name: str, what: str) -> None:
@@ -145,29 +158,43 @@ def _refuse_non_finite(values: np.ndarray, name: str, what: str) -> None:
                          f"(first at point {first}, counting from 0: [{row}])")
 
 
-def duplicate_points(points: np.ndarray) -> int:
-    """How many points of ``points`` ((n, 3) float, finite) repeat another one exactly (the same x, y, z; -0.0 the
-    same as 0.0): n minus the number of distinct points. A cloud concatenated with itself three times has 2n/3.
+def repeated_points(points: np.ndarray) -> np.ndarray:
+    """(n,) bool: the points of ``points`` ((n, 3) float, finite) that repeat an earlier one exactly (the same x, y,
+    z; -0.0 the same as 0.0). The first of each set of equal points is not marked, so ``points[~repeated]`` keeps
+    the distinct points in their order; a cloud concatenated with itself three times has its last 2n marked.
 
     Each row's 64-bit hash sorted (0.03 s at a million points, where ``np.unique(axis=0)`` took 1.7 s); only rows
-    next to one with the same hash are compared, and a hash that different rows share (a collision) has its rows
-    counted exactly, so the count is exact whatever the hash."""
+    next to one with the same hash are compared (a stable sort: the earliest of equal rows comes first), and a hash
+    that different rows share (a collision) has its rows compared exactly, so the answer is exact whatever the
+    hash."""
     values = np.ascontiguousarray(points, dtype=np.float64)
+    repeated = np.zeros(len(values), bool)
     if len(values) < 2:
-        return 0
+        return repeated
     key = _row_hash(values.view(np.uint64))
     if not (np.diff(np.sort(key)) == 0).any():  # numpy's sort: several times faster than argsort, no repeats
-        return 0
-    order = np.argsort(key)
+        return repeated
+    order = np.argsort(key, kind="stable")
     ordered = key[order]
     pair = np.flatnonzero(ordered[1:] == ordered[:-1])  # sorted neighbours with the same hash
     same = (values[order[pair]] == values[order[pair + 1]]).all(axis=1)
-    if same.all():  # every hash shared by copies of one point only: each pair is one repeat
-        return int(pair.size)
-    # hashes that different points share: their points counted exactly, the other hashes' pairs as above
-    collided = np.isin(ordered, ordered[pair[~same]])
-    distinct = len(np.unique(values[order[collided]] + 0.0, axis=0))  # + 0.0: -0.0 to 0.0
-    return int(same[~collided[pair]].sum() + collided.sum() - distinct)
+    collided = np.isin(ordered, ordered[pair[~same]]) if not same.all() else np.zeros(len(values), bool)
+    # a hash held by copies of one point only: every row after its first is a repeat (the stable sort keeps the
+    # earliest first); the hashes that different points share: their rows compared exactly, earliest first
+    plain = pair[~collided[pair]]
+    repeated[order[plain + 1]] = True
+    if collided.any():
+        rows = np.sort(order[collided])
+        _, first = np.unique(values[rows] + 0.0, axis=0, return_index=True)  # + 0.0: -0.0 to 0.0
+        repeated[rows] = True
+        repeated[rows[first]] = False
+    return repeated
+
+
+def duplicate_points(points: np.ndarray) -> int:
+    """How many points of ``points`` ((n, 3) float, finite) repeat another one exactly: n minus the number of
+    distinct points (:func:`repeated_points`)."""
+    return int(repeated_points(points).sum())
 
 
 _SIGN_BIT = np.uint64(1 << 63)
@@ -397,6 +424,16 @@ def _csv_delimiter(line: str) -> str | None:
     return None
 
 
+def _decimal_commas_between_spaces(line: str) -> bool:
+    """True for a line of whitespace-separated fields with decimal commas (``39,3006 0,0000 -5,9147``, a European
+    CMM text export): every ',' inside a field of the form ``-12,345`` (digits on both sides), at least two such
+    fields, and the other fields without a ','. Read with ',' between the fields, such a line has a field with
+    whitespace inside a number, so no other reading is possible."""
+    fields = line.split()
+    with_comma = [w for w in fields if "," in w]
+    return len(with_comma) >= 2 and all(re.fullmatch(r"[+-]?\d+,\d+", w) for w in with_comma)
+
+
 def _split(line: str, delimiter: str | None) -> list[str]:
     return [word.strip().strip('"').strip("'").strip() for word in line.split(delimiter)]
 
@@ -456,9 +493,12 @@ def _read_csv(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
     lines = _text_lines(data, name)
     if not lines:
         raise CloudError(f"{name}: the cloud has no points")
-    delimiter = _csv_delimiter(lines[0] if len(lines) == 1 else lines[1])
-    if delimiter in (";", "\t"):
-        # with ';' or tab between the fields a ',' can only be a decimal comma (1,25 = 1.25)
+    sample = lines[0] if len(lines) == 1 else lines[1]
+    delimiter = _csv_delimiter(sample)
+    if delimiter == "," and _decimal_commas_between_spaces(sample):
+        delimiter = None  # whitespace between the fields, a ',' inside each number: '39,3006 0,0000 -5,9147'
+    if delimiter != ",":
+        # with ';', tab or whitespace between the fields a ',' can only be a decimal comma (1,25 = 1.25)
         lines = [line.replace(",", ".") for line in lines]
     first = _split(lines[0], delimiter)
     header = None
