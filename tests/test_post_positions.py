@@ -85,3 +85,11 @@ def test_the_setups_provenance_names_the_source_lines_of_a_flattened_program():
     out = compensate(prog, xh, "geometric", report=report)
     assert "(trueaxis setup: G55 X-10 Y5 Z-250 mm, from <string>:5 [G10 L2])" in out.splitlines()
     assert [(u["source"], u["first_line"]) for u in report["setup_used"]] == [("<string>:5 (G10 L2)", 6)]
+
+
+def test_the_posts_refusals_name_the_source_line_of_a_flattened_program():
+    # (they named the flat program's line: here 3 for the file's 5)
+    xh = load_machine(MACHINES / "xh714.toml")
+    prog = "G21 G90 G17\n#1 = 5\n#2 = 6\nG0 X0 Y0 Z-20\nG99 G91 G81 X#1 Y#2 Z-3 R-8 L3 F100\nM2\n"
+    with pytest.raises(PostError, match=r"^<string>:5: incremental \(G91\) canned cycles are not compensated"):
+        compensate(prog, xh, "geometric", offsets_zero=True)

@@ -1104,6 +1104,11 @@ class _Poster:
         end_known = missing == 0
         return end_known, np.r_[False, end_known[:-1]], missing
 
+    def _source_line(self, li: int) -> int:
+        """The 1-based source line of the program's line index ``li`` (a flat line's source line)."""
+        p = self.p
+        return li + 1 if p.source_line is None else int(p.source_line[li])
+
     def _lost_since(self, row: int) -> str | None:
         """What made the control's position unknown before ``row`` (``Program.positions_lost``, with its source
         line), or None (the program's start)."""
@@ -1112,8 +1117,7 @@ class _Poster:
         if not before:
             return None
         li, what = before[-1]
-        line = li + 1 if p.source_line is None else int(p.source_line[li])
-        return f"{what} at line {line}"
+        return f"{what} at line {self._source_line(li)}"
 
     def run(self):
         p = self.p
@@ -1128,21 +1132,21 @@ class _Poster:
         if np.any(unknown) and self.tcp is not None:
             r = rows[np.argmax(unknown)]
             lost = self._lost_since(r)
-            raise PostError(p.source, int(p.line_no[r]), "TCP output: the position of an axis is not known here (no "
-                                                         f"absolute move of it {f'since {lost}' if lost else 'before'}),"
-                                                         " so the block cannot be written as a tool-tip position: give "
-                                                         "every axis' position first, or --output-mode joint")
+            since = f"since {lost}" if lost else "before"
+            raise PostError(p.source, int(p.line_no[r]),
+                            f"TCP output: the position of an axis is not known here (no absolute move of it {since}), "
+                            "so the block cannot be written as a tool-tip position: give every axis' position first, "
+                            "or --output-mode joint")
         if np.any(unknown):
             bad_lines = np.unique(p.line_index[rows[unknown]])
             keep = ~np.isin(p.line_index[rows], bad_lines)
             for r in rows[unknown]:
-                li = int(p.line_index[r])
-                if self.rep.uncompensated and self.rep.uncompensated[-1]["line"] == li + 1:
+                line = int(p.line_no[r])
+                if self.rep.uncompensated and self.rep.uncompensated[-1]["line"] == line:
                     continue
                 axes = "".join(a for i, a in enumerate(AXES) if int(missing[r]) >> i & 1) or \
                     "".join(a for i, a in enumerate(AXES) if int(missing[r - 1]) >> i & 1 if r > 0)
                 lost = self._lost_since(r)
-                line = int(p.line_no[r])
                 self.rep.uncompensated.append({"line": line, "axes": axes, **({"since": lost} if lost else {})})
                 since = f"since {lost}" if lost else "before"
                 self.rep.warnings.append(f"{p.source}:{line}: the position of {' '.join(axes)} is not known here "
@@ -1254,11 +1258,12 @@ class _Poster:
             r = int(np.searchsorted(p.line_index, li, side="left")) - 1  # the last row before the block
             lost = [AXES[i] for i in axes if r < 0 or int(missing[r]) >> i & 1]
             if lost:
-                raise PostError(p.source, li + 1, f"{what} sets its offset from the position of {' '.join(lost)}, "
-                                                  "which the program has not given before it (the control's position "
-                                                  "when it starts): the offset and every machine position after it "
-                                                  "would be invented; move to an absolute position first, or set the "
-                                                  "offset with G10 L2")
+                raise PostError(p.source, self._source_line(li),
+                                f"{what} sets its offset from the position of {' '.join(lost)}, "
+                                "which the program has not given before it (the control's position "
+                                "when it starts): the offset and every machine position after it "
+                                "would be invented; move to an absolute position first, or set the "
+                                "offset with G10 L2")
 
     def _note_tool_lengths(self, rows):
         """A warning when the program runs under tool length offsets: the twin's errors are its reference tool's
@@ -1837,8 +1842,9 @@ class _Poster:
             text = out[li] if isinstance(out, list) or li in out else p.lines[li]
             words = [t for t in tokenize_line(text) if t[0] == "word"]  # (comments, inline ones too, left alone)
             if any(re.fullmatch(r"(?i)G0*2[01]", w[1]) for w in words):
-                raise PostError(p.source, li + 1, f"{what} with a change of units on its block: write the G20 / G21 "
-                                                  "on a block of its own")
+                raise PostError(p.source, self._source_line(li),
+                                f"{what} with a change of units on its block: write the G20 / G21 "
+                                "on a block of its own")
             fmt = numbers.formatter(bool(p.inch[r]))
             new, done = {}, set()
             for _, word, start, end in words:
@@ -1850,12 +1856,13 @@ class _Poster:
                         break
                     done.add(i)
             if done != set(axes):
-                raise PostError(p.source, li + 1, f"{what}: its axis values are not plain numbers here; the correction "
-                                                  "the control's position carries cannot be added to them")
+                raise PostError(p.source, self._source_line(li),
+                                f"{what}: its axis values are not plain numbers here; the correction "
+                                "the control's position carries cannot be added to them")
             for (start, end), value in sorted(new.items(), reverse=True):
                 text = text[:start] + value + text[end:]
             out[li] = text
-            self.rep.offsets_shifted.append({"line": li + 1, "what": what, "by_program_units": {
+            self.rep.offsets_shifted.append({"line": self._source_line(li), "what": what, "by_program_units": {
                 AXES[i]: float(c[i]) for i in axes}})
 
     def _axes_out(self):
@@ -1947,8 +1954,9 @@ class _Poster:
             inc = incremental_l[r0]
             if cycle_l[k0]:
                 if inc:
-                    raise PostError(p.source, li + 1, "incremental (G91) canned cycles are not compensated: write "
-                                                      "the cycle in G90, or post with --mode none")
+                    raise PostError(p.source, self._source_line(li),
+                                    "incremental (G91) canned cycles are not compensated: write "
+                                    "the cycle in G90, or post with --mode none")
                 out[li] = self._cycle_line(body, list(range(k0, k1)), rows, delta_prog, fmt, sep) + ending
                 continue
             k = k1 - 1
@@ -2301,8 +2309,9 @@ class _Poster:
             codes = _MOTION_CODE.findall(_split_comment(p.lines[li].rstrip("\r\n"))[0])
             mode = float(codes[-1]) if codes else mode
             if li in lines and mode == 87.0:
-                raise PostError(p.source, li + 1, "G87 back boring: the post does not write it (its hole is offset "
-                                                  "by I J K); write it as G0 / G1 moves")
+                raise PostError(p.source, self._source_line(li),
+                                "G87 back boring: the post does not write it (its hole is offset "
+                                "by I J K); write it as G0 / G1 moves")
 
     def _note_cycle_deviation(self, rr, ends, r_nominal, deltas, d_bottom):
         """A canned cycle writes one X Y per hole, corrected at its bottom: at the R plane and between (where the feed
