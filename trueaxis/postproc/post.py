@@ -1138,12 +1138,15 @@ class _Poster:
                             "so the block cannot be written as a tool-tip position: give every axis' position first, "
                             "or --output-mode joint")
         if np.any(unknown):
-            bad_lines = np.unique(p.line_index[rows[unknown]])
+            rows_unknown = rows[unknown]
+            bad_lines = np.unique(p.line_index[rows_unknown])
             keep = ~np.isin(p.line_index[rows], bad_lines)
             for r in rows[unknown]:
                 line = int(p.line_no[r])
                 if self.rep.uncompensated and self.rep.uncompensated[-1]["line"] == line:
                     continue
+                if not int(p.words[r]) & 0b111111 and p.motion[r] in (RAPID, FEED):
+                    continue  # no axis word, no motion ('N110G0G17G40G49G80G90'): as written, nothing to say
                 axes = "".join(a for i, a in enumerate(AXES) if int(missing[r]) >> i & 1) or \
                     "".join(a for i, a in enumerate(AXES) if int(missing[r - 1]) >> i & 1 if r > 0)
                 lost = self._lost_since(r)
@@ -1153,7 +1156,10 @@ class _Poster:
                                          f"(no absolute move of it {since}): block left as written, uncompensated")
             rows = rows[keep]
             if rows.size == 0:  # not one move: no compensated program to write (its header would say one)
-                first = self.rep.uncompensated[0]
+                r = rows_unknown[0]
+                first = self.rep.uncompensated[0] if self.rep.uncompensated else {
+                    "line": int(p.line_no[r]),
+                    "axes": "".join(a for i, a in enumerate(AXES) if int(missing[r]) >> i & 1)}
                 raise PostError(p.source, first["line"], f"no move can be compensated: the position of "
                                 f"{' '.join(first['axes'])} is never known (no absolute move of every axis, or a "
                                 f"program for another kind of machine); nothing written")
