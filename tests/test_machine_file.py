@@ -145,3 +145,26 @@ def test_updating_a_machine_file_keeps_its_comments_and_gives_the_new_parameters
     assert comments and all(c in updated for c in comments)
     assert dump_machine(parse_machine(updated)) == dump_machine(new)
     np.testing.assert_array_equal(parse_machine(updated).parameter_values(), values)
+
+
+def test_parameters_no_machine_tool_has_are_warned_about_by_check_and_post(tmp_path):
+    """35000 urad of squareness (2 deg: arcseconds or a factor typed into a urad field) was 'ok' and posted without a
+    word (QA pass): machine check and the post say which parameters lie beyond a machine tool's errors."""
+    from trueaxis.machine.model import implausible_parameters
+    from trueaxis.postproc.post import compensate
+
+    text = (MACHINES / "xh714.toml").read_text()
+    big = tmp_path / "big.toml"
+    big.write_text(text.replace("C0Y = 35.0", "C0Y = 35000.0", 1))
+    run = subprocess.run([sys.executable, "-m", "trueaxis.cli", "machine", "check", str(big)], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.startswith(f"{big}: ok:")
+    assert run.stderr == (f"trueaxis machine check: warning: {big}: C0Y = 35000 urad: larger than a machine tool's "
+                          "geometric error is (beyond 1000 um or 2000 urad); the file's values are in um and urad: a "
+                          "unit slip?\n")
+    report = {}
+    compensate("G21 G90\nG0 X1 Y1 Z-10\nG1 X5 F100\nM2\n", load_machine(big), "geometric", report=report,
+               offsets_zero=True)
+    assert any("C0Y = 35000 urad: larger than" in w for w in report["warnings"])
+    for name in ("xh714", "nmv1500dcg", "smartcnc500", "lathe", "headtable", "bc_offset", "ac_trunnion"):
+        assert implausible_parameters(load_machine(MACHINES / f"{name}.toml")) is None, name  # the fixtures: none

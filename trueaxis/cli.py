@@ -116,11 +116,16 @@ def cmd_machine_check(args) -> int:
     from .machine import load_machine
     from .resources import machine_file  # a path, or a fixture machine's short name
 
+    from .machine.model import implausible_parameters
+
     m = load_machine(machine_file(args.file))
     print(
         f"{args.file}: ok: {m.name} ({m.kind}, axes {' '.join(m.axis_names)},"
         f" {len(m.parameter_names())} geometric parameters)"
     )
+    large = implausible_parameters(m)
+    if large:
+        print(f"trueaxis machine check: warning: {args.file}: {large}", file=sys.stderr)
     return 0
 
 

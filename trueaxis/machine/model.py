@@ -35,6 +35,25 @@ def unit_of(name: str) -> str:
     return "urad" if is_angle_name(name) else "um"
 
 
+# Beyond these a parameter is larger than a machine tool's geometric error is (um, urad): a unit slip, most likely
+# (the machine file's units are um and urad; 35000 urad of squareness, 2 deg, was checked "ok" and posted; QA pass)
+PLAUSIBLE_MAX = {"um": 1000.0, "urad": 2000.0}
+
+
+def implausible_parameters(machine) -> str | None:
+    """One sentence naming the parameters beyond ``PLAUSIBLE_MAX`` (the largest first), or None."""
+    names, values = machine.parameter_names(), np.abs(machine.parameter_values())
+    units = [unit_of(n) for n in names]
+    over = [i for i in np.argsort(-values / [PLAUSIBLE_MAX[u] for u in units], kind="stable")
+            if values[i] > PLAUSIBLE_MAX[units[i]]]
+    if not over:
+        return None
+    said = ", ".join(f"{names[i]} = {machine.parameter_values()[i]:g} {units[i]}" for i in over[:3])
+    more = f" and {len(over) - 3} more" if len(over) > 3 else ""
+    return (f"{said}{more}: larger than a machine tool's geometric error is (beyond {PLAUSIBLE_MAX['um']:g} um or "
+            f"{PLAUSIBLE_MAX['urad']:g} urad); the file's values are in um and urad: a unit slip?")
+
+
 TRAVEL_TOLERANCE = 1e-9  # mm or rad: a position computed at a travel limit is inside it
 
 

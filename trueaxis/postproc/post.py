@@ -44,6 +44,7 @@ from ..compiled import kernels_on_this_thread, run_twins, thread_slices
 from ..machine import ErrorTwin, Machine, load_machine
 from ..machine.cutting_force import CuttingCoefficients, CuttingConditions, mean_force
 from ..machine.kinematics import machine_to_part_rotation
+from ..machine.model import implausible_parameters
 from ..nc.flatten import program_start
 from ..nc.gcode import (
     ARC_CCW,
@@ -398,6 +399,9 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     rep.blocks_in = len(prog.lines)
     rep.passthrough = [{"line": ln, "reason": r} for ln, r in prog.unsupported]
     rep.warnings = list(prog.warnings)
+    large = implausible_parameters(machine)
+    if large and mode != "none":
+        rep.warnings.append(f"{source}:1: the twin {machine.name}: {large}")
     assumed = next((u for u in prog.setup_used if u.get("assumed")), None)
     if mode != "none" and assumed is not None:
         # said on stderr too, not only in the output's header: the control's active system may well have an offset
