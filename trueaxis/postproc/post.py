@@ -398,17 +398,7 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     rep.setup_used = prog.setup_used
     rep.blocks_in = len(prog.lines)
     rep.passthrough = [{"line": ln, "reason": r} for ln, r in prog.unsupported]
-    rep.warnings = list(prog.warnings)
-    large = implausible_parameters(machine)
-    if large and mode != "none":
-        rep.warnings.append(f"{source}:1: the twin {machine.name}: {large}")
-    assumed = next((u for u in prog.setup_used if u.get("assumed")), None)
-    if mode != "none" and assumed is not None:
-        # said on stderr too, not only in the output's header: the control's active system may well have an offset
-        rep.warnings.append(f"{source}:{assumed['first_line']}: no work offset given: the program selects no work "
-                            "system and no setup was given (--var, --setup; --offsets-zero to confirm zero), so its "
-                            "coordinates are taken as machine coordinates; with an offset in the control's active "
-                            "system (G54 at start-up) every correction is computed at the wrong place")
+    rep.warnings = list(prog.warnings) + ([] if mode == "none" else _inputs_warnings(prog, machine, source))
     _check_axes(prog, machine, source)
     if prog.units != "mm":
         rep.units_note = (f"program in {prog.units} (G20); converted to mm for the {machine.name} model and back to "
@@ -481,6 +471,23 @@ def passed_through_warnings(prog, rows, error_um=None) -> list[str]:
         out.append((lines[0], f"{prog.source}:{lines[0]}: {what} passed through uncompensated: the twin's error is "
                               f"not corrected there{tail}"))
     return [text for _, text in sorted(out)]
+
+
+def _inputs_warnings(prog, machine: Machine, source: str) -> list[str]:
+    """What the post says of its inputs before any work: error values no machine tool has (a unit slip?), and a
+    program that selects no work system posted without a setup."""
+    out = []
+    large = implausible_parameters(machine)
+    if large:
+        out.append(f"{source}:1: the twin {machine.name}: {large}")
+    assumed = next((u for u in prog.setup_used if u.get("assumed")), None)
+    if assumed is not None:
+        # said on stderr too, not only in the output's header: the control's active system may well have an offset
+        out.append(f"{source}:{assumed['first_line']}: no work offset given: the program selects no work "
+                   "system and no setup was given (--var, --setup; --offsets-zero to confirm zero), so its "
+                   "coordinates are taken as machine coordinates; with an offset in the control's active "
+                   "system (G54 at start-up) every correction is computed at the wrong place")
+    return out
 
 
 def _refuse_long_lines(out: str, prog, source: str):
