@@ -48,6 +48,29 @@ def test_the_cone_probe_pattern_lies_on_the_cone_with_outward_normals():
     assert not part.material_mask(doc)(pts + np.array([0.0, 0.0, 100.0])).any()  # above the top: no material
 
 
+@pytest.mark.parametrize("n_points", [60, 600, 2000, 4000, 8000])
+def test_the_cone_probe_pattern_probes_the_parts_own_sections(n_points):
+    """At 4000 points the rings fell 0.53 mm either side of the mid-height section, and the inspection's roundness
+    there (within 0.5 mm of it) was never measured (QA pass): the ring nearest each roundness / diameter section is
+    moved onto it, unless it is an end ring (the probed span stays); rings far apart stay as they were."""
+    doc = load_part("nas979")
+    pts, _ = get_part("nas979").probe_pattern(doc, n_points)
+    cone = next(s for s in doc["surfaces"] if s["id"] == "cone")
+    axis = np.asarray(cone["axis"]) / np.linalg.norm(cone["axis"])
+    h = np.unique(np.round((pts - np.asarray(cone["base_center"])) @ axis, 9))
+    sections = sorted({f["height"] for f in doc["features"] if "height" in f})
+    assert sections == [2.0, 10.0, 18.0]
+    assert abs(h[0] - 1.0) < 1e-9 and abs(h[-1] - 19.0) < 1e-9 and np.all(np.diff(h) > 0)
+    regular = np.linspace(1.0, 19.0, h.size)
+    for s_h in sections:
+        k = int(np.argmin(np.abs(regular - s_h)))
+        if 0 < k < h.size - 1:  # the nearest ring an inner one: on the section
+            assert np.min(np.abs(h - s_h)) < 1e-9, (s_h, h)
+    assert np.count_nonzero(np.abs(h - regular) > 1e-9) <= len(sections)  # no other ring moved
+    if n_points >= 2000:  # every section within the inspection's 0.5 mm of a ring: all measured
+        assert all(np.min(np.abs(h - s_h)) <= 0.5 for s_h in sections), h
+
+
 def test_load_part_refuses_a_json_of_the_other_part():
     with pytest.raises(ValueError, match="part JSON is for 'slots', not 'nas979'"):
         load_part("nas979", load_part("slots"))
