@@ -892,7 +892,8 @@ def test_a_cloud_turned_180_deg_about_z_is_refused_with_its_share_beyond_the_gat
     assert r.returncode == 3 and r.stdout == ""
     assert "1090 of 1710 points (63.7 %) lie more than 0.5 mm from every surface" in r.stderr
     assert "more than the 10 % a measurement's flyers may take" in r.stderr
-    assert "try --align bestfit (a cloud in another frame) or --align datum" in r.stderr
+    assert ("try --align bestfit (a cloud within about a mm of the part frame: a refinement, not a search) or "
+            "--align datum") in r.stderr
     assert not (tmp_path / "rep").exists()
     fitted = inspect_cloud(_cloud(turned), "nas979", align="bestfit").report
     assert fitted["beyond_gate"]["points"] == 0 and abs(fitted["cone"]["half_angle_error_urad"]) < 1e-3

@@ -532,7 +532,8 @@ def cmd_inspect(args) -> int:
             line += f" ({without['deviation']:+.1f} without the {flyers} flyer{'s' if flyers > 1 else ''})"
     counts = r["feature_summary"]
     if counts["pass"] or counts["fail"]:
-        line += f"; {counts['pass']} characteristics in tolerance, {counts['fail']} out"
+        line += (f"; {counts['pass']} characteristic{'s' if counts['pass'] != 1 else ''} in tolerance, "
+                 f"{counts['fail']} out")
     if counts["not measured"]:
         line += f", {counts['not measured']} NOT MEASURED"
     print(line)
@@ -756,7 +757,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "with <stem>.json beside it (the features and analytic surfaces; refused without it)")
     i.add_argument("--align", default="none", choices=["none", "bestfit", "datum"],
                    help="none: cloud already in the part frame (default); bestfit: ICP onto the CAD, the rigid motion "
-                        "removed is reported; datum: 3-2-1 frame from the probed datum planes")
+                        "removed is reported; datum: 3-2-1 frame from the probed datum planes (both refine a cloud "
+                        "within about a mm of the part frame; they do not search for the part)")
     i.add_argument("-o", "--output", help="report folder (default: <cloud stem>_report beside the cloud)")
     i.add_argument("--tolerances", metavar="FILE", help="tolerances of the part's features (TOML, see "
                    "docs/tolerances.md), over those of the part JSON; the report's feature table says pass or fail")

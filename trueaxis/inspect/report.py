@@ -651,7 +651,8 @@ def refuse_beyond_gate(source, part: str, align: str, deviation_mm: np.ndarray, 
     beyond : (n,) bool, the points beyond the gate. gate_mm : the gate (mm)."""
     if not beyond.mean() > MAX_BEYOND_GATE:
         return
-    hint = {"none": "--align bestfit (a cloud in another frame) or --align datum (the block's faces probed)",
+    hint = {"none": "--align bestfit (a cloud within about a mm of the part frame: a refinement, not a search) or "
+                    "--align datum (the block's faces probed)",
             "bestfit": "--align datum (the block's faces probed); the best fit did not bring it onto the part",
             "datum": "--align bestfit (a cloud in another frame); the datum alignment did not bring it onto the part"}
     raise dv.InspectionError(
