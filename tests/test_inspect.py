@@ -479,7 +479,7 @@ def test_feature_table_judges_known_deviations_against_toml_tolerances(tmp_path)
     p, _ = deformed_cone((0.0, 0.0), b_mm, taper, per_ring=180)
     (tmp_path / "tol.toml").write_text(
         "[default]\nroundness_um = 10.0\n[roundness_high]\nroundness_um = 5.0\n"
-        "[cone_angle]\nhalf_angle_urad = [-40.0, 40.0]\n[diameter_ref]\ndiameter_um = [-20.0, 20.0]\n")
+        "[cone_angle]\nhalf_angle_urad = [-30.0, 30.0]\n[diameter_ref]\ndiameter_um = [-20.0, 20.0]\n")
     rep = inspect_cloud(_cloud(p), "nas979", tolerances=tmp_path / "tol.toml").report
     rows = {r["feature"]: r for r in rep["feature_table"] if r["feature"] != "cone"}
     assert rows["roundness_low"]["result"] == "pass" and rows["roundness_mid"]["result"] == "pass"
@@ -489,11 +489,31 @@ def test_feature_table_judges_known_deviations_against_toml_tolerances(tmp_path)
     angle = rows["cone_angle"]
     assert angle["nominal"] == 15.0 and angle["unit"] == "deg" and angle["deviation_unit"] == "urad"
     assert angle["deviation"] == pytest.approx(taper * 1e6, abs=0.05) and angle["result"] == "fail"
+    # out by more than U = 2 std of the fit (the oval's residuals: 6.2 urad); against +-40 it was "uncertain"
+    assert angle["uncertainty"]["k"] == 2.0 and 50.0 - 2 * angle["uncertainty"]["std"] > 30.0
     expected = -2 * 10.0 * (math.tan(ALPHA + taper) - math.tan(ALPHA)) * 1e3  # -17.5 um at h = 10 mm
     assert rows["diameter_ref"]["deviation"] == pytest.approx(expected, abs=1e-3)
     assert rows["diameter_ref"]["result"] == "pass"
     assert rows["axis_direction"]["result"] == "no tolerance"
-    assert rep["feature_summary"] == {"pass": 3, "fail": 2, "no tolerance": 3, "not measured": 0}
+    assert rep["feature_summary"] == {"pass": 3, "fail": 2, "uncertain": 0, "no tolerance": 3, "not measured": 0}
+
+
+@pytest.mark.parametrize("deviation, std, tolerance, result", [
+    (-165.1, 286.9, (-200.0, 200.0), "uncertain"),  # the QA pass' 12 points: judged "pass" before
+    (-165.1, 10.0, (-200.0, 200.0), "pass"), (-185.0, 10.0, (-200.0, 200.0), "uncertain"),
+    (-225.0, 10.0, (-200.0, 200.0), "fail"), (-215.0, 10.0, (-200.0, 200.0), "uncertain"),
+    (150.0, None, (-200.0, 200.0), "pass"), (150.0, float("nan"), (-200.0, 200.0), "pass"),
+    (4.5, 0.4, 5.0, "uncertain"), (3.9, 0.5, 5.0, "pass"), (6.1, 0.5, 5.0, "fail"),
+])
+def test_a_fits_uncertainty_decides_with_iso_14253_1s_rule(deviation, std, tolerance, result):
+    """Conformance proven inside the tolerance less U = 2 std, non-conformance outside it by more than U, else
+    "uncertain" (12 points gave -165 +- 287 urad, judged "pass" against +-200 urad; QA pass); no std: as before."""
+    from trueaxis.inspect.tolerances import _row, summary
+
+    key = "half_angle_urad" if isinstance(tolerance, tuple) else "roundness_um"
+    row = _row("f", key, "c", "urad", 0.0, deviation, deviation, tolerance, std=std)
+    assert row["result"] == result
+    assert ("uncertainty" in row) == (std is not None) and summary([row])[result] == 1
 
 
 def test_tolerances_in_the_part_json_apply_and_the_toml_wins(tmp_path):

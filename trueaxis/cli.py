@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import re
 import sys
@@ -524,16 +525,19 @@ def cmd_inspect(args) -> int:
     if d["points"] < r["points"]:  # the points beyond the gate (on no feature) are counted apart, not in the figures
         line += f" over {d['points']} points on the part ({r['points'] - d['points']} beyond the gate apart)"
     if r.get("cone"):
-        line += f"; half angle error {r['cone']['half_angle_error_urad']:+.1f} urad"
+        std = r["cone"].get("half_angle_std_urad")
+        line += f"; half angle error {r['cone']['half_angle_error_urad']:+.1f}" + (
+            f" +- {std:.1f}" if std is not None and math.isfinite(std) else "") + " urad"
         flyers = (r.get("flyers_within_gate") or {}).get("points")
         without = next((row.get("without_flyers") for row in r["feature_table"] if row["key"] == "half_angle_urad"
                         and row.get("without_flyers")), None)
         if flyers and without and without["deviation"] is not None:  # the flyer warning gives the rest
             line += f" ({without['deviation']:+.1f} without the {flyers} flyer{'s' if flyers > 1 else ''})"
     counts = r["feature_summary"]
-    if counts["pass"] or counts["fail"]:
+    if counts["pass"] or counts["fail"] or counts["uncertain"]:
         line += (f"; {counts['pass']} characteristic{'s' if counts['pass'] != 1 else ''} in tolerance, "
-                 f"{counts['fail']} out")
+                 f"{counts['fail']} out" + (f", {counts['uncertain']} UNCERTAIN (the fit's 2 std straddle a limit)"
+                                            if counts["uncertain"] else ""))
     if counts["not measured"]:
         line += f", {counts['not measured']} NOT MEASURED"
     print(line)

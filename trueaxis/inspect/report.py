@@ -635,7 +635,7 @@ def _flyer_value(row: dict) -> str:
     the result where it was judged against a tolerance."""
     if row["deviation"] is None:
         return "not measured"
-    judged = f" ({row['result']})" if row["result"] in ("pass", "fail") else ""
+    judged = f" ({row['result']})" if row["result"] in ("pass", "fail", "uncertain") else ""
     sign = "+" if row["key"] in SIZE_KEYS else ""
     return f"{row['deviation']:{sign}.1f}{judged}"
 
@@ -1131,7 +1131,8 @@ def _html(report: dict, images: list[tuple[str, str]], folder: Path) -> str:
     parts.append(f"<h2>Summary</h2><p>{report['points']:,} points; deviation RMS {_value(d['rms'], 'um')} um, "
                  f"range {_value(d['min'], 'um')} to {_value(d['max'], 'um')} um{apart} (+ = material outside the "
                  f"nominal surface). Characteristics: {counts.get('pass', 0)} in tolerance, {counts.get('fail', 0)} "
-                 f"out of tolerance, {counts.get('no tolerance', 0)} without a tolerance, "
+                 f"out of tolerance, {counts.get('uncertain', 0)} uncertain (the fit's 2 std straddle a limit), "
+                 f"{counts.get('no tolerance', 0)} without a tolerance, "
                  f"{counts.get('not measured', 0)} not measured.</p>")
     if isinstance(report.get("identification"), dict):
         parts.append(_verdict_html(report["identification"]))
@@ -1332,7 +1333,7 @@ def _feature_table_html(rows: list[dict]) -> str:
         return f"<td>{value(other['deviation'], row['deviation_unit'])}, {html.escape(other['result'])}</td>"
 
     flyers = any("without_flyers" in r for r in rows)
-    colour = {"pass": "#d9f2d9", "fail": "#f8d0d0"}
+    colour = {"pass": "#d9f2d9", "fail": "#f8d0d0", "uncertain": "#fff1c2"}
     body = "".join(
         f"<tr style='background:{colour.get(r['result'], '#ffffff')}'><td>{html.escape(r['feature'])}</td>"
         f"<td>{html.escape(r['characteristic'])}</td><td>{value(r['nominal'], r['unit'])}</td>"

@@ -128,23 +128,36 @@ def _tolerance_for(tolerances: dict, feature: str, key: str):
     return own[key] if key in own else tolerances.get("default", {}).get(key)
 
 
-def _row(feature, key, label, unit, nominal, actual, deviation, tolerance, note=None) -> dict:
+#: Coverage factor of the expanded uncertainty U = k std a decision takes off (or adds to) the tolerance (ISO 14253-1)
+COVERAGE_K = 2.0
+
+
+def _row(feature, key, label, unit, nominal, actual, deviation, tolerance, note=None, std=None) -> dict:
+    """A feature-table row. std : the characteristic's standard uncertainty from its fit (same unit as the deviation),
+    or None: with it, conformance is proven only inside the tolerance less U = COVERAGE_K std, non-conformance only
+    outside it by more than U; in between the result is "uncertain" (ISO 14253-1's decision rule: 12 points gave a
+    half angle of -165 +- 287 urad, judged "pass" against +-200 urad; QA pass)."""
     kind = CHARACTERISTICS[key][0]
     deviation_unit = key.rsplit("_", 1)[1]
+    u = 0.0 if std is None or not math.isfinite(std) else COVERAGE_K * float(std)
     if deviation is None:
         result = "not measured"
     elif tolerance is None:
         result = "no tolerance"
     elif kind == "size":
-        result = "pass" if tolerance[0] <= deviation <= tolerance[1] else "fail"
+        lo, hi = tolerance
+        result = "pass" if lo + u <= deviation <= hi - u else "fail" if (deviation < lo - u or deviation > hi + u) \
+            else "uncertain"
     else:
-        result = "pass" if deviation <= tolerance else "fail"
+        result = "pass" if deviation + u <= tolerance else "fail" if deviation - u > tolerance else "uncertain"
     row = {"feature": feature, "characteristic": label, "key": key, "unit": unit, "nominal": nominal,
            "actual": actual, "deviation": deviation, "deviation_unit": deviation_unit,
            "tolerance": None if tolerance is None else (
                {"lower": tolerance[0], "upper": tolerance[1]} if kind == "size"
                else {"lower": 0.0, "upper": tolerance}),
            "result": result}
+    if std is not None and deviation is not None:
+        row["uncertainty"] = {"std": std, "k": COVERAGE_K}
     if note:
         row["note"] = note
     return row
@@ -155,7 +168,8 @@ def feature_table(report: dict, part: dict, tolerances: dict, not_measured: dict
 
     Each row: feature (id), characteristic (words), key (the tolerance key), unit (of nominal and actual),
     nominal, actual, deviation and deviation_unit (um or urad; for form values the value itself), tolerance
-    ({"lower", "upper"} of the deviation, or None) and result ("pass", "fail", "no tolerance", "not measured").
+    ({"lower", "upper"} of the deviation, or None) and result ("pass", "fail", "uncertain", "no tolerance",
+    "not measured"; "uncertain": a fit's U = 2 std straddles a limit, see ``_row``), and uncertainty where known.
     not_measured : {key: why}: characteristics the inspection could not measure whatever their figures say (those a
     best-fit alignment takes away): their rows are "not measured", with no actual value, and say why.
     """
@@ -172,7 +186,8 @@ def feature_table(report: dict, part: dict, tolerances: dict, not_measured: dict
                 rows.append(_row(fid, "half_angle_urad", label["half_angle_urad"], "deg",
                                  feature.get("nominal_half_angle_deg"), actual,
                                  None if cone is None else cone["half_angle_error_urad"],
-                                 _tolerance_for(tolerances, fid, "half_angle_urad"), why))
+                                 _tolerance_for(tolerances, fid, "half_angle_urad"), why,
+                                 std=None if cone is None else cone.get("half_angle_std_urad")))
             elif kind == "axis_direction":
                 tilt = None if cone is None else cone["axis_tilt_urad"]
                 rows.append(_row(fid, "tilt_urad", label["tilt_urad"], "urad", 0.0, tilt, tilt,
@@ -233,8 +248,8 @@ def feature_table(report: dict, part: dict, tolerances: dict, not_measured: dict
 
 
 def summary(rows: list[dict]) -> dict:
-    """Counts of the table's results: {"pass", "fail", "no tolerance", "not measured"}."""
-    counts = {"pass": 0, "fail": 0, "no tolerance": 0, "not measured": 0}
+    """Counts of the table's results: {"pass", "fail", "uncertain", "no tolerance", "not measured"}."""
+    counts = {"pass": 0, "fail": 0, "uncertain": 0, "no tolerance": 0, "not measured": 0}
     for row in rows:
         counts[row["result"]] += 1
     return counts
