@@ -142,7 +142,8 @@ def _check_against_rs274(machine, name, tmp_path, inch, arcs=True, out=None, kin
     return out, rep, dev_um, written
 
 
-@pytest.mark.parametrize("name, inch", [("inch_half_circle", True), ("arcs_planes_low", False)])
+@pytest.mark.parametrize("name, inch", [("inch_half_circle", True), ("arcs_planes_low", False),
+                                        ("arcs_incremental", False)])  # (G91: its arcs were all straight pieces)
 def test_fitted_arcs_read_by_rs274_lie_on_the_nominal_arcs_through_the_twin(xh714, tmp_path, name, inch):
     out, rep, dev_um, written = _check_against_rs274(xh714, name, tmp_path, inch)
     assert rep.arcs_fitted >= 1

@@ -429,18 +429,20 @@ def test_a_g91_helix_split_into_thousands_of_pieces_ends_where_the_program_does(
     (tmp_path / "sq.toml").write_text(SQUARENESS_ONLY)
     m = load(tmp_path / "sq.toml")
     text = f"{units} G90 G17 G94 F20\nG0 X0 Y0 Z1\nG1 Z0\nG91 G2 X0 Y0 {helix} P3\nG1 {down}\nG90 G0 Z1\nM30\n"
-    out = without_header(compensate(text, m, "geometric"))
-    z, incremental, pieces = 0.0, False, 0
-    for line in out.splitlines():
-        if "G90" in line and "G0" in line:
-            break
-        incremental = incremental or "G91" in line
-        found = re.search(r"Z(-?[0-9.]+)", line)
-        if found:
-            z = z + float(found.group(1)) if incremental else float(found.group(1))
-            pieces += incremental
-    assert pieces > 1000
-    assert z == pytest.approx(depth, abs=1e-9)
+    # straight pieces (--no-arcs), and G91 sub-arcs fitted to the corrected path (the default on a three-axis mill)
+    for arcs, many in ((False, True), (None, False)):
+        out = without_header(compensate(text, m, "geometric", arcs=arcs))
+        z, incremental, pieces = 0.0, False, 0
+        for line in out.splitlines():
+            if "G90" in line and "G0" in line:
+                break
+            incremental = incremental or "G91" in line
+            found = re.search(r"Z(-?[0-9.]+)", line)
+            if found:
+                z = z + float(found.group(1)) if incremental else float(found.group(1))
+                pieces += incremental
+        assert pieces > 1000 if many else 3 < pieces < 50, (arcs, pieces)
+        assert z == pytest.approx(depth, abs=1e-9)
 
 
 def test_g53_moves_and_rotary_axes_the_program_never_moves_are_said_not_invented():

@@ -396,11 +396,13 @@ def full_turns_close(poster, rows, arc_idx, delta_prog):
 
 def fit_arcs(poster, rows, arc_idx, force, delta_prog):
     """Arcs fitted to their corrected path (``.arcs``): ({k: (ends (n, 6), centres (n, 3))}, the indices k
-    left to straight pieces). Fitted are three-axis arcs in G90 without G93 whose start the row before writes."""
+    left to straight pieces). Fitted are three-axis arcs without G93 whose start the row before writes, in G90 or
+    G91 (its sub-arcs' ends written as the increments between rounded ends: the control's position is the rounded
+    end, as the fit takes it; G91 arcs were all written as straight pieces, 15 blocks became 1690 in a QA pass)."""
     p = poster.p
     r = rows[arc_idx]
     start, known = written_start(poster, rows, arc_idx, delta_prog)
-    ok = known & ~p.incremental[r] & ~p.inverse_time[r] & ~p.diameter[r] & (not poster.orientation)
+    ok = known & ~p.inverse_time[r] & ~p.diameter[r] & (not poster.orientation)
     if not np.any(ok):
         return {}, arc_idx
     idx = arc_idx[ok]

@@ -2037,17 +2037,16 @@ class _Poster:
         skip = "/" if body.lstrip().startswith("/") else ""
         word = "G0" if motion == RAPID else "G1"
         for i_piece in range(1, n):
-            if inc:
-                piece = [word] + [fmt(a, _out_value(pts[i_piece], last_written, a, inc, fmt.decimals(a)))
+            arc = centres is not None and not np.isnan(centres[i_piece, 0])  # (else a sub-arc that did not hold)
+            code = word if centres is None else _motion_text("G1", p.motion[r]) if arc else "G1"
+            if inc:  # G91: the increments from the end written before (fitted sub-arcs too)
+                piece = [code] + [fmt(a, _out_value(pts[i_piece], last_written, a, inc, fmt.decimals(a)))
                                   for a in axes_out]
                 last_written = pts[i_piece]
-            elif centres is not None and np.isnan(centres[i_piece, 0]):  # a sub-arc that did not hold
-                piece = ["G1"] + [split.words[a][o + i_piece] for a in axes_out]
-            elif centres is not None:
-                piece = [_motion_text("G1", p.motion[r])] + [split.words[a][o + i_piece] for a in axes_out]
-                piece += self._fit_centre_words(r, centres[i_piece], pts[i_piece - 1], fmt)
             else:
-                piece = [word] + [split.words[a][o + i_piece] for a in axes_out]
+                piece = [code] + [split.words[a][o + i_piece] for a in axes_out]
+            if arc:
+                piece += self._fit_centre_words(r, centres[i_piece], pts[i_piece - 1], fmt)
             if inverse:
                 piece.append(fmt("F", piece_f[i_piece], inch=False))
             if i_piece == n - 1:
