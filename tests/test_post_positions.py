@@ -107,3 +107,10 @@ def test_a_block_without_axis_words_is_not_said_to_be_uncompensated():
     assert not any("not known" in w for w in report["warnings"])
     with pytest.raises(PostError, match=r"<string>:2: no move can be compensated: the position of X Y Z is never"):
         compensate("G21 G90\nG0\nM2\n", xh, "geometric", offsets_zero=True)
+
+
+def test_the_header_goes_after_the_first_percent_not_after_the_programs_end():
+    """For a file of '%' lines only, the header came after the second '%', LinuxCNC's end of the program (QA pass)."""
+    from trueaxis.nc.flatten import program_start
+
+    assert [program_start(t) for t in ("%\n%\n", "%\nO100\nG0 X1\n", "%\nO1\n%\n", "G0\n")] == [2, 7, 5, 0]

@@ -714,11 +714,16 @@ _START_LINE = re.compile(r"^[ \t]*(?:%.*|[Oo][ \t]*[0-9]+[ \t]*(?:[(;].*)?)$")
 
 def program_start(text: str, most: int = 3) -> int:
     """The length in characters of ``text``'s leading '%' and program number lines (at most ``most`` lines, each
-    ended by a line ending; 0: none)."""
-    pos = 0
+    ended by a line ending; one '%' at most: a second one ends the program, and what goes after the start must not
+    go after it; 0: none)."""
+    pos, percent = 0, False
     for line in text[:4096].splitlines(keepends=True)[:most]:
         if not (_START_LINE.match(line.rstrip("\r\n")) and line.endswith(("\n", "\r"))):
             break
+        if line.lstrip(" \t").startswith("%"):
+            if percent:
+                break
+            percent = True
         pos += len(line)
     return pos
 
