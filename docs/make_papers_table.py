@@ -154,7 +154,7 @@ def lathe_comprehensive_post() -> str:
     from trueaxis.postproc.post import compensate, without_header
 
     m = _machine("lathe")
-    prog = "G18 G21 G90 G94\n(trueaxis: ap=2 f=0.2 vc=180)\nG0 X40.000000 Z-5.000000\nG1 Z-50.000000 F100\nM30\n"
+    prog = "G18 G21 G90 G94 G8\n(trueaxis: ap=2 f=0.2 vc=180)\nG0 X40.000000 Z-5.000000\nG1 Z-50.000000 F100\nM30\n"
     z = []
     for mode in ("geometric", "comprehensive"):
         out = compensate(prog, m, mode, tol_um=50.0)

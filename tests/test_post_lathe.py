@@ -22,7 +22,7 @@ from trueaxis.postproc.post import PostError, compensate
 from trueaxis.postproc.solver import corrected_directions
 
 # Facing, a shoulder and a 270 deg G18 arc (counter-clockwise seen from +Y: from -X about the centre round to -Z).
-PROGRAM = """G18 G21 G90 G94
+PROGRAM = """G18 G21 G90 G94 G8
 G0 X40 Z-5
 G1 Z-50 F100
 G1 X60
@@ -78,7 +78,7 @@ def test_comprehensive_mode_on_a_lathe_without_conditions_names_the_block(lathe)
 
 # Every combination of load sign and direction of motion of X (the surfaces' position axis), at 6 decimals (the
 # written numbers then round by 0.0005 um). Conditions change midway.
-TURNING = """G18 G21 G90 G94
+TURNING = """G18 G21 G90 G94 G8
 (trueaxis: ap=2 f=0.2 vc=180)
 G0 X40.000000 Z-5.000000
 G1 Z-50.000000 F100
@@ -264,7 +264,7 @@ def test_comprehensive_corrections_along_a_lathe_arc_follow_its_tangent(lathe):
     # force's direction by 1e-3 rad at most), the tangent along the travel, Kienzle's force split into feed and
     # passive parts along and across it. Points where the force or the tangent's X part nearly vanish (where a model
     # switch could fall either side of a point) are left out.
-    program = """G18 G21 G90 G94
+    program = """G18 G21 G90 G94 G8
 (trueaxis: ap=1 f=0.15 vc=150)
 G0 X40.000000 Z-5.000000
 G1 Z-60.000000 F100
@@ -322,7 +322,7 @@ def test_the_lathe_report_names_each_set_of_turning_conditions_used(lathe):
 def test_a_g95_feed_that_disagrees_with_the_conditions_comment_is_said(lathe):
     # The force comes from the comment's f; a program feeding F0.4 per revolution under a comment f=0.2 cut about
     # 1.8 times the force corrected for, without a word (a QA pass). Said; the same feed, or G94, says nothing.
-    program = ("G18 G21 G90 G95\nG0 X120 Z-5\n(trueaxis: ap=2 f=0.2 vc=180)\nG1 X80 Z-10 F{feed}\nG1 Z-100\n"
+    program = ("G18 G21 G90 G95 G8\nG0 X120 Z-5\n(trueaxis: ap=2 f=0.2 vc=180)\nG1 X80 Z-10 F{feed}\nG1 Z-100\n"
                "G0 X190\nM2\n")
     for feed, said in (("0.4", True), ("0.2", False)):
         report = {}
@@ -339,7 +339,7 @@ def test_a_g95_feed_that_disagrees_with_the_conditions_comment_is_said(lathe):
 
 # A lathe program that sets its work offset with G10 L2 in X and Z, the axes it has (a QA pass: refused for the G54 Y
 # component that was not given, the only way through --offsets-zero, which zeroes every missing value).
-LATHE_G10 = "G18 G21 G90 G94\nG10 L2 P1 X10 Z-100\nG54 G0 X40 Z-5\nG1 Z-50 F100\nG1 X60\nM30\n"
+LATHE_G10 = "G18 G21 G90 G94 G8\nG10 L2 P1 X10 Z-100\nG54 G0 X40 Z-5\nG1 Z-50 F100\nG1 X60\nM30\n"
 
 
 def test_a_lathe_work_offset_needs_no_y_component_and_the_header_says_zero_was_taken(lathe):
@@ -405,3 +405,39 @@ def test_a_g76_threading_cycle_is_refused_for_itself_and_passed_through_with_all
     np.testing.assert_allclose(moved[:, 0], shift[0], atol=1.5e-4)
     np.testing.assert_allclose(moved[:, 2], np.where(at_start, shift[2], 0.0), atol=1.5e-4)
     np.testing.assert_allclose(moved[:, [1, 3, 4, 5]], 0.0, atol=1e-12)
+
+
+def test_a_lathe_arc_in_a_plane_the_program_never_states_is_refused(lathe):
+    """No G18 in the program: read as G17, the arc became 55 straight pieces of the XY helix, 2.9 mm off the G18 arc a
+    lathe control (start-up code G18) cuts, exit 0 (QA pass). Refused, naming the line; with G18 stated it posts."""
+    prog = "G21 G90 G8\nG0 X30 Z-95\nG1 Z-100 F100\nG2 X40 Z-110 R10\nG1 Z-130\nM2\n"
+    with pytest.raises(PostError, match=r"^<string>:4: an arc in the G17 plane \(the program states no plane: G17 is "
+                                        r"read\) on .*, which has no Y axis: .* state G18 before the arc"):
+        compensate(prog, lathe, "geometric", offsets_zero=True)
+    with pytest.raises(PostError, match=r":4: an arc in the G19 plane on "):
+        compensate(prog.replace("G8\n", "G8 G19\n"), lathe, "geometric", offsets_zero=True)
+    assert "G2 " in compensate("G18 " + prog, lathe, "geometric", offsets_zero=True, arcs=True)
+
+
+def test_x_before_g7_or_g8_on_a_lathe_is_refused(lathe):
+    """Neither G7 nor G8: X was read as a radius; on a control that starts in G7 (diameter) 3.9 of a 7.3 um radial
+    correction was lost on every block, no warning (QA pass). Refused until the program says which; a Z move before
+    it is fine, and --mode none posts as it did."""
+    prog = "G18 G21 G90\nG0 Z-95\nG0 X60\nG1 Z-150 F100\nG1 X80\nM2\n"
+    with pytest.raises(PostError, match=r"^<string>:3: X is given before the program says G7 \(X a diameter\) or G8 "):
+        compensate(prog, lathe, "geometric", offsets_zero=True)
+    for mode in ("G7", "G8"):
+        assert compensate(prog.replace("G90\n", f"G90 {mode}\n"), lathe, "geometric", offsets_zero=True)
+    assert compensate(prog.replace("G90\nG0 Z-95\n", "G90\nG0 Z-95\nG8\n"), lathe, "geometric", offsets_zero=True)
+    assert "G0 X60" in compensate(prog, lathe, "none", offsets_zero=True)
+
+
+def test_strict_posts_a_feed_per_revolution_program(lathe, tmp_path):
+    """Every G95 program carried a note meant for simulate and diagnose (which refuse G95 themselves), so --strict
+    refused every feed-per-revolution lathe program (QA pass)."""
+    prog = tmp_path / "g95.ngc"
+    prog.write_text("G18 G21 G90 G95 G8\nG0 X30 Z-95\nG1 Z-130 F0.2\nG1 X40\nM2\n")
+    r = subprocess.run([sys.executable, "-m", "trueaxis.cli", "post", str(prog), "-o", str(tmp_path / "o.ngc"),
+                        "--machine", str(MACHINES / "lathe.toml"), "--offsets-zero", "--strict"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stderr == "", r.stderr

@@ -295,6 +295,9 @@ class Program:
     # _POSITION, a Fanuc or Hurco change macro), a block passed through whose moves are not in the text (probing
     # G38.x, a macro call, ...). A post writes no axis word from a position held before one until the program gives it.
     positions_lost: list = field(default_factory=list)
+    # "G7/G8", "plane" -> the line index of the block that first states it (absent: never stated, the control's
+    # start-up mode is what the program runs in; a lathe post refuses to assume it)
+    modes_stated: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.motion.shape[0])
@@ -983,6 +986,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             units=units, axes_present="".join(a for a in AXES if a in used_axes), warnings=self.warnings,
             unsupported=self.unsupported, rotation=rotation, setup_used=setup_used, position_sets=self.position_sets,
             block_delete_lines=self.block_delete_lines, positions_lost=self.positions_lost,
+            modes_stated=self.modes_stated,
             machine_rows_not_given=self.machine_rows_not_given(mid, kind, metas, self.required_axes(used_axes)),
         )
 

@@ -25,6 +25,7 @@ class Conversion:
         gnums, mnums, fvals, words_mask = checked
         if 70 in gnums or (80 in gnums and "P" not in fvals):
             self.diameter = 70 in gnums  # G7 / G8 (LinuxCNC's lathe modes), in force for this block's words
+            self.modes_stated.setdefault("G7/G8", li)
         diameter = self.diameter
         ax = [(AXIS_INDEX[k], 0.5 * fvals[k] if diameter and k == "X" else fvals[k])
               for k in "XYZABC" if k in fvals]
@@ -80,12 +81,12 @@ class Conversion:
             elif g == 930:
                 self.inverse = True
             elif g in (940, 950):
-                if g == 950:
-                    self.warn(line_no, "G95 feed per revolution: the post writes the F words as given; a time along "
-                              "the program (simulate, diagnose) needs G94 or G93")
+                # (G95: the post writes the F words as given; simulate and diagnose refuse it, naming the block,
+                # trajectory._refuse_feed_per_revolution: no warning here, which made every lathe post fail --strict)
                 self.inverse = False
             elif g in (170, 180, 190):
                 self.plane = g // 10
+                self.modes_stated.setdefault("plane", line_no - 1)
             elif g in (200, 210):
                 self.set_units(g == 200)
             elif g in (400, 410, 420, 411, 421):
