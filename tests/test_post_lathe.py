@@ -57,8 +57,21 @@ def test_lathe_output_lands_on_the_nominal_path_in_xz(lathe, tmp_path):
 
 
 def test_comprehensive_mode_on_a_lathe_refuses_milling_conditions(lathe):
-    with pytest.raises(PostError, match="turning takes the cutting conditions ap, f, vc"):
+    with pytest.raises(PostError, match=r"turning takes the cutting conditions ap \(mm\), f \(mm/rev\) and vc "
+                                        r"\(m/min\); the conditions given hold ae, fz, which are milling's"):
         compensate(PROGRAM, lathe, "comprehensive", conditions={"ap": 1, "ae": 1, "fz": 0.1})
+
+
+def test_a_host_gives_the_turning_conditions_as_the_comment_would(lathe):
+    """conditions={'ap', 'f', 'vc'} was refused as milling conditions 'from the command line' (QA pass): a Python
+    host (CadQuery) had no way to give them but a comment in the G-code. Now they post as the comment does."""
+    one = TURNING.replace("(trueaxis: ap=1 f=0.1 vc=200)\n", "")  # (given conditions hold for every block)
+    bare = one.replace("(trueaxis: ap=2 f=0.2 vc=180)\n", "")
+    assert bare.count("trueaxis:") == 0 and one.count("trueaxis:") == 1
+    given = compensate(bare, lathe, "comprehensive", conditions={"ap": 2, "f": 0.2, "vc": 180}, offsets_zero=True)
+    said = compensate(one, lathe, "comprehensive", offsets_zero=True)
+    assert given == said.replace("(trueaxis: ap=2 f=0.2 vc=180)\n", "")
+    assert given != compensate(bare, lathe, "geometric", offsets_zero=True)  # (the force is in it)
 
 
 def test_comprehensive_mode_on_a_lathe_without_turning_coefficients_is_refused(lathe):

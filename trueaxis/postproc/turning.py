@@ -89,11 +89,11 @@ def _turning_conditions(poster):
     """Per program row: the turning conditions valid there (TurningConditions or None)."""
     p = poster.p
     marks = condition_marks(p.lines, p.source)
-    cli = {k: v for k, v in poster.conditions.items() if v is not None}
-    milling = sorted(set(cli) - {"ap"})
+    cli = {k: v for k, v in poster.conditions.items() if v is not None}  # --ap, or a host's conditions=
+    milling = sorted(set(cli) - {"ap", "f", "vc"})
     if milling:
-        raise PostError(p.source, 1, f"turning takes the cutting conditions ap, f, vc; the command line gives "
-                                     f"{', '.join(milling)} (milling conditions)")
+        raise PostError(p.source, 1, f"turning takes the cutting conditions ap (mm), f (mm/rev) and vc (m/min); "
+                                     f"the conditions given hold {', '.join(milling)}, which are milling's")
     starts = np.array([i for i, _ in marks], dtype=np.int64)
     by_mark = []
     merged: dict = {}
