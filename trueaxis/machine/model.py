@@ -42,13 +42,13 @@ PLAUSIBLE_MAX = {"um": 1000.0, "urad": 2000.0}
 
 def implausible_parameters(machine) -> str | None:
     """One sentence naming the parameters beyond ``PLAUSIBLE_MAX`` (the largest first), or None."""
-    names, values = machine.parameter_names(), np.abs(machine.parameter_values())
+    names, values = machine.parameter_names(), machine.parameter_values()
     units = [unit_of(n) for n in names]
-    over = [i for i in np.argsort(-values / [PLAUSIBLE_MAX[u] for u in units], kind="stable")
-            if values[i] > PLAUSIBLE_MAX[units[i]]]
+    size = np.abs(values) / [PLAUSIBLE_MAX[u] for u in units]  # (the largest beyond its bound first)
+    over = [i for i in np.argsort(-size, kind="stable") if abs(values[i]) > PLAUSIBLE_MAX[units[i]]]
     if not over:
         return None
-    said = ", ".join(f"{names[i]} = {machine.parameter_values()[i]:g} {units[i]}" for i in over[:3])
+    said = ", ".join(f"{names[i]} = {values[i]:g} {units[i]}" for i in over[:3])
     more = f" and {len(over) - 3} more" if len(over) > 3 else ""
     return (f"{said}{more}: larger than a machine tool's geometric error is (beyond {PLAUSIBLE_MAX['um']:g} um or "
             f"{PLAUSIBLE_MAX['urad']:g} urad); the file's values are in um and urad: a unit slip?")

@@ -307,6 +307,10 @@ class Program:
         """(M,) int32, 1-based source line of each row."""
         return self.line_index + 1 if self.source_line is None else self.source_line[self.line_index]
 
+    def source_line_of(self, li: int) -> int:
+        """The 1-based source line of line index ``li`` of ``lines`` (a flattened program's flat line: its source's)."""
+        return li + 1 if self.source_line is None else int(self.source_line[li])
+
     @property
     def end_machine(self) -> np.ndarray:
         """(M, 6) float, end points in machine coordinates (work, G92 and tool length offsets applied)."""

@@ -97,6 +97,7 @@ _MOTION_WORD = re.compile(r"^G0*([0-3])$", re.IGNORECASE)
 _G87 = re.compile(r"(?i)G\s*0*87(?![\d.])")
 _MOTION_CODE = re.compile(r"(?i)G\s*0*(0|1|2|3|33\.1|38\.[2-5]|73|76|8[0-9])(?![\d.])")
 _EIGHTY_SEVEN = re.compile(r"87(?![\d.])")
+_AXIS_WORDS = sum(1 << WORD_BITS.index(a) for a in AXES)  # the bits of Program.words a block's axis words set
 
 
 def _g87_starts(text: str) -> list[int]:
@@ -705,7 +706,7 @@ def _refuse_rewritten_tool_offset_words(prog: Program, source: str):
     for li in sorted(set(moved.tolist()) | set(shifted)):
         code, _ = _split_comment(_split_ending(prog.lines[li])[0])
         if g43_1.search(code):
-            line = int(li + 1 if prog.source_line is None else prog.source_line[li])
+            line = prog.source_line_of(li)
             other, what = (shifted[li], "the offset it sets") if li in shifted else ("a move", "the move's end")
             raise PostError(source, line, f"G43.1 and {other} in one block: its axis words are G43.1's tool offset "
                                           f"as well as {what}, which the post changes by the correction; so written "
@@ -1140,11 +1141,6 @@ class _Poster:
                             "start-up mode decides what X means, and the post does not assume it; state G7 or G8 "
                             "before the first move")
 
-    def _source_line(self, li: int) -> int:
-        """The 1-based source line of the program's line index ``li`` (a flat line's source line)."""
-        p = self.p
-        return li + 1 if p.source_line is None else int(p.source_line[li])
-
     def _lost_since(self, row: int) -> str | None:
         """What made the control's position unknown before ``row`` (``Program.positions_lost``, with its source
         line), or None (the program's start)."""
@@ -1153,7 +1149,7 @@ class _Poster:
         if not before:
             return None
         li, what = before[-1]
-        return f"{what} at line {self._source_line(li)}"
+        return f"{what} at line {self.p.source_line_of(li)}"
 
     def run(self):
         p = self.p
@@ -1178,11 +1174,11 @@ class _Poster:
             rows_unknown = rows[unknown]
             bad_lines = np.unique(p.line_index[rows_unknown])
             keep = ~np.isin(p.line_index[rows], bad_lines)
-            for r in rows[unknown]:
+            for r in rows_unknown:
                 line = int(p.line_no[r])
                 if self.rep.uncompensated and self.rep.uncompensated[-1]["line"] == line:
                     continue
-                if not int(p.words[r]) & 0b111111 and p.motion[r] in (RAPID, FEED):
+                if not int(p.words[r]) & _AXIS_WORDS and p.motion[r] in (RAPID, FEED):
                     continue  # no axis word, no motion ('N110G0G17G40G49G80G90'): as written, nothing to say
                 axes = "".join(a for i, a in enumerate(AXES) if int(missing[r]) >> i & 1) or \
                     "".join(a for i, a in enumerate(AXES) if int(missing[r - 1]) >> i & 1 if r > 0)
@@ -1301,7 +1297,7 @@ class _Poster:
             r = int(np.searchsorted(p.line_index, li, side="left")) - 1  # the last row before the block
             lost = [AXES[i] for i in axes if r < 0 or int(missing[r]) >> i & 1]
             if lost:
-                raise PostError(p.source, self._source_line(li),
+                raise PostError(p.source, self.p.source_line_of(li),
                                 f"{what} sets its offset from the position of {' '.join(lost)}, "
                                 "which the program has not given before it (the control's position "
                                 "when it starts): the offset and every machine position after it "
@@ -1885,7 +1881,7 @@ class _Poster:
             text = out[li] if isinstance(out, list) or li in out else p.lines[li]
             words = [t for t in tokenize_line(text) if t[0] == "word"]  # (comments, inline ones too, left alone)
             if any(re.fullmatch(r"(?i)G0*2[01]", w[1]) for w in words):
-                raise PostError(p.source, self._source_line(li),
+                raise PostError(p.source, self.p.source_line_of(li),
                                 f"{what} with a change of units on its block: write the G20 / G21 "
                                 "on a block of its own")
             fmt = numbers.formatter(bool(p.inch[r]))
@@ -1899,13 +1895,13 @@ class _Poster:
                         break
                     done.add(i)
             if done != set(axes):
-                raise PostError(p.source, self._source_line(li),
+                raise PostError(p.source, self.p.source_line_of(li),
                                 f"{what}: its axis values are not plain numbers here; the correction "
                                 "the control's position carries cannot be added to them")
             for (start, end), value in sorted(new.items(), reverse=True):
                 text = text[:start] + value + text[end:]
             out[li] = text
-            self.rep.offsets_shifted.append({"line": self._source_line(li), "what": what, "by_program_units": {
+            self.rep.offsets_shifted.append({"line": self.p.source_line_of(li), "what": what, "by_program_units": {
                 AXES[i]: float(c[i]) for i in axes}})
 
     def _axes_out(self):
@@ -1997,7 +1993,7 @@ class _Poster:
             inc = incremental_l[r0]
             if cycle_l[k0]:
                 if inc:
-                    raise PostError(p.source, self._source_line(li),
+                    raise PostError(p.source, self.p.source_line_of(li),
                                     "incremental (G91) canned cycles are not compensated: write "
                                     "the cycle in G90, or post with --mode none")
                 out[li] = self._cycle_line(body, list(range(k0, k1)), rows, delta_prog, fmt, sep) + ending
@@ -2351,7 +2347,7 @@ class _Poster:
             codes = _MOTION_CODE.findall(_split_comment(p.lines[li].rstrip("\r\n"))[0])
             mode = float(codes[-1]) if codes else mode
             if li in lines and mode == 87.0:
-                raise PostError(p.source, self._source_line(li),
+                raise PostError(p.source, self.p.source_line_of(li),
                                 "G87 back boring: the post does not write it (its hole is offset "
                                 "by I J K); write it as G0 / G1 moves")
 
