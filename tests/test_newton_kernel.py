@@ -76,3 +76,63 @@ def test_the_solve_still_lands_on_the_nominal_pose():
     assert np.linalg.norm(pa - pn, axis=1).max() * 1e3 <= 0.01
     assert np.linalg.norm(ua - un, axis=1).max() * 1e6 <= 0.1
     assert np.abs(res.q - q).max() > 1e-3  # the errors are tens of um: the check can fail
+
+
+class _LoopTwin:
+    """The twin without ``unloaded_kernel_args``: ``solve_commanded`` takes its numpy loop (the reference of the
+    compiled ``solve_unloaded``), the twin's own kernels for each pose and Jacobian."""
+
+    def __init__(self, twin):
+        self._twin, self.machine = twin, twin.machine
+
+    def nominal_pose(self, q):
+        return self._twin.nominal_pose(q)
+
+    def actual_pose(self, q, force_n=None, motion=None):
+        return self._twin.actual_pose(q, force_n, motion)
+
+    def pose_and_axis_jacobian(self, q, force_n=None, motion=None):
+        return self._twin.pose_and_axis_jacobian(q, force_n, motion)
+
+
+@pytest.mark.parametrize("name", ["xh714", "nmv1500dcg", "ac_trunnion", "headtable"])
+@pytest.mark.parametrize("n", [700, 9000])  # (9000: shared among the kernels' threads, with ahead-of-time twins)
+def test_the_compiled_solve_is_the_numpy_loop_bit_for_bit(name, n):
+    # the whole solve in one kernel (component errors, chain, Jacobian, residual check, Newton step) gives the numbers
+    # of the loop that calls the kernels one by one: commanded axes, residuals, poses, the converged flags
+    m = load_machine(MACHINES / f"{name}.toml")
+    twin = ErrorTwin(m)
+    q, *_ = _case(name, n, 11)
+    q = q + (np.random.default_rng(5).random(q.shape) - 0.5) * 0.5  # (not only the travel's middle)
+    hold = np.zeros(q.shape, bool)
+    rot = [m.axis_names.index(a) for a in m.rotary_axes]
+    if rot:
+        hold[::7, rot[0]] = True  # the singular cone's free axis held, as the post holds it
+    for orientation in ([True, False] if rot else [False]):
+        h = hold.copy()
+        if not orientation:
+            h[:, rot] = True  # (the post's rotary axes without rotary words: held)
+        fused = solve_commanded(twin, q, orientation=orientation, hold=h)
+        loop = solve_commanded(_LoopTwin(twin), q, orientation=orientation, hold=h)
+        assert fused.converged.all() and loop.converged.all()
+        assert np.abs(fused.q - q).max() > 1e-3  # errors of tens of um corrected: a solve that did nothing would fail
+        for a, b in [(fused.q, loop.q), (fused.position_residual_um, loop.position_residual_um),
+                     (fused.axis_residual_urad, loop.axis_residual_urad), (fused.converged, loop.converged),
+                     *zip(fused.actual, loop.actual), *zip(fused.nominal, loop.nominal)]:
+            assert np.array_equal(a, b)
+        assert fused.iterations == loop.iterations >= 1
+
+
+def test_the_compiled_solve_says_a_pose_it_cannot_solve():
+    # a pose whose axes are all held cannot be moved onto its nominal pose: after max_iter steps it is reported not
+    # converged, with its residual, as the numpy loop reports it (the post refuses the block then)
+    m = load_machine(MACHINES / "xh714.toml")
+    twin = ErrorTwin(m)
+    q, *_ = _case("xh714", 5, 2)
+    hold = np.zeros(q.shape, bool)
+    hold[2] = True
+    fused, loop = solve_commanded(twin, q, hold=hold), solve_commanded(_LoopTwin(twin), q, hold=hold)
+    assert fused.converged.tolist() == [True, True, False, True, True] == loop.converged.tolist()
+    assert fused.position_residual_um[2] == loop.position_residual_um[2] > 1.0
+    assert fused.iterations == loop.iterations == 12
+    assert np.array_equal(fused.q, loop.q) and np.array_equal(fused.q[2], q[2])

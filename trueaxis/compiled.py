@@ -410,7 +410,8 @@ def _called_from_python() -> set:
             "trueaxis.machine.error_kernel.evaluate_packed", "trueaxis.machine.chain_kernel.pose",
             "trueaxis.machine.chain_kernel.pose_and_axis_jacobian",
             "trueaxis.inspect.kernels.cone_normal_equations", "trueaxis.inspect.kernels.csv_rows",
-            "trueaxis.inspect.kernels.cone_patch_distance", "trueaxis.postproc.newton_kernel.gauss_newton_step"}
+            "trueaxis.inspect.kernels.cone_patch_distance", "trueaxis.postproc.newton_kernel.gauss_newton_step",
+            "trueaxis.postproc.newton_kernel.solve_unloaded"}
 
 
 def aot_available() -> bool:

@@ -269,6 +269,13 @@ def evaluate_packed(q, groups, grid, members, coef, scale, zero_slots, n_harmoni
     coef, grid: the flat coefficient and grid arrays; scale (M,): each member's factor; zero_slots (Z, 2): the slots
     no member writes.
     """
+    _evaluate_rows(q, groups, grid, members, coef, scale, zero_slots, n_harmonics, deriv, val, dval)
+
+
+@_jit
+def _evaluate_rows(q, groups, grid, members, coef, scale, zero_slots, n_harmonics, deriv, val, dval):
+    """``evaluate_packed``'s work, for kernels that call it (a kernel the post calls from Python, which has an
+    ahead-of-time twin, is not called from compiled code: ``trueaxis.compiled``)."""
     n = q.shape[0]
     for z in range(zero_slots.shape[0]):
         a, b = zero_slots[z, 0], zero_slots[z, 1]

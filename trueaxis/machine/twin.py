@@ -587,6 +587,15 @@ class ErrorTwin:
         kernel = chain_kernel.pose_parallel if parallel else chain_kernel.pose
         return (*kernel(q, *self._layout, *values), None)
 
+    def unloaded_kernel_args(self) -> tuple:
+        """What a compiled kernel needs to compose the unloaded chain (no force: geometric errors alone), as
+        ``_compose`` passes it: the layout (column .. bed_at), the location errors (tilt, offset, zero, d_act), the
+        bed and its derivative (zero without force), then the packed component functions (groups .. n_harmonics,
+        ``error_kernel.evaluate_packed``'s arguments). (``postproc.newton_kernel.solve_unloaded`` takes them.)"""
+        c = self._components
+        return (*self._layout, *self._constant_location, self._nominal_values[5], self._zero_derivatives[1], c.groups,
+                c.grid, c.members, c.coef, c.scale, c.zero_slots, c.n_harmonics)
+
     def _threaded_unloaded(self, q, jacobian: bool):
         """``_compose`` of many poses without force: each thread evaluates the component errors of its share of the
         poses and composes their chains (both by the kernels' ahead-of-time twins; the other inputs are the same for

@@ -26,6 +26,7 @@ direction normal to it, y = z x x. Rapids and plunges carry no force.
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import functools
 import gc
@@ -1145,10 +1146,12 @@ class _Poster:
         """What made the control's position unknown before ``row`` (``Program.positions_lost``, with its source
         line), or None (the program's start)."""
         p = self.p
-        before = [(li, what) for li, what in p.positions_lost if li <= int(p.line_index[row])]
-        if not before:
+        # (appended as the program is read: in line order; a bisection, not a scan per row: a million-block program
+        # with 1424 tool changes spent 0.8 s here)
+        k = bisect.bisect_right(p.positions_lost, int(p.line_index[row]), key=lambda lost: lost[0])
+        if k == 0:
             return None
-        li, what = before[-1]
+        li, what = p.positions_lost[k - 1]
         return f"{what} at line {self.p.source_line_of(li)}"
 
     def run(self):
@@ -1174,8 +1177,8 @@ class _Poster:
             rows_unknown = rows[unknown]
             bad_lines = np.unique(p.line_index[rows_unknown])
             keep = ~np.isin(p.line_index[rows], bad_lines)
-            for r in rows_unknown:
-                line = int(p.line_no[r])
+            lines_unknown = p.line_no[rows_unknown]  # (line_no makes the whole program's: once, not per row)
+            for r, line in zip(rows_unknown.tolist(), lines_unknown.tolist()):
                 if self.rep.uncompensated and self.rep.uncompensated[-1]["line"] == line:
                     continue
                 if not int(p.words[r]) & _AXIS_WORDS and p.motion[r] in (RAPID, FEED):

@@ -18,8 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..compiled import run_twins, thread_slices
 from ..machine.twin import ErrorTwin
-from .newton_kernel import gauss_newton_step
+from .newton_kernel import gauss_newton_step, solve_unloaded
 
 
 # A Newton step evaluates the pose alone first, and the Jacobian of the poses not converged after it, where the caller's
@@ -82,6 +83,9 @@ def solve_commanded(
     if orientation:
         M[d:, 3:] = np.eye(3) * orientation_weight_mm
     free = np.ones((n, k), bool) if hold is None else ~np.asarray(hold, bool)
+    if force_n is None and motion is None and d == 3 and np.array_equal(B, np.eye(3)) \
+            and hasattr(twin, "unloaded_kernel_args"):
+        return _solve_unloaded(twin, q0, (p_nom, u_nom), free, M, orientation, (tol_um, tol_urad), max_iter)
     q = q0.copy()
     pos_err = np.empty(n)
     ax_err = np.empty(n)
@@ -129,6 +133,35 @@ def solve_commanded(
         ok &= (ax_err <= tol_urad) | ~free.all(1)
     return SolveResult(q=q, position_residual_um=pos_err, axis_residual_urad=ax_err, iterations=it, converged=ok,
                        actual=(p_act, u_act), nominal=(p_nom, u_nom))
+
+
+def _solve_unloaded(twin, q0, nominal, free, M, orientation, tol, max_iter) -> SolveResult:
+    """``solve_commanded`` of unloaded poses on a mill, by the compiled ``solve_unloaded`` (the same numbers as the
+    loop above, which stays for loads and lathes): many poses in contiguous shares on the kernels' threads (its
+    ahead-of-time twin releases the GIL), each pose solved alone."""
+    n, k = q0.shape
+    c = np.ascontiguousarray
+    q0, p_nom, u_nom, free, M = c(q0, float), c(nominal[0], float), c(nominal[1], float), c(free, bool), c(M, float)
+    q, p, u, pos, ax = np.empty((n, k)), np.empty((n, 3)), np.empty((n, 3)), np.empty(n), np.empty(n)
+    chain = twin.unloaded_kernel_args()
+    fixed = (M, bool(orientation), float(tol[0]), float(tol[1]), int(max_iter), *chain)
+
+    def call(sl):
+        return (q0[sl], p_nom[sl], u_nom[sl], free[sl], *fixed, q[sl], p[sl], u[sl], pos[sl], ax[sl],
+                np.zeros(2, np.int64))
+
+    calls = [call(sl) for sl in thread_slices(n)] or [call(slice(None))]
+    if len(calls) == 1 or run_twins(solve_unloaded, calls) is None:
+        for args in calls:
+            solve_unloaded(*args)
+    if any(args[-1][1] for args in calls):
+        raise np.linalg.LinAlgError("Singular matrix: a pose's Newton step has no unique solution")
+    ok = pos <= tol[0]
+    if orientation:
+        ok &= (ax <= tol[1]) | ~free.all(1)
+    return SolveResult(q=q, position_residual_um=pos, axis_residual_urad=ax,
+                       iterations=max(int(args[-1][0]) for args in calls), converged=ok, actual=(p, u),
+                       nominal=(p_nom, u_nom))
 
 
 def gauss_newton_step_of(qa, p, u, p_nom, u_nom, M, Ja, free) -> np.ndarray:
