@@ -114,8 +114,9 @@ ARCS = ("G21 G90 G94 G17\nG0 X1 Y0 Z0\nG1 F200 X1\n" + "".join(_arc_lines(24, 17
         + "G91.1 G91\n" + "".join(f"G3 X{-2 if k % 2 == 0 else 2} Y0 I{-1 if k % 2 == 0 else 1} J0\n"
                                  for k in range(20))
         + "G90\nG0 X10 Y0\n")
-# end points off the circle (radius 10): well within the tolerance, near its limit (0.05 mm), beyond it
-OFF = ("0.001", "0.0499999", "0.04999999999999", "0.0500001")
+# end points off the circle (radius 10): well within the tolerance, near its limit (LinuxCNC's 0.02 sqrt 2 mm, 0.28 %
+# of the radius), beyond it
+OFF = ("0.001", "0.0282842", "0.02828427124746", "0.0282843")
 
 
 @pytest.mark.parametrize("cut", [None, *OFF])
@@ -124,7 +125,7 @@ def test_arcs_read_to_the_same_table(monkeypatch, cut):
     the reader's limit of the circle (it decides those itself)."""
     offs = OFF[: OFF.index(cut) + 1] if cut else ()
     text = ARCS + "".join(f"G2 X-1{d} Y0 I-10 J0\nG0 X10 Y0\n" for d in offs) + "M30\n"
-    if cut == "0.0500001":  # off the circle by more than the tolerance: the same refusal
+    if cut == OFF[-1]:  # off the circle by more than the tolerance: the same refusal
         msgs = []
         for on in (True, False):
             monkeypatch.setattr(fast_interp, "ENABLED", on)

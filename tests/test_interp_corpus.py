@@ -22,6 +22,36 @@ from trueaxis.nc.gcode import GcodeError, parse_program
 
 OK, REFUSED = "ok", "refused"
 
+
+def _arc_limit(units: str, arc: str, run: bool = False) -> str:
+    """A program that ends with the arc ``arc`` from X0 Y0 (LinuxCNC's limits of an arc's radii, interp_arc.cc); with
+    ``run``, after 20 half circles of radius 10 there and back (a run the compiled reader takes: it must hand the last
+    arc to the reader, or read it as the reader would)."""
+    back = "G2 X20 Y0 I10 J0\nG2 X0 Y0 I-10 J0\n" * 10 if run else ""
+    return f"{units} G17 G90 F100\nG0 X0 Y0 Z0\n{back}{arc}\nM2\n"
+
+
+# An I J K arc: radii differing by at most 0.028284 mm (0.0028284 in), or by more within 0.1 % of the larger, never by
+# 100 times that; no radius below 0.00127 mm (0.00005 in). An R arc: its radius short of half the chord by at most
+# 0.00127 mm (0.00005 in). (The reader had 0.05 mm and 0.002 in, also for R arcs, and no zero-radius or 100x limit.)
+ARC_LIMITS = [
+    ("arc_mm_spiral_in", OK, "G21", "G2 X20.0282 Y0 I10 J0"),
+    ("arc_mm_spiral_out", REFUSED, "G21", "G2 X20.0283 Y0 I10 J0"),
+    ("arc_mm_spiral_far", REFUSED, "G21", "G2 X20.045 Y0 I10 J0"),
+    ("arc_mm_large_in", OK, "G21", "G2 X6002.8 Y0 I3000 J0"),
+    ("arc_mm_large_out", REFUSED, "G21", "G2 X6002.9 Y0 I3000 J0"),
+    ("arc_inch_spiral_in", OK, "G20", "G2 X2.0028 Y0 I1 J0"),
+    ("arc_inch_spiral_out", REFUSED, "G20", "G2 X2.0029 Y0 I1 J0"),
+    ("arc_mm_r_in", OK, "G21", "G2 X20 Y0 R9.999"),
+    ("arc_mm_r_out", REFUSED, "G21", "G2 X20 Y0 R9.9987"),
+    ("arc_inch_r_in", OK, "G20", "G2 X2 Y0 R.99996"),
+    ("arc_inch_r_out", REFUSED, "G20", "G2 X2 Y0 R.99994"),
+    ("arc_mm_zero_radius", REFUSED, "G21", "G2 X0.002 Y0 I0.001 J0"),
+    ("arc_mm_small_radius", OK, "G21", "G2 X0.0026 Y0 Z-1 I0.0013 J0"),
+    ("arc_inch_zero_radius", REFUSED, "G20", "G2 X0.00008 Y0 I0.00004 J0"),
+    ("arc_inch_small_radius", OK, "G20", "G2 X0.00012 Y0 Z-1 I0.00006 J0"),
+]
+
 CORPUS = [
     # -- parameters and expressions
     ("params_named", OK, "G21 G90\n#1=2\n#<a>=[#1*3]\nG0 X#<a> Y[SQRT[2]]\nM2\n"),
@@ -145,6 +175,8 @@ CORPUS = [
     ("no_feed", REFUSED, "G21\nG1 X1\nM2\n"),
     ("arc_off_circle", REFUSED, "G21 F100\nG0 X0 Y0\nG2 X10 Y0 I3 J0\nM2\n"),
     ("arc_no_centre", REFUSED, "G21 F100\nG0 X0 Y0\nG2 X1 Y1\nM2\n"),
+    *[(name, verdict, _arc_limit(units, arc)) for name, verdict, units, arc in ARC_LIMITS],
+    *[(name + "_in_a_run", verdict, _arc_limit(units, arc, run=True)) for name, verdict, units, arc in ARC_LIMITS],
     ("inverse_time_no_f", REFUSED, "G21\nG0 X0\nG93 G1 X1\nM2\n"),
     ("undefined_named", REFUSED, "G21\nG0 X#<nope>\nM2\n"),
     ("sqrt_negative", REFUSED, "G21\nG0 X[SQRT[-1]]\nM2\n"),

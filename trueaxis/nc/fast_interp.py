@@ -38,31 +38,35 @@ _ULP_MARGIN = 8 * 2.0**-52  # relative: more than hypot's rounding in the reader
 
 
 @numba.njit(cache=True, nogil=True)
-def _arc_ok(x0, y0, x1, y1, c0, c1, arc_tol):
-    """The reader's test of an I J K arc's end point (on the circle within arc_tol or 0.1 %, start off the centre),
-    +1 passed / -1 failed with a margin beyond the last bits of hypot (the reader's math.hypot and this one may
-    differ in the last bit), 0 too close to call here (the reader decides)."""
+def _arc_ok(x0, y0, x1, y1, c0, c1, arc_tol, arc_rmin):
+    """The reader's test of an I J K arc's radii (``interp_arc.ijk_radii_refusal``, LinuxCNC's: neither below
+    arc_rmin, their difference within arc_tol or 0.1 % of the larger, and within 100 arc_tol), +1 passed / -1 failed
+    with a margin beyond the last bits of hypot (the reader's math.hypot and this one may differ in the last bit), 0
+    too close to call here (the reader decides)."""
     rad1 = np.hypot(x0 - c0, y0 - c1)
     rad2 = np.hypot(x1 - c0, y1 - c1)
     big = max(rad1, rad2)
+    small = min(rad1, rad2)
     dr = abs(rad1 - rad2)
     slack = _ULP_MARGIN * big
-    if rad1 > slack and (dr + slack <= arc_tol or dr + slack <= 0.001 * big * (1.0 - _ULP_MARGIN)):
+    if small - slack >= arc_rmin and dr + slack <= 100.0 * arc_tol and (
+            dr + slack <= arc_tol or dr + slack <= 0.001 * big * (1.0 - _ULP_MARGIN)):
         return 1
-    if not (rad1 > 0.0) or (dr - slack > arc_tol and dr - slack > 0.001 * big * (1.0 + _ULP_MARGIN)):
+    if small + slack < arc_rmin or dr - slack > 100.0 * arc_tol or (
+            dr - slack > arc_tol and dr - slack > 0.001 * big * (1.0 + _ULP_MARGIN)):
         return -1
     return 0
 
 
 @numba.njit(cache=True, nogil=True)
 def straight_run(status, gs, vals, lo, pos0, motion_mode, feed, absolute, inverse, diameter, plane, arc_abs,
-                 arc_tol):
+                 arc_tol, arc_rmin):
     """Interpret lines lo.. of a pre-scanned block (``fast_read.scan_lines``' status, g, vals) while each is a plain
     straight move or an I J K arc the reader's inlined arc path takes (module docstring).
 
     pos0 (6,): the position before line lo (program units, degrees); motion_mode: the modal motion (G code * 10);
     feed: the feed rate in force; absolute (G90), inverse (G93), diameter (G7), plane (17 / 18 / 19), arc_abs
-    (G90.1), arc_tol (the reader's tolerance of an arc's end point off its circle, program units).
+    (G90.1), arc_tol and arc_rmin (the reader's tolerances of an arc's radii: ``interp_arc``, program units).
 
     Returns (count, start (count, 6), end (count, 6), motion (count,) 0..3, words (count,) the reader's word bits,
     feeds (count,) the feed in force after each line, g_seen: some line had a G word, centres (count, 3): the arcs'
@@ -128,7 +132,7 @@ def straight_run(status, gs, vals, lo, pos0, motion_mode, feed, absolute, invers
                 c0, c1 = o0, o1
             else:
                 c0, c1 = pos[a0] + o0, pos[a1] + o1
-            if _arc_ok(pos[a0], pos[a1], target[a0], target[a1], c0, c1, arc_tol) != 1:
+            if _arc_ok(pos[a0], pos[a1], target[a0], target[a1], c0, c1, arc_tol, arc_rmin) != 1:
                 break  # off the circle, or too close to call: the reader
             for n in range(3):
                 if vals[r, 6 + n] == vals[r, 6 + n]:

@@ -54,7 +54,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .grammar import NUMBER, PLANE_AXES
-from .interp_arc import ArcConversion
+from .interp_arc import ArcConversion, ijk_radii_refusal
 from .interp_cycles import CycleConversion
 from .interp_codes import (  # noqa: F401  (MAX_WORD_VALUE, WORD_BITS: this module's names too)
     AXES, LINEAR as _LINEAR, MAX_WORD_VALUE, MM_PER_INCH, SYSTEM_NAMES as _SYSTEM_NAMES, WORD_BIT as _WORD_BIT,
@@ -712,7 +712,8 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         self.start_state()
         r_start, r_end, r_line, r_motion = self.r_start, self.r_end, self.r_line, self.r_motion
         r_kind, r_words, r_state, r_arc, cycle = self.r_kind, self.r_words, self.r_state, self.r_arc, self.cycle_words
-        pos, motion_mode, feed, cur_state, absolute, inverse, diameter, plane, arc_abs, arc_tol = self.fast_locals()
+        pos, motion_mode, feed, cur_state, absolute, inverse, diameter, plane, arc_abs, arc_tol, arc_rmin = \
+            self.fast_locals()
         fast_match, hypot, n_lines = _FAST.match, math.hypot, len(lines)
         pre, min_run = self.pre_scan(lines)
         numbered, drain, blk_lo, blk_hi = enumerate(lines), deque(maxlen=0).extend, 0, 0  # drain: consumes
@@ -773,11 +774,9 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
                             c0, c1 = o0, o1
                         else:
                             c0, c1 = pos[a0] + o0, pos[a1] + o1
-                        rad1 = hypot(pos[a0] - c0, pos[a1] - c1)
-                        rad2 = hypot(target[a0] - c0, target[a1] - c1)
-                        dr = abs(rad1 - rad2)
-                        if (w0 == w0 or w1 == w1) and ijk[an] != ijk[an] and rad1 > 0.0 and (  # (normal: arc_to)
-                                dr <= arc_tol or dr <= 0.001 * max(rad1, rad2)):
+                        if (w0 == w0 or w1 == w1) and ijk[an] != ijk[an] and ijk_radii_refusal(  # (else arc_to)
+                                hypot(pos[a0] - c0, pos[a1] - c1), hypot(target[a0] - c0, target[a1] - c1), arc_tol,
+                                arc_rmin) is None:
                             center = [0.0, 0.0, 0.0]
                             center[a0], center[a1], center[an] = c0, c1, pos[an]
                             r_arc[len(r_line)] = (center, plane, 1)
@@ -804,13 +803,13 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
             if self.block(li, raw):  # the program's end
                 break
             pos, motion_mode, feed, cur_state = self.pos, self.motion_mode, self.feed, self.cur_state
-            absolute, inverse, diameter, plane, arc_abs, arc_tol = self.fast_locals()[4:]
+            absolute, inverse, diameter, plane, arc_abs, arc_tol, arc_rmin = self.fast_locals()[4:]
         return self.assemble(lines)
 
     def fast_locals(self):
         """The state the fast path holds in locals (it writes back the position, motion mode and feed)."""
         return (self.pos, self.motion_mode, self.feed, self.cur_state, self.absolute, self.inverse, self.diameter,
-                self.plane, self.arc_abs, self.arc_tol)
+                self.plane, self.arc_abs, self.arc_tol, self.arc_rmin)
 
     def fast_feed(self, li, raw, f_):
         """A plain block's new F word: (the feed, the state with it)."""
@@ -861,7 +860,7 @@ class _Interpreter(InterpState, Conversion, ArcConversion, CycleConversion):
         b_status, b_g, b_vals = blk
         run = fast_interp.straight_run(b_status, b_g, b_vals, li - lo, np.array(pos, float), motion_mode, feed,
                                        self.absolute, self.inverse, self.diameter, self.plane, self.arc_abs,
-                                       self.arc_tol)
+                                       self.arc_tol, self.arc_rmin)
         if not run[0]:
             return None
         state0 = self.cur_state

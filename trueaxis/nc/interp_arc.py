@@ -9,6 +9,31 @@ import math
 from .grammar import CENTER_WORD, PLANE_AXES
 from .rows import ARC_CCW, ARC_CW, MAX_ARC_TURNS, ROW_PROGRAMMED
 
+# LinuxCNC's tolerances of an arc's radii (interp_internal.hh), in program units, by G20 (True) or G21 (False):
+# RADIUS_MIN (RADIUS_TOLERANCE): a radius below it is a zero-radius arc, and an R arc's radius may fall short of half
+# its chord by at most it; SPIRAL_ABS (the default CENTER_ARC_RADIUS_TOLERANCE, 2 x 0.001 in x sqrt 2 and 2 x 0.01 mm x
+# sqrt 2): an I J K arc's radii to its start and end may differ by it, by more only within SPIRAL_REL of the larger,
+# never by 100 times it (interp_arc.cc, arc_data_ijk); SPIRAL_ABS_MIN (MIN_CENTER_ARC_RADIUS_TOLERANCE): the smallest
+# spiral tolerance a configuration may set, which the post's own arcs keep to.
+RADIUS_MIN = {True: 0.00005, False: 0.00127}
+SPIRAL_ABS = {True: 2 * 0.001 * math.sqrt(2), False: 2 * 0.01 * math.sqrt(2)}
+SPIRAL_REL = 0.001
+SPIRAL_ABS_MIN = {True: 0.00004, False: 0.001}
+
+
+def ijk_radii_refusal(r1: float, r2: float, spiral_abs: float, radius_min: float) -> str | None:
+    """Why LinuxCNC refuses an I J K arc whose radii to its start and end are r1 and r2 (program units), or None:
+    arc_data_ijk's two checks, in its order and with its arithmetic."""
+    if r1 < radius_min or r2 < radius_min:
+        return (f"arc of zero radius (radius {r1:.5g} at the start, {r2:.5g} at the end: LinuxCNC refuses a radius "
+                f"below {radius_min:g})")
+    abs_err = abs(r1 - r2)
+    if abs_err > spiral_abs * 100.0 or (abs_err / max(r1, r2) > SPIRAL_REL and abs_err > spiral_abs):
+        return (f"arc end point is not on the circle: radius {r1:.5g} at the start, {r2:.5g} at the end (LinuxCNC "
+                f"refuses a difference beyond {spiral_abs:.4g} and {SPIRAL_REL:.1%} of the radius, or beyond "
+                f"{100 * spiral_abs:.4g})")
+    return None
+
 
 def arc_center_r(start, end, radius, cw, tol):
     """Centre of an R-format arc in its plane, as LinuxCNC's arc_data_r computes it. start/end: (2,) first/second."""
@@ -46,7 +71,7 @@ class ArcConversion:
         """Emit the arc from ``pos`` to ``target`` (program coordinates); centre from I J K (or R) in ``fvals``."""
         a0, a1, an = PLANE_AXES[plane]
         cw = mm == 20
-        tol = 0.002 if inch else 0.05
+        tol = RADIUS_MIN[bool(inch)]  # (an R arc's radius short of half its chord)
         # rs274's checks of the centre words: none along the plane's normal (a K in G17 would otherwise be dropped
         # from the output, an arc the control refuses), and not together with R
         normal_word = CENTER_WORD[an]
@@ -66,13 +91,10 @@ class ArcConversion:
                 c0, c1 = o0, o1
             else:
                 c0, c1 = pos[a0] + o0, pos[a1] + o1
-            r1 = math.hypot(pos[a0] - c0, pos[a1] - c1)
-            r2 = math.hypot(target[a0] - c0, target[a1] - c1)
-            if abs(r1 - r2) > tol and abs(r1 - r2) > 0.001 * max(r1, r2):
-                raise ValueError(f"arc end point is not on the circle: radius {r1:.5g} at the start, "
-                                 f"{r2:.5g} at the end")
-            if r1 == 0.0:
-                raise ValueError("arc of zero radius")
+            refusal = ijk_radii_refusal(math.hypot(pos[a0] - c0, pos[a1] - c1),
+                                        math.hypot(target[a0] - c0, target[a1] - c1), SPIRAL_ABS[bool(inch)], tol)
+            if refusal:
+                raise ValueError(refusal)
         turns = 1
         if "P" in fvals:
             turns = int(fvals["P"])

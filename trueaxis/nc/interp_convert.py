@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .interp_arc import RADIUS_MIN, SPIRAL_ABS
 from .interp_check import check_block
 from .interp_codes import AXIS_INDEX, CYCLE_G, KNOWN_M, LINEAR, LINEAR_T, MM_PER_INCH, MOTION_G, add
 from .rows import FEED, RAPID, ROW_MACHINE, ROW_PROGRAMMED, ROW_REFERENCE
@@ -139,7 +140,7 @@ class Conversion:
             cycle[key] *= f
         self.feed *= f if not self.inverse else 1.0
         self.inch = want_inch
-        self.arc_tol = 0.002 if want_inch else 0.05
+        self.arc_tol, self.arc_rmin = SPIRAL_ABS[want_inch], RADIUS_MIN[want_inch]
         self.u_scale = np.where(LINEAR, MM_PER_INCH if want_inch else 1.0, 1.0)
 
     def select_work(self, new_active: int) -> None:

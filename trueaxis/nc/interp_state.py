@@ -11,6 +11,7 @@ from array import array
 
 import numpy as np
 
+from .interp_arc import RADIUS_MIN, SPIRAL_ABS
 from .interp_codes import AXES
 
 
@@ -27,7 +28,8 @@ class InterpState:
         self.g92 = np.zeros(6)
         self.tlo = np.zeros(6)
         self.start_setup()
-        self.arc_tol = 0.05  # arc end point off the circle by more than this (and 0.1 %): refused, like LinuxCNC
+        # an I J K arc's radii may differ by arc_tol (more within 0.1 %), none be below arc_rmin (``interp_arc``)
+        self.arc_tol, self.arc_rmin = SPIRAL_ABS[False], RADIUS_MIN[False]
         self.pos = [0.0] * 6  # program coordinates (a list: numpy is slow for 6 numbers at a time)
         self.off_now = [0.0] * 6  # G5x + G92 + tool length offset, refreshed after every block that can change it
         self.motion_mode = 0  # G code *10 of the modal motion (0, 10, 20, 30, 730, 810..890, 800)

@@ -36,15 +36,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..nc.gcode import ARC_CCW, MM_PER_INCH, ROW_CYCLE
+from ..nc.interp_arc import RADIUS_MIN, SPIRAL_ABS_MIN
 
 MAX_DEPTH = 6  # bisections of a sub-arc that does not hold before its arc becomes straight pieces
 FIT_POINTS = 8  # interior corrected points a sub-arc's centre is fitted to
 CHECK_STEP_MM = 0.5  # the written arc is checked through the twin at least this often ...
 CHECK_MIN, CHECK_MAX = 8, 64  # ... with this many intervals per sub-arc
-# LinuxCNC (interp_internal.hh): the smallest radius difference tolerance a configuration can set, and the radius
-# below which an arc is a zero-radius arc; program units.
-RADIUS_DIFF_MAX = {False: 0.001, True: 0.00004}
-RADIUS_MIN = {False: 0.00127, True: 0.00005}
 
 
 def arc_points_at(p, rows, t) -> np.ndarray:
@@ -273,7 +270,7 @@ class ArcFitter:
         cw2 = np.stack([centre[g, ii], centre[g, jj]], axis=1)
         r0 = np.linalg.norm(s2 - cw2, axis=1)
         r1 = np.linalg.norm(e2 - cw2, axis=1)
-        diff_max = np.where(inch, RADIUS_DIFF_MAX[True], RADIUS_DIFF_MAX[False])
+        diff_max = np.where(inch, SPIRAL_ABS_MIN[True], SPIRAL_ABS_MIN[False])  # (any configuration's)
         r_min = np.where(inch, RADIUS_MIN[True], RADIUS_MIN[False])
         ok &= (np.abs(r0 - r1) <= diff_max) & (np.minimum(r0, r1) >= r_min)
         # the written sub-arc as the controller interpolates it
