@@ -376,3 +376,39 @@ def test_arc_points_taken_from_the_ends_solve_post_the_same_as_solved_again(monk
     assert outs[0][0] == outs[1][0]
     assert outs[0][1].as_dict() == outs[1][1].as_dict()
     assert taken[0] > 0
+
+
+def _near_limit_arcs() -> str:
+    """Twelve 1 mm arcs whose radii to start and end differ by 0.02828 mm, 4 nm inside LinuxCNC's limit (0.02 sqrt 2
+    mm, for a radius difference over 0.1 %), clockwise and counter-clockwise about the table: small enough that the
+    correction is constant along each, within tol / 2, so that each is kept as it is."""
+    blocks = []
+    for x, y in [(100, 100), (150, 50), (-150, 120), (50, -120), (-100, 120), (-160, -100)]:
+        for g in (2, 3):
+            blocks.append(f"G0 X{x} Y{y} Z-105\nG1 Z-110 F300\nG{g} X{x + 2.02828:.5f} Y{y} I1 J0\nG0 Z-100\n")
+    return "G21 G17 G90 G94\n" + "".join(blocks) + "M2\n"
+
+
+def test_an_arc_near_linuxcncs_radius_limit_is_not_kept_past_it(xh714, tmp_path, monkeypatch):
+    # A kept arc is written with its end and centre moved by its end's correction, from the start the block before
+    # writes: the difference of its ends' corrections (up to the spread a kept arc may have) changes the difference of
+    # its radii. Near LinuxCNC's limit that pushed arcs past it: rs274 refused the output ("Radius to end of arc
+    # differs from radius to start", r1 0.9999 r2 1.0283), which the post had written with exit 0. Such arcs are now
+    # fitted (radii within the smallest tolerance a configuration may set); the others stay kept.
+    import trueaxis.postproc.post as post_module
+
+    text = _near_limit_arcs()
+    assert parse_program(text)  # (the input is within the limit: the reader and rs274 read it)
+    _rs274(text, tmp_path, "in")
+    out, rep = post_text(text, xh714, "geometric", setup=Setup(offsets_zero=True), header=False)
+    assert 0 < rep.arcs_kept < 12 and rep.arcs_linearised == 0  # (the others fitted, none straight pieces)
+    written = _rs274(out, tmp_path, "out")
+    assert sum(k == "arc" for k in written.kind) >= 12
+    # without the check, every arc is kept and rs274 refuses the output
+    monkeypatch.setattr(post_module, "radii_kept_within_limits", lambda poster, rows, arc_idx, delta: np.ones(
+        len(arc_idx), bool))
+    out_before, rep_before = post_text(text, xh714, "geometric", setup=Setup(offsets_zero=True), header=False)
+    assert rep_before.arcs_kept == 12
+    (tmp_path / "before.ngc").write_text(out_before)
+    moves = run_rs274(tmp_path / "before.ngc", {}, tmp_path / "before")
+    assert moves.returncode != 0 and "Radius to end of arc differs" in moves.stderr

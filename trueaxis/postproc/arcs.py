@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..nc.gcode import ARC_CCW, MM_PER_INCH, ROW_CYCLE
-from ..nc.interp_arc import RADIUS_MIN, SPIRAL_ABS_MIN
+from ..nc.interp_arc import RADIUS_MIN, SPIRAL_ABS, SPIRAL_ABS_MIN, SPIRAL_REL
 
 MAX_DEPTH = 6  # bisections of a sub-arc that does not hold before its arc becomes straight pieces
 FIT_POINTS = 8  # interior corrected points a sub-arc's centre is fitted to
@@ -389,6 +389,49 @@ def full_turns_close(poster, rows, arc_idx, delta_prog):
         dec = np.array([numbers.decimals("XYZ"[c], bool(i)) for c, i in zip(col, p.inch[r])])
         same &= np.round(start[k, col] * 10.0**dec) == np.round(end[k, col] * 10.0**dec)
     return ~full | same
+
+
+def radii_kept_within_limits(poster, rows, arc_idx, delta_prog):
+    """(A,) bool: the arc, kept as it is (its end and centre moved by its end's correction, from the end the block
+    before writes), stays within LinuxCNC's limits of an arc's radii (``nc.interp_arc``, at the default tolerance the
+    input was read with), with a margin for the written digits. An input arc near a limit can be pushed past it by
+    the difference of its ends' corrections (at most the spread a kept arc may have): rs274 would refuse the output.
+    Such an arc is fitted instead. Looked at only where the input arc itself is that near (else True)."""
+    from .post import _Numbers
+
+    p = poster.p
+    r = rows[arc_idx]
+    ok = np.ones(r.size, bool)
+    if r.size == 0:
+        return ok
+    ii, jj = (np.select([p.arc_plane[r] == 17, p.arc_plane[r] == 18], [a, b], c) for a, b, c in ((0, 2, 1),
+                                                                                                 (1, 0, 2)))
+    inch = p.inch[r].astype(bool)
+    numbers = _Numbers(p.format_info)
+    step = np.array([10.0 ** -min(numbers.decimals("XYZ"[a], bool(i)), numbers.decimals("XYZ"[b], bool(i)))
+                     for a, b, i in zip(ii, jj, inch)])
+    margin = 3.0 * step  # (start, end and centre each rounded to the written digits)
+    reach = margin + np.sqrt(3.0) * poster.tol_mm / 2 / np.where(inch, MM_PER_INCH, 1.0)
+    spiral = np.where(inch, SPIRAL_ABS[True], SPIRAL_ABS[False])
+    r_min = np.where(inch, RADIUS_MIN[True], RADIUS_MIN[False])
+
+    def within(start, end, centre, m, sel):
+        k = np.arange(start.shape[0])
+        a, b = ii[sel], jj[sel]
+        r1 = np.hypot(start[k, a] - centre[k, a], start[k, b] - centre[k, b])
+        r2 = np.hypot(end[k, a] - centre[k, a], end[k, b] - centre[k, b])
+        dr, tol = np.abs(r1 - r2), spiral[sel]
+        return (np.minimum(r1, r2) >= r_min[sel] + m) & (dr <= 100.0 * tol - m) & (
+            (dr <= tol - m) | (dr <= SPIRAL_REL * np.maximum(r1, r2) - m))
+
+    near = ~within(p.start[r], p.end[r], p.arc_center[r], reach, slice(None))
+    if not near.any():
+        return ok
+    start, known = written_start(poster, rows, arc_idx[near], delta_prog)
+    delta = delta_prog[arc_idx[near]]
+    ok[near] = ~known | within(start, p.end[r[near]] + delta, p.arc_center[r[near]] + delta[:, :3], margin[near],
+                               near)
+    return ok
 
 
 def fit_arcs(poster, rows, arc_idx, force, delta_prog):

@@ -69,7 +69,7 @@ from ..nc.gcode import (
 from ..nc import fast_write
 from ..resources import machine_file
 from ..nc.grammar import NUMBER
-from .arcs import fit_arcs, full_turns_close
+from .arcs import fit_arcs, full_turns_close, radii_kept_within_limits
 from .solver import corrected_directions, solve_commanded
 
 MODES = ("none", "geometric", "comprehensive")
@@ -1747,6 +1747,7 @@ class _Poster:
         # A full turn is kept only where its written start and end coincide: a control reads an end a digit off the
         # start as a short arc (or a turn less one), not a full circle (LinuxCNC's pmCircleInit).
         kept &= full_turns_close(self, rows, arc_idx, delta_prog)
+        kept &= radii_kept_within_limits(self, rows, arc_idx, delta_prog)  # (rs274's limits, written)
         kept &= self.tcp is None  # TCP: the control turns an arc's plane with the table; straight pieces only
         arc_kept = arc_idx[kept]
         with self._lock:
