@@ -101,6 +101,30 @@ _EIGHTY_SEVEN = re.compile(r"87(?![\d.])")
 _AXIS_WORDS = sum(1 << WORD_BITS.index(a) for a in AXES)  # the bits of Program.words a block's axis words set
 
 
+# the units the structured comments' cutting conditions are read in (milling's and turning's keys)
+_CONDITION_UNITS = {"ap": "mm", "ae": "mm", "d": "mm", "fz": "mm per tooth", "f": "mm per revolution",
+                    "vc": "m/min"}
+
+
+def note_inch_conditions(poster, marks):
+    """A warning, once per post, where an inch program (G20) gives cutting conditions in structured comments: they are
+    read in the units the comment's keys are defined in (mm, mm per tooth or revolution, m/min) whatever the program's
+    units, and an inch value written there (ap=0.08 for 0.08 in) would be taken 25.4 times too small, exit 0."""
+    p = poster.p
+    if not marks or not bool(np.any(p.inch)):
+        return
+    with _REPORT_LOCK:  # (milling's conditions are read on the chunks' threads)
+        if getattr(poster, "_inch_conditions_said", False):
+            return
+        poster._inch_conditions_said = True
+        line, fields = marks[0]
+        said = " ".join(f"{k}={v}" for k, v in fields.items() if k in _CONDITION_UNITS)
+        units = ", ".join(f"{k} in {_CONDITION_UNITS[k]}" for k in fields if k in _CONDITION_UNITS)
+        poster.rep.warnings.append(
+            f"{p.source}:{p.source_line_of(line)}: the program is in inch (G20), its cutting conditions ({said}) are "
+            f"read in metric units as always ({units}): write them so, or give them on the command line")
+
+
 def _g87_starts(text: str) -> list[int]:
     """The start of every match of ``_G87`` in text: its "87"s found first (a literal the pattern engine skips to;
     the whole pattern, starting with a letter of either case, is tried at every position: 0.17 s against 0.02 s on a
@@ -922,6 +946,7 @@ class _Poster:
     def _conditions_per_line(self):
         """line index -> hashable conditions (tuple of items) valid there, or None."""
         marks = condition_marks(self.p.lines, self.p.source)
+        note_inch_conditions(self, marks)
         tool = {"d": str(2 * self.m.tool.radius), "z": str(self.m.tool.flutes)}
         cli = {k: str(v) for k, v in self.conditions.items() if v is not None}
         starts = [i for i, _ in marks]

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..machine.turning_force import TurningCoefficients, TurningConditions, force_on_tool, turning_force_components
 from ..nc.gcode import ARC_CCW, ARC_CW, RAPID, feed_per_revolution_lines
-from .post import PostError, condition_marks
+from .post import PostError, condition_marks, note_inch_conditions
 
 __all__ = ["MotionTwin", "lathe_loads"]
 
@@ -89,6 +89,8 @@ def _turning_conditions(poster):
     """Per program row: the turning conditions valid there (TurningConditions or None)."""
     p = poster.p
     marks = condition_marks(p.lines, p.source)
+    if getattr(poster, "rep", None) is not None:  # (a poster made for the forces alone has none)
+        note_inch_conditions(poster, marks)
     cli = {k: v for k, v in poster.conditions.items() if v is not None}  # --ap, or a host's conditions=
     milling = sorted(set(cli) - {"ap", "f", "vc"})
     if milling:
