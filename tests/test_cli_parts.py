@@ -451,3 +451,27 @@ def test_simulate_refuses_a_turning_comment_in_a_milling_program_naming_its_line
     assert _one_line_error(capsys) == (f"{turned}:{at + 2}: structured comment: unknown milling field 'f' (f= and vc= "
                                        "are the turning comment's: a lathe program? the virtual shop mills)")
     assert not out.exists()
+
+
+def test_turning_conditions_from_the_command_line_post_as_the_comment_does(tmp_path, capsys):
+    # a lathe's conditions (ap, f per revolution, vc) could be given in a comment or by a Python host, but only ap on
+    # the command line: --f-rev and --vc now; the moves written are the comment's to the byte; a mill refuses them
+    with_comment = tmp_path / "c.ngc"
+    with_comment.write_text(LATHE_PROGRAM)
+    without = tmp_path / "n.ngc"
+    without.write_text(LATHE_PROGRAM.replace("(trueaxis: ap=2 f=0.2 vc=180)\n", ""))
+    assert main(["post", str(with_comment), "-o", str(tmp_path / "c.out"), "--machine", "lathe", "--mode",
+                 "comprehensive"]) == 0
+    assert main(["post", str(without), "-o", str(tmp_path / "n.out"), "--machine", "lathe", "--mode", "comprehensive",
+                 "--ap", "2", "--f-rev", "0.2", "--vc", "180"]) == 0
+    moves = [[line for line in (tmp_path / f"{n}.out").read_text().splitlines() if not line.startswith("(")]
+             for n in ("c", "n")]
+    assert moves[0] == moves[1] and any("X" in line and "Z" in line for line in moves[0])
+    assert moves[0] != [line for line in without.read_text().splitlines() if not line.startswith("(")]  # corrected
+    capsys.readouterr()
+    assert main(["post", str(without), "-o", str(tmp_path / "x.out"), "--machine", "lathe", "--mode",
+                 "comprehensive"]) == 3
+    assert "--ap --f-rev --vc" in capsys.readouterr().err
+    assert main(["post", str(without), "-o", str(tmp_path / "m.out"), "--machine", "xh714", "--mode", "comprehensive",
+                 "--vc", "180"]) == 2
+    assert "--vc: turning conditions" in capsys.readouterr().err and not (tmp_path / "m.out").exists()

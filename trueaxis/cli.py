@@ -210,7 +210,8 @@ def cmd_post(args) -> int:
     from .postproc.post import decode_program, post_text, resolve_setup
 
     # options that would change nothing are refused, not ignored (a QA pass posted with --ap in geometric mode)
-    cutting = [f"--{k.replace('_', '-')}" for k in ("ap", "ae", "fz", "n", "d", "z", "cut_mode")
+    cutting = [{"f": "--f-rev"}.get(k, f"--{k.replace('_', '-')}") for k in ("ap", "ae", "fz", "n", "d", "z",
+                                                                               "cut_mode", "f", "vc")
                if getattr(args, k) is not None]
     if cutting and args.mode != "comprehensive":
         raise UsageError(f"{' '.join(cutting)}: cutting conditions apply to --mode comprehensive (the mode is "
@@ -218,6 +219,10 @@ def cmd_post(args) -> int:
     if args.machine_units is not None and not (args.var or args.tool_table):
         raise UsageError("--machine-units: the units of --var and --tool-table; neither is given")
     machine = load_machine(machine_file(args.machine))
+    turning = [o for o, k in (("--f-rev", "f"), ("--vc", "vc")) if getattr(args, k) is not None]
+    if turning and machine.kind != "lathe":
+        raise UsageError(f"{' '.join(turning)}: turning conditions; {machine.name} is a mill (its conditions: --ap --ae "
+                         "--fz --n --d --z --cut-mode)")
     setup = resolve_setup(machine, setup=args.setup, var=args.var, tool_table=args.tool_table,
                           machine_units=args.machine_units or "mm", offsets_zero=args.offsets_zero)
     if args.output == "-" and args.report == "-":
@@ -229,7 +234,7 @@ def cmd_post(args) -> int:
         raise UsageError(f"{args.input}: no such file")
     text, encoding = decode_program(sys.stdin.buffer.read() if args.input == "-" else Path(args.input).read_bytes(),
                                     source)
-    conditions = {k: getattr(args, k) for k in ("ap", "ae", "fz", "n", "d", "z")}
+    conditions = {k: getattr(args, k) for k in ("ap", "ae", "fz", "n", "d", "z", "f", "vc")}
     conditions["mode"] = args.cut_mode
     branch = {"nearest": "nearest", "+1": 1, "-1": -1}[args.cl_branch]
     out, report = post_text(text, machine, args.mode, tol_um=args.tol_um, max_correction_mm=args.max_correction_mm,
@@ -647,6 +652,9 @@ def build_parser() -> argparse.ArgumentParser:
         po.add_argument(f"--{key}", type=POSITIVE if key != "z" else _number(int, low=1), help=f"cutting conditions: {what} "
                         "(overrides the program's structured comments)")
     po.add_argument("--cut-mode", choices=["down", "up"], help="cutting conditions: down or up milling")
+    po.add_argument("--f-rev", dest="f", type=POSITIVE, help="turning conditions: feed per revolution, mm (with --ap "
+                    "and --vc; overrides the program's structured comments)")
+    po.add_argument("--vc", type=POSITIVE, help="turning conditions: cutting speed, m/min")
     po.add_argument("--var", metavar="PARAMS.var", help="the control's setup: LinuxCNC parameter file (work offsets "
                     "G54..G59.3 with rotation, G92, active system, G28/G30 homes)")
     po.add_argument("--tool-table", metavar="TOOLS.tbl", help="the control's setup: LinuxCNC tool table (tool "

@@ -157,7 +157,8 @@ def lathe_loads(poster, rows) -> np.ndarray:
         if c is None:
             raise PostError(p.source, int(p.line_no[rows[k]]),
                             "comprehensive mode needs turning conditions here: put (trueaxis: ap=.. f=.. vc=..) "
-                            "before the cut (depth of cut mm, feed mm/rev, cutting speed m/min)")
+                            "before the cut (depth of cut mm, feed mm/rev, cutting speed m/min), or give them on the "
+                            "command line (--ap --f-rev --vc)")
         groups.setdefault(c, []).append(k)
     _say_feed_disagreements(poster, rows, conditions, groups)
     for c, ks in groups.items():
