@@ -62,11 +62,24 @@ def test_post_library_refuses_a_nan_correction_bound_too(program):
 @pytest.mark.parametrize("args", [
     ["program", "nas979", "--step-deg", "0"], ["program", "nas979", "--tool-diameter", "nan"],
     ["simulate", "x.ngc", "--machine", BC, "--part", "nas979", "--points", "0"],
-    ["simulate", "x.ngc", "--machine", BC, "--part", "nas979", "--noise-um", "inf"]])
+    ["simulate", "x.ngc", "--machine", BC, "--part", "nas979", "--noise-um", "inf"],
+    ["simulate", "x.ngc", "--machine", BC, "--part", "nas979", "--points", "9"],  # (a cloud no command reads)
+    ["simulate", "x.ngc", "--machine", BC, "--part", "nas979", "--seed", "-1"]])  # (numpy's message, unnamed)
 def test_other_commands_refuse_zero_and_non_finite_options(tmp_path, args):
     r = run(*args, "-o", str(tmp_path / "o"))
     assert r.returncode == 2 and "Traceback" not in r.stderr and "must be" in r.stderr
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("name", ["cloud.csv", "cloud.xyz", "cloud.e57", "effects.toml"])
+def test_simulate_writes_ply_only_and_says_so(tmp_path, program, name):
+    # the cloud is a binary PLY whatever the name: -o x.csv (.xyz, .e57) got one under that name, exit 0, and an
+    # effects file given as -o was overwritten with it (a QA pass); now refused before any work, the file untouched
+    out = tmp_path / name
+    out.write_text("[backlash.X]\namplitude = 8.0\n")
+    r = run("simulate", str(program), "--machine", BC, "--part", "nas979", "-o", str(out))
+    one_line_refusal(r, 2, "simulate writes a PLY cloud")
+    assert out.read_text() == "[backlash.X]\namplitude = 8.0\n"
 
 
 def test_report_naming_the_output_or_the_input_is_refused_and_the_input_kept(tmp_path, program):

@@ -366,6 +366,10 @@ def cmd_program(args) -> int:
     return 0
 
 
+# the fewest probe points a simulated measurement is made of (``simulate --points``)
+MIN_SIM_POINTS = 10
+
+
 def cmd_simulate(args) -> int:
     """``trueaxis simulate PROGRAM --machine TRUE.toml [--effects E.toml] --part PART [--part-dir DIR] -o cmm.ply
     [--points N] [--noise-um S] [--seed K]``: the virtual shop's cloud and its truth sidecar; a one-line summary.
@@ -379,10 +383,12 @@ def cmd_simulate(args) -> int:
     from .resources import machine_file
     from .sim.shop import simulate_program_file, write_cmm
 
-    if args.points is not None and args.points < 1:
-        raise UsageError("--points must be >= 1")
     if args.noise_um < 0:
         raise UsageError("--noise-um must be >= 0")
+    # the cloud is a PLY (binary, with normals) whatever the name: another extension got one under its name (a QA
+    # pass: -o x.csv, .xyz, .e57, and an effects .toml overwritten with a cloud, exit 0)
+    if Path(args.output).suffix.lower() != ".ply":
+        raise UsageError(f"-o {args.output}: simulate writes a PLY cloud (binary, with normals); name it .ply")
     machine = load_machine(str(machine_file(args.machine)))
     res = simulate_program_file(args.program, machine, args.part, effects_path=args.effects, part_dir=args.part_dir,
                                 points=args.points or 200_000, noise_um=args.noise_um or 0.0, seed=args.seed or 0)
@@ -714,9 +720,10 @@ def build_parser() -> argparse.ArgumentParser:
     sm.add_argument("--part-dir", help="folder holding <part>.json (default: the default part parameters); a "
                     "program whose title names another size of the part is refused (exit 3)")
     sm.add_argument("-o", "--output", required=True, help="CMM cloud (PLY, part frame); <name>.truth.json beside it")
-    sm.add_argument("--points", type=_number(int, low=1), default=200_000, help="probe points (200000)")
+    sm.add_argument("--points", type=_number(int, low=MIN_SIM_POINTS), default=200_000,
+                    help=f"probe points (200000; at least {MIN_SIM_POINTS}, and 20 for diagnose)")
     sm.add_argument("--noise-um", type=NON_NEGATIVE, default=0.0, help="probe noise sigma, um (0)")
-    sm.add_argument("--seed", type=int, default=0, help="noise seed (0)")
+    sm.add_argument("--seed", type=_number(int, low=0), default=0, help="noise seed (0)")
     sm.set_defaults(func=cmd_simulate)
 
     fc = sub.add_parser("freecad", help="FreeCAD CAM integration")
