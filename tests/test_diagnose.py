@@ -128,6 +128,34 @@ def test_backlash_x_is_named_on_the_cone():
     assert value == pytest.approx(6.0, abs=3 * diag.chosen_fit.std[0] + 0.5)
 
 
+def test_a_part_measured_off_its_place_is_its_set_up_not_the_machine():
+    # A QA pass: the cloud of a perfect machine's cone, 10 um off in X (the work offset's probing, the CMM's alignment),
+    # was diagnosed as twin_parameters at confidence 1.00 (dXOC 8.8 um, dBOB 64 urad), and with 20 um beside a backlash
+    # of X the backlash vanished from the answer (twin_parameters, 0.73), where inspect --identify takes any translation
+    # as the part's set-up. The set-up is a candidate now (setup_translation, the whole part displaced); its form is
+    # exact, so a second effect beside it need not add 5 % of its gain.
+    from trueaxis.postproc.programs import nas979_program
+
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    prog = nas979_program(m, compensation="geometric")
+    shift = np.array([0.010, 0.0, 0.0])  # mm
+    perfect = simulate(prog.text, prog.machine, None, part="nas979", points=800, noise_um=1.0, seed=1)
+    cut = np.isfinite(perfect.deviations_um)
+    diag, _ = run_diagnosis(perfect.measured[cut] + shift, perfect.normals[cut], "nas979", m, prog.text)
+    assert diag.chosen == ["setup_translation"] and "twin_parameters" not in diag.chosen
+    f = diag.chosen_fit
+    i = f.parameters.index("TX")
+    assert abs(f.value[i] - 10.0) < max(2 * f.std[i], 0.5)
+    eff = parse_effects({"backlash": {"X": {"amplitude": 8.0, "transition": 0.02}}}, machine=prog.machine)
+    r = simulate(prog.text, prog.machine, eff, part="nas979", points=800, noise_um=1.0, seed=1)
+    cut = np.isfinite(r.deviations_um)
+    diag, _ = run_diagnosis(r.measured[cut] + 2 * shift, r.normals[cut], "nas979", m, prog.text)
+    assert sorted(diag.chosen) == ["backlash_x", "setup_translation"]
+    f = diag.chosen_fit
+    i = f.parameters.index("lost_motion_X")
+    assert abs(f.value[i] - 8.0) < 2 * f.std[i] + 0.5 and abs(f.value[f.parameters.index("TX")] - 20.0) < 3.0
+
+
 def test_thermal_z_is_named(slots):
     diag, _ = _named(slots, {"thermal": {"file": str(ROOT / "fixtures/thermal/spindle_thermal_drift_part1.csv"),
                                          "channels": {"Z": "ch3_um"}, "time_scale": 60.0, "time_offset_s": 60000.0,
@@ -848,10 +876,17 @@ def test_a_pair_whose_second_effect_is_a_wearing_tool_is_not_a_verdict(cone):
     wear = uniform_wear(st).variants[1][1][:, 0]  # first-order run-in, time constant 0.4 T
     step = backlash.variants[2][1][:, 0]  # transition 0.02 mm
     st.gap_um = np.random.default_rng(0).normal(0.0, 1.0, len(st)) + 8.0 * step + 3.0 * wear
-    diag = diagnose_state(st, cands, noise_um=1.0)
+    # Without the part's set-up among the candidates: "none of the candidates", the wear beating the pair
+    no_setup = [c for c in cands if c.name != "setup_translation"]
+    diag = diagnose_state(st, no_setup, noise_um=1.0)
     assert diag.verdict == "none of the candidates" and diag.chosen == []
     assert diag.confidence_basis["z_over_tool_wear_shadow"] < -2.0
     assert any(n.startswith("backlash_x with a uniform offset") for n in diag.notes)
+    # With it: a uniform normal offset on a cone is a translation along its axis, so the wear's constant part is the
+    # set-up's as well, and the pair ties with the wear: hedged (at most one chance in two), the wear named beside it
+    diag = diagnose_state(st, cands, noise_um=1.0)
+    assert diag.confidence <= 0.5 and "backlash_x" in diag.chosen
+    assert any(n.startswith("backlash_x with a uniform offset") and "about as well" in n for n in diag.notes)
 
 
 def test_a_second_backlash_that_fits_nothing_alone_is_paired():
@@ -904,7 +939,13 @@ def test_a_backlash_set_aside_alone_is_paired_with_the_servo_lag_it_stood_beside
     assert alone["backlash_y"].n_parameters <= PAIR_SETASIDE_PARAMETERS
     assert sorted(diag.chosen) == ["backlash_y", "servo_lag"]
     f = diag.chosen_fit
-    assert f.extra["z_over_each_alone"] > Z_PAIR and diag.confidence >= 0.7
+    assert f.extra["z_over_each_alone"] > Z_PAIR
+    # (the part's set-up beside the backlash comes within 0.5 % of the pair's gain on this centred cone, where most of
+    # the servo lag's share is a translation: clearly behind on held-out points, but the confidence is held down by
+    # the rival's gain; it was at least 0.7 before the set-up was a candidate)
+    basis = diag.confidence_basis
+    assert basis["runner_up"] == "setup_translation+backlash_y" and basis["z_over_runner_up"] > 5.0
+    assert basis["runner_up_gain_deficit"] < 0.02 and diag.confidence < 0.5
     i = f.parameters.index("lost_motion_Y")
     assert abs(f.value[i] - 50.3) < 2 * f.std[i] and f.std[i] < 0.2 * 50.3
 

@@ -97,6 +97,7 @@ Z_TIE_RATIO = 3.0
 PAIR_POOL = 10
 PAIR_LEADERS = 2
 PAIR_MIN_SHARE = 0.05
+EXACT_FORM = "setup_translation"  # a candidate whose form is the effect's own (a whole part displaced)
 PAIR_SETASIDE_PARAMETERS = 2
 Z_PAIR = 5.0
 Z_SIGNATURE = 4.0
@@ -136,6 +137,9 @@ SEPARATING_MEASUREMENT = {
     frozenset({"tool_deflection", "thermal"}): "a different feed per tooth: force scales with it, drift does not",
     frozenset({"rotary", "twin_parameters"}): "a second placement of the part off the rotary axis: "
     "angular errors scale with the radius, location offsets do not",
+    frozenset({"setup_translation", "twin_parameters"}): "the part's position probed on the machine before it is "
+    "unclamped, or a second part cut elsewhere on the table (a set-up moves each part by its own offset, the twin's "
+    "location errors by the machine's law)",
 }
 
 
@@ -871,7 +875,9 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
             better = max(fit_of[na], fit_of[nb], key=lambda f: f.gain_um2)
             extra = pair.gain_um2 - better.gain_um2
             zz = min(paired_z(g, pair.held_out_pred_um, fit_of[m].held_out_pred_um) for m in (na, nb))
-            if zz > Z_PAIR and extra > max(MIN_GAIN_OF_NOISE * sigma**2, PAIR_MIN_SHARE * better.gain_um2) \
+            # (a set-up translation is exact, it leaves no residual of form to nibble at: the share is of the other)
+            share_of = better if better.name != EXACT_FORM else min(fit_of[na], fit_of[nb], key=lambda f: f.gain_um2)
+            if zz > Z_PAIR and extra > max(MIN_GAIN_OF_NOISE * sigma**2, PAIR_MIN_SHARE * share_of.gain_um2) \
                     and pair.plausible:
                 pair.extra.update({"gain_over_better_member_um2": extra, "z_over_each_alone": zz,
                                    "over": better.name})

@@ -48,6 +48,9 @@ deliberately poorer, so that a fit is a test and not an identity):
   (``resolved_columns``: of offsets that move the surface alike, one parameter here, the one that reaches furthest
   within its bound). Component tables are left out (too many columns for one part; the identification command
   handles them).
+- ``setup_translation``: the whole part displaced (TX, TY, TZ um, one set per part): its set-up or the CMM's
+  alignment, not the machine. The shop has no such effect; it is a rival of the machine's effects that move the
+  surface alike, so that a translation is not blamed on the machine. Its form is exact (``analysis.EXACT_FORM``).
 
 Parameter units are given per parameter in ``Candidate.units``; values stay in those units throughout the reports.
 """
@@ -523,10 +526,32 @@ def twin_parameters(state: TwinState, min_norm_um: float = 1e-3) -> Candidate | 
                      "changes of the twin's own location errors (re-identification), not a new effect")
 
 
+#: um, the largest set-up displacement of a part taken as plausible (the inspection refuses a cloud further off)
+SETUP_SPAN = 500.0
+
+
+def setup_translation(state: TwinState) -> Candidate:
+    """The whole part displaced by (TX, TY, TZ) um in the part frame: its set-up (the work offset's probing, the
+    clamping) or the CMM's alignment, not an effect of the machine. The inspection takes any translation as the
+    part's set-up (``inspect --identify``); here it is a rival of the machine's effects that move the surface alike
+    (the twin's location errors on a cone cut about the C axis), so that a part measured 10 um off is not blamed on
+    the machine (it was, at confidence 1.00: a QA pass). With several parts, a translation each (each its own
+    set-up)."""
+    pieces = [np.ones(len(state), bool)] if state.piece is None else [state.piece == k for k in
+                                                                      range(int(state.piece.max()) + 1)]
+    cols = np.zeros((len(state), 3 * len(pieces)))
+    names = []
+    for k, rows in enumerate(pieces):
+        cols[rows, 3 * k : 3 * k + 3] = state.normals[rows]
+        names += [f"T{a}" + (f"_part{k + 1}" if len(pieces) > 1 else "") for a in "XYZ"]
+    return Candidate("setup_translation", cols, names, ["um"] * len(names), [(-SETUP_SPAN, SETUP_SPAN)] * len(names),
+                     "the whole part displaced: its set-up on the machine or the CMM's alignment, not the machine")
+
+
 LIBRARY = ("backlash_x", "backlash_y", "backlash_z", "backlash_a", "backlash_b", "backlash_c", "servo_lag",
            "force_deflection", "tool_deflection", "thermal_x", "thermal_y", "thermal_z",
            "thermal_spline_x", "thermal_spline_y", "thermal_spline_z",
-           *(f"rotary_{m}_{a}" for a in "abc" for m in ERROR_MOTIONS), "twin_parameters")
+           *(f"rotary_{m}_{a}" for a in "abc" for m in ERROR_MOTIONS), "twin_parameters", "setup_translation")
 
 
 def build(name: str, state: TwinState) -> Candidate | None:
@@ -544,7 +569,7 @@ def build(name: str, state: TwinState) -> Candidate | None:
         _, motion, a = name.split("_")
         return rotary_error_motion(state, a.upper(), motion)
     fn = {"servo_lag": servo_lag, "force_deflection": force_deflection, "tool_deflection": tool_deflection,
-          "twin_parameters": twin_parameters}[name]
+          "twin_parameters": twin_parameters, "setup_translation": setup_translation}[name]
     return fn(state)
 
 
