@@ -994,8 +994,9 @@ def test_an_effect_beyond_the_plausible_bounds_is_no_verdict_for_a_weaker_candid
     cut = np.isfinite(r.deviations_um)
     diag, _ = run_diagnosis(r.measured[cut], r.normals[cut], "nas979", m, prog.text, candidates="all")
     assert diag.verdict == "none of the candidates" and diag.chosen == []
-    note = next(n for n in diag.notes if n.startswith("backlash_x explains"))
-    assert "plausible bounds" in note and float(note.split("(z ")[1].split(")")[0]) > Z_MIN
+    note = next(n for n in diag.notes if n.startswith("backlash_x leaves less of the gap"))
+    rms = re.search(r"RMS ([0-9.]+) against ([0-9.]+) um, z ([0-9.]+)\)", note)
+    assert "plausible bounds" in note and float(rms.group(3)) > Z_MIN and float(rms.group(1)) < float(rms.group(2))
 
 
 def test_confidence_grows_with_the_rivals_deficit_in_gain_between_its_two_marks():

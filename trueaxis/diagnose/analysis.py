@@ -934,8 +934,10 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
         if beaten is not None:
             f, zb = beaten
             how = "with values at or beyond its plausible bounds" if not f.plausible else "as a free spline of time"
-            notes.append(f"{f.name} explains {(f.gain_um2 / chosen_fit.gain_um2 - 1.0) * 100:.0f} % more of the "
-                         f"gap than {chosen_fit.name} on held-out points (z {zb:.1f}) but {how}: the gap holds more "
+            # (the held-out RMS each leaves, not a share rounded to "0 % more" beside a z of 14: a QA pass)
+            notes.append(f"{f.name} leaves less of the gap than {chosen_fit.name} on held-out points (RMS "
+                         f"{f.rms_after_um:.2f} against {chosen_fit.rms_after_um:.2f} um, z {zb:.1f}) but {how}: the "
+                         f"gap holds more "
                          f"than a plausible candidate describes (an effect larger than the library allows, or one "
                          f"outside it): none of the candidates is the answer")
             chosen_fit, tied = None, {}

@@ -753,8 +753,8 @@ def program_machine_warnings(machine, programs: list) -> list[str]:
             # with the other.)
             out.append(f"{program}: {said['note'].split(';')[0]}: the part's deviation from nominal holds what the "
                        "two twins differ by, the gap diagnosed here does not (it is the part against this twin's cut "
-                       "of the program as written, whoever compensated it): give the twin of the machine that cut "
-                       "the part, as here")
+                       "of the program as written, whoever compensated it): the diagnosis needs --machine to be the "
+                       "twin of the machine that cut the part")
         if said["mode"] == "comprehensive" and models:
             out.append(f"{program}: compensated for the cutting force with the twin's force model ("
                        f"{', '.join(models)}), while the twin's cut here is made without force (as the virtual shop's "

@@ -874,5 +874,5 @@ def check_extent(points: np.ndarray, bbox_min, bbox_max, tolerance_mm: float, pa
         extra = f" (and {', '.join(parts[1:])})" if len(parts) > 1 else ""
         raise CloudError(f"cloud extent exceeds the {part} part by {parts[0]}{extra}, more than the "
                          f"{tolerance_mm:g} mm allowed ({int(outside.sum())} of {len(points)} points outside): is it "
-                         "in the part frame, in mm? (--align bestfit and datum refine a cloud within about a mm of "
-                         "it, they do not find the part in another frame: bring the cloud there first)")
+                         f"a cloud of the {part} part, in its frame, in mm? (a cloud is refined within about a mm of "
+                         "the part, never found in another frame: bring it there first)")
