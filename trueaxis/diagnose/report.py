@@ -773,19 +773,28 @@ def input_warnings(state: TwinState, noise_um: float | None, diag: Diagnosis | N
     one the data show (the 0.5-2 band let 1.9 um given for 1.0 print "127 % above the noise" at 1.00, and 0.5 um
     given for 1.0 read a control as a gap no candidate explains, a QA pass), or one the verdict's held-out residual
     is clearly below (a noise the residual undercuts is not the noise)."""
-    from .analysis import CHI_Z, estimate_noise_um
+    from .analysis import CHI_Z, estimate_noise_um, noise_estimate_rel_se
 
     if noise_um is None:
         return []
     seen = estimate_noise_um(state)
+    n = max(len(state), 1)
     why = []
     if not 1.0 / NOISE_GIVEN_FACTOR <= noise_um / max(seen, 1e-300) <= NOISE_GIVEN_FACTOR:
         why.append(f"the data show a probe noise of about {seen:.2f} um (the gap's differences between neighbouring "
                    f"points)")
     after = None if diag is None or diag.chosen_fit is None else diag.gap_after["rms"]
-    if after is not None and after**2 < noise_um**2 * (1.0 - CHI_Z * math.sqrt(2.0 / max(len(state), 1))):
+    if after is not None and after**2 < noise_um**2 * (1.0 - CHI_Z * math.sqrt(2.0 / n)):
         why.append(f"the verdict leaves {after:.2f} um RMS on held-out points, below the noise given (a noise the "
                    f"residual undercuts is not the noise; the data show about {seen:.2f} um)")
+    before = None if diag is None else diag.gap_before["rms"]
+    if not why and diag is not None and diag.chosen_fit is None and \
+            before**2 > noise_um**2 * (1.0 + CHI_Z * math.sqrt(2.0 / n)) and \
+            before**2 <= seen**2 * (1.0 + CHI_Z * math.sqrt(2.0 / n + 4.0 * noise_estimate_rel_se(state) ** 2)):
+        # "none of the candidates" where the gap is the noise the data show: 0.7 um given for 1.0 turned a twin that
+        # predicts the part into a gap no candidate explains, without a word (a QA pass)
+        why.append(f"the gap's RMS {before:.2f} um is the probe noise the data show (about {seen:.2f} um, the gap's "
+                   f"differences between neighbouring points): with that noise there is no gap to explain")
     if not why:
         return []
     return [f"--noise-um {noise_um:g} um, but {'; and '.join(why)}: the shares above the noise, the test of a gap "
