@@ -313,6 +313,21 @@ def test_effects_file_is_strict(tmp_path, bc):
         assert part in msg
     with pytest.raises(EffectsFileError, match="not a rotary axis"):
         parse_effects({"rotary_periodic": {"X": {"harmonics_urad": [[1, 1.0, 0.0]]}}}, machine=bc)
+    # what the shop would only meet when it runs (numpy's or the loop's text, no file or key named, exit 2: a QA
+    # pass): a thermal file that is no series, a column it does not have, a loop gain the 1 ms period cannot step
+    thermal = tmp_path / "thermal.toml"
+    thermal.write_text(f'[thermal]\nfile = "{ROOT / "fixtures/thermal/LICENSE"}"\nchannels = {{ X = "ch1_um" }}\n'
+                       '[servo]\nkv_per_s = { X = 2000.0 }\n')
+    with pytest.raises(EffectsFileError) as exc:
+        load_effects(thermal, bc)
+    msg = str(exc.value)
+    assert "[thermal].file:" in msg and "is not a time series" in msg
+    assert "[servo].kv_per_s.X: a position loop's gain must be below 1000 /s" in msg
+    column = tmp_path / "column.toml"
+    column.write_text(f'[thermal]\nfile = "{ROOT / "fixtures/thermal/spindle_thermal_drift_part1.csv"}"\n'
+                      'channels = { X = "chX_um" }\n')
+    with pytest.raises(EffectsFileError, match=r"\[thermal\]\.channels\.X: no column 'chX_um'"):
+        load_effects(column, bc)
 
 
 def test_machine_to_part_rotation_of_a_bc_table(bc):

@@ -37,6 +37,7 @@ from .gcode import feed_per_revolution_lines
 
 AXES = "XYZABC"
 MM_PER_INCH = 25.4
+PERIOD_S = 1e-3  # the interpolation period, s (a typical CNC's)
 
 
 @dataclass
@@ -175,7 +176,7 @@ def _durations(program, delta, lin_len, rot_len_deg, dt, rapid_mm_min, rapid_deg
 def interpolate(
     program,
     machine: Machine,
-    dt: float = 1e-3,
+    dt: float = PERIOD_S,
     *,
     rapid_mm_min: float = 10_000.0,
     rapid_deg_min: float = 3_600.0,

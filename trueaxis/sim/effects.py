@@ -89,6 +89,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from ..machine.kinematics import axis_motion, chain_links
+from ..nc.trajectory import PERIOD_S
 from ..machine.model import Machine
 from ..machine.transforms import compose
 
@@ -619,6 +620,21 @@ class ThermalDrift:
 _SERIES_CACHE: dict = {}
 
 
+def _series_problems(path, channels) -> list[str]:
+    """What an effects file's thermal series cannot give, one line each (read here, not when the shop first asks: a
+    file that is no series printed numpy's "setting an array element with a sequence", exit 2; a QA pass)."""
+    try:
+        times, cols = _read_series(path)
+    except (OSError, UnicodeDecodeError, ValueError, IndexError) as exc:
+        return [f"[thermal].file: {path} is not a time series (a CSV header with time_s and the channels, then rows "
+                f"of numbers): {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"]
+    out = []
+    for d, name in (channels or {}).items() if isinstance(channels, dict) else ():
+        if isinstance(name, str) and name not in cols:
+            out.append(f"[thermal].channels.{d}: no column {name!r} in {path} (its columns: {', '.join(cols)})")
+    return out
+
+
 def _read_series(path):
     key = str(Path(path).resolve())
     if key not in _SERIES_CACHE:
@@ -886,6 +902,11 @@ def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machin
                 if ax not in axes:
                     problems.append(f"[servo].{name}.{ax}: unknown axis (machine axes: {' '.join(axes)})")
                 out[ax] = num(f"[servo].{name}.{ax}", v, **kwargs)
+                if name == "kv_per_s" and out[ax] is not None and out[ax] * PERIOD_S >= 1.0:
+                    # (the loop is stepped at the interpolation period: numpy's "Kv dt must be in (0, 1), got 2",
+                    # exit 2, named neither the file nor the key; a QA pass)
+                    problems.append(f"[servo].kv_per_s.{ax}: a position loop's gain must be below "
+                                    f"{1.0 / PERIOD_S:g} /s (the shop's {PERIOD_S * 1e3:g} ms period), got {v!r}")
                 if name in ("kff", "aff") and out[ax] is not None and out[ax] > 1.0:
                     problems.append(f"[servo].{name}.{ax}: a feed-forward gain is at most 1, got {v!r}")
         if "kv_per_s" not in t:
@@ -928,6 +949,8 @@ def parse_effects(data: dict, source: str = "<dict>", base=None, machine: Machin
             fp = Path(f) if Path(f).is_absolute() else base / f
             if not fp.exists():
                 problems.append(f"[thermal].file: {fp} does not exist")
+            else:
+                problems += _series_problems(fp, t.get("channels"))
             f = str(fp)
         ch = t.get("channels")
         if not isinstance(ch, dict) or not ch:
