@@ -1522,12 +1522,20 @@ def test_a_verdict_that_makes_the_max_grow_beyond_the_noise_is_said():
     from trueaxis.diagnose.report import max_growth_warning
 
     def diag(before, after):
-        return SimpleNamespace(chosen_fit=object(), verdict="servo_lag", noise_um=1.0,
+        fit = SimpleNamespace(extra={"all_points": {"rms": 0.99, "max": 3.90}})
+        return SimpleNamespace(chosen_fit=fit, verdict="servo_lag", noise_um=1.0,
                                gap_before={"max": before, "rms": 5.0}, gap_after={"max": after, "rms": 1.5})
 
     said = max_growth_warning(diag(14.09, 22.13))  # the QA pass's servo case
     assert len(said) == 1 and "max grows (14.09 -> 22.13 um) while its RMS goes 5.00 -> 1.50 um" in said[0]
-    assert max_growth_warning(diag(6.10, 7.33)) == []  # within the noise's extremes: not said
+    # within the noise's extremes: said as the held-out regions' prediction, with what the fit on every point leaves
+    # (a QA pass: the slot block's 7.00 -> 8.88 um, where the shop cut again with the fitted effect left 3.90 um)
+    assert max_growth_warning(diag(7.00, 8.88)) == []  # (no warning: a note)
+    said = max_growth_warning(diag(7.00, 8.88), notes=True)
+    assert len(said) == 1 and "predicted from the effect fitted on the others" in said[0]
+    assert max_growth_warning(diag(14.09, 22.13), notes=True) == []  # (the warning's, not a note too)
+    assert "fitted on every point it leaves RMS 0.99, max 3.90 um" in said[0]
+    assert max_growth_warning(diag(7.00, 6.50)) == []  # (no growth: nothing to say)
     assert max_growth_warning(SimpleNamespace(**{**vars(diag(1.0, 9.0)), "chosen_fit": None})) == []
 
 

@@ -441,7 +441,7 @@ def fit_candidate(cands: list[Candidate], g: np.ndarray, folds: np.ndarray, boun
     # exceeds twice that range is an alias of nearly collinear columns, not an estimate, and no verdict.
     edge = any(b is not None and not f and sd > 2.0 * (b[1] - b[0]) and abs(v) > 0.25 * (b[1] - b[0])
                for v, sd, b, f in zip(theta, std, bounds, form))
-    extra = {}
+    extra = {"all_points": gap_figures(resid)}  # (the gap the fit on every point leaves: not held out)
     if len(options) > 1:
         extra["variant"] = cands[0].variants[variant][0]
     # Derived parameters (sums of parameters, e.g. a servo axis' lag over its filters): value and std alike.
