@@ -36,12 +36,30 @@ from __future__ import annotations
 import numpy as np
 
 from ..nc.gcode import ARC_CCW, MM_PER_INCH, ROW_CYCLE
+from ..nc.grammar import PLANE_AXES
 from ..nc.interp_arc import RADIUS_MIN, SPIRAL_ABS, SPIRAL_ABS_MIN, SPIRAL_REL
 
 MAX_DEPTH = 6  # bisections of a sub-arc that does not hold before its arc becomes straight pieces
 FIT_POINTS = 8  # interior corrected points a sub-arc's centre is fitted to
 CHECK_STEP_MM = 0.5  # the written arc is checked through the twin at least this often ...
 CHECK_MIN, CHECK_MAX = 8, 64  # ... with this many intervals per sub-arc
+
+
+_PLANE_COLUMNS = np.array([PLANE_AXES[17], PLANE_AXES[18], PLANE_AXES[19]])
+
+
+def plane_columns(planes) -> tuple[np.ndarray, np.ndarray]:
+    """The X Y Z columns (first, second: ``nc.grammar.PLANE_AXES``) of arcs in the planes (K,) 17, 18 or 19."""
+    k = np.asarray(planes, int) - 17
+    return _PLANE_COLUMNS[k, 0], _PLANE_COLUMNS[k, 1]
+
+
+def xyz_decimals(p) -> np.ndarray:
+    """(2, 3) the decimals X Y Z are written with: in mm (row 0), in inch (row 1)."""
+    from .post import _Numbers
+
+    numbers = _Numbers(p.format_info)
+    return np.array([[numbers.decimals(a, inch) for a in "XYZ"] for inch in (False, True)])
 
 
 def arc_points_at(p, rows, t) -> np.ndarray:
@@ -68,14 +86,13 @@ class ArcFitter:
     """Fits the arcs of one chunk of moves for a ``post._Poster`` (its program, twin, solver and tolerance)."""
 
     def __init__(self, poster):
-        from .post import WRITE_ROUNDING_UM, _Numbers
+        from .post import WRITE_ROUNDING_UM
         from .solver import corrected_directions
 
         self.ps = poster
         self.p = poster.p
-        numbers = _Numbers(self.p.format_info)
         # written decimals per program axis column (X Y Z) and unit system
-        self.decimals = {inch: np.array([numbers.decimals(a, inch) for a in "XYZ"]) for inch in (False, True)}
+        self.decimals = dict(zip((False, True), xyz_decimals(self.p)))
         cd = corrected_directions(poster.m)
         self.correctable = cd.T @ cd
         # what the check allows: the tolerance less the rounding of a centre word at a tie (the written numbers
@@ -219,9 +236,7 @@ class ArcFitter:
         G = owner.size
         g = np.arange(G)
         inch = p.inch[r]
-        plane = p.arc_plane[r].astype(int)
-        ii = np.select([plane == 17, plane == 18], [0, 2], 1)
-        jj = np.select([plane == 17, plane == 18], [1, 0], 2)
+        ii, jj = plane_columns(p.arc_plane[r])
         nn = 3 - ii - jj
         ccw = p.motion[r] == ARC_CCW
         sign = np.where(ccw, 1.0, -1.0)
@@ -371,22 +386,19 @@ def written_start(poster, rows, arc_idx, delta_prog):
 def full_turns_close(poster, rows, arc_idx, delta_prog):
     """(A,) bool: the arc is no full turn, or its written start and end coincide in its plane (a control reads an
     end a digit off the start as a short arc, not a circle: LinuxCNC's pmCircleInit)."""
-    from .post import _Numbers
-
     p = poster.p
     r = rows[arc_idx]
-    ii, jj = (np.select([p.arc_plane[r] == 17, p.arc_plane[r] == 18], [a, b], c) for a, b, c in ((0, 2, 1),
-                                                                                                 (1, 0, 2)))
+    ii, jj = plane_columns(p.arc_plane[r])
     k = np.arange(r.size)
     full = (p.start[r, ii] == p.end[r, ii]) & (p.start[r, jj] == p.end[r, jj])
     if not np.any(full):
         return np.ones(r.size, bool)
     start, known = written_start(poster, rows, arc_idx, delta_prog)
     end = p.end[r] + delta_prog[arc_idx]
-    numbers = _Numbers(p.format_info)
+    decimals, inch = xyz_decimals(p), p.inch[r].astype(int)
     same = known.copy()
     for col in (ii, jj):
-        dec = np.array([numbers.decimals("XYZ"[c], bool(i)) for c, i in zip(col, p.inch[r])])
+        dec = decimals[inch, col]
         same &= np.round(start[k, col] * 10.0**dec) == np.round(end[k, col] * 10.0**dec)
     return ~full | same
 
@@ -397,19 +409,15 @@ def radii_kept_within_limits(poster, rows, arc_idx, delta_prog):
     input was read with), with a margin for the written digits. An input arc near a limit can be pushed past it by
     the difference of its ends' corrections (at most the spread a kept arc may have): rs274 would refuse the output.
     Such an arc is fitted instead. Looked at only where the input arc itself is that near (else True)."""
-    from .post import _Numbers
-
     p = poster.p
     r = rows[arc_idx]
     ok = np.ones(r.size, bool)
     if r.size == 0:
         return ok
-    ii, jj = (np.select([p.arc_plane[r] == 17, p.arc_plane[r] == 18], [a, b], c) for a, b, c in ((0, 2, 1),
-                                                                                                 (1, 0, 2)))
+    ii, jj = plane_columns(p.arc_plane[r])
     inch = p.inch[r].astype(bool)
-    numbers = _Numbers(p.format_info)
-    step = np.array([10.0 ** -min(numbers.decimals("XYZ"[a], bool(i)), numbers.decimals("XYZ"[b], bool(i)))
-                     for a, b, i in zip(ii, jj, inch)])
+    decimals = xyz_decimals(p)
+    step = 10.0 ** -np.minimum(decimals[inch.astype(int), ii], decimals[inch.astype(int), jj]).astype(float)
     margin = 3.0 * step  # (start, end and centre each rounded to the written digits)
     reach = margin + np.sqrt(3.0) * poster.tol_mm / 2 / np.where(inch, MM_PER_INCH, 1.0)
     spiral = np.where(inch, SPIRAL_ABS[True], SPIRAL_ABS[False])

@@ -69,7 +69,7 @@ from ..nc.gcode import (
 from ..nc import fast_write
 from ..resources import machine_file
 from ..nc.grammar import NUMBER
-from .arcs import fit_arcs, full_turns_close, radii_kept_within_limits
+from .arcs import fit_arcs, full_turns_close, plane_columns, radii_kept_within_limits, xyz_decimals
 from .solver import corrected_directions, solve_commanded
 
 MODES = ("none", "geometric", "comprehensive")
@@ -1219,7 +1219,7 @@ class _Poster:
             if rows.size == 0:  # not one move: no compensated program to write (its header would say one)
                 r = rows_unknown[0]
                 first = self.rep.uncompensated[0] if self.rep.uncompensated else {
-                    "line": int(p.line_no[r]),
+                    "line": int(lines_unknown[0]),
                     "axes": "".join(a for i, a in enumerate(AXES) if int(missing[r]) >> i & 1)}
                 raise PostError(p.source, first["line"], f"no move can be compensated: the position of "
                                 f"{' '.join(first['axes'])} is never known (no absolute move of every axis, or a "
@@ -2249,9 +2249,9 @@ class _Poster:
         written_end, first_row_of_line = ends_written
         starts[piece_first[:-1]] = _written_before(p.line_index[r], written_end, first_row_of_line, p)
         numbers = _Numbers(p.format_info)
-        scale = {flag: 10.0 ** np.array([numbers.decimals(a, flag) for a in "XYZ"]) for flag in (False, True)}
+        scale = 10.0 ** xyz_decimals(p)  # (row 0 mm, row 1 inch)
         inch = p.inch[r][owner]
-        sc = np.where(inch[:, None], scale[True][None, :], scale[False][None, :])
+        sc = np.where(inch[:, None], scale[1][None, :], scale[0][None, :])
         written = np.round(starts[:, :3] * sc) / sc
         value = np.where(p.arc_incremental[r][owner][:, None], centres - written, centres)
         plane = p.arc_plane[r][owner]
@@ -2331,10 +2331,8 @@ class _Poster:
         inch = bool(p.inch[r])
         if p.arc_incremental[r]:
             if not hasattr(self, "_fit_scale"):
-                numbers = _Numbers(p.format_info)
-                self._fit_scale = {flag: 10.0 ** np.array([numbers.decimals(a, flag) for a in "XYZ"])
-                                   for flag in (False, True)}  # (per unit, not per sub-arc)
-            scale = self._fit_scale[inch]
+                self._fit_scale = 10.0 ** xyz_decimals(p)  # (per unit, not per sub-arc: row 0 mm, row 1 inch)
+            scale = self._fit_scale[int(inch)]
             written = np.round(np.asarray(start[:3], float) * scale) / scale
             centre = centre - written
         plane = int(p.arc_plane[r])
@@ -2673,9 +2671,7 @@ def _arcs_geometry(p: Program, rs):
     """Per arc row in ``rs``: in-plane axis indices i, j and the normal one, start angle (rad), sweep (rad, from start
     to end in the arc's sense, a full turn when they coincide, plus the extra turns of P), start and end radius
     (program units)."""
-    plane = p.arc_plane[rs].astype(int)
-    ii = np.select([plane == 17, plane == 18], [0, 2], 1)
-    jj = np.select([plane == 17, plane == 18], [1, 0], 2)
+    ii, jj = plane_columns(p.arc_plane[rs])
     c, s, e = p.arc_center[rs], p.start[rs], p.end[rs]
     ar = np.arange(rs.size)
     ci, cj = c[ar, ii], c[ar, jj]

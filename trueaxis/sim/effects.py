@@ -89,9 +89,9 @@ import numpy as np
 from scipy.signal import lfilter
 
 from ..machine.kinematics import axis_motion, chain_links
-from ..nc.trajectory import PERIOD_S
 from ..machine.model import Machine
 from ..machine.transforms import compose
+from ..nc.trajectory import PERIOD_S
 
 UM = 1e-3
 URAD = 1e-6
@@ -624,7 +624,7 @@ def _series_problems(path, channels) -> list[str]:
     """What an effects file's thermal series cannot give, one line each (read here, not when the shop first asks: a
     file that is no series printed numpy's "setting an array element with a sequence", exit 2; a QA pass)."""
     try:
-        times, cols = _read_series(path)
+        _, cols = _read_series(path)
     except (OSError, UnicodeDecodeError, ValueError, IndexError) as exc:
         return [f"[thermal].file: {path} is not a time series (a CSV header with time_s and the channels, then rows "
                 f"of numbers): {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"]
