@@ -248,6 +248,19 @@ SETS = {
             {"machine": "ac_trunnion", "placement_mm": (10.0, 25.0), "cone": {"base_diameter": 66.0}},
         ],
     },
+    # A tenth held-out set, added on 2026-11-28 (eleventh session) after the part's set-up joined the library
+    # (setup_translation; the rules frozen at the commit that adds this set), run once at 600 points: a fresh seed,
+    # new placements and cone sizes on the three held-out layouts.
+    "heldout10": {
+        "seed": 58_117,
+        "setups": [
+            {"machine": "ac_trunnion", "placement_mm": (-15.0, 20.0), "cone": {"height": 19.0}},
+            {"machine": "bc_offset", "placement_mm": (-25.0, 30.0), "cone": {"half_angle_deg": 16.0}},
+            {"machine": "headtable", "placement_mm": (20.0, -20.0),
+             "cone": {"base_diameter": 68.0, "axis_inclination_deg": 10.0}},
+            {"machine": "ac_trunnion", "placement_mm": (0.0, -25.0), "cone": {"base_diameter": 70.0}},
+        ],
+    },
 }
 
 OUT_OF_LIBRARY = ("tool_wear", "clamping_bend")
