@@ -454,3 +454,40 @@ def test_strict_posts_a_feed_per_revolution_program(lathe, tmp_path):
                         "--machine", str(MACHINES / "lathe.toml"), "--offsets-zero", "--strict"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stderr == "", r.stderr
+
+
+def test_a_lathe_tool_offset_warning_speaks_of_the_offsets_arm_not_a_mill_tool_length(lathe):
+    # A QA pass (a CAM engineer on a lathe): the warning spoke of the twin's "reference tool (50 mm, gauge line to
+    # tip)", a milling tool's length the lathe file says is a placeholder its chain does not use. It now speaks of the
+    # offsets' arm, on which the slides' angular errors act, with the same figure: the twin's largest tool-frame angle
+    # on the program's moves, checked here at the machine positions the offsets give (X 40+5, Z -25+20 ...).
+    from trueaxis.machine import ErrorTwin
+    from trueaxis.nc.setup import Offset, Setup, ToolOffset
+
+    setup = Setup(work_offsets={1: Offset(np.zeros(6), "test")}, active=1,
+                  tools={1: ToolOffset(np.array([5.0, 0.0, 20.0, 0.0, 0.0, 0.0]), "lt.tbl")})
+    program = "G18 G21 G90 G94 G8 G54\nT1 M6\nG43 H1\nG0 X40 Z-25\nG1 Z-70 F100\nG1 X60\nM30\n"
+    report = {}
+    with pytest.warns(UserWarning, match="tool offsets in force"):
+        compensate(program, lathe, "geometric", setup=setup, report=report)
+    said = [w for w in report["warnings"] if "offsets in force" in w]
+    assert len(said) == 1 and "tool 1 offset X5 Z20 mm" in said[0], report["warnings"]
+    assert "reference tool" not in said[0] and "gauge line" not in said[0] and "arm" in said[0]
+    twin = ErrorTwin(lathe)
+    q = np.array([[45.0, -5.0], [45.0, -50.0], [65.0, -50.0]])
+    du_urad = np.linalg.norm(twin.actual_pose(q)[1] - twin.nominal_pose(q)[1], axis=1) * 1e6
+    assert du_urad.max() > 1.0  # the lathe's angular errors: a wrong figure would show
+    assert report["tool_axis_error_max_urad"] == pytest.approx(du_urad.max(), rel=1e-6)
+    assert f"up to {du_urad.max() * 0.01:.2f} um per 10 mm" in said[0]
+
+
+def test_a_g33_threading_pass_is_refused_for_what_it_is_not_for_moves_missing_from_the_text(lathe):
+    # A QA pass: G33's refusal said "the moves it makes are not in the text", though its move is (one straight pass to
+    # Z-30). The reason is the spindle: its feed is bound to the spindle's turn, which the post does not compensate.
+    program = "G18 G21 G90 G94 G8\nG0 X20 Z-5\nG33 Z-30 K1.5\nG0 X30\nM30\n"
+    with pytest.raises(GcodeError, match=r"^g33.ngc:3: spindle-synchronised motion G33 \(its feed is bound to the "
+                                         r"spindle's turn, a thread's lead: the post does not compensate threading "
+                                         r"passes; --passthrough-unsupported leaves the block as it is\)$"):
+        compensate(program, lathe, "geometric", source="g33.ngc")
+    out = compensate(program, lathe, "geometric", passthrough_unsupported=True)
+    assert "\nG33 Z-30 K1.5\n" in out

@@ -836,7 +836,6 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
     pairs = []
     by_name = {c.name: c for c in candidates}
     if pool:
-        best = pool[0]
         # A second effect: every pair of the leading eligible candidates (a pair need not contain the best single
         # one: one candidate with many columns can mimic two effects at once, and a second effect hidden under the
         # first need not be the runner-up alone). A pair stands as a contender when it beats each of its members

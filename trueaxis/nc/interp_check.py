@@ -4,7 +4,7 @@ part of ``gcode._Interpreter``'s general path; rs274's own block checks run befo
 
 from __future__ import annotations
 
-from .interp_codes import MAX_WORD_VALUE, MOVING_G, MOVING_M, POSITION_LOST_G, WORD_BIT
+from .interp_codes import MAX_WORD_VALUE, MOVING_G, MOVING_M, POSITION_LOST_G, SYNCED_G, WORD_BIT
 
 
 def check_block(interp, line_no: int, gcodes, mcodes, vals: dict, refuse, macro_nonmoving):
@@ -29,7 +29,8 @@ def check_block(interp, line_no: int, gcodes, mcodes, vals: dict, refuse, macro_
             if any(g in POSITION_LOST_G for g in gnums) or any(m in MOVING_M for m in mnums):
                 interp.positions_lost.append((line_no - 1, f"the {refuse} passed through"))
             return None
-        raise interp.err(line_no, refuse + " (the moves it makes are not in the text; "
+        synced = next((SYNCED_G[g] for g in gnums if g in SYNCED_G and MOVING_G[g] == refuse), None)
+        raise interp.err(line_no, refuse + f" ({synced or 'the moves it makes are not in the text'}; "
                          "--passthrough-unsupported leaves the block as it is)")
     if macro_nonmoving:
         interp.unsupported_block(line_no, macro_nonmoving)

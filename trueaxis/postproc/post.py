@@ -1349,6 +1349,14 @@ class _Poster:
         worst_urad = float(np.linalg.norm(u_act - u_nom, axis=1).max()) * 1e6
         said = ", ".join(u["said"] for u in tools[:3]) + (" ..." if len(tools) > 3 else "")
         self.rep.tool_axis_error_max_urad = worst_urad
+        if self.m.kind == "lathe":  # (a lathe's [tool] length is a placeholder its chain does not use)
+            self.rep.warnings.append(
+                f"{p.source}:{tools[0]['first_line']}: tool offsets in force ({said}): the twin takes its errors at "
+                f"the tip the program's positions place, as a point of the slides; a tool's offsets are an arm from the "
+                f"turret's reference on which the slides' angular errors act, moving the tip by d x the angle for an "
+                f"offset d, up to {worst_urad * 0.01:.2f} um per 10 mm on this program's moves, which the post does "
+                "not correct")
+            return
         self.rep.warnings.append(
             f"{p.source}:{tools[0]['first_line']}: tool length offsets in force ({said}): the twin's errors are those "
             f"of its reference tool ({self.m.tool.length:g} mm, gauge line to tip); a tool longer or shorter by d "
