@@ -602,3 +602,24 @@ def test_the_real_command_warnings_reach_the_user_with_the_output_file(tmp_path,
         post.compensate(SMALL_PROGRAM, strict, label=str(tmp_path / "part.ngc"))
     assert str(err.value).splitlines()[1:3] == [said[0], f"trueaxis post: --strict: 1 warning; {tmp_path / 'part.ngc'} "
                                                           "not written"]
+
+
+def test_the_report_names_the_jobs_output_file_not_a_temporary_copy(tmp_path, monkeypatch):
+    # A QA pass (a CAM engineer on FreeCAD): with --report, the JSON's source and every warning named the post's
+    # temporary copy (/tmp/trueaxis_post_.../report.ngc), deleted by then, and did not say what its line numbers refer
+    # to. The real command: the report names the output file and carries the note; nothing of the temporary folder.
+    post = load_post_module()
+    monkeypatch.setenv("TRUEAXIS_BIN", trueaxis_exe())
+    monkeypatch.chdir(tmp_path)
+    report = tmp_path / "out" / "rep.json"
+    report.parent.mkdir()
+    label = str(tmp_path / "out" / "part.ngc")
+    opts, _ = post.split_arguments(f"--machine xh714 --offsets-zero --report {report}")
+    post.compensate("G21 G90\nG0 Z-100\nG0 X10 Y10 Z-100\nG1 X20 F100\nM2\n", opts, label=label)
+    text = report.read_text()
+    content = json.loads(text)
+    assert "trueaxis_post_" not in text and content["source"] == label
+    said = [w for w in content["warnings"] if "is not known here" in w]
+    assert len(said) == 1 and said[0].startswith(f"{label}:2: the position of X Y is not known here"), said
+    assert content["line_numbers"] == post.LINE_NUMBERS_NOTE
+    assert content["moves"] == 2  # the rest of the report as trueaxis wrote it

@@ -28,6 +28,7 @@
 
 import argparse
 import importlib.util
+import json
 import os
 import re
 import shlex
@@ -371,15 +372,16 @@ def names_a_path(name):
     return os.path.splitext(path)[1] == ".toml" or os.path.exists(path)
 
 
-def _command(exe, program, output, opts):
+def _command(exe, program, output, opts, report=None):
     """The `trueaxis post` command line for the post's options: paths made absolute (FreeCAD's working folder is not
-    the user's), a fixture machine's short name passed as it is (trueaxis finds it)."""
+    the user's), a fixture machine's short name passed as it is (trueaxis finds it); ``report``: where trueaxis
+    writes its report (a temporary file: ``_write_report`` gives it the user's names)."""
     machine = os.path.abspath(os.path.expanduser(opts.machine)) if names_a_path(opts.machine) else opts.machine
     cmd = [exe, "post", program, "-o", output, "--machine", machine, "--mode", opts.mode, "--tol-um", str(opts.tol_um)]
     if opts.max_correction_mm is not None:
         cmd += ["--max-correction-mm", str(opts.max_correction_mm)]
-    if opts.report:
-        cmd += ["--report", os.path.abspath(os.path.expanduser(opts.report))]
+    if report:
+        cmd += ["--report", report]
     for option, value in (("--var", opts.var), ("--tool-table", opts.tool_table), ("--setup", opts.setup)):
         if value:
             cmd += [option, os.path.abspath(os.path.expanduser(value))]
@@ -430,10 +432,11 @@ def compensate(gcode, opts, label="program.ngc"):
     with tempfile.TemporaryDirectory(prefix="trueaxis_post_") as work:
         src = os.path.join(work, os.path.basename(label) or "program.ngc")
         dst = os.path.join(work, "compensated.ngc")
+        report = os.path.join(work, "report.json") if opts.report else None
         with open(src, "w", encoding="utf-8", newline="") as f:
             f.write(gcode)
         try:
-            proc = subprocess.run(_command(exe, src, dst, opts), stdin=subprocess.DEVNULL, capture_output=True,
+            proc = subprocess.run(_command(exe, src, dst, opts, report), stdin=subprocess.DEVNULL, capture_output=True,
                                   text=True)
         except OSError as exc:
             raise TrueaxisPostError(f"trueaxis post: could not run {exe}: {exc}") from None
@@ -445,8 +448,32 @@ def compensate(gcode, opts, label="program.ngc"):
             warn(line)
         if _names_the_program(said, label):
             warn("trueaxis post: " + LINE_NUMBERS_NOTE)
+        if report:
+            _write_report(report, os.path.abspath(os.path.expanduser(opts.report)), (src, dst), label)
         with open(dst, "r", encoding="utf-8", newline="") as f:
             return f.read()
+
+
+def _write_report(report, target, temporary, label):
+    """trueaxis' report (JSON at ``report``) written at ``target`` with the names the user knows: the temporary copies'
+    paths (``temporary``) replaced by ``label`` (the job's output file) wherever they stand (its source, its
+    warnings), and the note on what its line numbers refer to. (A QA pass: the report named a deleted temporary
+    file, its line numbers unexplained.)"""
+    def named(value):
+        if isinstance(value, str):
+            for path in temporary:
+                value = value.replace(path, label)
+            return value
+        if isinstance(value, list):
+            return [named(v) for v in value]
+        if isinstance(value, dict):
+            return {k: named(v) for k, v in value.items()}
+        return value
+
+    with open(report, "r", encoding="utf-8") as f:
+        content = named(json.load(f))
+    content["line_numbers"] = LINE_NUMBERS_NOTE
+    write_atomically(target, json.dumps(content, indent=2, allow_nan=False))
 
 
 _CONDITIONS_LINE = re.compile(r"^(?:N\d+ ?)?\(trueaxis: [^)]*\)\r?\n", re.MULTILINE)
