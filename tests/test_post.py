@@ -246,6 +246,11 @@ def test_cli_writes_program_and_report(tmp_path):
     report = json.loads(rep.read_text())
     assert report["blocks_in"] == len(PROGRAM.splitlines())
     assert report["blocks_out"] == len(out.read_text().splitlines())
+    # the summary says how many of the blocks out are the header's comments (7 blocks in were "11 out", a QA pass)
+    header = [ln for ln in out.read_text().splitlines() if ln.startswith(("(trueaxis post: ", "(trueaxis setup: "))]
+    assert report["header_blocks"] == len(header) > 0
+    assert (f"{report['blocks_in']} blocks in, {report['blocks_out']} out ({len(header)} header comments); "
+            in r.stdout), r.stdout
     assert set(report["correction"]) == {"X", "Y", "Z"}
     assert report["max_residual_um"] < 0.01
 

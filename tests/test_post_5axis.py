@@ -459,7 +459,7 @@ def test_cli_posts_cl_data_and_refuses_bad_cl_with_exit_3(tmp_path):
     # the summary: the input's lines and points, the machine-axis blocks made of them, the blocks written
     n_lines = len(CL_CSV.read_text().splitlines())
     assert (f"{out}: CL data in (csv: {n_lines} lines, 37 points) -> {report['cl_program_blocks']} machine-axis blocks "
-            f"-> {report['blocks_out']} out; ") in r.stdout
+            f"-> {report['blocks_out']} out ({report['header_blocks']} header comments); ") in r.stdout
     bad = tmp_path / "bad.csv"
     bad.write_text("x,y,z,i,j,k,f\n10,0,5,0,0,1,1000\n12,0,5,0,0,nan,\n")
     out2 = tmp_path / "out2.ngc"

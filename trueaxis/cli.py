@@ -259,6 +259,7 @@ def cmd_post(args) -> int:
                  f"{report.cl_program_blocks} machine-axis blocks -> {report.blocks_out} out")
     else:
         sizes = f"{report.blocks_in} blocks in, {report.blocks_out} out"
+    sizes += f" ({report.header_blocks} header comments)" if report.header_blocks else ""  # (a QA pass: 7 in, "11 out")
     print(f"{'<stdout>' if args.output == '-' else args.output}: {sizes}; {report.moves_split} moves split"
           f"{f', {report.arcs_linearised} arcs as lines' if report.arcs_linearised else ''}; "
           f"{f'max correction at the block ends {corr} (um/urad)' if corr else 'no block compensated'}; "

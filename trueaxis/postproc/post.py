@@ -179,7 +179,8 @@ class PostReport:
     tol_um: float
     output_mode: str = "joint"  # joint positions, or tool-centre-point positions (.tcp)
     blocks_in: int = 0
-    blocks_out: int = 0
+    blocks_out: int = 0  # the output's lines, the header's comments (header_blocks of them) included
+    header_blocks: int = 0
     moves: int = 0
     moves_split: int = 0
     arcs_kept: int = 0
@@ -669,6 +670,7 @@ def with_header(text: str, rep: PostReport, machine: Machine) -> str:
     ending = "\r\n" if first.endswith("\r\n") else "\n"
     lines = header_lines(rep, machine)
     rep.blocks_out += len(lines)
+    rep.header_blocks = len(lines)
     return text[:pos] + "".join(line + ending for line in lines) + text[pos:]
 
 
