@@ -1616,3 +1616,32 @@ def test_a_diagnosis_with_no_verdict_says_its_closest_candidates_alike_on_the_te
     assert data["closest_candidates"] == diag.closest
     html = (tmp_path / "rep" / "diagnosis.html").read_text()
     assert ("C" + said[1:]).replace("'", "&#x27;") in html
+
+
+def test_diagnose_takes_the_part_as_inspect_does_with_part_dir(slots, tmp_path, capsys):
+    # A QA pass: inspect and simulate take the part's folder (--part-dir), diagnose only its JSON (--part-json): the
+    # same concept, two spellings. diagnose takes --part-dir too, to the same diagnosis as --part-json DIR/slots.json;
+    # a folder without the part's JSON is refused naming it, and the two options together are a usage error.
+    from trueaxis.cli import main
+    from trueaxis.workpiece.part import get_part
+
+    m, prog, _ = slots
+    r = _cut(m, prog, {"backlash": {"Y": {"amplitude": 8.0}}}, noise=1.0, seed=5, points=300)
+    write_cmm(r, tmp_path / "cmm.ply")
+    (tmp_path / "p.ngc").write_text(prog.text)
+    (tmp_path / "part").mkdir()
+    (tmp_path / "part" / "slots.json").write_text(json.dumps(get_part("slots").description()))
+    base = ["diagnose", "--cloud", str(tmp_path / "cmm.ply"), "--part", "slots", "--machine", "xh714", "--program",
+            str(tmp_path / "p.ngc"), "--candidates", "backlash_y,thermal_x", "--noise-um", "1.0"]
+    assert main(base + ["--part-dir", str(tmp_path / "part"), "-o", str(tmp_path / "a")]) == 0
+    assert main(base + ["--part-json", str(tmp_path / "part" / "slots.json"), "-o", str(tmp_path / "b")]) == 0
+    a, b = (json.loads((tmp_path / d / "diagnosis.json").read_text()) for d in "ab")
+    assert a["chosen"] == b["chosen"] and a["chosen"][0]["effect"] == "backlash_y"
+    capsys.readouterr()
+    (tmp_path / "empty").mkdir()
+    assert main(base + ["--part-dir", str(tmp_path / "empty"), "-o", str(tmp_path / "c")]) != 0
+    assert str(tmp_path / "empty" / "slots.json") in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
+    with pytest.raises(SystemExit) as exc:
+        main(base + ["--part-dir", str(tmp_path / "part"), "--part-json", str(tmp_path / "part" / "slots.json")])
+    assert exc.value.code == 2 and "not allowed with argument" in capsys.readouterr().err

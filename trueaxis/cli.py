@@ -451,11 +451,12 @@ def cmd_diagnose(args) -> int:
     def progress(line):  # on a terminal only, as the post's bar: a redirected log keeps the summary and the warnings
         print(f"trueaxis diagnose: [{time.perf_counter() - t0:4.0f} s] {line} ...", file=sys.stderr, flush=True)
 
+    part_json = _diagnose_part_jsons(args)
     with single_blas_thread():
         diag, data = diagnose_files(args.cloud, args.part, str(machine_file(args.machine)), args.program, args.output,
                                     candidates=args.candidates, split=args.split, noise_um=args.noise_um,
-                                    part_json=None if not args.part_json else
-                                    args.part_json[0] if len(args.part_json) == 1 else args.part_json,
+                                    part_json=None if not part_json else
+                                    part_json[0] if len(part_json) == 1 else part_json,
                                     pauses_s=args.pause_s, plan_next=args.plan_next,
                                     progress=progress if sys.stderr.isatty() else None)
     for line in summary_lines(diag, args.output, named_candidates=args.candidates not in (None, "all"),
@@ -464,6 +465,13 @@ def cmd_diagnose(args) -> int:
     for warning in data["warnings"]:
         print(f"trueaxis diagnose: warning: {warning}", file=sys.stderr)
     return 0
+
+
+def _diagnose_part_jsons(args) -> list:
+    """diagnose's part descriptions: the --part-json files, or <part>.json in each --part-dir (empty: the default)."""
+    if getattr(args, "part_dir", None):
+        return [str(Path(d) / f"{args.part}.json") for d in args.part_dir]
+    return list(getattr(args, "part_json", None) or [])
 
 
 def cmd_demo(args) -> int:
@@ -743,8 +751,13 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--machine", required=True, help="the twin (machine file, TOML, or a fixture's short name)")
     dg.add_argument("--program", required=True, action="append",
                     help="the NC program that cut the part (one per --cloud, in the same order)")
-    dg.add_argument("--part-json", default=None, action="append", help="the part's description (JSON written by "
-                    "`trueaxis part`; default: the part at its default size); once for all clouds, or once per --cloud")
+    part_of = dg.add_mutually_exclusive_group()
+    part_of.add_argument("--part-json", default=None, action="append", help="the part's description (JSON written by "
+                         "`trueaxis part`; default: the part at its default size); once for all clouds, or once per "
+                         "--cloud")
+    part_of.add_argument("--part-dir", default=None, action="append", help="folder holding <part>.json from "
+                         "`trueaxis part`, as inspect and simulate take it (the same as --part-json DIR/<part>.json); "
+                         "once for all clouds, or once per --cloud")
     dg.add_argument("--pause-s", type=_non_negative_list, default=None, action="extend",
                     help="several parts: the pause between the end of one part's program and the start of the next, "
                     "s (0: cut right after each other); one number for all, or one per gap in the order cut "
@@ -863,7 +876,8 @@ def _paths(args) -> tuple[list, list]:
             [("-o", out, False), ("the truth file", None if out is None else truth_path(out), False)]
     if cmd == "diagnose":  # --cloud and --program repeat (several parts cut one after another)
         return [*(("--cloud", c) for c in g("cloud") or []), ("--machine", g("machine")),
-                *(("--program", p) for p in g("program") or []), *(("--part-json", p) for p in g("part_json") or [])], \
+                *(("--program", p) for p in g("program") or []), *(("--part-json", p) for p in g("part_json") or []),
+                *(("--part-dir's JSON", p) for p in _diagnose_part_jsons(args) if g("part_dir"))], \
             [("-o", g("output"), "replaced")]
     if cmd == "inspect":
         out = g("output") if g("output") is not None else Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
