@@ -614,3 +614,19 @@ def test_csv_header_units_are_read_into_mm_and_mixed_or_unknown_units_refused(tm
     (tmp_path / "c.csv").write_text("X [in],Y,Z\n1,2,3\n")
     with pytest.raises(CloudError, match=r"a unit for some coordinates only \(x in 'in'; y, z without\)"):
         read_cloud(tmp_path / "c.csv")
+
+
+def test_numbers_with_a_thousands_separator_are_refused_for_what_they_are(tmp_path):
+    """With ';', tab or spaces between the fields a ',' is read as the decimal comma; a number with both ',' and '.'
+    (1,234.5 or 1.234,5) groups its digits, and was refused as "not a number" with its commas already turned to points
+    ('1.234.5', a row the file does not have). Refused naming the row as written and the thousands separator; the
+    same numbers without grouping are read."""
+    for file, text in (("semi.csv", "x;y;z\n12.0;0.5;10.0\n1,234.5;0.5;10.0\n"),
+                       ("euro.csv", "x;y;z\n12,0;0,5;10,0\n1.234,5;0,5;10,0\n"),
+                       ("tab.txt", "12.0\t0.5\t10.0\n1,234.5\t0.5\t10.0\n")):
+        (tmp_path / file).write_text(text)
+        row = text.splitlines()[-1]
+        message = refused(tmp_path / file, f"the row {row!r} has a number with both ',' and '.'")
+        assert "thousands separator" in message and "1.234.5" not in message
+    (tmp_path / "plain.csv").write_text("x;y;z\n12,0;0,5;10,0\n1234,5;0,5;10,0\n")
+    np.testing.assert_array_equal(read_cloud(tmp_path / "plain.csv").points, [[12.0, 0.5, 10.0], [1234.5, 0.5, 10.0]])

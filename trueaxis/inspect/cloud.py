@@ -498,7 +498,9 @@ def _read_csv(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
     if delimiter == "," and _decimal_commas_between_spaces(sample):
         delimiter = None  # whitespace between the fields, a ',' inside each number: '39,3006 0,0000 -5,9147'
     if delimiter != ",":
-        # with ';', tab or whitespace between the fields a ',' can only be a decimal comma (1,25 = 1.25)
+        # with ';', tab or whitespace between the fields a ',' can only be a decimal comma (1,25 = 1.25) -- unless a
+        # number has a '.' too: then one of them groups digits (1,234.5 or 1.234,5), which is refused, the row named
+        _refuse_digit_grouping(lines, name)
         lines = [line.replace(",", ".") for line in lines]
     first = _split(lines[0], delimiter)
     header = None
@@ -535,6 +537,24 @@ def _read_csv(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray | None]:
     table = _parse_table(lines, delimiter, name, "CSV", [header.index(c) for c in wanted], width)
     # coordinates in the header's unit (mm when it names none), into mm; normals have none
     return table[:, :3] * _header_scale(first, name), (table[:, 3:] if present else None)
+
+
+_GROUPED = re.compile(r"[0-9],[0-9]*\.[0-9]|[0-9]\.[0-9]*,[0-9]")
+
+
+def _refuse_digit_grouping(lines: list[str], name: str) -> None:
+    """Refuse numbers with both a ',' and a '.' (``1,234.5``, ``1.234,5``): a thousands separator, which would be
+    read as a second decimal mark (the reader had said "not a number" of the row with its commas turned to points)."""
+    text = "\n".join(lines)
+    if "," not in text:
+        return
+    hit = _GROUPED.search(text)
+    if hit is None:
+        return
+    k = text.count("\n", 0, hit.start())
+    raise CloudError(f"{name}: the row {lines[k][:80]!r} has a number with both ',' and '.': digits "
+                     "grouped by a thousands separator, which trueaxis does not read; export the cloud without digit "
+                     "grouping (one decimal mark, no thousands separator)")
 
 
 def _refuse_decimal_commas(lines: list[str], row: list[str], name: str) -> None:
