@@ -16,7 +16,8 @@ training fit is reported too.
 
 Parameters' std: the larger of the least-squares and the fold jackknife's, widened by the misfit (``misfit_inflation``)
 and a form uncertainty ``FORM_REL``, and, for the verdict, by the values of the variants the held-out points cannot
-reject (``variant_spread``).
+reject (``variant_spread``) and of the explanations tied with it or almost as good that measure the same quantity
+(``tie_spread``).
 
 Bounded fits. Every fit, the held-out ones included, keeps the parameters inside the candidates' plausible bounds
 (``lsq_linear`` when the free solution leaves them), so a candidate is judged by what it explains with physically
@@ -78,6 +79,7 @@ set (README); ``benchmarks/diagnose_sets.py`` prints the share right per band of
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -718,6 +720,51 @@ def variant_spread(chosen: Fit, by_name: dict, g: np.ndarray, folds: np.ndarray)
     chosen.extra["variant_spread"] = {"tied_variants": tied, "std_added": [float(v) for v in np.sqrt(spread2)]}
 
 
+_SPLINE_KNOT = re.compile(r"drift_([A-Z])_at_([0-9]+)s")
+
+
+def _quantities(f: Fit) -> dict:
+    """{quantity: parameter index} of a fit: each parameter by its name, except a thermal spline's last knot, which
+    is the drift at the program's end as the constrained form's ``drift_<axis>_at_end`` (both are zero at the start
+    and measured at the same end)."""
+    out = {name: i for i, name in enumerate(f.parameters)}
+    last: dict = {}
+    for i, name in enumerate(f.parameters):
+        m = _SPLINE_KNOT.fullmatch(name)
+        if m and (m.group(1) not in last or int(m.group(2)) > last[m.group(1)][0]):
+            last[m.group(1)] = (int(m.group(2)), i)
+    for letter, (_, i) in last.items():
+        out.setdefault(f"drift_{letter}_at_end", i)
+    return out
+
+
+def tie_spread(chosen: Fit, others: list) -> None:
+    """Widen the verdict's std by the values of the explanations the data cannot tell from it (``others``: the
+    plausible fits tied with it or almost as good). Where another of them measures the same quantity (a parameter of
+    the same name; a thermal drift's value at the end in the constrained and the spline form), the part leaves that
+    quantity between the two values: each parameter's std covers the largest such difference, in quadrature. (A QA
+    pass: a thermal drift paired with the twin's location errors at confidence 0.20 read 25.19 +- 3.4 um, the spline
+    almost as good read 13.1 um, the truth was 11.2 um.) Recorded in ``extra["tie_spread"]``."""
+    mine = _quantities(chosen)
+    spread2 = np.zeros(chosen.value.size)
+    used = []
+    for f in others:
+        if f is chosen or not f.plausible:
+            continue
+        theirs = _quantities(f)
+        for q, i in mine.items():
+            j = theirs.get(q)
+            if j is not None and chosen.units[i] == f.units[j]:
+                d2 = float(f.value[j] - chosen.value[i]) ** 2
+                if d2 > spread2[i]:
+                    spread2[i] = d2
+                    used.append({"parameter": chosen.parameters[i], "fit": f.name, "value": float(f.value[j])})
+    if not used:
+        return
+    chosen.std = np.sqrt(chosen.std**2 + spread2)
+    chosen.extra["tie_spread"] = {"values": used, "std_added": [float(v) for v in np.sqrt(spread2)]}
+
+
 def _pair_rss(a: Candidate, b: Candidate, g: np.ndarray) -> float:
     """Residual sum of squares (um^2) of the bounded fit of two candidates' columns to the whole gap."""
     S = np.column_stack([a.columns, b.columns])
@@ -961,8 +1008,10 @@ def diagnose_state(state: TwinState, candidates: list[Candidate], *, split: str 
             notes.append(f"the gap (RMS {math.sqrt(ms_before):.2f} um) is not above the probe noise given "
                          f"({sigma:.2f} um): the verdict's confidence is held at 0.5; check --noise-um")
         # Almost as good: plausible fits only (one at its bounds is no explanation, however much it removes).
-        alternatives = [f.name for f in sig if f.name not in chosen_fit.members and f.plausible
-                        and (f.gain_um2 >= ALMOST * chosen_fit.gain_um2 or any(f.name in t for t in tied.values()))]
+        almost = [f for f in sig if f.name not in chosen_fit.members and f.plausible
+                  and (f.gain_um2 >= ALMOST * chosen_fit.gain_um2 or any(f.name in t for t in tied.values()))]
+        alternatives = [f.name for f in almost]
+        tie_spread(chosen_fit, [*tie_fits, *almost])
         seps = [separating_measurement(m, t[0]) for m, t in tied.items() if t]
         if not seps and rival is not None and rival.gain_um2 >= ALMOST * chosen_fit.gain_um2:
             odd = [n for n in rival.members if n not in chosen_fit.members] or rival.members

@@ -36,9 +36,10 @@ MOVING_G = {
     171: "plane G17.1", 181: "plane G18.1", 191: "plane G19.1",
 }
 # why those whose moves are in the text are refused all the same (the others: their moves are not in the text)
-SYNCED_G = {330: "its feed is bound to the spindle's turn, a thread's lead: the post does not compensate threading "
-                 "passes", 331: "its feed is bound to the spindle's turn, the tap's pitch, and it returns to its start: "
-                 "the post does not compensate tapping"}
+SYNCED_G = {
+    330: "its feed is bound to the spindle's turn, a thread's lead: the post does not compensate threading passes",
+    331: "its feed is bound to the spindle's turn, the tap's pitch, and it returns to its start: the post does not "
+         "compensate tapping"}
 # those of them after which the control's position is not known from the text (not G52's offset, not the planes)
 POSITION_LOST_G = frozenset(MOVING_G) - {520, 171, 181, 191}
 MOTION_G = (0, 10, 20, 30, 730, 740, 810, 820, 830, 840, 850, 860, 870, 880, 890)

@@ -156,7 +156,8 @@ SOLVE_TOL_UM, SOLVE_TOL_URAD = 0.01, 0.02
 WRITE_ROUNDING_UM, WRITE_ROUNDING_URAD = 0.03, 0.18
 _REPORT_LOCK = threading.Lock()  # what the chunks' threads add to a report
 MIN_TOL_UM = 0.05  # the smallest path tolerance: the written digits' rounding and the solve's residual fit in it
-ROW_CHUNK = 16_000  # moves compensated together: bounds memory (an arc samples 17 poses); 8000 cost 0.3-0.6 s CPU more (NIST)
+# moves compensated together: bounds memory (an arc samples 17 poses); 8000 cost the NIST post 0.3-0.6 s CPU more
+ROW_CHUNK = 16_000
 WRITE_WINDOW = 50_000  # moves whose axis words are formatted together
 FAST_WRITE = True  # the compiled writer (fast_write) for plain blocks; False: every line by the Python path
 CHUNK_THREADS = True  # chunks of moves compensated on two threads (``_compensate_chunks``); False: one after the other
@@ -1354,8 +1355,8 @@ class _Poster:
         if self.m.kind == "lathe":  # (a lathe's [tool] length is a placeholder its chain does not use)
             self.rep.warnings.append(
                 f"{p.source}:{tools[0]['first_line']}: tool offsets in force ({said}): the twin takes its errors at "
-                f"the tip the program's positions place, as a point of the slides; a tool's offsets are an arm from the "
-                f"turret's reference on which the slides' angular errors act, moving the tip by d x the angle for an "
+                f"the tip the program's positions place, as a point of the slides; a tool's offsets are an arm from "
+                f"the turret's reference on which the slides' angular errors act, moving the tip by d x the angle for an "
                 f"offset d, up to {worst_urad * 0.01:.2f} um per 10 mm on this program's moves, which the post does "
                 "not correct")
             return
