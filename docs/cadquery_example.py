@@ -1,15 +1,17 @@
 """G-code for a CadQuery model, compensated with a machine's error twin: trueaxis' Python hook.
 
-    .venv/bin/python docs/cadquery_example.py [--machine xh714] [-o out_folder]
+    .venv/bin/python docs/cadquery_example.py [--machine xh714] [--var linuxcnc.var] [-o out_folder]
 
 1. ``import trueaxis.postproc.hosts.cadquery`` registers the test parts as CadQuery Workplane methods (CadQuery's
    plugin convention): ``cq.Workplane("XY").nas979()`` is the NAS 979 part on that workplane.
 2. A small three-axis program: one finishing pass of a 10 mm end mill around the part's bounding box (outside it by
    the tool radius), at a depth taken from the model, with corner arcs (on a five-axis machine, ``--machine
    nmv1500dcg``, the rotary axes stand at 0 from the first block). Any CAM that writes G-code text will do.
-3. ``trueaxis.postproc.compensate(text, machine, mode="geometric")`` returns the program with every move corrected so
-   that the machine, with its errors, puts the tool where the nominal program meant it; a ``PostError``
-   (``file:line: reason``) says which block it refuses and why.
+3. ``trueaxis.postproc.compensate(text, machine, mode="geometric", ...)`` returns the program with every move
+   corrected so that the machine, with its errors, puts the tool where the nominal program meant it; a ``PostError``
+   (``file:line: reason``) says which block it refuses and why. The post never assumes a work offset: this program
+   is written in machine coordinates, which ``offsets_zero=True`` says; a program run under the control's work
+   offsets gives the control's parameter file instead (``var=``, ``--var`` here).
 """
 
 from __future__ import annotations
@@ -68,14 +70,16 @@ def contour_program(bbox, machine, depth_below_top: float = 5.0, feed: float = 8
     return "\n".join(lines) + "\n"
 
 
-def run(machine_name: str = "xh714", tol_um: float = 1.0):
-    """The part, the nominal program, the compensated program and the post's report."""
+def run(machine_name: str = "xh714", tol_um: float = 1.0, var: str | None = None):
+    """The part, the nominal program, the compensated program and the post's report. ``var``: the control's
+    parameter file (its work offsets); without it the program's coordinates are machine coordinates, as
+    ``contour_program`` writes them, and the post is told so (``offsets_zero``)."""
     part = cq.Workplane("XY").nas979()
     machine = load_machine(machine_file(machine_name))
     program = contour_program(part.val().BoundingBox(), machine)
     report: dict = {}
     compensated = compensate(program, machine, mode="geometric", tol_um=tol_um, source="nas979_contour.ngc",
-                             report=report)
+                             report=report, var=var, offsets_zero=var is None)
     return part, machine, program, compensated, report
 
 
@@ -93,9 +97,11 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--machine", default="xh714", help="machine file or fixture name (default xh714; on a five-axis "
                     "machine the rotary axes stand at 0)")
+    ap.add_argument("--var", help="the control's parameter file (LinuxCNC .var, mm), where the program runs under its "
+                    "work offsets (default: none; the program's coordinates are machine coordinates)")
     ap.add_argument("-o", "--output", default="cadquery_example_out", help="output folder")
     args = ap.parse_args(argv)
-    part, machine, program, compensated, report = run(args.machine)
+    part, machine, program, compensated, report = run(args.machine, var=args.var)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     cq.exporters.export(part, str(out / "nas979.step"))
@@ -103,7 +109,8 @@ def main(argv=None) -> int:
     (out / "nas979_contour_compensated.ngc").write_text(compensated)
     corr = largest_corrections(report["correction"])
     print(f"{out}: nas979.step, nas979_contour.ngc and its compensation for {machine.name} "
-          f"({report['blocks_in']} blocks in, {report['blocks_out']} out; largest corrections {corr})")
+          f"({report['blocks_in']} blocks in, {report['blocks_out']} out with {report['header_blocks']} header "
+          f"comments; largest corrections {corr})")
     return 0
 
 

@@ -154,3 +154,19 @@ def test_the_hook_takes_a_machine_file_or_a_fixture_short_name_as_the_command_li
     with pytest.raises(TypeError, match="machine: a Machine .*, a machine file's path or a fixture machine's short "
                                         "name .*; got dict"):
         cq_host.compensate(program, {"name": "xh714"}, offsets_zero=True)
+
+
+def test_example_script_runs_without_a_warning_by_default_and_says_what_it_took(tmp_path, capsys):
+    # A QA pass: the documented example warned "no work offset given" on its own default run. Its program is written
+    # in machine coordinates, which it now tells the post (offsets_zero); the header says zero was taken as meant.
+    from trueaxis.postproc.post import PostWarning
+
+    module = runpy.run_path(str(EXAMPLE), run_name="cadquery_example")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always", PostWarning)
+        assert module["main"](["-o", str(tmp_path)]) == 0
+    assert not [w for w in said if issubclass(w.category, PostWarning)], [str(w.message) for w in said]
+    header = [ln for ln in (tmp_path / "nas979_contour_compensated.ngc").read_text().splitlines()
+              if ln.startswith(("(trueaxis post: ", "(trueaxis setup: "))]
+    assert "(trueaxis setup: G54 0 mm, from --offsets-zero)" in header, header
+    assert f"out with {len(header)} header comments" in capsys.readouterr().out
