@@ -563,3 +563,31 @@ def test_an_offset_set_from_a_position_the_program_never_gave_is_refused(machine
     with pytest.raises(Exception, match=rf"<string>:\d: G\S+( L20)? sets its offset from the position of {lost}, "
                                         "which the program has not given before it"):
         compensate(program, machine, "geometric", offsets_zero=True)
+
+
+def test_a_program_without_g20_or_g21_on_an_inch_control_is_refused_not_read_as_mm(machine, tmp_path):
+    # A QA pass: --var in inch (--machine-units inch) and a program that never says G20 / G21: read as mm and
+    # corrected there (Y3 -> Y2.98107, exit 0), where LinuxCNC starts in its machine units and reads Y3 in inches. Now
+    # refused naming the first position; with G20 (or G21) stated first it posts; an mm control reads mm as before.
+    from trueaxis.postproc.post import PostError
+
+    (tmp_path / "inch.var").write_text(var_text({1: [-4.330709, 0.0, -11.811024, 0.0, 0.0, 0.0]}))
+    (tmp_path / "mm.var").write_text(var_text({1: [-110.0, 0.0, -300.0, 0.0, 0.0, 0.0]}))
+    program = "G90 G17 G94 G54\nG0 X0 Y3 Z0.8\nG1 Z-0.1 F30\nG1 X8 Y3\nM30\n"
+    inch = {"var": tmp_path / "inch.var", "machine_units": "inch"}
+    with pytest.raises(PostError, match=r"^in.ngc:2: a position before the program states its units \(G20 / G21\), "
+                                        r"for a control whose machine units are inches"):
+        compensate(program, machine, source="in.ngc", **inch)
+    for units in ("G20", "G21"):
+        stated = program.replace("G90", f"{units} G90", 1)
+        assert compensate(stated, machine, **inch) != stated
+    late = program.replace("G1 Z-0.1 F30", "G20\nG1 Z-0.1 F30")  # stated after the first position: too late
+    with pytest.raises(PostError, match=r"^in.ngc:2: a position before the program states its units"):
+        compensate(late, machine, source="in.ngc", **inch)
+    assert compensate(program, machine, var=tmp_path / "mm.var") != program  # an mm control reads mm
+    # a setup file for inch programs: said as the units not stated (it was "the program is in mm (G21)")
+    (tmp_path / "setup.toml").write_text('[setup]\nunits = "inch"\nprogram_units = "inch"\n[work_offsets]\n'
+                                         'G54 = { X = -4.330709, Y = 0, Z = -11.811024 }\n')
+    with pytest.raises(SetupError, match=r"^in.ngc:2: a position before the program states its units \(G20 / G21\), "
+                                         r"read as mm, and the setup .* is for programs in inch"):
+        compensate(program, machine, source="in.ngc", setup=tmp_path / "setup.toml")

@@ -90,6 +90,7 @@ class Conversion:
                 self.modes_stated.setdefault("plane", line_no - 1)
             elif g in (200, 210):
                 self.set_units(g == 200)
+                self.modes_stated.setdefault("units", line_no - 1)
             elif g in (400, 410, 420, 411, 421):
                 self.cutter = g // 10
                 if self.cutter != 40:

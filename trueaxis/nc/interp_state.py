@@ -39,7 +39,7 @@ class InterpState:
         self.arc_abs = False
         self.inverse = False
         self.diameter = False  # G7 (lathe diameter mode: X words are diameters, halved as LinuxCNC does; I is not)
-        self.modes_stated: dict = {}  # "G7/G8", "plane" -> the line index the program first states it on
+        self.modes_stated: dict = {}  # "G7/G8", "plane", "units" -> the line index the program first states it on
         self.feed = 0.0
         self.retract_r = False  # G99
         self.cutter = 40

@@ -91,6 +91,7 @@ class Setup:
     tools : tool (or H offset) number -> ToolOffset
     tool_length : "G43" (applied by G43 H) or "tool_change" (applied at M6, as Hurco and some Fanuc setups do)
     program_units : "mm" / "inch" when the setup is meant for programs in those units (None: any)
+    machine_units : the control's machine units where the user gave them with a LinuxCNC file (None: not given)
     """
 
     work_offsets: dict = field(default_factory=dict)
@@ -102,6 +103,7 @@ class Setup:
     tools: dict = field(default_factory=dict)
     tool_length: str = "G43"
     program_units: str | None = None
+    machine_units: str | None = None
     offsets_zero: bool = False
     files: list = field(default_factory=list)
 
@@ -131,6 +133,7 @@ class Setup:
             tools={**other.tools, **self.tools},
             tool_length=self.tool_length if self.tool_length != "G43" else other.tool_length,
             program_units=self.program_units or other.program_units,
+            machine_units=self.machine_units or other.machine_units,
             offsets_zero=self.offsets_zero or other.offsets_zero,
             files=self.files + [f for f in other.files if f not in self.files],
         )
@@ -396,6 +399,8 @@ def load_setup(*, var=None, tool_table=None, setup_file=None, machine_units: str
         out = out.merged(read_var(var, machine_units))
     if tool_table is not None:
         out = out.merged(read_tool_table(tool_table, machine_units))
+    if var is not None or tool_table is not None:
+        out.machine_units = machine_units  # (the LinuxCNC files' units are the control's machine units)
     if setup_file is not None:
         out = out.merged(read_setup_file(setup_file))
     out.offsets_zero = bool(offsets_zero)

@@ -418,6 +418,7 @@ def post_text(text: str, machine: Machine, mode: str = "geometric", *, tol_um: f
     setup = setup if setup is not None else Setup()
     prog = parse_program(text, source, passthrough_unsupported=passthrough_unsupported, setup=setup,
                          require_setup=True, machine=machine)
+    _refuse_units_not_stated(prog, setup, source)
     if setup.program_units is not None and prog.units != setup.program_units and len(prog):
         raise SetupError(f"{source}: the program is in {prog.units} ({'G20' if prog.units == 'inch' else 'G21'}), "
                          f"the setup ({setup.describe()}) is for programs in {setup.program_units}")
@@ -467,6 +468,31 @@ MAX_LINE = 255
 # A rewritten block grows by its axis words' digits (at most some 16 characters each, six axes): an input whose
 # lines are all shorter than MAX_LINE less this cannot give a longer line (the header lines are shortened to fit).
 _LINE_GROWTH = 100
+
+
+def _refuse_units_not_stated(prog, setup, source: str):
+    """A position before the program states G20 / G21 is read in mm; a control starts in its start-up units
+    (LinuxCNC: its machine units, unless its start-up code says G20 / G21). Refused where the user said the control is
+    in inches (``--machine-units inch`` with its files) or the setup is for inch programs: on an inch control a
+    program without G20 came out corrected as if in mm, exit 0 (``Y3`` -> ``Y2.98107``, 481 um off as the control
+    reads it; a QA pass)."""
+    stated = prog.modes_stated.get("units")
+    axis = ((prog.kind == ROW_PROGRAMMED) | (prog.kind == ROW_CYCLE)) & \
+        ((prog.words.astype(np.int64) & _AXIS_WORDS) != 0)
+    first = int(np.argmax(axis)) if axis.any() else None
+    if first is None or (stated is not None and stated <= int(prog.line_index[first])):
+        return
+    line = int(prog.line_no[first])
+    if setup.machine_units == "inch":
+        raise PostError(source, line, "a position before the program states its units (G20 / G21), for a control "
+                        "whose machine units are inches (--machine-units inch): the control reads it in its start-up "
+                        "units (LinuxCNC: its machine units, or its start-up code's G20 / G21), which the post does "
+                        "not assume; state G20 or G21 before the first move")
+    if setup.program_units == "inch":
+        from ..nc.setup import SetupError
+
+        raise SetupError(f"{source}:{line}: a position before the program states its units (G20 / G21), read as mm, "
+                         f"and the setup ({setup.describe()}) is for programs in inch: state G20 before the first move")
 
 
 def passed_through_warnings(prog, rows, error_um=None) -> list[str]:
