@@ -290,3 +290,30 @@ def test_placed_for_puts_the_programs_tool_in_the_spindle():
     assert placed_for(nmv, "G0 X0\n").tool == nmv.tool  # a program that does not say: the machine file's tool
     with pytest.raises(ProgramError, match="tool_d_mm=-8 is not a positive number"):
         placed_for(nmv, text.replace("tool_d_mm=8", "tool_d_mm=-8"))
+
+
+@pytest.mark.parametrize("name", ["nmv1500dcg", "bc_offset"])
+def test_a_five_axis_slot_programs_lifts_and_plunges_run_at_their_feed_as_rs274_reads_them(name, tmp_path):
+    # A QA pass: each pass's lift out of the slot was written "F200.0" while G93 (inverse time) was still in force
+    # from the cut: rs274 lifted at 520-1000 mm/min instead of 200. Every plunge and lift now runs at its CL feed in
+    # units per minute, as rs274 reads the program; the cuts stay inverse time.
+    prog = slots_program(load_machine(MACHINES / f"{name}.toml"), post=False)  # (the post keeps the feed words)
+    path = tmp_path / "slots.ngc"
+    path.write_text(prog.text)
+    run_rs274(path, {1: 0.0}, tmp_path / "rs")
+    canon = (tmp_path / "rs" / "canon.txt").read_text().splitlines()
+    feed, last, lifts, plunges = 0.0, None, [], []
+    for line in canon:
+        m = re.search(r"SET_FEED_RATE\(([-\d.]+)\)", line)
+        if m:
+            feed = float(m.group(1))
+        m = re.search(r"STRAIGHT_(FEED|TRAVERSE)\(([^)]*)\)", line)
+        if m:
+            end = np.array([float(v) for v in m.group(2).split(",")])
+            if m.group(1) == "FEED" and last is not None and np.allclose(end[[0, 1, 3, 4, 5]], last[[0, 1, 3, 4, 5]]):
+                (lifts if end[2] > last[2] else plunges).append(feed)
+            last = end
+    n_passes = sum(1 for k in prog.cl.kind if k == "lift")
+    assert len(lifts) == n_passes > 0 and len(plunges) == n_passes, (len(lifts), len(plunges), n_passes)
+    assert lifts == [200.0] * n_passes and plunges == [200.0] * n_passes
+    assert "G93" in prog.text  # (the cuts in inverse time, as before)

@@ -423,13 +423,16 @@ def _pass_blocks(machine: Machine, cl: ClData, q: np.ndarray, sel: np.ndarray, s
     out_feed = "G94"
     for i in sel:
         kind = cl.kind[i]
-        if kind == "approach" or kind == "retract":
+        if kind in ("approach", "retract", "plunge", "lift"):
+            # in units per minute: a lift after a five-axis pass's G93 moves was read as an inverse time (F200 lifts
+            # at 520-1000 mm/min, rs274's reading; a QA pass)
             if out_feed != "G94":
                 lines.append("G94")
                 out_feed = "G94"
-            lines.append(f"G0 {_words(machine, q[i])}")
-        elif kind in ("plunge", "lift"):
-            lines.append(f"G1 {_words(machine, q[i])} F{cl.feed[i]:.1f}")
+            if kind in ("approach", "retract"):
+                lines.append(f"G0 {_words(machine, q[i])}")
+            else:
+                lines.append(f"G1 {_words(machine, q[i])} F{cl.feed[i]:.1f}")
         else:
             if five:
                 if out_feed != "G93":
