@@ -517,3 +517,25 @@ def test_a_rotary_correction_above_the_bound_near_the_pole_names_the_singular_co
     assert re.search(r"correction of C is [-+][\d.]+ deg \(([\d.]+) mm at the 100 mm lever arm", said), said
     assert "near the singular cone (--singular-deg 1)" in said and "check the machine file" not in said
     compensate(text, m, "geometric", offsets_zero=True, singular_deg=3.0)  # held in the cone: posted
+
+
+def test_a_goto_after_gohome_is_refused_and_the_cl_warnings_name_the_cl_files_lines(nmv):
+    # A QA pass: GOHOME then GOTO posted the move from home as a G93 cut timed from the CL chord before GOHOME (10 mm
+    # at 800 mm/min), where the tool moved 60 mm from home: 4835 mm/min, exit 0. Refused now (RAPID or FROM first);
+    # with RAPID it posts, and the G28's warning names the CL file's GOHOME line (it named the machine-axis
+    # program's line 8 of a 7-line file).
+    from trueaxis.postproc.post import PostError
+
+    text = "FEDRAT/800\nGOTO/0,0,5,0,0.1,1\nGOTO/10,0,5\nGOHOME\nGOTO/20,0,5\n"
+    with pytest.raises(ClError, match=r"^home.apt:5: GOTO after GOHOME \(line 4\): the move from the home position "):
+        read_cl(text, "home.apt")
+    with pytest.raises(PostError, match=r"^home.apt:5: GOTO after GOHOME"):
+        compensate(text, nmv, source="home.apt", offsets_zero=True)
+    report = {}
+    rapid = text.replace("GOHOME\n", "GOHOME\nRAPID\n")
+    out = compensate(rapid, nmv, source="home.apt", offsets_zero=True, report=report)
+    after = out.splitlines()[out.splitlines().index("G28") + 1]
+    assert after.startswith("G0 ")  # the move from home a rapid, as the CL data say
+    said = [w for w in report["warnings"] if "G28" in w]
+    assert len(said) == 1 and said[0].startswith("home.apt:4: ") and "of the machine-axis program made from it" in \
+        said[0], report["warnings"]

@@ -385,6 +385,7 @@ def _read_apt(text: str, source: str) -> ClData:
     scale = 1.0
     f_now = math.nan
     rapid_next = False
+    home_at = None  # the line of a GOHOME the tool path has not left with a RAPID or FROM
     u_now = [0.0, 0.0, 1.0]
     for line, stmt in _apt_statements(text, source):
         m = _APT_STATEMENT.match(stmt)
@@ -401,6 +402,13 @@ def _read_apt(text: str, source: str) -> ClData:
                 raise ClError(source, line, f"{word}/ needs 3 or 6 numbers (x,y,z[,i,j,k]), got {len(v)}")
             if len(v) == 6:
                 u_now = v[3:]
+            if home_at is not None and word == "GOTO" and not rapid_next:
+                # the move from the home position is no segment of the tool path: its length, and so its time,
+                # is not the CL chord's (a QA pass: timed from the chord, it ran at 4835 mm/min for 800)
+                raise ClError(source, line, f"GOTO after GOHOME (line {home_at}): the move from the home position is "
+                                            "not a segment of the tool path, so its feed cannot be timed; put RAPID "
+                                            "before it, or start again with FROM")
+            home_at = None
             tip.append([c * scale for c in v[:3]])
             axis.append(list(u_now))
             feed.append(f_now)
@@ -445,6 +453,8 @@ def _read_apt(text: str, source: str) -> ClData:
             setup.append(SetupBlock(len(tip), "M5\nM9", line, retract=True))
             ended = True
         elif word in APT_SETUP:
+            if word == "GOHOME":
+                home_at = line
             words = _apt_setup(word, args, source, line, scale, spindle)
             setup.append(SetupBlock(len(tip), words, line))
         elif word in _MOVING_APT:
