@@ -4,8 +4,9 @@ Two formats, told apart by content (:func:`cl_format`):
 
 - **CSV**: the first line that is not blank and not a ``#`` comment is a header naming the columns; ``x y z i j k``
   are required, ``f`` (or ``feed``: mm/min) is optional, other columns are ignored. Separator ``,`` (or ``;``, or tabs
-  and blanks when the header has neither). An empty ``f`` cell keeps the previous feed. The first point is reached
-  with a rapid; every other row is a cutting move.
+  and blanks when the header has neither). An empty ``f`` cell keeps the previous feed; ``f = 0`` marks a rapid (the
+  convention of CL CSVs, and what ``trueaxis program --cl`` writes). The first point is reached with a rapid; every
+  other row is a cutting move unless its feed is 0.
 - **APT** (CL print style): ``GOTO/x,y,z,i,j,k`` (``GOTO/x,y,z`` keeps the previous tool axis, +Z at the start),
   ``FEDRAT/f`` (mm/min; ``FEDRAT/f,MMPM``, ``FEDRAT/MMPM,f``, ``IPM`` in inch/min), ``RAPID`` (the next GOTO is a rapid),
   ``FROM/x,y,z[,i,j,k]`` (a rapid to the start), ``UNITS/MM`` or ``UNITS/INCHES``, ``TLAXIS/i,j,k`` (the tool axis of
@@ -269,7 +270,7 @@ def _read_csv(text: str, source: str) -> ClData:
                 try:
                     float(raw[k])
                 except ValueError:
-                    raise ClError(source, int(line_no[k]), f"column {cols[col]}: {raw[k]!r} is not a number") from None
+                    raise ClError(source, int(line_no[k]), f"column {cols[col]}: {str(raw[k])!r} is not a number") from None
         if not allow_empty and np.any(empty):
             k = int(np.argmax(empty))
             raise ClError(source, int(line_no[k]), f"column {cols[col]} is empty")
