@@ -539,3 +539,32 @@ def test_a_goto_after_gohome_is_refused_and_the_cl_warnings_name_the_cl_files_li
     said = [w for w in report["warnings"] if "G28" in w]
     assert len(said) == 1 and said[0].startswith("home.apt:4: ") and "of the machine-axis program made from it" in \
         said[0], report["warnings"]
+
+
+def test_a_correction_blown_up_at_the_pole_names_the_singular_cone_not_the_machine_file(nmv):
+    # A QA pass: --singular-deg 0 with a move through B = 0: "correction of X is -5.2 mm ...: check the machine file".
+    # The linear axis follows the rotary one that turns fast at the pole: the singular cone is named, as for a rotary.
+    program = "G21 G90 G17 G94\nG0 X-50 Y65 Z95 B0 C0\nG1 Y55 F800\nG1 X50\nM30\n"
+    with pytest.raises(PostError, match=r"^s0.ngc:2: correction of X is .* mm, above the bound of 0.5 mm; the tilt "
+                                        r"there is 0 deg, near the singular cone \(--singular-deg 0\)"):
+        compensate(program, nmv, source="s0.ngc", offsets_zero=True, singular_deg=0.0)
+    assert compensate(program, nmv, offsets_zero=True) != program  # the default cone holds C there
+
+
+def test_a_layout_the_inverse_kinematics_does_not_cover_is_said_by_machine_check_and_refused_by_program(tmp_path):
+    # A QA pass: C on the bed and B on C (the rotary axes swapped): `machine check` said ok, and `trueaxis program`
+    # died with a NotImplementedError traceback, exit 1. Now a warning in machine check and one line, exit 3.
+    text = (MACHINES / "nmv1500dcg.toml").read_text()
+    assert 'bed_to_workpiece = ["B", "C"]' in text
+    (tmp_path / "cb.toml").write_text(text.replace('bed_to_workpiece = ["B", "C"]', 'bed_to_workpiece = ["C", "B"]'))
+    cli = [sys.executable, "-m", "trueaxis.cli"]
+    r = subprocess.run([*cli, "machine", "check", str(tmp_path / "cb.toml")], capture_output=True, text=True)
+    assert r.returncode == 0 and "inverse kinematics is implemented for an outer rotary axis about Z" in r.stderr
+    assert "CL data, the test parts' programs and TCP output cannot be made for it" in r.stderr
+    r = subprocess.run([*cli, "program", "nas979", "--machine", str(tmp_path / "cb.toml"), "-o",
+                        str(tmp_path / "cb.ngc")], capture_output=True, text=True)
+    assert r.returncode == 3 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert r.stderr.startswith("trueaxis program: inverse kinematics is implemented for") and \
+        not (tmp_path / "cb.ngc").exists()
+    r = subprocess.run([*cli, "machine", "check", "nmv1500dcg"], capture_output=True, text=True)
+    assert r.returncode == 0 and "warning" not in r.stderr

@@ -127,6 +127,13 @@ def cmd_machine_check(args) -> int:
     large = implausible_parameters(m)
     if large:
         print(f"trueaxis machine check: warning: {args.file}: {large}", file=sys.stderr)
+    if m.is_five_axis:  # (G-code posts by the forward kinematics; CL data, test parts and TCP need the inverse)
+        from .machine.kinematics import rotary_layout_problem
+
+        problem = rotary_layout_problem(m)
+        if problem:
+            print(f"trueaxis machine check: warning: {args.file}: {problem}: CL data, the test parts' programs and "
+                  "TCP output cannot be made for it", file=sys.stderr)
     return 0
 
 
@@ -845,7 +852,8 @@ def _refusal_errors() -> tuple:
     found = []
     for module, name in (("trueaxis.inspect.cloud", "CloudError"), ("trueaxis.inspect.tolerances", "ToleranceError"),
                          ("trueaxis.inspect.deviation", "InspectionError"), ("trueaxis.sim.effects", "EffectsFileError"),
-                         ("trueaxis.postproc.programs", "ProgramError")):
+                         ("trueaxis.postproc.programs", "ProgramError"),
+                         ("trueaxis.machine.kinematics", "UnsupportedKinematics")):
         if module in sys.modules:
             found.append(getattr(sys.modules[module], name))
     return tuple(found)

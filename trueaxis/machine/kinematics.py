@@ -106,6 +106,20 @@ class InverseResult:
     branch: np.ndarray
 
 
+class UnsupportedKinematics(NotImplementedError):
+    """A five-axis layout whose inverse kinematics is not implemented (the tool axis from the machine axes): CL data,
+    the test parts' programs and TCP output cannot be made for it."""
+
+
+def rotary_layout_problem(machine: Machine) -> str | None:
+    """Why the inverse kinematics cannot serve ``machine`` (a five-axis mill), or None when it can."""
+    try:
+        _rotary_pair(machine)
+    except (UnsupportedKinematics, ValueError) as exc:
+        return str(exc)
+    return None
+
+
 def _rotary_pair(machine: Machine):
     """(outer, inner) rotary links: outer acts on the part side of the relative chain, inner nearer the tool."""
     rot = [lk for lk in chain_links(machine) if lk.rotary]
@@ -113,7 +127,7 @@ def _rotary_pair(machine: Machine):
         raise ValueError(f"inverse kinematics needs two rotary axes; {machine.name} has {len(rot)}")
     outer, inner = rot
     if abs(outer.direction @ Z_TOOL) < 1 - 1e-12 or abs(inner.direction @ Z_TOOL) > 1e-12:
-        raise NotImplementedError(
+        raise UnsupportedKinematics(
             "inverse kinematics is implemented for an outer rotary axis about Z and an inner one perpendicular to Z"
             f" (B-C, A-C tables, B head on a C table); {machine.name} has {outer.axis} about {outer.direction},"
             f" {inner.axis} about {inner.direction}"

@@ -1113,9 +1113,12 @@ class _Poster:
                 val = np.degrees(dq[k, j]) if ax.is_rotary else dq[k, j]
                 lever = f" ({size[k]:.3g} mm at the 100 mm lever arm the bound counts an angle at)" \
                     if ax.is_rotary else ""
-                pair = self._pair() if ax.is_rotary else None
+                # (any axis: near the pole a linear axis follows the fast rotary one; with --singular-deg 0 the X
+                # correction was blamed on the machine file, a QA pass)
+                pair = self._pair() if self.m.is_five_axis else None
                 tilt = None if pair is None else float(np.degrees(q_nom[k, pair[1].column]))
-                near = "" if tilt is None or abs(np.sin(np.radians(tilt))) > np.sin(5 * self.singular) else (
+                cone = max(5 * self.singular, np.radians(2.0))
+                near = "" if tilt is None or abs(np.sin(np.radians(tilt))) > np.sin(cone) else (
                     f"; the tilt there is {tilt:.3g} deg, near the singular cone (--singular-deg "
                     f"{np.degrees(self.singular):g}), where the other rotary axis turns fast: a larger --singular-deg "
                     f"holds it there")
