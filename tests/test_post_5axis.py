@@ -568,3 +568,17 @@ def test_a_layout_the_inverse_kinematics_does_not_cover_is_said_by_machine_check
         not (tmp_path / "cb.ngc").exists()
     r = subprocess.run([*cli, "machine", "check", "nmv1500dcg"], capture_output=True, text=True)
     assert r.returncode == 0 and "warning" not in r.stderr
+
+
+def test_a_repeated_cl_point_is_no_move_and_posts_as_without_it(nmv):
+    # A QA pass: a CL point repeated (common in CAM output) made a zero-length G93 move, F8e11, refused as "number out
+    # of range". It is dropped: the same program as without it, its feed modal for the points after it, an APT setup
+    # statement between the two still before the next move.
+    plain = "x,y,z,i,j,k,f\n0,0,5,0,0.1,1,\n10,0,5,0,0.1,1,800\n20,0,5,0,0.1,1,\n"
+    repeated = "x,y,z,i,j,k,f\n0,0,5,0,0.1,1,\n10,0,5,0,0.1,1,800\n10,0,5,0,0.1,1,\n20,0,5,0,0.1,1,\n"
+    assert cl_to_program(read_cl(repeated), nmv) == cl_to_program(read_cl(plain), nmv)
+    apt = "FEDRAT/800\nGOTO/0,0,5,0,0.1,1\nGOTO/10,0,5\nSPINDL/1000\nGOTO/10,0,5\nGOTO/20,0,5\n"
+    cl = read_cl(apt)
+    assert len(cl) == 3 and [b.before for b in cl.setup] == [2] and list(cl.line) == [2, 3, 6]
+    out = cl_to_program(cl, nmv).splitlines()
+    assert out[out.index("S1000 M3") + 1].startswith("G1 ") and sum(s.startswith("G1 ") for s in out) == 2

@@ -20,7 +20,7 @@ Two formats, told apart by content (:func:`cl_format`):
   skipped silently could be a setup the machine then lacks.
 
 Lengths in mm in the part frame (APT ``UNITS/INCHES`` is converted), tool axis from tip towards the spindle (it is
-normalised).
+normalised). A point that repeats the one before (tip within 1 nm, tool axis within 1 nrad) is no move and is dropped.
 
 One CL type, :class:`ClData`, for these files and for the test parts' programs (``trueaxis.postproc.programs``,
 made with :meth:`ClData.of_passes`: a kind and a pass per point), and one path from CL to machine axes,
@@ -232,7 +232,19 @@ def _finish(tip, axis, feed, rapid, line, source, fmt, setup=()) -> ClData:
     given = np.where(np.isfinite(feed), np.arange(feed.size), -1)
     last = np.maximum.accumulate(given) if feed.size else given
     feed = np.where(last >= 0, feed[np.maximum(last, 0)], np.nan)
-    return ClData(tip, axis / norm[:, None], feed, np.asarray(rapid, bool), line, source, fmt, tuple(setup))
+    axis = axis / norm[:, None]
+    rapid = np.asarray(rapid, bool)
+    # A point repeated (the tip within 1 nm and the tool axis within 1 nrad of the one before, as CAM output often
+    # has) is no move: dropped (its feed stays modal for the points after it). Kept, its zero length made an
+    # inverse-time feed of 8e11 the reader refused as "number out of range" (a QA pass).
+    same = np.r_[False, (np.linalg.norm(np.diff(tip, axis=0), axis=1) <= 1e-6)
+                 & (np.linalg.norm(np.diff(axis, axis=0), axis=1) <= 1e-9)] if len(tip) else np.zeros(0, bool)
+    if same.any():
+        keep = ~same
+        before = np.r_[0, np.cumsum(keep)]  # points kept before each original index
+        setup = [replace(b, before=int(before[b.before])) for b in setup]
+        tip, axis, feed, rapid, line = tip[keep], axis[keep], feed[keep], rapid[keep], line[keep]
+    return ClData(tip, axis, feed, rapid, line, source, fmt, tuple(setup))
 
 
 def _read_csv(text: str, source: str) -> ClData:
