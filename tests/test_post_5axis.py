@@ -582,3 +582,15 @@ def test_a_repeated_cl_point_is_no_move_and_posts_as_without_it(nmv):
     assert len(cl) == 3 and [b.before for b in cl.setup] == [2] and list(cl.line) == [2, 3, 6]
     out = cl_to_program(cl, nmv).splitlines()
     assert out[out.index("S1000 M3") + 1].startswith("G1 ") and sum(s.startswith("G1 ") for s in out) == 2
+
+
+def test_cl_csv_columns_named_with_their_unit_are_read_in_mm_or_refused_naming_the_unit(nmv):
+    # A QA pass: a header "x_mm,y_mm,z_mm,..." (or "X [mm]") was taken for G-code ("word 'x' with no number"). The
+    # columns' mm (and the feed's mm/min) are read; another unit is refused naming the column.
+    plain = cl_to_program(read_cl("x,y,z,i,j,k,f\n0,0,5,0,0.1,1,\n10,0,5,0,0.1,1,800\n"), nmv)
+    for head in ("x_mm,y_mm,z_mm,i,j,k,f", "X [mm],Y [mm],Z [mm],I,J,K,F [mm/min]", "x(mm);y(mm);z(mm);i;j;k;feed_mmpm"):
+        sep = ";" if ";" in head else ","
+        text = head + "\n" + "\n".join(r.replace(",", sep) for r in ("0,0,5,0,0.1,1,", "10,0,5,0,0.1,1,800")) + "\n"
+        assert cl_to_program(read_cl(text), nmv) == plain, head
+    with pytest.raises(ClError, match=r"^u.csv:1: CSV header gives column x in 'in': CL data in CSV are read in mm"):
+        read_cl("x_in,y_in,z_in,i,j,k,f\n0,0,5,0,0.1,1,\n", "u.csv")

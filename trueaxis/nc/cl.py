@@ -179,12 +179,31 @@ def cl_format(text: str) -> str | None:
     return None
 
 
-def _header_columns(line: str):
+# a column name with its unit: "x_mm", "x [mm]", "x(mm)", "f_mm_min", "feed [mm/min]"
+_UNIT_SUFFIX = re.compile(r"([a-z][a-z0-9]*)\s*(?:_([a-z_/]+)|\[\s*([a-z_/]+)\s*\]|\(\s*([a-z_/]+)\s*\))")
+_MM_UNITS = {"x": ("mm",), "y": ("mm",), "z": ("mm",), "f": ("mm_min", "mm/min", "mmpm"),
+             "feed": ("mm_min", "mm/min", "mmpm")}
+
+
+def _header_columns(line: str, units: dict | None = None):
+    """The header's column names (lower case), a unit suffix taken off the coordinates' and the feed's names
+    (``x_mm``, ``X [mm]``, ``f [mm/min]``: into ``units`` {name: unit} when given); None when it is not a header."""
     sep = _separator(line)
     cells = [c.strip().strip('"').strip().lower() for c in (line.split(sep) if sep else line.split())]
-    if not cells or not all(re.fullmatch(r"[a-z_][a-z0-9_]*", c) for c in cells):
+    if not cells:
         return None
-    return cells
+    names = []
+    for c in cells:
+        m = _UNIT_SUFFIX.fullmatch(c)
+        if m and m.group(1) in _MM_UNITS:
+            names.append(m.group(1))
+            if units is not None:
+                units[m.group(1)] = next(u for u in m.groups()[1:] if u)
+        elif re.fullmatch(r"[a-z_][a-z0-9_]*", c):
+            names.append(c)
+        else:
+            return None
+    return names
 
 
 def _separator(line: str):
@@ -251,7 +270,13 @@ def _read_csv(text: str, source: str) -> ClData:
     lines = text.splitlines()
     data = [(n + 1, s) for n, s in enumerate(ln.strip() for ln in lines) if s and not s.startswith("#")]
     (head_no, head), rows = data[0], data[1:]
-    cols = _header_columns(head)
+    units: dict = {}
+    cols = _header_columns(head, units)
+    other = {c: u for c, u in units.items() if u not in _MM_UNITS[c]}
+    if other:
+        c, u = next(iter(other.items()))
+        raise ClError(source, head_no, f"CSV header gives column {c} in {u!r}: CL data in CSV are read in mm (a feed "
+                                       "in mm/min); convert the file, or write it as APT with UNITS/INCHES")
     sep = _separator(head)
     missing = [c for c in _REQUIRED if c not in cols]
     if missing:
