@@ -795,3 +795,21 @@ def test_a_program_a_trueaxis_post_wrote_is_read_as_compensated_by_its_header():
     # another twin: a warning besides the note (another round's program was accepted with twice the true errors,
     # the note read as information; QA pass); none for this twin's own program
     assert "make sure it is the program that cut this part" in other["warning"] and "warning" not in said
+
+
+def test_a_program_written_for_another_machine_is_refused_and_no_twin_written(tmp_path, measured_cone):
+    # A QA pass: an XH714 program identified with --machine nmv1500dcg was ACCEPTED and the NMV twin rewritten from a
+    # part the NMV did not cut; post and simulate refuse such a program by its header. Refused here too, before any
+    # work, naming both machines; nothing written.
+    from trueaxis.postproc.post import PostError
+
+    prog, true, pts, nrm, dev = measured_cone
+    assert "(machine: NMV 1500 DCG" in prog.text
+    program_file = tmp_path / "cone.ngc"
+    program_file.write_text(prog.text)
+    out = tmp_path / "identified.toml"
+    with pytest.raises(PostError, match=r"the program was written for the machine 'NMV 1500 DCG layout \[B-C "
+                                        r"tilting-rotary table\]', the twin given is 'Head-table"):
+        run_identification(Cloud(pts, nrm, "cmm.ply"), dev, load_part("nas979"), machine=MACHINES / "headtable.toml",
+                           program=program_file, write=out)
+    assert not out.exists()

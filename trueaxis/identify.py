@@ -1502,6 +1502,11 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     if not program_path.is_file():
         raise ValueError(f"{program_path}: no such program file")
     text = program_path.read_text(encoding="utf-8", errors="replace")
+    # a program written for another machine (its header names it): refused as post and simulate refuse it (it was
+    # ACCEPTED, and the other machine's twin rewritten from a part this one did not cut; a QA pass)
+    from .postproc.post import refuse_other_machine
+
+    refuse_other_machine(text, str(program_path), original, ("the twin given is", "identify with"))
     placed = placed_for(original, text, part.get("part"))
     normals, given = nominal_normals(cloud.points, part, cloud.normals)
     parsed = parse_program(text, str(program_path))
