@@ -813,3 +813,23 @@ def test_a_program_written_for_another_machine_is_refused_and_no_twin_written(tm
         run_identification(Cloud(pts, nrm, "cmm.ply"), dev, load_part("nas979"), machine=MACHINES / "headtable.toml",
                            program=program_file, write=out)
     assert not out.exists()
+
+
+def test_an_identified_twins_note_says_what_its_figures_are(tmp_path, measured_cone):
+    # A QA pass: the twin written from `machine nominal` kept "every error parameter zero" in its note after values
+    # were written, and gave the fit's residual (the part's set-up offset fitted) as if it were the next part's RMS.
+    from trueaxis.cli import main
+
+    prog, true, pts, nrm, dev = measured_cone
+    assert main(["machine", "nominal", "nmv1500dcg", "-o", str(tmp_path / "twin0.toml")]) == 0
+    note0 = load_machine(tmp_path / "twin0.toml").note
+    assert note0.startswith("written by trueaxis machine nominal as the error-free twin of NMV 1500 DCG") and \
+        "every error parameter zero then" in note0
+    program_file = tmp_path / "cone.ngc"
+    program_file.write_text(prog.text)
+    out = tmp_path / "twin1.toml"
+    report, result = run_identification(Cloud(pts, nrm, "cmm.ply"), dev, load_part("nas979"),
+                                        machine=tmp_path / "twin0.toml", program=program_file, write=out)
+    assert result.verdict == "accepted" and result.setup_offset
+    note = load_machine(out).note
+    assert note.startswith(note0) and "the fit's residual RMS" in note and "the part's set-up offset fitted" in note

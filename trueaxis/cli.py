@@ -2,8 +2,9 @@
 
 Thin glue: parse arguments, call the package, print. A usage error (an option, a value, a path) ends with one line on
 stderr and exit status 2, never a traceback; an input the product refuses (a program, CL data, a machine file, a
-setup, a cloud: ``file:line: reason``) or a computed result it refuses (an identification that does not explain the
-part, with --write) with exit status 3, nothing written; a failure of the system (a file that cannot be read or
+setup, a cloud: ``file:line: reason``) with exit status 3, nothing written, or a computed result it refuses (an
+identification that does not explain the part, with --write) with exit status 3, its report written, the twin not; a
+failure of the system (a file that cannot be read or
 written) with 1 (README "How it fails").
 """
 
@@ -145,8 +146,8 @@ def cmd_machine_nominal(args) -> int:
 
     m = load_machine(machine_file(args.file))
     nominal = m.error_free()
-    nominal.note = (f"error-free twin of {m.name} ({m.source}): every error parameter zero, no force model; "
-                    "written by trueaxis machine nominal")
+    nominal.note = (f"written by trueaxis machine nominal as the error-free twin of {m.name} ({m.source}): every "
+                    "error parameter zero then, no force model")
     atomic_write(args.output, dump_machine(nominal))
     print(f"{args.output}: {m.name} with every one of its {len(m.parameter_names())} error parameters zero and no "
           "force model")
@@ -608,8 +609,9 @@ def build_parser() -> argparse.ArgumentParser:
                 epilog="Exit status: 0 done; 1 the system refused (a file that cannot be read or "
                        "written); 2 usage (an option, a value, a path), nothing written; 3 an "
                        "input refused (a program, CL data, a machine file, a setup, a cloud, "
-                       "tolerances; a --strict warning) or a computed result refused (an "
-                       "identification refused: its changes do not hold), nothing written; "
+                       "tolerances; a --strict warning), nothing written, or a computed result "
+                       "refused (an identification refused: its changes do not hold; its report "
+                       "says why, the twin is not written); "
                        "130 / 143 interrupted (SIGINT / SIGTERM); 141 the reader of standard "
                        "output went away (a pipe closed).")
     p.add_argument("--version", action="version", version=f"trueaxis {__version__}")

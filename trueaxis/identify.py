@@ -1541,6 +1541,9 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
 def _identified_note(original: Machine, result: Identification) -> str:
     changed = [result.names[i] for i in np.nonzero(result.identified)[0]]
     head = original.note + "\n" if original.note else ""
-    return (f"{head}Identified by trueaxis from a measured part ({result.n_used} points, residual RMS "
-            f"{result.predicted_rms_um:.2f} -> {result.residual_rms_um:.2f} um, verdict {result.verdict}): changed "
-            f"{', '.join(changed) if changed else 'nothing'}; every other value is the twin's own.")
+    # (the residual is the fit's, with the part's set-up offset fitted where it was free: not the next part's RMS, which
+    # keeps what the changes move as a translation; a QA pass read 1.85 um where the next part was 10.93)
+    setup = ", the part's set-up offset fitted" if result.setup_offset else ""
+    return (f"{head}Identified by trueaxis from a measured part ({result.n_used} points, the fit's residual RMS "
+            f"{result.predicted_rms_um:.2f} -> {result.residual_rms_um:.2f} um{setup}, verdict {result.verdict}): "
+            f"changed {', '.join(changed) if changed else 'nothing'}; every other value is the twin's own.")
