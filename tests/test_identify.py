@@ -833,3 +833,24 @@ def test_an_identified_twins_note_says_what_its_figures_are(tmp_path, measured_c
     assert result.verdict == "accepted" and result.setup_offset
     note = load_machine(out).note
     assert note.startswith(note0) and "the fit's residual RMS" in note and "the part's set-up offset fitted" in note
+
+
+def test_the_setup_accuracy_with_a_best_fit_is_refused_not_ignored(tmp_path, measured_cone, capsys):
+    # A QA pass: --setup-sigma-um with --align bestfit was taken and changed nothing (the best fit takes the set-up),
+    # and the bestfit note suggested giving it. Refused by the command (exit 2) and by the domain function.
+    from trueaxis.cli import main
+
+    prog, true, pts, nrm, dev = measured_cone
+    program_file = tmp_path / "cone.ngc"
+    program_file.write_text(prog.text)
+    with pytest.raises(ValueError, match="with the best-fit alignment: the best fit takes the part's set-up"):
+        run_identification(Cloud(pts, nrm, "cmm.ply"), dev, load_part("nas979"), machine=MACHINES / "nmv1500dcg.toml",
+                           program=program_file, alignment="bestfit", setup_sigma_um=0.0)
+    np.savetxt(tmp_path / "cmm.xyz", pts)
+    assert main(["inspect", str(tmp_path / "cmm.xyz"), "--part", "nas979", "--identify", "--machine", "nmv1500dcg",
+                 "--program", str(program_file), "--align", "bestfit", "--setup-sigma-um", "5"]) == 2
+    assert "--setup-sigma-um: with --align bestfit the best fit takes the part's set-up" in capsys.readouterr().err
+    from trueaxis.inspect.flyers import residual_above_noise_note
+
+    note = residual_above_noise_note(3.0, 0.5, kept=["XOC"], setup_given=True)
+    assert note and "--setup-sigma-um" not in note

@@ -509,6 +509,9 @@ def cmd_inspect(args) -> int:
         raise UsageError("--identify needs --machine TWIN.toml and --program PROG.ngc")
     if not args.identify and (args.machine or args.program or args.write or args.setup_sigma_um is not None):
         raise UsageError("--machine, --program, --write and --setup-sigma-um go with --identify")
+    if args.align == "bestfit" and args.setup_sigma_um is not None:  # (it was taken and not used; a QA pass)
+        raise UsageError("--setup-sigma-um: with --align bestfit the best fit takes the part's set-up (no set-up "
+                         "offset is fitted); give it with --align none or datum")
     out_dir = Path(args.output) if args.output is not None else \
         Path(args.cloud).with_name(Path(args.cloud).stem + "_report")
     if args.machine:  # a file, or a fixture machine's short name, as every other command takes it
@@ -541,7 +544,8 @@ def cmd_inspect(args) -> int:
             note = residual_above_noise_note(identification.residual_rms_um,
                                              flyers["flyers_set_apart"]["local_sigma_um"],
                                              kept=[*identification.taken_by_setup, *identification.not_significant],
-                                             setup_given=args.setup_sigma_um is not None)
+                                             setup_given=args.setup_sigma_um is not None
+                                             or args.align == "bestfit")
             if note:
                 result.report["identification"]["unexplained_note"] = note
         with single_blas_thread():

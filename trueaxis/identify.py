@@ -1497,6 +1497,9 @@ def run_identification(cloud, deviation_um, part: dict, *, machine: str | Path, 
     from .fileio import atomic_write
     from .machine.machine_file import update_machine_text
 
+    if alignment == "bestfit" and setup_sigma_um is not None:
+        raise ValueError("the set-up's accuracy (setup_sigma_um) with the best-fit alignment: the best fit takes the "
+                         "part's set-up (no set-up offset is fitted); give it with the alignment none or datum")
     original = load_machine(machine)
     program_path = Path(program)
     if not program_path.is_file():

@@ -108,7 +108,8 @@ def residual_above_noise_note(residual_um: float, local_sigma_um: float, what: s
     neighbouring points (``local_sigma_um`` / ``LOCAL_TO_NOISE``: independent of any model); else None. ``kept``: the
     parameters the fit held at the twin's values although the part sees them (not significant: this part cannot
     determine them, from its set-up or from each other), a second cause of such a residual, named with the first.
-    ``setup_given``: the set-up's accuracy was given (the note then names only a second placement)."""
+    ``setup_given``: the set-up's accuracy was given, or a best fit took the set-up (the note then names only a second
+    placement)."""
     noise = local_sigma_um / LOCAL_TO_NOISE
     if not (math.isfinite(noise) and noise > 0 and residual_um > UNEXPLAINED_FACTOR * noise):
         return None
