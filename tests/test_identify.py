@@ -548,6 +548,15 @@ def test_a_program_with_axes_the_twin_lacks_is_refused_with_exit_3(shop, tmp_pat
     code = _cli("inspect", shop / "changed.ply", "--part", "nas979", "--identify", "--machine", MACHINES / "xh714.toml",
                 "--program", shop / "cone.ngc", "--write", tmp_path / "x.toml", "-o", tmp_path / "rep")
     err = capsys.readouterr().err.strip().splitlines()
+    # (its header names the machine it was written for: that refusal comes first; without the header, its axes)
+    assert code == EXIT_REFUSED and len(err) == 1 and "the program was written for the machine 'NMV 1500 DCG" in err[0]
+    assert not (tmp_path / "rep").exists() and not (tmp_path / "x.toml").exists()
+    text = (shop / "cone.ngc").read_text()
+    (tmp_path / "cone.ngc").write_text("".join(ln for ln in text.splitlines(keepends=True)
+                                               if not ln.startswith("(machine: ")))
+    code = _cli("inspect", shop / "changed.ply", "--part", "nas979", "--identify", "--machine", MACHINES / "xh714.toml",
+                "--program", tmp_path / "cone.ngc", "--write", tmp_path / "x.toml", "-o", tmp_path / "rep")
+    err = capsys.readouterr().err.strip().splitlines()
     assert code == EXIT_REFUSED and len(err) == 1 and "moves axes B C" in err[0]
     assert not (tmp_path / "rep").exists() and not (tmp_path / "x.toml").exists()
 
@@ -854,3 +863,28 @@ def test_the_setup_accuracy_with_a_best_fit_is_refused_not_ignored(tmp_path, mea
 
     note = residual_above_noise_note(3.0, 0.5, kept=["XOC"], setup_given=True)
     assert note and "--setup-sigma-um" not in note
+
+
+def test_a_no_change_verdict_lists_its_significant_changes_apart_from_the_insignificant_ones():
+    # A QA pass: half the cone (y > 0) measured off nmv1500dcg against its error-free twin: NO CHANGE (the changes
+    # explain too little of the part), and "not significant, kept: ... AOC -27.22 +- 3.40" (8 std). The significant
+    # changes a no-change verdict does not write are listed as such; "not significant" holds those below 3 std.
+    from trueaxis.nc.gcode import parse_program
+
+    m = load_machine(MACHINES / "nmv1500dcg.toml")
+    twin = error_free(m)
+    prog = nas979_program(twin)
+    res = simulate(prog.text, m, part="nas979", points=4000, noise_um=0.5, seed=0)
+    ok = np.all(np.isfinite(res.measured), axis=1) & (res.measured[:, 1] > 0)
+    pts, nrm = res.measured[ok], res.normals[ok]
+    r = identify(pts, nrm, cone_deviation_um(pts, load_part("nas979")), parse_program(prog.text),
+                 placed_for(twin, prog.text, "nas979"))
+    assert r.verdict == "no change" and "AOC" in r.too_small
+    assert all(abs(c) >= 3.0 * s for c, s in r.too_small.values())
+    assert all(abs(c) < 3.0 * s for c, s in r.not_significant.values()) and "AOC" not in r.not_significant
+    said = "\n".join(r.verdict_lines())
+    assert "significant, but together too small to write, kept: AOC -27.22 +- 3.40" in said, said
+    assert "not significant, kept: " not in said or "AOC" not in said.split("not significant, kept: ")[1]
+    rep = r.as_report()
+    assert [e["name"] for e in rep["too_small_to_write"]] == list(r.too_small)
+    assert {d["category"] for d in rep["not_identifiable_detail"] if d["name"] == "AOC"} == {"too_small"}

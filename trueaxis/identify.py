@@ -630,6 +630,9 @@ class Identification:
     std_noise: np.ndarray | None = None
     std_alias: np.ndarray | None = None
     not_significant: dict = field(default_factory=dict)
+    # name -> (change, std) of significant changes a "no change" verdict did not write (together they explain too
+    # little of the part); listed as not significant, AOC -27 +- 3.4 had read "not significant" (a QA pass)
+    too_small: dict = field(default_factory=dict)
     verdict: str = "accepted"
     reasons: list = field(default_factory=list)
     heldout: dict = field(default_factory=dict)
@@ -702,6 +705,12 @@ class Identification:
                 detail.append({"name": name, "category": "taken_by_setup", "seen_share": _r(self.seen_share[i], 3),
                                "reason": "moves this part only as a translation does, which the set-up offset (free: "
                                          "its accuracy not given) takes: kept at the twin's value"})
+            elif name in self.too_small:
+                ch, sd = self.too_small[name]
+                detail.append({"name": name, "category": "too_small", "seen_share": _r(self.seen_share[i], 3),
+                               "reason": f"change {ch:+.3g} +- {sd:.3g} {unit_of(name)} is significant, but the "
+                                         "changes together explain too little of the part to be written (the "
+                                         "verdict): kept at the twin's value"})
             elif name in self.not_significant:
                 ch, sd = self.not_significant[name]
                 detail.append({"name": name, "category": "not_significant", "seen_share": _r(self.seen_share[i], 3),
@@ -738,10 +747,13 @@ class Identification:
             "parameters": params,
             "not_significant": [{"name": k, f"change_{unit_of(k)}": _r(v[0]), f"std_{unit_of(k)}": _r(v[1])}
                                 for k, v in self.not_significant.items()],
+            "too_small_to_write": [{"name": k, f"change_{unit_of(k)}": _r(v[0]), f"std_{unit_of(k)}": _r(v[1])}
+                                   for k, v in self.too_small.items()],
             "not_identifiable": [d["name"] for d in detail],
             "not_identifiable_detail": detail,
             # (the list above mixes why a parameter kept the twin's value: counted by category here; categories:
-            # gauge, no_effect, not_asked, hidden_by_alignment, not_significant, poorly_determined, barely_seen)
+            # gauge, no_effect, not_asked, hidden_by_alignment, too_small, not_significant, poorly_determined,
+            # barely_seen)
             "not_identifiable_by_category": {c: sum(d["category"] == c for d in detail)
                                              for c in dict.fromkeys(d["category"] for d in detail)},
             "alignment": self.alignment,
@@ -811,6 +823,10 @@ class Identification:
         if self.taken_by_setup:
             out.append("  a translation of this part, the set-up's (free), kept: " + ", ".join(self.taken_by_setup[:8])
                        + (" ..." if len(self.taken_by_setup) > 8 else ""))
+        if self.too_small:
+            out.append("  significant, but together too small to write, kept: " + ", ".join(
+                f"{k} {v[0]:+.2f} +- {v[1]:.2f}" for k, v in list(self.too_small.items())[:8])
+                + (" ..." if len(self.too_small) > 8 else ""))
         if self.not_significant:
             out.append("  not significant, kept: " + ", ".join(
                 f"{k} {v[0]:+.2f} +- {v[1]:.2f}" for k, v in list(self.not_significant.items())[:8])
@@ -1138,9 +1154,10 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
                 "(a backlash, a servo lag) can drive them: give the set-up's accuracy (--setup-sigma-um), measure a "
                 "second placement, or look with `trueaxis diagnose`"]
     nuisance_fit = (theta, std_all)
+    too_small = {}
     if verdict == "no change":
         for i in np.nonzero(identified)[0]:
-            not_significant[names[i]] = (float(value[i] - prior[i]), float(np.hypot(std_noise[i], std_setup[i])))
+            too_small[names[i]] = (float(value[i] - prior[i]), float(np.hypot(std_noise[i], std_setup[i])))
         value = prior.copy()
         identified[:] = False
         after = placed                                           # the twin as it is (the part placed)
@@ -1180,7 +1197,7 @@ def identify(points, normals, deviation_um, program, machine: Machine, *, parame
                  "max_relative_std": max_relative_std, "min_share": min_share, "parameters": parameters,
                  "significance": significance, "alias_prior": bool(alias_prior),
                  "min_explained": min_explained, "setup_sigma_um": setup_sigma_um},
-        std_noise=std_noise, std_alias=std_alias, not_significant=not_significant, verdict=verdict,
+        std_noise=std_noise, std_alias=std_alias, not_significant=not_significant, too_small=too_small, verdict=verdict,
         reasons=reasons, heldout=heldout, considered=considered, hidden_by_alignment=hidden_by_alignment,
         hidden_rms_um=hidden_rms if rigid and verdict != "no change" else (0.0 if rigid else None),
         setup_offset=setup_offset, std_setup=std_setup, placed_rms_um=placed, taken_by_setup=taken_by_setup,

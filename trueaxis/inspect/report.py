@@ -1276,15 +1276,20 @@ def _identification_html(identification: dict) -> str:
                        for a in ("TX", "TY", "TZ") if setup.get(a + "_um") is not None)) + " um"
                    + (f" ({html.escape(str(setup['note']))})" if setup.get("note") else "") + ".</p>")
     not_significant = identification.get("not_significant") or []
+    too_small = identification.get("too_small_to_write") or []
+
+    def change(entry):
+        unit = next((k[7:] for k in entry if k.startswith("change_")), "")
+        return (f"{entry['name']} {_value(entry.get('change_' + unit), unit)} +- "
+                f"{_value(entry.get('std_' + unit), unit)} {unit}")
+    if too_small:
+        out.append("<p>Estimated and significant, but together too small to be written (the verdict; kept at the "
+                   "twin's value): " + html.escape(", ".join(change(e) for e in too_small)) + ".</p>")
     if not_significant:
-        def change(entry):
-            unit = next((k[7:] for k in entry if k.startswith("change_")), "")
-            return (f"{entry['name']} {_value(entry.get('change_' + unit), unit)} +- "
-                    f"{_value(entry.get('std_' + unit), unit)} {unit}")
         out.append("<p>Estimated, not significant (kept at the twin's value): "
                    + html.escape(", ".join(change(e) for e in not_significant)) + ".</p>")
     # the detail sorts the rest: held (a gauge value, or not asked for) or not identifiable from this part
-    estimated = {e["name"] for e in not_significant}
+    estimated = {e["name"] for e in not_significant} | {e["name"] for e in too_small}
     detail = [d for d in identification.get("not_identifiable_detail") or [] if d.get("name") not in estimated]
     held = [d["name"] for d in detail if str(d.get("reason", "")).startswith("held")]
     unseen = [d["name"] for d in detail if not str(d.get("reason", "")).startswith("held")]
