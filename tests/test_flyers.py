@@ -146,3 +146,21 @@ def test_the_residual_note_names_the_parameters_kept_as_a_second_cause():
     # the set-up's accuracy given: not advised again (a QA pass read the advice after giving --setup-sigma-um 0)
     given = residual_above_noise_note(2.21, local, kept=["EZZ@-300"], setup_given=True)
     assert "--setup-sigma-um" not in given and "a second placement of the part separates them" in given
+
+
+def test_a_few_points_on_another_surface_are_not_flyers_against_their_nearest_points():
+    # A QA pass: 22 exact probe points on the block's datum faces beside a cone scan were set apart as flyers (0.0 um
+    # each): their nearest points were the cone's, 35 um off. With the surface each point is measured against, the
+    # neighbours are those on its own surface and a surface of a few points is not screened; a real flyer among the
+    # many points of a surface is still found, and without the labels the screen is as before.
+    pts, _, d = _plane(noise=1.0, seed=3)
+    d = d + 35.0  # the scanned surface 35 um off
+    datum = np.column_stack([np.linspace(0.0, 59.0, 22), np.full(22, -0.5), np.zeros(22)])  # beside it, sparse, exact
+    pts, d = np.vstack([pts, datum]), np.r_[d, np.zeros(22)]
+    surface = np.r_[np.zeros(len(d) - 22, int), np.ones(22, int)]
+    d[100] += 40.0  # one flyer on the scanned surface
+    unlabelled = screen_flyers(pts, None, d)
+    assert unlabelled.local[-22:].sum() > 0  # the datum points against the scan's (the QA's case)
+    labelled = screen_flyers(pts, None, d, surface=surface)
+    assert not labelled.local[-22:].any() and labelled.local[100]
+    assert labelled.local.sum() == 1

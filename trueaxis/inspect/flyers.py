@@ -18,7 +18,9 @@ Two rules, in order:
    the points on either side of a step of the surface (a backlash reversal, a pass boundary): each has neighbours on
    its own side; and a flyer lies beyond its surroundings, not between them (a point in a narrow transition between
    two levels: 30 such points of a noise-free cone with backlash on X and Y were set apart without this).
-   The screen is repeated on the points kept (a cluster of flyers) at most ``LOCAL_ROUNDS`` times.
+   The screen is repeated on the points kept (a cluster of flyers) at most ``LOCAL_ROUNDS`` times. Where the
+   surface each point is measured against is known (inspect), the neighbours are those on the same surface, and a
+   surface with fewer than 2 ``NEIGHBOURS`` points (a datum face's few probe points) is not screened.
 
 With Gaussian noise a point is set apart by rule 2 only when its own noise exceeds about ``LOCAL_K`` sigma on the
 side away from nearly all its neighbours (far below one point in a million); 20 um flyers on a 1 um-noise cloud are
@@ -132,28 +134,44 @@ def rule_text(gate_mm: float = GATE_MM) -> str:
             f"of (deviation - median of the neighbours') and more than {LOCAL_FLOOR_UM:g} um")
 
 
-def _local_round(where: np.ndarray, d: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, float]:
-    """(flagged (len(idx),) bool, sigma um) over the points ``idx`` (one round of rule 2)."""
+def _neighbour_values(where: np.ndarray, d: np.ndarray, idx: np.ndarray, k: int) -> np.ndarray:
+    """(len(idx), k) the deviations of each point's k - 1 nearest neighbours among ``idx`` (NaN: the point itself)."""
     from scipy.spatial import cKDTree
 
-    k = min(NEIGHBOURS + 1, idx.size)
     _, nb = cKDTree(where[idx]).query(where[idx], k=k)
     dv = d[idx]
     own = np.arange(idx.size)[:, None]
     others = np.where(nb == own, -1, nb)  # the point itself (not always first: a duplicate point)
-    vals = np.where(others >= 0, dv[np.maximum(others, 0)], np.nan)
-    local = dv - np.nanmedian(vals, axis=1)
-    sigma = float(1.4826 * np.median(np.abs(local - np.median(local))))
+    return np.where(others >= 0, dv[np.maximum(others, 0)], np.nan)
+
+
+def _local_round(where: np.ndarray, d: np.ndarray, idx: np.ndarray, surface=None) -> tuple[np.ndarray, float]:
+    """(flagged (len(idx),) bool, sigma um) over the points ``idx`` (one round of rule 2); ``surface`` (N,) labels:
+    neighbours on the same surface only, and a surface with fewer than 2 NEIGHBOURS points (a datum face's few
+    probe points) not screened: its nearest points lie on another surface, whose deviation is another's (a QA pass:
+    exact datum points flagged against the cone's)."""
+    k = min(NEIGHBOURS + 1, idx.size)
+    groups = [np.arange(idx.size)] if surface is None else \
+        [g for g in (np.flatnonzero(surface[idx] == s) for s in np.unique(surface[idx])) if g.size >= 2 * NEIGHBOURS]
+    vals = np.full((idx.size, k), np.nan)
+    screened = np.zeros(idx.size, bool)
+    for g in groups:
+        vals[g] = _neighbour_values(where, d, idx[g], k)
+        screened[g] = True
+    dv = d[idx]
+    local = (dv[screened] - np.nanmedian(vals[screened], axis=1)) if screened.any() else np.zeros(0)
+    sigma = float(1.4826 * np.median(np.abs(local - np.median(local)))) if local.size else float("nan")
     diff = vals - dv[:, None]  # the neighbours' deviations relative to the point's (nan: the point itself)
     order = np.argsort(np.abs(diff), axis=1)  # nan sorts last
     rest = np.take_along_axis(diff, order, axis=1)[:, ALIKE:k - 1]  # all but the ALIKE nearest in value
     one_side = np.all(rest > 0, axis=1) | np.all(rest < 0, axis=1)
-    return one_side & (np.min(np.abs(rest), axis=1) > max(LOCAL_K * sigma, LOCAL_FLOOR_UM)), sigma
+    return screened & one_side & (np.min(np.abs(rest), axis=1) > max(LOCAL_K * sigma, LOCAL_FLOOR_UM)), sigma
 
 
-def screen_flyers(points, normals, deviation_um, gate_mm: float = GATE_MM) -> FlyerScreen:
+def screen_flyers(points, normals, deviation_um, gate_mm: float = GATE_MM, surface=None) -> FlyerScreen:
     """The flyers of a measured cloud (module docstring). points (N, 3) mm; normals (N, 3) unit or None;
-    deviation_um (N,) the deviation each point is fitted with (from the nominal surface, or from the twin's)."""
+    deviation_um (N,) the deviation each point is fitted with (from the nominal surface, or from the twin's);
+    surface (N,) the surface each point is measured against, or None (neighbours on any)."""
     pts = np.asarray(points, float)
     d = np.asarray(deviation_um, float)
     beyond = ~(np.abs(d) <= gate_mm * 1000.0)  # a non-finite deviation is beyond any gate
@@ -164,7 +182,7 @@ def screen_flyers(points, normals, deviation_um, gate_mm: float = GATE_MM) -> Fl
         idx = np.flatnonzero(~beyond & ~local)
         if idx.size < 2 * NEIGHBOURS:
             break
-        flagged, s = _local_round(where, d, idx)
+        flagged, s = _local_round(where, d, idx, None if surface is None else np.asarray(surface))
         sigma = s if np.isnan(sigma) else sigma
         if not flagged.any():
             break

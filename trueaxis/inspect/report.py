@@ -563,7 +563,7 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     if flyer_screen or (flyer_screen is None and len(aligned) <= FLYER_SCREEN_MAX_POINTS):
         # the rule --identify and diagnose fit without; along the part's normals, as the deviations (a cloud's own
         # normals may scatter, or be colours read as normals: nominal_normals)
-        screen = screen_flyers(aligned, dev.normal, d_um, gate_mm)
+        screen = screen_flyers(aligned, dev.normal, d_um, gate_mm, surface=dev.surface)
         flyers_in_features(report, screen, EVALUATIONS[get_part(part).evaluation], aligned, dev, part_doc, gate_mm,
                            limits, absorbed)
     else:
@@ -685,7 +685,8 @@ def identification_input(inspection: Inspection) -> tuple[Cloud, np.ndarray, dic
     cloud = inspection.aligned_cloud()
     gate_mm = (inspection.report.get("beyond_gate") or {}).get("gate_mm", 0.5)
     screen = inspection.flyers if inspection.flyers is not None else \
-        screen_flyers(cloud.points, inspection.deviation.normal, inspection.deviation_um, gate_mm)  # as inspect's
+        screen_flyers(cloud.points, inspection.deviation.normal, inspection.deviation_um, gate_mm,
+                      surface=inspection.deviation.surface)  # as inspect's
     entries = {"flyers_set_apart": screen.as_dict()}
     if not screen.n_apart:
         return cloud, inspection.deviation_um, entries
