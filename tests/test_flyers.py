@@ -164,3 +164,14 @@ def test_a_few_points_on_another_surface_are_not_flyers_against_their_nearest_po
     labelled = screen_flyers(pts, None, d, surface=surface)
     assert not labelled.local[-22:].any() and labelled.local[100]
     assert labelled.local.sum() == 1
+
+
+def test_a_noise_free_cloud_is_said_as_such_not_as_an_effect_the_twin_lacks():
+    # A QA pass: a noise-free virtual-shop cloud was refused by the identification as driven by "a backlash, a servo
+    # lag", the note reading "above the cloud's own noise (0.00 um)". Said as a cloud without probe noise.
+    from trueaxis.inspect.flyers import residual_above_noise_note
+
+    note = residual_above_noise_note(0.52, 0.001, kept=["XOC"])
+    assert note.startswith("the cloud shows no probe noise (0.001 um between neighbouring points)") and \
+        "simulate --noise-um" in note and "diagnose" not in note
+    assert "above the cloud's own noise (0.50 um" in residual_above_noise_note(1.5, 0.5 * 1.0934, kept=["XOC"])
