@@ -594,3 +594,21 @@ def test_cl_csv_columns_named_with_their_unit_are_read_in_mm_or_refused_naming_t
         assert cl_to_program(read_cl(text), nmv) == plain, head
     with pytest.raises(ClError, match=r"^u.csv:1: CSV header gives column x in 'in': CL data in CSV are read in mm"):
         read_cl("x_in,y_in,z_in,i,j,k,f\n0,0,5,0,0.1,1,\n", "u.csv")
+
+
+def test_a_cl_path_that_starts_vertical_and_tilts_in_posts_without_a_turn_in_the_cut(nmv):
+    # A QA pass: a CL path vertical, then tilted toward +X inside the cut, was refused ("the machine axes jump on this
+    # CL segment"): the vertical poses held C at its start (0) and the tilt needed C = -180. The path reversed posted.
+    # The vertical poses a pass starts with take the angle of its first tilted pose: no turn of C inside the cut.
+    from trueaxis.nc.cl import cl_axes
+
+    text = ("x,y,z,i,j,k,f\n0,0,5,0,0,1,\n10,0,5,0,0,1,800\n20,0,5,0,0,1,\n"
+            "30,0,5,0.173648178,0,0.984807753,\n")
+    out = compensate(text, nmv, offsets_zero=True)
+    q, _ = cl_axes(read_cl(text), nmv)
+    c = np.degrees(q[:, nmv.axis_names.index("C")])
+    assert np.ptp(c) < 1e-9 and abs(abs(c[0]) - 180.0) < 1e-6  # C held at the tilt's angle from the start
+    q_out, _ = machine_rows(parse_program(out), nmv)
+    assert np.degrees(np.ptp(q_out[:, nmv.axis_names.index("C")])) < 0.5
+    reverse = ("x,y,z,i,j,k,f\n30,0,5,0.173648178,0,0.984807753,\n20,0,5,0,0,1,800\n10,0,5,0,0,1,\n")
+    assert compensate(reverse, nmv, offsets_zero=True)  # (as before)

@@ -575,13 +575,17 @@ def _solve_path(cl: ClData, machine: Machine, branch, previous):
                          "with a RAPID before this point, or change the tool axes")
     else:
         raise ValueError(f"branch must be +1, -1 or 'nearest', got {branch!r}")
-    # Winding: the chosen branch's outer angle, held where singular, then the shortest way from pose to pose.
+    # Winding: the chosen branch's outer angle, held where singular, then the shortest way from pose to pose. The
+    # singular poses a pass starts with (the tool along the outer axis, where any angle serves) take the angle of its
+    # first pose that is not: a path that starts vertical and tilts in then needs no turn inside the cut (held at
+    # the angle before, a tilt toward +X turned C by 180 deg in one segment, refused; a QA pass).
     o = np.where(b > 0, r1.q[:, outer.column], r2.q[:, outer.column])
     sing = r1.singular
     o_start = 0.0 if prev0 is None else prev0[outer.column]
     idx = np.where(~sing, np.arange(n), -1)
     last = np.maximum.accumulate(idx)
-    o = np.where(last >= 0, o[np.maximum(last, 0)], o_start)
+    first = int(np.argmax(~sing)) if (~sing).any() else -1
+    o = np.where(last >= 0, o[np.maximum(last, 0)], o_start if first < 0 else o[first])
     steps = np.diff(o)
     steps = (steps + np.pi) % (2 * np.pi) - np.pi
     o0 = o[0] + 2 * np.pi * np.round((o_start - o[0]) / (2 * np.pi))
