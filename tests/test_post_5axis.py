@@ -612,3 +612,26 @@ def test_a_cl_path_that_starts_vertical_and_tilts_in_posts_without_a_turn_in_the
     assert np.degrees(np.ptp(q_out[:, nmv.axis_names.index("C")])) < 0.5
     reverse = ("x,y,z,i,j,k,f\n30,0,5,0.173648178,0,0.984807753,\n20,0,5,0,0,1,800\n10,0,5,0,0,1,\n")
     assert compensate(reverse, nmv, offsets_zero=True)  # (as before)
+
+
+def test_a_cl_path_tilted_then_vertical_then_tilted_the_other_way_turns_c_while_vertical(nmv):
+    # Beyond the QA's case: tilted toward -X, two vertical points, tilted toward +X. The vertical poses held C at the
+    # angle before and the 180 deg turn came in the last segment, into the tilt: refused as a jump. Now C turns on the
+    # segment between the two vertical poses (the tool along C there: any angle serves) and the program's nominal tip,
+    # sampled along every block as the control interpolates it, stays on the CL polyline.
+    from post_checks import distance_to_polyline
+    from trueaxis.nc.cl import cl_axes
+
+    text = ("x,y,z,i,j,k,f\n0,0,5,-0.173648178,0,0.984807753,\n10,0,5,0,0,1,800\n20,0,5,0,0,1,\n"
+            "30,0,5,0.173648178,0,0.984807753,\n")
+    cl = read_cl(text)
+    q, _ = cl_axes(cl, nmv)
+    c = np.degrees(q[:, nmv.axis_names.index("C")])
+    assert c[1] == pytest.approx(c[0], abs=1e-9) and c[3] == pytest.approx(c[2], abs=1e-9)
+    assert abs(abs(c[2] - c[1]) - 180.0) < 1e-6  # the whole turn between the vertical poses
+    q_out, _ = machine_rows(parse_program(cl_to_program(cl, nmv)), nmv)
+    f = np.linspace(0.0, 1.0, 9)[1:, None, None]
+    samples = (q_out[:-1] + f * (q_out[1:] - q_out[:-1])).reshape(-1, q_out.shape[1])
+    tip, _ = forward_nominal(nmv, samples)
+    assert distance_to_polyline(tip, cl.tip).max() * 1e3 < 1.0  # um: within the CL path's tolerance
+    assert compensate(text, nmv, offsets_zero=True)

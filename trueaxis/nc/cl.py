@@ -586,6 +586,7 @@ def _solve_path(cl: ClData, machine: Machine, branch, previous):
     last = np.maximum.accumulate(idx)
     first = int(np.argmax(~sing)) if (~sing).any() else -1
     o = np.where(last >= 0, o[np.maximum(last, 0)], o_start if first < 0 else o[first])
+    o = _turned_across_singular_runs(o, sing, cl.tip)
     steps = np.diff(o)
     steps = (steps + np.pi) % (2 * np.pi) - np.pi
     o0 = o[0] + 2 * np.pi * np.round((o_start - o[0]) / (2 * np.pi))
@@ -609,6 +610,29 @@ def _solve_path(cl: ClData, machine: Machine, branch, previous):
     linear = [c for c, a in enumerate(names) if not machine.axes[a].is_rotary]
     q[np.ix_(~sing, linear)] = raw[np.ix_(~sing, linear)]
     return q, b
+
+
+def _turned_across_singular_runs(o: np.ndarray, sing: np.ndarray, tip: np.ndarray) -> np.ndarray:
+    """The outer axis' angles ``o`` (N,) rad with each run of singular poses between two that are not turned from the
+    one before to the one after, the shortest way, on the run's segments whose both ends are singular (the tool stays
+    along the outer axis there, where any angle serves), in proportion to the tip's path length; they held the one
+    before, and a path tilted one way, then vertical, then tilted another way turned in its last segment, refused as
+    a jump of the axes. A run of one pose has no such segment: held as before."""
+    ns = np.flatnonzero(~sing)
+    if ns.size < 2:
+        return o
+    gaps = np.flatnonzero(np.diff(ns) > 2)  # runs of two or more singular poses between ns[g] and ns[g + 1]
+    if gaps.size == 0:
+        return o
+    o = o.copy()
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(tip, axis=0), axis=1))]
+    for g in gaps:
+        a, b = int(ns[g]) + 1, int(ns[g + 1]) - 1  # the run's first and last singular pose
+        turn = (o[b + 1] - o[a - 1] + np.pi) % (2 * np.pi) - np.pi
+        span = s[b] - s[a]
+        frac = (s[a:b + 1] - s[a]) / span if span > 0 else np.arange(b - a + 1) / (b - a)
+        o[a:b + 1] = o[a - 1] + frac * turn
+    return o
 
 
 def machine_linear_positions(machine: Machine, q_rot: np.ndarray, points: np.ndarray) -> np.ndarray:
