@@ -307,7 +307,8 @@ def _read_csv(text: str, source: str) -> ClData:
                 try:
                     float(raw[k])
                 except ValueError:
-                    raise ClError(source, int(line_no[k]), f"column {cols[col]}: {str(raw[k])!r} is not a number") from None
+                    raise ClError(source, int(line_no[k]),
+                                  f"column {cols[col]}: {str(raw[k])!r} is not a number") from None
         if not allow_empty and np.any(empty):
             k = int(np.argmax(empty))
             raise ClError(source, int(line_no[k]), f"column {cols[col]} is empty")

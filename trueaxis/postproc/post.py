@@ -1391,8 +1391,8 @@ class _Poster:
             self.rep.warnings.append(
                 f"{p.source}:{tools[0]['first_line']}: tool offsets in force ({said}): the twin takes its errors at "
                 f"the tip the program's positions place, as a point of the slides; a tool's offsets are an arm from "
-                f"the turret's reference on which the slides' angular errors act, moving the tip by d x the angle for an "
-                f"offset d, up to {worst_urad * 0.01:.2f} um per 10 mm on this program's moves, which the post does "
+                f"the turret's reference on which the slides' angular errors act, moving the tip by d x the angle for "
+                f"an offset d, up to {worst_urad * 0.01:.2f} um per 10 mm on this program's moves, which the post does "
                 "not correct")
             return
         self.rep.warnings.append(
