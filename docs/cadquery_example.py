@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import cadquery as cq
@@ -25,6 +26,8 @@ import numpy as np
 import trueaxis.postproc.hosts.cadquery  # noqa: F401  (registers Workplane.nas979 and Workplane.slotBlock)
 from trueaxis.machine import ErrorTwin, load_machine
 from trueaxis.postproc import compensate
+from trueaxis.nc.setup import SetupError
+from trueaxis.postproc.post import PostError
 from trueaxis.resources import machine_file
 
 
@@ -101,7 +104,11 @@ def main(argv=None) -> int:
                     "work offsets (default: none; the program's coordinates are machine coordinates)")
     ap.add_argument("-o", "--output", default="cadquery_example_out", help="output folder")
     args = ap.parse_args(argv)
-    part, machine, program, compensated, report = run(args.machine, var=args.var)
+    try:
+        part, machine, program, compensated, report = run(args.machine, var=args.var)
+    except (PostError, SetupError) as exc:  # a refused program or setup: its one line (file:line: reason), as the command line says it
+        print(exc, file=sys.stderr)
+        return 3
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     cq.exporters.export(part, str(out / "nas979.step"))

@@ -170,3 +170,15 @@ def test_example_script_runs_without_a_warning_by_default_and_says_what_it_took(
               if ln.startswith(("(trueaxis post: ", "(trueaxis setup: "))]
     assert "(trueaxis setup: G54 0 mm, from --offsets-zero)" in header, header
     assert f"out with {len(header)} header comments" in capsys.readouterr().out
+
+
+def test_example_script_says_a_refusal_in_one_line(tmp_path, capsys):
+    # A QA pass: --var with offsets that put the contour out of travel ended in a 20-line traceback, where the
+    # docstring promises the post's one line (file:line: reason). Exit 3 and that line.
+    from rs274_helpers import var_text
+
+    (tmp_path / "far.var").write_text(var_text({1: [0.0, 0.0, 500.0, 0.0, 0.0, 0.0]}))
+    module = runpy.run_path(str(EXAMPLE), run_name="cadquery_example")
+    assert module["main"](["--var", str(tmp_path / "far.var"), "-o", str(tmp_path / "out")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("nas979_contour.ngc:") and "outside its travel" in err[0], err

@@ -497,7 +497,8 @@ def cmd_freecad_install(args) -> int:
     except OSError as exc:  # a folder we may not write, a file where the folder should be
         raise UsageError(f"cannot install into {folder}: {exc.strerror or exc}") from None
     print(f"{target}: installed; in a FreeCAD CAM Job choose the post processor 'trueaxis' with arguments such as "
-          "--machine /path/to/machine.toml")
+          "--machine /path/to/machine.toml; FreeCAD runs the trueaxis command: put it on PATH, or set TRUEAXIS_BIN to "
+          f"it ({Path(sys.executable).with_name('trueaxis')})")
     return 0
 
 
