@@ -551,11 +551,13 @@ def inspect_cloud(cloud, part: str, part_dir=None, cad=None, align: str = "none"
     report["duplicate_points"] = duplicates
     absorbed = None
     if align == "bestfit":
-        absorbed = {key: f"not measured with --align bestfit: {why} (use --align datum, or none for a part probed in "
-                         "its frame)" for key, why in get_part(part).bestfit_absorbs}
+        # (datum needs the block's faces probed, which a `simulate` cloud has not: a QA pass tried it)
+        absorbed = {key: f"not measured with --align bestfit: {why} (use --align datum with the block's faces probed, "
+                         "or none for a part probed in its frame)" for key, why in get_part(part).bestfit_absorbs}
         report.setdefault("warnings", []).append(
             "the best fit onto the CAD takes away what a rigid move changes: "
-            + ", ".join(CHARACTERISTICS[key][2] for key in absorbed) + " not measured (use --align datum, or none)")
+            + ", ".join(CHARACTERISTICS[key][2] for key in absorbed)
+            + " not measured (use --align datum with the block's faces probed, or none for a part probed in its frame)")
     report["feature_table"] = feature_table(report, part_doc, limits, not_measured=absorbed)
     if absorbed:
         mark_not_measured(report, absorbed)
