@@ -183,6 +183,7 @@ def screen_flyers(points, normals, deviation_um, gate_mm: float = GATE_MM, surfa
     surface (N,) the surface each point is measured against, or None (neighbours on any)."""
     pts = np.asarray(points, float)
     d = np.asarray(deviation_um, float)
+    surface = None if surface is None else np.asarray(surface)
     beyond = ~(np.abs(d) <= gate_mm * 1000.0)  # a non-finite deviation is beyond any gate
     where = pts if normals is None else pts - (np.where(beyond, 0.0, d) / 1000.0)[:, None] * np.asarray(normals)
     local = np.zeros(d.size, bool)
@@ -191,7 +192,7 @@ def screen_flyers(points, normals, deviation_um, gate_mm: float = GATE_MM, surfa
         idx = np.flatnonzero(~beyond & ~local)
         if idx.size < 2 * NEIGHBOURS:
             break
-        flagged, s = _local_round(where, d, idx, None if surface is None else np.asarray(surface))
+        flagged, s = _local_round(where, d, idx, surface)
         sigma = s if np.isnan(sigma) else sigma
         if not flagged.any():
             break

@@ -728,9 +728,12 @@ def _post_cl(text, machine, mode, *, tol_um, max_correction_mm, singular_deg, co
     # the warnings name the CL file's lines, as the refusals do (they named the machine-axis program's lines as the
     # CL file's: "gohome.apt:8" in a 5-line file, a QA pass)
     at = re.compile("^" + re.escape(source) + r":([0-9]+): ")
-    rep.warnings = [at.sub(lambda m: f"{source}:{line_map[min(max(int(m.group(1)), 1), len(line_map)) - 1]}: ", w)
-                    + (f" (CL point; line {at.match(w).group(1)} of the machine-axis program made from it)"
-                       if at.match(w) else "") for w in rep.warnings]
+    for k, w in enumerate(rep.warnings):
+        m = at.match(w)
+        if m:
+            line = line_map[min(max(int(m.group(1)), 1), len(line_map)) - 1]
+            rep.warnings[k] = (f"{source}:{line}: {w[m.end():]} (CL point; line {m.group(1)} of the machine-axis "
+                               "program made from it)")
     rep.tol_um = tol_um
     rep.input_format = f"cl-{cl.format}"
     rep.cl_points = len(cl)
