@@ -261,6 +261,18 @@ SETS = {
             {"machine": "ac_trunnion", "placement_mm": (0.0, -25.0), "cone": {"base_diameter": 70.0}},
         ],
     },
+    # An eleventh held-out set, added on 2026-11-28 (twelfth session) after a verdict's std came to cover the values
+    # of the explanations tied with it (tie_spread; the rules frozen at the commit that adds this set), run once at
+    # 600 points: a fresh seed, new placements and cone sizes on the three held-out layouts.
+    "heldout11": {
+        "seed": 71_933,
+        "setups": [
+            {"machine": "ac_trunnion", "placement_mm": (20.0, 10.0), "cone": {"height": 18.5}},
+            {"machine": "bc_offset", "placement_mm": (25.0, 35.0), "cone": {"half_angle_deg": 17.0}},
+            {"machine": "headtable", "placement_mm": (-25.0, -20.0), "cone": {"base_diameter": 67.0}},
+            {"machine": "ac_trunnion", "placement_mm": (-10.0, -15.0), "cone": {"base_diameter": 69.0}},
+        ],
+    },
 }
 
 OUT_OF_LIBRARY = ("tool_wear", "clamping_bend")
